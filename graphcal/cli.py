@@ -1,0 +1,123 @@
+"""graphcal command line. Only argument parsing and wiring live here; every command calls a library
+function. graphcal's own errors (bad input) print one line and exit with code 2; anything else is a
+bug and keeps its traceback."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _effect_arg(text: str):
+    """``cause`` or ``cause:key=value,key=value`` (SI units) -> (cause, dict)."""
+    cause, _, rest = text.partition(":")
+    params = {}
+    if rest:
+        for item in rest.split(","):
+            key, eq, val = item.partition("=")
+            if not eq:
+                raise argparse.ArgumentTypeError(f"--effect {text!r}: expected key=value after ':'")
+            params[key.strip()] = val.strip()
+    return cause.strip(), params
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    p = argparse.ArgumentParser(
+        prog="graphcal",
+        description="Self-calibration and state estimation for legged robots (factor graphs).",
+    )
+    p.add_argument("--version", action="version", version=f"graphcal {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("simulate", help="simulate a calibration session and write it as a dataset")
+    s.add_argument("--robot", default="octopus", help="built-in robot model (octopus, qingzhui, messor, a1)")
+    s.add_argument("--program", default="chai2015", help="station program (chai2015, labecki2012, random)")
+    s.add_argument("--ground", default="level", help="level, bumpy-little, bumpy-big, stairs, boxes")
+    s.add_argument("--out", required=True, type=Path, help="output dataset folder (must not exist or be empty)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--stations", type=int, default=None, help="number of stations (random program)")
+    s.add_argument("--sessions", type=int, default=1, help="number of stances (feet re-planted between them)")
+    s.add_argument("--sensor", action="append", default=None, help="simulate only this sensor (repeatable)")
+    s.add_argument("--output", choices=("clouds", "planes", "both"), default="both",
+                   help="write raw clouds, fitted planes (planes.csv), or both (default)")
+    s.add_argument("--cloud-stride", type=int, default=4,
+                   help="keep every k-th camera pixel row/column (1 = full 640x480 frames)")
+    s.add_argument("--leg-errors", action="store_true",
+                   help="draw random joint-offset (0.5 deg) and link-length (3 mm) errors on every leg")
+    s.add_argument("--effect", action="append", type=_effect_arg, default=[],
+                   help="hide an effect: CAUSE or CAUSE:key=value,... (see docs/simulation.md); "
+                        "CAUSE alone draws its magnitude and location from the seed")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    v = sub.add_parser("validate", help="check a dataset against the contract (docs/dataset.md)")
+    v.add_argument("dataset", type=Path)
+
+    e = sub.add_parser("extract-planes", help="fit planes to a dataset's clouds and write planes.csv")
+    e.add_argument("dataset", type=Path)
+    e.add_argument("--out", type=Path, default=None,
+                   help="planes.csv to write (default: DATASET/planes.csv, only if it does not exist)")
+    e.add_argument("--max-planes", type=int, default=1)
+    e.add_argument("--quiet", action="store_true")
+    return p
+
+
+def _cmd_simulate(args) -> int:
+    from .simulation.run import simulate_to_folder
+
+    summary = simulate_to_folder(
+        robot=args.robot,
+        program=args.program,
+        ground=args.ground,
+        out_dir=args.out,
+        seed=args.seed,
+        n_stations=args.stations,
+        n_sessions=args.sessions,
+        sensors=tuple(args.sensor) if args.sensor else None,
+        output=args.output,
+        cloud_stride=args.cloud_stride,
+        leg_errors=args.leg_errors,
+        effects=args.effect,
+        overwrite=args.overwrite,
+        progress=not args.quiet,
+    )
+    print(summary)
+    return 0
+
+
+def _cmd_validate(args) -> int:
+    from .io.dataset import validate_dataset
+
+    report = validate_dataset(args.dataset)
+    print(report.summary())
+    return 0
+
+
+def _cmd_extract_planes(args) -> int:
+    from .simulation.run import extract_planes_to_csv
+
+    out = extract_planes_to_csv(args.dataset, args.out, max_planes=args.max_planes, progress=not args.quiet)
+    print(f"wrote {out}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .errors import GraphcalError
+
+    args = _build_parser().parse_args(argv)
+    handlers = {"simulate": _cmd_simulate, "validate": _cmd_validate, "extract-planes": _cmd_extract_planes}
+    try:
+        return handlers[args.command](args)
+    except GraphcalError as exc:
+        print(f"graphcal {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"graphcal {args.command}: interrupted; nothing was written", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,38 @@
+"""graphcal's own exceptions. The command line prints them as one line and exits with code 2;
+any other exception is a bug and is shown with its traceback."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class GraphcalError(Exception):
+    """Base class of every error graphcal raises on purpose (bad input, impossible request)."""
+
+
+class DatasetError(GraphcalError):
+    """A dataset (or a file given to graphcal) does not follow the contract.
+
+    Args:
+        file: the file at fault (path as the user gave it, or relative to the dataset folder).
+        where: the row, column or key, e.g. ``"row 12, column q_lf_hip"`` or ``"sensors.depth.type"``.
+        expected: what the contract asks for there.
+        got: what was found (optional, shown verbatim, truncated).
+    """
+
+    def __init__(self, file: str | Path, where: str, expected: str, got: object | None = None):
+        self.file = str(file)
+        self.where = where
+        self.expected = expected
+        self.got = got
+        msg = f"{self.file}: {where}: expected {expected}"
+        if got is not None:
+            text = repr(got) if not isinstance(got, str) else got
+            if len(text) > 80:
+                text = text[:77] + "..."
+            msg += f", got {text}"
+        super().__init__(msg)
+
+
+class ModelError(GraphcalError):
+    """A robot model (URDF, built-in model name, frame or joint) cannot be used as asked."""

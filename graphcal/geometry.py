@@ -1,0 +1,345 @@
+"""Frames, rotations and planes: the one place where graphcal's conventions are written down.
+
+Conventions (the whole code base follows them; see docs/conventions.md):
+
+* ``T_a_b`` is the pose of frame ``b`` expressed in frame ``a``. It maps b-coordinates to
+  a-coordinates: ``p_a = T_a_b @ p_b`` (homogeneous), and ``T_a_c = T_a_b @ T_b_c``.
+  In code a pose is a 4x4 ``float64`` numpy array; at solver boundaries it is a ``gtsam.Pose3``.
+* Tangent vectors of SE(3) are ordered ``[omega, v]`` (rotation first, GTSAM's order) and
+  perturbations act on the right (body side): ``T = T_hat @ Exp(xi)``.
+  Pinocchio orders spatial vectors ``[v, omega]``; :func:`tangent_from_pinocchio` and
+  :func:`tangent_to_pinocchio` are the only conversions.
+* Roll/pitch/yaw are the ROS convention ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``, radians inside
+  the code, degrees only in files whose key says ``_deg``.
+* Quaternions are ``(w, x, y, z)``, unit norm, sign chosen with ``w >= 0``.
+* A plane is ``(n, d)`` with unit ``n`` and ``n . x + d = 0`` for points ``x`` on it, expressed in
+  the frame named by the variable (``plane_sensor``); canonical form has ``d >= 0`` (n points
+  from the plane towards the frame origin).
+
+Everything here is plain numpy and vectorised where a batch is natural.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "rot_x",
+    "rot_y",
+    "rot_z",
+    "matrix_from_rpy",
+    "rpy_from_matrix",
+    "matrix_from_quat_wxyz",
+    "quat_wxyz_from_matrix",
+    "matrix_from_axis_angle",
+    "axis_angle_from_matrix",
+    "pose_matrix",
+    "pose_from_xyz_rpy",
+    "xyz_rpy_from_pose",
+    "pose_from_xyz_quat_wxyz",
+    "xyz_quat_wxyz_from_pose",
+    "invert_pose",
+    "transform_points",
+    "rotation_angle_between",
+    "canonical_plane",
+    "transform_plane",
+    "plane_from_points_pca",
+    "to_gtsam_pose",
+    "from_gtsam_pose",
+    "to_pinocchio_se3",
+    "from_pinocchio_se3",
+    "tangent_from_pinocchio",
+    "tangent_to_pinocchio",
+    "skew",
+    "so3_exp",
+    "se3_exp",
+    "fit_rigid_transform",
+]
+
+
+# ----------------------------------------------------------------------------- rotations
+def rot_x(angle_rad: float) -> np.ndarray:
+    """Rotation matrix about x by ``angle_rad`` (rad)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle_rad: float) -> np.ndarray:
+    """Rotation matrix about y by ``angle_rad`` (rad)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle_rad: float) -> np.ndarray:
+    """Rotation matrix about z by ``angle_rad`` (rad)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def matrix_from_rpy(rpy_rad) -> np.ndarray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll); ``rpy_rad`` = (roll, pitch, yaw) in rad, shape (3,) or (N, 3)."""
+    rpy = np.asarray(rpy_rad, dtype=float)
+    if rpy.ndim == 1:
+        return rot_z(rpy[2]) @ rot_y(rpy[1]) @ rot_x(rpy[0])
+    r, p, y = rpy[:, 0], rpy[:, 1], rpy[:, 2]
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    R = np.empty((len(rpy), 3, 3))
+    R[:, 0, 0] = cy * cp
+    R[:, 0, 1] = cy * sp * sr - sy * cr
+    R[:, 0, 2] = cy * sp * cr + sy * sr
+    R[:, 1, 0] = sy * cp
+    R[:, 1, 1] = sy * sp * sr + cy * cr
+    R[:, 1, 2] = sy * sp * cr - cy * sr
+    R[:, 2, 0] = -sp
+    R[:, 2, 1] = cp * sr
+    R[:, 2, 2] = cp * cr
+    return R
+
+
+def rpy_from_matrix(R) -> np.ndarray:
+    """Inverse of :func:`matrix_from_rpy` (rad). At pitch = +-90 deg roll is set to 0."""
+    R = np.asarray(R, dtype=float)
+    pitch = np.arcsin(np.clip(-R[2, 0], -1.0, 1.0))
+    if abs(np.cos(pitch)) < 1e-9:
+        roll = 0.0
+        yaw = np.arctan2(-R[0, 1], R[1, 1])
+    else:
+        roll = np.arctan2(R[2, 1], R[2, 2])
+        yaw = np.arctan2(R[1, 0], R[0, 0])
+    return np.array([roll, pitch, yaw])
+
+
+def matrix_from_quat_wxyz(q) -> np.ndarray:
+    """Rotation matrix from a unit quaternion (w, x, y, z). The caller checks the norm."""
+    w, x, y, z = np.asarray(q, dtype=float)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quat_wxyz_from_matrix(R) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) with w >= 0 from a rotation matrix (Shepperd's method)."""
+    R = np.asarray(R, dtype=float)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = np.array([0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s])
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = np.array([(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s])
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = np.array([(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s])
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = np.array([(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s])
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def skew(v) -> np.ndarray:
+    """3x3 cross-product matrix: ``skew(a) @ b == np.cross(a, b)``."""
+    x, y, z = np.asarray(v, dtype=float)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def so3_exp(omega) -> np.ndarray:
+    """Rotation matrix Exp(omega) (Rodrigues); ``omega`` in rad, shape (3,)."""
+    omega = np.asarray(omega, dtype=float)
+    theta = np.linalg.norm(omega)
+    K = skew(omega)
+    if theta < 1e-9:
+        return np.eye(3) + K + 0.5 * K @ K
+    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * K @ K
+
+
+def matrix_from_axis_angle(axis, angle_rad: float) -> np.ndarray:
+    """Rotation by ``angle_rad`` about the (not necessarily unit) ``axis``."""
+    axis = np.asarray(axis, dtype=float)
+    return so3_exp(axis / np.linalg.norm(axis) * angle_rad)
+
+
+def axis_angle_from_matrix(R) -> tuple[np.ndarray, float]:
+    """(unit axis, angle in [0, pi]) of a rotation matrix; axis is x for the identity."""
+    R = np.asarray(R, dtype=float)
+    angle = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    if angle < 1e-12:
+        return np.array([1.0, 0.0, 0.0]), 0.0
+    if np.pi - angle < 1e-6:
+        # near pi: axis from the largest diagonal of (R + I) / 2
+        M = (R + np.eye(3)) / 2.0
+        i = int(np.argmax(np.diag(M)))
+        axis = M[:, i] / np.sqrt(M[i, i])
+        return axis / np.linalg.norm(axis), angle
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2.0 * np.sin(angle))
+    return axis / np.linalg.norm(axis), angle
+
+
+def rotation_angle_between(R_a, R_b) -> float:
+    """Angle (rad) of the rotation R_a^T R_b."""
+    R = np.asarray(R_a).T @ np.asarray(R_b)
+    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+# ----------------------------------------------------------------------------- poses
+def pose_matrix(R, t) -> np.ndarray:
+    """4x4 homogeneous pose from rotation R (3x3) and translation t (3,) in metres."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def pose_from_xyz_rpy(xyz, rpy_rad) -> np.ndarray:
+    """Pose from translation (m) and ROS roll/pitch/yaw (rad)."""
+    return pose_matrix(matrix_from_rpy(rpy_rad), xyz)
+
+
+def xyz_rpy_from_pose(T) -> tuple[np.ndarray, np.ndarray]:
+    """(translation in m, roll/pitch/yaw in rad) of a 4x4 pose."""
+    T = np.asarray(T, dtype=float)
+    return T[:3, 3].copy(), rpy_from_matrix(T[:3, :3])
+
+
+def pose_from_xyz_quat_wxyz(xyz, quat_wxyz) -> np.ndarray:
+    """Pose from translation (m) and unit quaternion (w, x, y, z)."""
+    return pose_matrix(matrix_from_quat_wxyz(quat_wxyz), xyz)
+
+
+def xyz_quat_wxyz_from_pose(T) -> tuple[np.ndarray, np.ndarray]:
+    """(translation in m, quaternion (w, x, y, z) with w >= 0) of a 4x4 pose."""
+    T = np.asarray(T, dtype=float)
+    return T[:3, 3].copy(), quat_wxyz_from_matrix(T[:3, :3])
+
+
+def invert_pose(T) -> np.ndarray:
+    """T_b_a from T_a_b (4x4), or a batch (N, 4, 4)."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    Ti = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    Ti[..., :3, :3] = Rt
+    Ti[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    Ti[..., 3, 3] = 1.0
+    return Ti
+
+
+def transform_points(T_a_b, points_b) -> np.ndarray:
+    """Points (N, 3) in frame b -> frame a."""
+    T = np.asarray(T_a_b, dtype=float)
+    return np.asarray(points_b, dtype=float) @ T[:3, :3].T + T[:3, 3]
+
+
+def se3_exp(xi) -> np.ndarray:
+    """4x4 Exp of a tangent vector ``xi = [omega, v]`` (GTSAM order), same as gtsam.Pose3.Expmap."""
+    xi = np.asarray(xi, dtype=float)
+    omega, v = xi[:3], xi[3:]
+    theta = np.linalg.norm(omega)
+    K = skew(omega)
+    R = so3_exp(omega)
+    if theta < 1e-9:
+        V = np.eye(3) + 0.5 * K + K @ K / 6.0
+    else:
+        V = np.eye(3) + (1 - np.cos(theta)) / theta**2 * K + (theta - np.sin(theta)) / theta**3 * K @ K
+    return pose_matrix(R, V @ v)
+
+
+# ----------------------------------------------------------------------------- planes
+def canonical_plane(n, d) -> tuple[np.ndarray, float]:
+    """Normalise (n, d) to unit n with d >= 0 (n points from the plane towards the origin)."""
+    n = np.asarray(n, dtype=float)
+    norm = np.linalg.norm(n)
+    n, d = n / norm, float(d) / norm
+    if d < 0:
+        return -n, -d
+    return n, d
+
+
+def transform_plane(T_a_b, n_b, d_b) -> tuple[np.ndarray, float]:
+    """A plane expressed in frame b -> the same plane in frame a (not canonicalised).
+
+    With p_b = R^T (p_a - t): n_b . p_b + d_b = (R n_b) . p_a + d_b - (R n_b) . t.
+    """
+    T = np.asarray(T_a_b, dtype=float)
+    n_a = T[:3, :3] @ np.asarray(n_b, dtype=float)
+    return n_a, float(d_b - n_a @ T[:3, 3])
+
+
+def plane_from_points_pca(points) -> tuple[np.ndarray, float, np.ndarray]:
+    """Least-squares plane through points (N, 3): (n, d) canonical, and the eigenvalues ascending."""
+    P = np.asarray(points, dtype=float)
+    c = P.mean(axis=0)
+    C = (P - c).T @ (P - c) / len(P)
+    w, V = np.linalg.eigh(C)
+    n = V[:, 0]
+    n, d = canonical_plane(n, -n @ c)
+    return n, d, w
+
+
+# ----------------------------------------------------------------------------- library boundaries
+def to_gtsam_pose(T):
+    """gtsam.Pose3 from a 4x4 pose."""
+    import gtsam
+
+    T = np.asarray(T, dtype=float)
+    return gtsam.Pose3(gtsam.Rot3(T[:3, :3]), T[:3, 3].copy())
+
+
+def from_gtsam_pose(pose) -> np.ndarray:
+    """4x4 pose from a gtsam.Pose3."""
+    return np.asarray(pose.matrix(), dtype=float)
+
+
+def to_pinocchio_se3(T):
+    """pinocchio.SE3 from a 4x4 pose (same meaning: the placement of b in a)."""
+    import pinocchio as pin
+
+    T = np.asarray(T, dtype=float)
+    return pin.SE3(T[:3, :3].copy(), T[:3, 3].copy())
+
+
+def from_pinocchio_se3(M) -> np.ndarray:
+    """4x4 pose from a pinocchio.SE3."""
+    return np.asarray(M.homogeneous, dtype=float)
+
+
+def tangent_from_pinocchio(v_pin) -> np.ndarray:
+    """Pinocchio spatial vector / Jacobian rows ``[v, omega]`` -> graphcal/GTSAM ``[omega, v]``.
+
+    Works on a 6-vector or on a (6, n) Jacobian (rows are reordered).
+    """
+    v_pin = np.asarray(v_pin, dtype=float)
+    return np.concatenate([v_pin[3:6], v_pin[0:3]], axis=0)
+
+
+def tangent_to_pinocchio(xi) -> np.ndarray:
+    """graphcal/GTSAM ``[omega, v]`` -> Pinocchio ``[v, omega]`` (6-vector or (6, n))."""
+    xi = np.asarray(xi, dtype=float)
+    return np.concatenate([xi[3:6], xi[0:3]], axis=0)
+
+
+def fit_rigid_transform(points_b, points_a, weights=None) -> np.ndarray:
+    """Least-squares rigid transform T_a_b with points_a ~ T_a_b * points_b (Kabsch / Umeyama, no scale).
+
+    Args:
+        points_b: (N, 3) points in frame b (m), N >= 3 and not collinear.
+        points_a: (N, 3) the same points in frame a (m).
+        weights: optional (N,) non-negative weights.
+    Used to find a body pose from its stance feet (Chai 2015 section 4.2, Zhao 2020 Eqs. 6-9).
+    """
+    Pb = np.asarray(points_b, dtype=float)
+    Pa = np.asarray(points_a, dtype=float)
+    w = np.ones(len(Pb)) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    cb = w @ Pb
+    ca = w @ Pa
+    H = (Pb - cb).T @ ((Pa - ca) * w[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return pose_matrix(R, ca - R @ cb)

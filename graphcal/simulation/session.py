@@ -1,0 +1,461 @@
+"""Simulate a static calibration session of a legged robot: stances, commanded poses, what the body
+really does, joint encoders, IMU, and what the exteroceptive sensors see.
+
+The physical story, per station (Chai 2015 section 4.2):
+
+1. The controller is asked to hold the set pose ``T_world_body_cmd`` with the feet planted where it
+   believes they are (the session's nominal stance on the nominal ground z = 0). It computes the
+   joint angles by inverse kinematics of the *nominal* (URDF) robot.
+2. The servos reach those angles up to a tracking error (``tracking_sigma_rad`` per joint).
+3. The *true* robot (the URDF with the hidden leg errors) with those joint angles, feet planted where
+   they really are (on the real, possibly tilted or bumpy ground, sunk by the session offset), ends up
+   at the pose that best fits its feet: a rigid fit of the true foot positions in the body frame to the
+   planted world positions. Commanded pose, joint angles and real pose all differ a little, as on a
+   real robot.
+4. The encoders report the reached angles with noise; the IMU reports gravity in its (possibly
+   misaligned) frame with bias and noise; each sensor ray-casts the terrain and the robot's own legs
+   from ``T_world_body_real @ T_body_sensor_true``.
+
+Everything the data hides is returned as ``truth`` (written to ``truth.yaml``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import GraphcalError
+from ..geometry import (
+    fit_rigid_transform,
+    invert_pose,
+    matrix_from_axis_angle,
+    pose_matrix,
+    rot_z,
+    se3_exp,
+    transform_points,
+    xyz_quat_wxyz_from_pose,
+    xyz_rpy_from_pose,
+)
+from .effects import Effects
+from .programs import station_program
+from .sensors import capture, sensor_for_type
+from .terrain import LABEL_ROBOT, Mesh, build_scene, cylinder_mesh, make_terrain, terrain_height
+
+GRAVITY_M_S2 = 9.80665
+
+#: Commanded roll/pitch are scaled by this for robots whose legs reach less than the Octopus.
+DEFAULT_TILT_SCALE = {"octopus": 1.0, "qingzhui": 0.75, "messor": 0.5, "a1": 0.5}
+
+
+def _nominal_q(robot, info) -> dict:
+    """Joint angles of the nominal stance, per foot: IK from the zero configuration, else from the
+    middle of the joint limits, else from random points inside them; the first solution that
+    respects the limits wins."""
+    from ..models.kinematics import ik_leg
+
+    rng = np.random.default_rng(0)
+    out = {}
+    for f in robot.feet:
+        leg = robot.leg(f)
+        lo = np.where(np.isfinite(leg.lower), leg.lower, -np.pi)
+        hi = np.where(np.isfinite(leg.upper), leg.upper, np.pi)
+        starts = np.vstack([np.zeros(leg.n_joints), (lo + hi) / 2, rng.uniform(lo, hi, (20, leg.n_joints))])
+        target = np.repeat(np.asarray(info.nominal_stance[f])[None, :], len(starts), axis=0)
+        q, ok = ik_leg(leg, target, starts)
+        inside = ok & np.all((q >= lo - 1e-9) & (q <= hi + 1e-9), axis=1)
+        if not inside.any():
+            raise GraphcalError(f"model {robot.name!r}: foot {f} cannot reach its nominal stance within its joint limits")
+        out[f] = q[int(np.argmax(inside))]
+    return out
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """What to simulate. Units SI; angles in rad.
+
+    Attributes:
+        robot: built-in model name (see graphcal.models.builtin).
+        program: station program (see graphcal.simulation.programs).
+        ground: terrain kind (see graphcal.simulation.terrain).
+        seed: every random draw derives from it.
+        n_stations: for the ``random`` program.
+        n_sessions: stances; the feet are re-planted between sessions.
+        sensors: names of the model's sensors to simulate (default: all).
+        cloud_stride: keep every k-th pixel row and column of camera images (1 = full resolution).
+        extrinsic_sigma_m, extrinsic_sigma_rad: the true extrinsic is the CAD value perturbed by
+            Exp(xi), xi ~ N(0, sigma) per axis (how far the CAD value is off).
+        leg_error_sigma_rad, leg_error_sigma_m: random joint-offset and link-length errors drawn on
+            every leg joint (0 = the true legs equal the URDF, apart from ``effects``).
+        tracking_sigma_rad: joint servo tracking error.
+        encoder_sigma_rad: joint encoder noise.
+        imu_accel_sigma_m_s2, imu_gyro_sigma_rad_s: IMU noise of a station average.
+        imu_accel_bias_sigma_m_s2, imu_gyro_bias_sigma_rad_s: constant IMU biases drawn once.
+        tilt_scale: scales commanded roll/pitch (None: the model's default).
+        effects: hidden discrepancy effects (see graphcal.simulation.effects).
+    """
+
+    robot: str = "octopus"
+    program: str = "chai2015"
+    ground: str = "level"
+    seed: int = 0
+    n_stations: int | None = None
+    n_sessions: int = 1
+    sensors: tuple[str, ...] | None = None
+    cloud_stride: int = 4
+    extrinsic_sigma_m: float = 0.01
+    extrinsic_sigma_rad: float = float(np.radians(1.0))
+    leg_error_sigma_rad: float = 0.0
+    leg_error_sigma_m: float = 0.0
+    tracking_sigma_rad: float = float(np.radians(0.2))
+    encoder_sigma_rad: float = float(np.radians(0.02))
+    imu_accel_sigma_m_s2: float = 0.005
+    imu_gyro_sigma_rad_s: float = 2e-4
+    imu_accel_bias_sigma_m_s2: float = 0.02
+    imu_gyro_bias_sigma_rad_s: float = 1e-3
+    tilt_scale: float | None = None
+    effects: Effects = field(default_factory=Effects)
+
+
+@dataclass(frozen=True)
+class StationRecord:
+    """One simulated station (all poses 4x4, angles rad, m)."""
+
+    station: int
+    session: str
+    time_s: float
+    T_world_body_cmd: np.ndarray
+    T_world_body_real: np.ndarray
+    q_measured: dict
+    imu_accel: np.ndarray
+    imu_gyro: np.ndarray
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """Simulated data plus the truth it hides.
+
+    Attributes:
+        config: the configuration.
+        robot_name: built-in model name.
+        stations: the station records, in order.
+        clouds: (sensor, station) -> points (N, 3) in the sensor frame (m), as measured.
+        cloud_labels: (sensor, station) -> labels (N,) of each point (ground/robot/obstacle/stairs).
+        sensor_cad: sensor name -> (type, T_body_sensor CAD 4x4, sigma_m, sigma_rad).
+        truth: plain dict for truth.yaml.
+    """
+
+    config: SimulationConfig
+    robot_name: str
+    stations: tuple[StationRecord, ...]
+    clouds: dict
+    cloud_labels: dict
+    sensor_cad: dict
+    truth: dict
+
+
+def _chain_points_world(robot, foot: str, q_leg: np.ndarray, T_world_base: np.ndarray, pin_data) -> np.ndarray:
+    """World positions of every joint origin of a leg and of its foot (for the leg meshes)."""
+    import pinocchio as pin
+
+    m = robot.pin_model
+    q = pin.neutral(m)
+    leg = robot.leg(foot)
+    for name, val in zip(leg.joint_names, q_leg):
+        jid = m.getJointId(name)
+        q[m.joints[jid].idx_q] = val
+    pin.forwardKinematics(m, pin_data, q)
+    pin.updateFramePlacements(m, pin_data)
+    T_root_base = pin_data.oMf[m.getFrameId(robot.base_frame)].homogeneous
+    pts_root = [pin_data.oMi[m.getJointId(n)].translation for n in leg.joint_names]
+    pts_root.append(pin_data.oMf[m.getFrameId(foot)].translation)
+    T_world_root = T_world_base @ invert_pose(T_root_base)
+    return transform_points(T_world_root, np.array(pts_root))
+
+
+def _true_robot(robot, config: SimulationConfig, rng: np.random.Generator):
+    """The hidden "true" robot: the URDF with drawn leg errors and the catalogue's leg effects."""
+    from ..models.perturb import LegPerturbation, apply_perturbation, link_length_delta
+    from ..models.robot import load_robot
+
+    joint_offsets: dict[str, float] = {}
+    origin_deltas: dict[str, np.ndarray] = {}
+    for foot in robot.feet:
+        leg = robot.leg(foot)
+        for j, jtype in zip(leg.joint_names, leg.joint_types):
+            if config.leg_error_sigma_rad > 0 and jtype != "prismatic":
+                joint_offsets[j] = float(rng.normal(0.0, config.leg_error_sigma_rad))
+    for j, off in config.effects.joint_offset.items():
+        joint_offsets[j] = joint_offsets.get(j, 0.0) + float(off)
+    link_changes = dict(config.effects.link_length)
+    if config.leg_error_sigma_m > 0:
+        for foot in robot.feet:
+            for j in _link_joints(robot, foot):
+                link_changes[j] = link_changes.get(j, 0.0) + float(rng.normal(0.0, config.leg_error_sigma_m))
+    for j, delta in link_changes.items():
+        origin_deltas[j] = np.asarray(link_length_delta(robot, j, float(delta)))
+    pert = LegPerturbation(
+        joint_offsets_rad=joint_offsets,
+        origin_deltas_m={k: tuple(float(x) for x in v) for k, v in origin_deltas.items()},
+    )
+    true_xml = apply_perturbation(robot.urdf_xml, pert)
+    true_robot = load_robot(urdf_xml=true_xml, base_frame=robot.base_frame, feet=robot.feet)
+    return true_robot, joint_offsets, link_changes
+
+
+def _link_joints(robot, foot: str) -> tuple[str, ...]:
+    """Joints of a leg whose origin translation is a link length: every moving joint after the
+    first, and the fixed foot joint ``<leg>_foot_joint`` when the URDF has it."""
+    import xml.etree.ElementTree as ET
+
+    leg = robot.leg(foot)
+    names = list(leg.joint_names[1:])
+    root = ET.fromstring(robot.urdf_xml)
+    for j in root.iter("joint"):
+        child = j.find("child")
+        if child is not None and child.get("link") == foot and j.get("type") == "fixed":
+            names.append(j.get("name"))
+    return tuple(names)
+
+
+def leg_link_joints(robot) -> dict[str, tuple[str, ...]]:
+    """foot -> joints whose origin is a link length (candidates of the ``link_length`` effect)."""
+    return {foot: _link_joints(robot, foot) for foot in robot.feet}
+
+
+def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationResult:
+    """Run the simulation described by ``config`` (see the module docstring for the physics)."""
+    from ..models.builtin import builtin_info
+    from ..models.kinematics import foot_positions, ik_leg
+    from ..models.robot import load_robot
+
+    rng = np.random.default_rng(config.seed)
+    info = builtin_info(config.robot)
+    robot = load_robot(model=config.robot)
+    h0 = info.default_body_height_m
+    tilt_scale = config.tilt_scale if config.tilt_scale is not None else DEFAULT_TILT_SCALE.get(config.robot, 1.0)
+    sensor_names = tuple(config.sensors) if config.sensors is not None else tuple(info.sensors)
+    for s in sensor_names:
+        if s not in info.sensors:
+            raise GraphcalError(
+                f"robot {config.robot!r} has no sensor {s!r}; it has: {', '.join(info.sensors) or 'none'}"
+            )
+    for s in config.effects.sensor_range_scale:
+        if s not in sensor_names:
+            raise GraphcalError(f"sensor_range_scale names sensor {s!r}, which is not simulated")
+
+    # -- hidden truth: sensor extrinsics, legs, IMU
+    T_body_sensor_true = {}
+    for s in sensor_names:
+        cad = info.sensors[s]
+        xi = np.r_[rng.normal(0, config.extrinsic_sigma_rad, 3), rng.normal(0, config.extrinsic_sigma_m, 3)]
+        T_body_sensor_true[s] = cad.T_body_sensor @ se3_exp(xi)
+    true_robot, joint_offsets, link_changes = _true_robot(robot, config, rng)
+    R_body_imu_true = info.T_body_imu[:3, :3].copy()
+    if config.effects.imu_misalignment is not None:
+        ang, az = config.effects.imu_misalignment
+        R_body_imu_true = matrix_from_axis_angle([np.cos(az), np.sin(az), 0.0], ang) @ R_body_imu_true
+    accel_bias = rng.normal(0, config.imu_accel_bias_sigma_m_s2, 3)
+    gyro_bias = rng.normal(0, config.imu_gyro_bias_sigma_rad_s, 3)
+
+    tilt = config.effects.ground_tilt or (0.0, 0.0)
+    terrain = make_terrain(config.ground, seed=config.seed, tilt_rad=tilt[0], tilt_axis_rad=tilt[1])
+    terrain_scene = build_scene(terrain.meshes)
+
+    commands = station_program(
+        config.program,
+        default_height_m=h0,
+        n_stations=config.n_stations,
+        n_sessions=config.n_sessions,
+        seed=config.seed,
+        tilt_scale=tilt_scale,
+    )
+    sessions = list(dict.fromkeys(c.session for c in commands))
+    for s in config.effects.session_offset:
+        if s not in sessions:
+            raise GraphcalError(f"session_offset names session {s!r}; the sessions are {', '.join(sessions)}")
+    if config.effects.extrinsic_change is not None:
+        ch = config.effects.extrinsic_change
+        if ch.sensor not in sensor_names:
+            raise GraphcalError(f"extrinsic_change names sensor {ch.sensor!r}, which is not simulated")
+        if ch.station not in {c.station for c in commands}:
+            raise GraphcalError(f"extrinsic_change names station {ch.station}, which the program does not have")
+    for st in config.effects.outlier_stations:
+        if st not in {c.station for c in commands}:
+            raise GraphcalError(f"outlier_stations names station {st}, which the program does not have")
+
+    # -- stances: where each session's feet are planted
+    T_world_stance = {}
+    feet_world_assumed = {}
+    feet_world_real = {}
+    for k, s in enumerate(sessions):
+        T = pose_matrix(rot_z(np.radians(8.0 * k)), [0.25 * k, 0.08 * (-1) ** k * (k > 0), 0.0])
+        T_world_stance[s] = T
+        p_stance = np.array([info.nominal_stance[f] + np.array([0.0, 0.0, h0]) for f in robot.feet])
+        p_assumed = transform_points(T, p_stance)
+        p_assumed[:, 2] = 0.0
+        p_real = p_assumed.copy()
+        p_real[:, 2] = terrain_height(terrain, p_real[:, :2], scene=terrain_scene[0])
+        p_real[:, 2] -= config.effects.session_offset.get(s, 0.0)
+        feet_world_assumed[s] = p_assumed
+        feet_world_real[s] = p_real
+
+    # -- stations
+    q_prev = _nominal_q(robot, info)
+    pin_data = true_robot.pin_model.createData()
+    records: list[StationRecord] = []
+    real_poses = {}
+    leg_q_true = {}
+    it = commands
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(commands, desc="simulate: stations", unit="station")
+    for i, cmd in enumerate(it):
+        T_cmd = T_world_stance[cmd.session] @ cmd.T_stance_body
+        p_body_cmd = transform_points(invert_pose(T_cmd), feet_world_assumed[cmd.session])
+        q_act = {}
+        p_body_true = []
+        for k, f in enumerate(robot.feet):
+            leg = robot.leg(f)
+            q_ik, ok = ik_leg(leg, p_body_cmd[k][None, :], q_prev[f][None, :])
+            if not ok[0]:
+                raise GraphcalError(
+                    f"station {cmd.station}: foot {f} cannot reach its planted position in the commanded pose"
+                )
+            q_prev[f] = q_ik[0]
+            qa = q_ik[0] + rng.normal(0.0, config.tracking_sigma_rad, leg.n_joints)
+            q_act[f] = qa
+            p_body_true.append(foot_positions(true_robot.leg(f), qa[None, :])[0])
+        T_real = fit_rigid_transform(np.array(p_body_true), feet_world_real[cmd.session])
+        real_poses[cmd.station] = T_real
+        leg_q_true[cmd.station] = q_act
+        q_meas = {}
+        for f in robot.feet:
+            leg = robot.leg(f)
+            noisy = q_act[f] + rng.normal(0.0, config.encoder_sigma_rad, leg.n_joints)
+            for name, val in zip(leg.joint_names, noisy):
+                q_meas[name] = float(val)
+        R_world_imu = T_real[:3, :3] @ R_body_imu_true
+        accel = R_world_imu.T @ np.array([0.0, 0.0, GRAVITY_M_S2]) + accel_bias + rng.normal(0, config.imu_accel_sigma_m_s2, 3)
+        gyro = gyro_bias + rng.normal(0, config.imu_gyro_sigma_rad_s, 3)
+        records.append(StationRecord(cmd.station, cmd.session, 10.0 * i, T_cmd, T_real, q_meas, accel, gyro))
+
+    # -- sensors
+    clouds, labels = {}, {}
+    ext_by_station: dict[tuple[str, int], np.ndarray] = {}
+    change = config.effects.extrinsic_change
+    leg_radius = max(0.008, 0.05 * h0)  # leg segments as cylinders, m
+    for rec in records:
+        leg_meshes: list[Mesh] = []
+        for f in robot.feet:
+            pts = _chain_points_world(true_robot, f, leg_q_true[rec.station][f], rec.T_world_body_real, pin_data)
+            for a, b in zip(pts[:-1], pts[1:]):
+                if np.linalg.norm(b - a) > 1e-6:
+                    leg_meshes.append(cylinder_mesh(a, b, leg_radius, LABEL_ROBOT))
+        scene = build_scene(list(terrain.meshes) + leg_meshes)
+        for s in sensor_names:
+            T_bs = T_body_sensor_true[s]
+            if change is not None and change.sensor == s and rec.station >= change.station:
+                R_knock = matrix_from_axis_angle(change.axis, change.angle_rad)
+                T_bs = pose_matrix(R_knock @ T_bs[:3, :3], T_bs[:3, 3] + np.asarray(change.translation_m))
+            ext_by_station[(s, rec.station)] = T_bs
+            sensor = sensor_for_type(info.sensors[s].type)
+            sensor = _strided(sensor, config.cloud_stride)
+            scan = capture(
+                sensor,
+                None,
+                rec.T_world_body_real @ T_bs,
+                rng,
+                range_scale=config.effects.sensor_range_scale.get(s, 1.0),
+                scene=scene,
+            )
+            clouds[(s, rec.station)] = scan.points_sensor
+            labels[(s, rec.station)] = scan.labels
+
+    # -- outlier stations: their sensor data are those of the most different other station
+    swapped = {}
+    if config.effects.outlier_stations:
+        originals = {k: v for k, v in clouds.items()}
+        original_labels = dict(labels)
+        for st in config.effects.outlier_stations:
+            R_st = real_poses[st][:3, :3]
+            others = [r.station for r in records if r.station != st]
+            angles = [np.arccos(np.clip((np.trace(R_st.T @ real_poses[o][:3, :3]) - 1) / 2, -1, 1)) for o in others]
+            src = others[int(np.argmax(angles))]
+            swapped[st] = src
+            for s in sensor_names:
+                clouds[(s, st)] = originals[(s, src)]
+                labels[(s, st)] = original_labels[(s, src)]
+
+    sensor_cad = {s: info.sensors[s] for s in sensor_names}
+    truth = _truth_dict(
+        config, info, sensor_names, T_body_sensor_true, ext_by_station, records, joint_offsets, link_changes,
+        R_body_imu_true, accel_bias, gyro_bias, terrain, swapped, T_world_stance, feet_world_real,
+    )
+    return SimulationResult(config, config.robot, tuple(records), clouds, labels, sensor_cad, truth)
+
+
+def _strided(sensor, stride: int):
+    """A camera with every ``stride``-th pixel row and column (same field of view)."""
+    from dataclasses import replace
+
+    if stride <= 1 or not hasattr(sensor, "width_px"):
+        return sensor
+    return replace(sensor, width_px=max(8, sensor.width_px // stride), height_px=max(6, sensor.height_px // stride))
+
+
+def _pose_yaml(T: np.ndarray) -> dict:
+    xyz, q = xyz_quat_wxyz_from_pose(T)
+    _, rpy = xyz_rpy_from_pose(T)
+    return {
+        "xyz": [float(v) for v in xyz],
+        "quaternion_wxyz": [float(v) for v in q],
+        "rpy_deg": [float(v) for v in np.degrees(rpy)],
+    }
+
+
+def _truth_dict(
+    config, info, sensor_names, T_body_sensor_true, ext_by_station, records, joint_offsets, link_changes,
+    R_body_imu_true, accel_bias, gyro_bias, terrain, swapped, T_world_stance, feet_world_real,
+) -> dict:
+    sensors = {}
+    for s in sensor_names:
+        entry = {"type": info.sensors[s].type, "T_body_sensor": _pose_yaml(T_body_sensor_true[s])}
+        ch = config.effects.extrinsic_change
+        if ch is not None and ch.sensor == s:
+            entry["T_body_sensor_after_change"] = _pose_yaml(ext_by_station[(s, ch.station)])
+        sensors[s] = entry
+    return {
+        "format": "graphcal-truth/1",
+        "note": "hidden simulation truth; only evaluations read this file",
+        "robot": config.robot,
+        "program": config.program,
+        "ground": {"type": terrain.kind, "bump_rms_m": float(terrain.bump_rms_m)},
+        "seed": int(config.seed),
+        "sensors": sensors,
+        "imu": {
+            "T_body_imu": _pose_yaml(pose_matrix(R_body_imu_true, info.T_body_imu[:3, 3])),
+            "accel_bias_m_s2": [float(v) for v in accel_bias],
+            "gyro_bias_rad_s": [float(v) for v in gyro_bias],
+        },
+        "legs": {
+            "joint_offsets_rad": {k: float(v) for k, v in joint_offsets.items() if v != 0.0},
+            "link_length_deltas_m": {k: float(v) for k, v in link_changes.items() if v != 0.0},
+        },
+        "effects": config.effects.to_dict(),
+        "outliers": {int(k): int(v) for k, v in swapped.items()},
+        "sessions": {
+            s: {"T_world_stance": _pose_yaml(T), "feet_world": {f: [float(x) for x in p] for f, p in zip(info.feet, feet_world_real[s])}}
+            for s, T in T_world_stance.items()
+        },
+        "stations": {
+            int(r.station): {"T_world_body": _pose_yaml(r.T_world_body_real)} for r in records
+        },
+        "noise": {
+            "tracking_sigma_rad": config.tracking_sigma_rad,
+            "encoder_sigma_rad": config.encoder_sigma_rad,
+            "imu_accel_sigma_m_s2": config.imu_accel_sigma_m_s2,
+            "imu_gyro_sigma_rad_s": config.imu_gyro_sigma_rad_s,
+        },
+    }
