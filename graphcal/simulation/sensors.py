@@ -61,10 +61,15 @@ class StereoCamera:
     sigma_disparity_px: float = 0.15
     min_range_m: float = 0.4
     max_range_m: float = 4.0
+    noise_focal_px: float | None = None
     type: str = "stereo_camera"
 
     @property
     def focal_px(self) -> float:
+        """Focal length (px) that sets the disparity noise: that of the full-resolution sensor, kept
+        when the simulator casts fewer rays (``noise_focal_px``)."""
+        if self.noise_focal_px is not None:
+            return self.noise_focal_px
         return self.width_px / 2.0 / np.tan(np.radians(self.hfov_deg) / 2.0)
 
     def ray_directions(self) -> np.ndarray:

@@ -402,6 +402,8 @@ def _strided(sensor, stride: int):
 
     if stride <= 1 or not hasattr(sensor, "width_px"):
         return sensor
+    if hasattr(sensor, "noise_focal_px"):  # the noise stays that of the full-resolution camera
+        sensor = replace(sensor, noise_focal_px=sensor.focal_px)
     return replace(sensor, width_px=max(8, sensor.width_px // stride), height_px=max(6, sensor.height_px // stride))
 
 

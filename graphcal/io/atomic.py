@@ -1,0 +1,183 @@
+"""Atomic writes: a file or a folder appears complete, or not at all.
+
+Every writer of graphcal goes through these functions, so an interrupted run (Ctrl-C, a full disk,
+an exception half-way through a dataset) never leaves a half-written file or folder behind, and
+never damages what was there before:
+
+* :func:`atomic_write_text` / :func:`atomic_write_bytes` write into a temporary file in the same
+  folder, ``fsync`` it, then ``os.replace`` it onto the target (atomic on POSIX and Windows). The
+  temporary file is removed if anything fails.
+* :func:`atomic_directory` lets the caller build a whole folder in a hidden sibling temporary
+  folder, and renames it onto the final name only when the ``with`` block ends without an
+  exception. An existing non-empty folder is never replaced unless ``overwrite=True``; on any
+  exception the temporary folder is removed and the final path is left exactly as it was.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+import threading
+from pathlib import Path
+from typing import Iterator
+
+from graphcal.errors import GraphcalError
+
+__all__ = ["OutputExistsError", "atomic_write_text", "atomic_write_bytes", "atomic_directory", "fsync_directory"]
+
+
+class OutputExistsError(GraphcalError, FileExistsError):
+    """The output path already holds something we must not replace (pass ``overwrite=True``)."""
+
+
+_UMASK_LOCK = threading.Lock()
+
+
+def _current_umask() -> int:
+    with _UMASK_LOCK:
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return mask
+
+
+def fsync_directory(path: str | Path) -> None:
+    """Flush a folder's entries (the result of a rename) to disk; best effort (no-op on Windows)."""
+    try:
+        fd = os.open(str(path), os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _temp_sibling(path: Path, suffix: str = ".tmp") -> tuple[int, Path]:
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=str(path.parent))
+    return fd, Path(name)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes, *, overwrite: bool = True) -> Path:
+    """Write ``data`` to ``path`` atomically (temp file in the same folder, fsync, ``os.replace``).
+
+    Args:
+        path: target file. Its folder must exist.
+        data: the complete file content.
+        overwrite: if False, refuse (:class:`OutputExistsError`) when ``path`` already exists.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    The new file gets the permissions of the file it replaces, or ``0o666`` minus the umask.
+    On any failure the temporary file is removed and ``path`` is unchanged.
+    """
+    path = Path(path)
+    if not overwrite and (path.exists() or path.is_symlink()):
+        raise OutputExistsError(f"{path}: already exists; refusing to replace it (overwrite=False)")
+    try:
+        mode = path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~_current_umask()
+    except OSError:
+        mode = 0o666 & ~_current_umask()
+    fd, tmp = _temp_sibling(path)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, mode)
+        if not overwrite and (path.exists() or path.is_symlink()):
+            raise OutputExistsError(f"{path}: already exists; refusing to replace it (overwrite=False)")
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    fsync_directory(path.parent)
+    return path
+
+
+def atomic_write_text(path: str | Path, text: str, *, overwrite: bool = True, encoding: str = "utf-8") -> Path:
+    """Write ``text`` to ``path`` atomically (UTF-8, newlines written as given); see :func:`atomic_write_bytes`."""
+    return atomic_write_bytes(path, text.encode(encoding), overwrite=overwrite)
+
+
+def _is_empty_dir(path: Path) -> bool:
+    with os.scandir(path) as it:
+        return next(it, None) is None
+
+
+def _check_target(final: Path, overwrite: bool) -> None:
+    if final.is_symlink():
+        raise OutputExistsError(f"{final}: is a symbolic link; refusing to replace it")
+    if final.exists():
+        if not final.is_dir():
+            raise OutputExistsError(f"{final}: exists and is not a folder; refusing to replace it")
+        if not overwrite and not _is_empty_dir(final):
+            raise OutputExistsError(
+                f"{final}: folder exists and is not empty; refusing to replace it (choose another "
+                f"output folder, or ask for overwrite)"
+            )
+
+
+@contextlib.contextmanager
+def atomic_directory(final_dir: str | Path, *, overwrite: bool = False) -> Iterator[Path]:
+    """Build a folder atomically: ``with atomic_directory(out) as tmp:`` write into ``tmp``.
+
+    ``tmp`` is a hidden sibling of ``final_dir`` (same file system, so the final rename is atomic).
+    When the block ends normally, ``tmp`` is renamed to ``final_dir``:
+
+    * ``final_dir`` absent or an empty folder: it simply appears, complete.
+    * ``final_dir`` a non-empty folder: refused with :class:`OutputExistsError` (checked before the
+      block runs and again at the end) unless ``overwrite=True``; then the old folder is moved
+      aside, the new one renamed in, and only then the old one deleted. If the swap fails, the old
+      folder is put back.
+    * ``final_dir`` a file or a symbolic link: always refused.
+
+    If the block raises, ``tmp`` is deleted and ``final_dir`` is untouched. The parent folder is
+    created if needed. The finished folder gets ``0o777`` minus the umask as permissions.
+    """
+    final = Path(final_dir)
+    if final.name in ("", ".", ".."):
+        final = final.resolve()
+    _check_target(final, overwrite)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=str(final.parent)))
+    try:
+        yield tmp
+        os.chmod(tmp, 0o777 & ~_current_umask())
+        _commit_directory(tmp, final, overwrite)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    fsync_directory(final.parent)
+
+
+def _commit_directory(tmp: Path, final: Path, overwrite: bool) -> None:
+    _check_target(final, overwrite)
+    if not final.exists() or _is_empty_dir(final):
+        try:
+            os.rename(tmp, final)  # POSIX: atomically replaces an empty folder too
+            return
+        except OSError:
+            if final.is_dir() and _is_empty_dir(final):  # e.g. Windows: no rename onto a folder
+                os.rmdir(final)
+                os.rename(tmp, final)
+                return
+            if not final.exists():
+                raise
+            _check_target(final, overwrite)  # something appeared meanwhile: refuse unless overwrite
+    # overwrite=True and final is a non-empty folder: move it aside, swap, then delete it.
+    backup = Path(tempfile.mkdtemp(prefix=f".{final.name}.old-", dir=str(final.parent)))
+    os.rmdir(backup)
+    os.rename(final, backup)
+    try:
+        os.rename(tmp, final)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.rename(backup, final)
+        raise
+    shutil.rmtree(backup, ignore_errors=True)

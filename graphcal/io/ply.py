@@ -1,0 +1,242 @@
+"""Point clouds in PLY files (Open3D), with clear errors for bad files.
+
+Open3D's reader is forgiving to a fault: for a file it cannot parse it prints a warning and returns
+an empty cloud; for a truncated binary file it returns as many points as the header announced,
+filled with garbage; for a header announcing a billion points it allocates them. So
+:func:`read_ply` first checks the header itself (magic, format, a ``vertex`` element with ``x, y,
+z``, and a body size that matches the header), then lets Open3D read the points, then checks that
+it got every point and that all are finite. Any problem is a :class:`~graphcal.errors.DatasetError`
+naming the file.
+
+Points are metres, ``(N, 3)`` float64, in the frame the file says (for a dataset cloud: the sensor
+frame). :func:`write_ply` writes binary (exact float64) by default; Open3D's ASCII writer keeps only
+6 significant digits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from graphcal.errors import DatasetError
+from graphcal.io.atomic import OutputExistsError, _current_umask, fsync_directory
+
+__all__ = ["read_ply", "write_ply", "read_ply_header", "PlyHeader"]
+
+_TYPE_SIZES = {
+    "char": 1, "int8": 1, "uchar": 1, "uint8": 1,
+    "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+    "int": 4, "int32": 4, "uint": 4, "uint32": 4,
+    "float": 4, "float32": 4, "double": 8, "float64": 8,
+}  # fmt: skip
+_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+_MAX_HEADER_BYTES = 1 << 16
+
+
+@dataclass(frozen=True)
+class PlyHeader:
+    """What a PLY header declares.
+
+    Attributes:
+        format: ``ascii``, ``binary_little_endian`` or ``binary_big_endian``.
+        n_vertices: number of points announced.
+        elements: ``(name, count, properties)`` per element, properties as ``(name, type, is_list,
+            count_type)``.
+        header_bytes: size of the header, ``end_header`` line included.
+    """
+
+    format: str
+    n_vertices: int
+    elements: tuple
+    header_bytes: int
+
+
+def _bad(path, where: str, expected: str, got=None) -> DatasetError:
+    return DatasetError(path, where, expected, got)
+
+
+def read_ply_header(path: str | Path, data: bytes | None = None) -> PlyHeader:
+    """Parse and check the header of a PLY file; DatasetError naming the file if it is not one.
+
+    Also checks that the body is as long as the header says (binary: exact byte count; ASCII:
+    number of values), so that a truncated or padded file is refused before it is read.
+    """
+    path = Path(path)
+    if data is None:
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise _bad(path, "file", "a readable PLY file", exc.strerror or str(exc)) from None
+    end = data.find(b"end_header", 0, _MAX_HEADER_BYTES)
+    if not data.startswith(b"ply") or end < 0:
+        raise _bad(path, "header", "a PLY file (starting with 'ply', header ending with 'end_header'); "
+                   "unreadable or empty PLY", data[:20].decode("ascii", "replace"))
+    nl = data.find(b"\n", end)
+    if nl < 0:
+        raise _bad(path, "header", "a line break after 'end_header'; unreadable or empty PLY")
+    header_bytes = nl + 1
+    try:
+        lines = data[:end].decode("ascii").replace("\r\n", "\n").split("\n")
+    except UnicodeDecodeError:
+        raise _bad(path, "header", "an ASCII PLY header; unreadable or empty PLY") from None
+    if data[end:nl].strip() != b"end_header":
+        raise _bad(path, "header", "'end_header' alone on its line; unreadable or empty PLY")
+    if lines[0].strip() != "ply":
+        raise _bad(path, "header line 1", "'ply'", lines[0])
+    fmt = None
+    elements: list[list] = []
+    for i, line in enumerate(lines[1:], start=2):
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        where = f"header line {i}"
+        if words[0] == "format":
+            if len(words) != 3 or words[1] not in _FORMATS or words[2] != "1.0":
+                raise _bad(path, where, "'format ascii|binary_little_endian|binary_big_endian 1.0'", line)
+            fmt = words[1]
+        elif words[0] == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise _bad(path, where, "'element <name> <count>'", line)
+            elements.append([words[1], int(words[2]), []])
+        elif words[0] == "property":
+            if not elements:
+                raise _bad(path, where, "a property after an element", line)
+            if len(words) == 3 and words[1] in _TYPE_SIZES:
+                elements[-1][2].append((words[2], words[1], False, None))
+            elif len(words) == 5 and words[1] == "list" and words[2] in _TYPE_SIZES and words[3] in _TYPE_SIZES:
+                elements[-1][2].append((words[4], words[3], True, words[2]))
+            else:
+                raise _bad(path, where, "'property <type> <name>' or 'property list <type> <type> <name>'", line)
+        else:
+            raise _bad(path, where, "a PLY header line (format, element, property, comment)", line)
+    if fmt is None:
+        raise _bad(path, "header", "a 'format' line; unreadable or empty PLY")
+    vertex = [e for e in elements if e[0] == "vertex"]
+    if len(vertex) != 1:
+        raise _bad(path, "header", "one 'element vertex <count>'; unreadable or empty PLY")
+    props = {p[0]: p for p in vertex[0][2]}
+    for axis in ("x", "y", "z"):
+        if axis not in props or props[axis][2]:
+            raise _bad(path, "header", f"a scalar vertex property '{axis}'; unreadable or empty PLY")
+    n_vertices = vertex[0][1]
+    if n_vertices == 0:
+        raise _bad(path, "header", "at least one point; unreadable or empty PLY", "element vertex 0")
+
+    body = len(data) - header_bytes
+    has_lists = any(p[2] for e in elements for p in e[2])
+    if fmt == "ascii":
+        n_values = len(data[header_bytes:].split())
+        need = sum(e[1] * len(e[2]) for e in elements)  # one value per scalar, >= 1 per list
+        if n_values < need or (not has_lists and n_values != need):
+            raise _bad(path, "body", f"{need} values as the header announces (truncated or corrupted file?); "
+                       "unreadable or empty PLY", f"{n_values} values")
+    else:
+        need = sum(e[1] * sum(_TYPE_SIZES[p[3] if p[2] else p[1]] for p in e[2]) for e in elements)
+        if body < need or (not has_lists and body != need):
+            raise _bad(path, "body", f"{need} bytes as the header announces (truncated or corrupted file?); "
+                       "unreadable or empty PLY", f"{body} bytes")
+    return PlyHeader(fmt, n_vertices, tuple((e[0], e[1], tuple(e[2])) for e in elements), header_bytes)
+
+
+def read_ply(path: str | Path) -> np.ndarray:
+    """Read the points of a PLY file: ``(N, 3)`` float64 (the file's units; metres in a dataset).
+
+    Raises:
+        DatasetError: missing or unreadable file, not a PLY, truncated, no points ("unreadable or
+            empty PLY"), or a non-finite coordinate (names the 1-based point number).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise _bad(path, "file", "an existing PLY file", "no such file")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise _bad(path, "file", "a readable PLY file", exc.strerror or str(exc)) from None
+    header = read_ply_header(path, data)
+    if header.format == "ascii":
+        _check_ascii_numbers(path, data[header.header_bytes :])
+    del data
+
+    import open3d as o3d
+
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        pcd = o3d.io.read_point_cloud(str(path), format="ply")
+    points = np.asarray(pcd.points, dtype=np.float64).copy()
+    if points.ndim != 2 or points.shape[1:] != (3,) or len(points) != header.n_vertices:
+        raise _bad(path, "points", f"{header.n_vertices} points as the header announces; unreadable or empty PLY",
+                   f"{len(points)} points read by Open3D")
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        i = int(np.argmin(finite))
+        raise _bad(path, f"point {i + 1} (1-based)", "finite coordinates", f"{points[i].tolist()}")
+    return points
+
+
+def _check_ascii_numbers(path: Path, body: bytes) -> None:
+    tokens = body.split()
+    try:
+        np.asarray(tokens, dtype=np.bytes_).astype(np.float64)
+    except (ValueError, OverflowError):
+        for k, tok in enumerate(tokens):
+            try:
+                float(tok)
+            except ValueError:
+                raise _bad(path, f"value {k + 1} after the header", "a number",
+                           tok[:40].decode("ascii", "replace")) from None
+        raise _bad(path, "body", "numbers") from None
+
+
+def write_ply(path: str | Path, points, *, binary: bool = True, overwrite: bool = True) -> Path:
+    """Write points ``(N, 3)`` (metres) to a PLY file atomically with Open3D.
+
+    Args:
+        path: target ``.ply`` file; its folder must exist.
+        points: ``(N, 3)`` finite numbers, N >= 1.
+        binary: binary little-endian float64 (exact round trip) if True; ASCII (6 significant
+            digits, Open3D's writer) otherwise.
+        overwrite: if False, refuse (:class:`~graphcal.io.atomic.OutputExistsError`) an existing file.
+
+    The cloud is written to a temporary ``.ply`` file beside ``path``, flushed to disk, and renamed
+    onto ``path``; on failure the temporary file is removed and ``path`` is unchanged.
+
+    Raises:
+        ValueError: ``points`` is not a non-empty finite ``(N, 3)`` array.
+    """
+    path = Path(path)
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise ValueError(f"write_ply({str(path)!r}): points must be a non-empty (N, 3) array, got shape {pts.shape}")
+    if not np.isfinite(pts).all():
+        raise ValueError(f"write_ply({str(path)!r}): points must be finite")
+    if not overwrite and (path.exists() or path.is_symlink()):
+        raise OutputExistsError(f"{path}: already exists; refusing to replace it (overwrite=False)")
+
+    import open3d as o3d
+
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp.ply", dir=str(path.parent))
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(pts)))
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            ok = o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=not binary)
+        if not ok:
+            raise OSError(f"Open3D could not write {path}")
+        fd = os.open(str(tmp), os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.chmod(tmp, 0o666 & ~_current_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    fsync_directory(path.parent)
+    return path

@@ -1,0 +1,663 @@
+"""Plane extraction from point clouds: RANSAC on a random subsample, then Chai's iterative 2-sigma
+PCA refinement on every point near the RANSAC plane, with an honest covariance.
+
+Frames and units: the points are in the sensor frame (metres), so are the planes. A plane is
+``(n, d)`` with unit ``n`` and ``n . x + d = 0`` (see :mod:`graphcal.geometry`), canonical
+``d >= 0``: ``n`` points from the plane towards the sensor origin.
+
+Method (one plane)
+------------------
+1. **RANSAC on a subsample.** Open3D ``segment_plane(ransac_distance_m, 3, ransac_iterations)``
+   on ``subsample`` random points (Open3D refits its best model by least squares on its
+   inliers). Only a starting plane: its cost grows with the subsample, not with the frame.
+2. **Candidates.** Every point of the full frame within ``candidate_distance_m`` (default
+   ``ransac_distance_m``) of the RANSAC plane, computed with one mat-vec. Gathered once.
+3. **Chai's iteration** (Chai et al. 2015, section 4.1, Eqs. 8-16): PCA plane of the kept
+   candidates (``n`` = eigenvector of the smallest eigenvalue of the scatter matrix, Eq. 15;
+   the plane through the centroid, Eq. 12); drop every point with ``|n . x + d| > 2 sigma_d``,
+   ``sigma_d`` the standard deviation of the distances (Eq. 16, with ``n - 1``); repeat until no
+   point is dropped (at most ``max_iterations``). The distances are *signed* (their mean is 0 for
+   a plane through the centroid, so ``sigma_d`` is their RMS): with Eq. 8's absolute values,
+   ``2 std(|d_i|)`` is always below ``max |d_i|`` and the loop would never stop.
+   For Gaussian noise of std ``s`` the loop converges to the truncation ``|e| < c``,
+   ``c ~= 1.45 s``, keeping ~85 % of the plane's points; clutter (legs, obstacles standing on the
+   ground) only enters through the few points within ``c`` of the plane.
+   Implementation: the scatter matrix is kept as running sums (dropped points are subtracted), and
+   after each full pass only the "watch set" (points with ``|distance| > 0.8 * threshold``) is
+   re-tested, as long as a bound on the plane's motion proves that the other points cannot cross the
+   threshold; otherwise a full pass. The result is exactly that of the plain loop.
+4. **Final fit and covariance** (below), then for ``max_planes > 1`` the candidates are removed
+   and the next plane is searched in the remaining points.
+
+Covariance
+----------
+Parametrise a plane near the estimate ``(n, d)`` by ``delta = (alpha, beta, delta_d)``:
+``n(delta) = normalise(n + alpha t1 + beta t2)`` (two small rotations of ``n``; ``t1, t2`` an
+orthonormal basis of the plane, :func:`plane_tangent_basis`) and ``d(delta) = d + delta_d``.
+A point ``x_i`` has residual ``r_i = n . x_i + d`` with Jacobian
+``J_i = dr_i/d delta = (t1 . x_i, t2 . x_i, 1)``. With per-point variances ``s_i^2`` along the
+normal, the least-squares information is ``H = sum_i J_i J_i^T / s_i^2`` and the covariance of
+``delta`` is ``cov_3 = H^-1`` (computed from centred moments for numerical stability). It maps to
+the stacked ``(nx, ny, nz, d)`` with the 4x3 Jacobian ``G = [[t1, t2, 0], [0, 0, 1]]``:
+``cov = G cov_3 G^T`` (4x4, rank 3, null vector ``(n, 0)``: the unit-norm constraint).
+
+The ``s_i``:
+
+* ``range_noise`` given (a callable ``sigma(points_sensor (M, 3), n_sensor (3,)) -> (M,)``, the
+  std of each point's distance along the normal, e.g. :func:`kinect_distance_sigma`): the final
+  plane is the *weighted* least-squares plane of the inliers (weighted PCA, weights ``1 / s_i^2``),
+  and ``s_i^2`` is the variance of a N(0, sigma_i^2) residual *truncated* to ``|e| < c`` (the
+  2-sigma loop keeps only such residuals; the untruncated sigma_i^2 would overstate the spread of
+  the kept points, by ~2x for Gaussian noise).
+* otherwise: ``s_i^2 = rms^2 * n / (n - 3)`` (the empirical residual variance of the inliers;
+  right for noise of equal variance, approximate for range-dependent noise).
+
+Errors: bad input (fewer than 3 points, non-finite values, all points on a line) raises
+:class:`graphcal.errors.GraphcalError`. Finding no plane with ``min_inliers`` points is not an
+error for :func:`extract_planes` (it returns fewer planes) but is for :func:`fit_ground_plane`.
+
+Randomness: the subsample and Open3D's RANSAC are driven by ``rng`` (an ``int`` seed or a
+``numpy.random.Generator``); Open3D's global random seed is set from it before each RANSAC.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .errors import GraphcalError
+from .geometry import canonical_plane
+
+__all__ = [
+    "PlaneFit",
+    "extract_planes",
+    "fit_ground_plane",
+    "plane_tangent_basis",
+    "kinect_sigma_z",
+    "depth_camera_distance_sigma",
+    "kinect_distance_sigma",
+    "KINECT_NOISE_COEFF_PER_M",
+]
+
+#: Kinect depth noise: sigma_z = KINECT_NOISE_COEFF_PER_M * z**2 (m), Khoshelham & Elberink 2012,
+#: used by Chai 2015 (same value as ``graphcal.simulation.sensors.DepthCamera``).
+KINECT_NOISE_COEFF_PER_M = 1.425e-3
+
+#: ``range_noise(points_sensor (M, 3) m, n_sensor (3,)) -> (M,)`` std (m) of each point's
+#: distance to the plane along ``n_sensor``.
+RangeNoise = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+_WATCH_FRACTION = 0.8  # points with |distance| > this * threshold are re-tested every iteration
+
+
+@dataclass(frozen=True)
+class PlaneFit:
+    """One extracted plane, in the frame of the input points (the sensor frame).
+
+    Attributes:
+        n: (3,) unit normal, pointing from the plane towards the frame origin.
+        d: offset (m), canonical ``d >= 0``: ``n . x + d = 0`` on the plane; the distance of the
+            origin to the plane.
+        cov: (4, 4) covariance of the stacked ``(nx, ny, nz, d)`` (m for d); rank 3, null along
+            ``(n, 0)``. See the module docstring.
+        n_points: number of inliers (the points kept by the 2-sigma loop).
+        rms: point-to-plane RMS of the inliers (m).
+        inlier_mask: (N,) bool over the input points.
+        iterations: iterations of the 2-sigma loop (PCA fits).
+        converged: False when the loop stopped at ``max_iterations`` with points still to drop.
+        trim_distance_m: the final 2-sigma threshold ``c`` (m): inliers have ``|n . x + d| <= c``.
+        weighted: True when the final fit and ``cov`` used ``range_noise``.
+    """
+
+    n: np.ndarray
+    d: float
+    cov: np.ndarray
+    n_points: int
+    rms: float
+    inlier_mask: np.ndarray
+    iterations: int
+    converged: bool
+    trim_distance_m: float
+    weighted: bool
+
+    def cov_tangent(self, basis: np.ndarray | None = None) -> np.ndarray:
+        """(3, 3) covariance of ``(alpha, beta, d)``: the normal's components along the two columns
+        of ``basis`` (3, 2) (default :func:`plane_tangent_basis` of ``n``; rad for small angles)
+        and ``d`` (m)."""
+        T = plane_tangent_basis(self.n) if basis is None else np.asarray(basis, dtype=float)
+        G = np.zeros((4, 3))
+        G[:3, :2] = T
+        G[3, 2] = 1.0
+        return G.T @ self.cov @ G
+
+
+# ----------------------------------------------------------------------------- noise models
+def kinect_sigma_z(z_m):
+    """Kinect depth noise (m, 1-sigma) along the optical axis at depth ``z_m`` (m): 1.425e-3 z^2."""
+    return KINECT_NOISE_COEFF_PER_M * np.asarray(z_m, dtype=float) ** 2
+
+
+def depth_camera_distance_sigma(sigma_z: Callable[[np.ndarray], np.ndarray]) -> RangeNoise:
+    """A ``range_noise`` for a depth camera whose noise is along the ray, of std ``sigma_z(z)`` in
+    depth ``z`` (optical frame: z along the optical axis).
+
+    A point ``x = z u`` (``u = x / z``) moved by ``dz`` along its ray moves by ``u dz``; its distance
+    to a plane of normal ``n`` changes by ``(n . u) dz``, so ``s = |n . x| / z * sigma_z(z)``.
+    """
+
+    def sigma(points_sensor: np.ndarray, n_sensor: np.ndarray) -> np.ndarray:
+        z = points_sensor[:, 2]
+        return np.abs(_dot_rows(points_sensor, n_sensor)) / z * sigma_z(z)
+
+    return sigma
+
+
+def kinect_distance_sigma(points_sensor: np.ndarray, n_sensor: np.ndarray) -> np.ndarray:
+    """``range_noise`` of the Kinect: std (m) of each point's distance to a plane of normal
+    ``n_sensor``, ``1.425e-3 * z * |n . x|`` (see :func:`depth_camera_distance_sigma`)."""
+    return KINECT_NOISE_COEFF_PER_M * points_sensor[:, 2] * np.abs(_dot_rows(points_sensor, n_sensor))
+
+
+def _dot_rows(points: np.ndarray, n) -> np.ndarray:
+    """points (M, 3) . n (3,) column by column (no threaded BLAS)."""
+    return points[:, 0] * n[0] + points[:, 1] * n[1] + points[:, 2] * n[2]
+
+
+# ----------------------------------------------------------------------------- helpers
+def plane_tangent_basis(n) -> np.ndarray:
+    """(3, 2) orthonormal basis ``[t1, t2]`` of the plane orthogonal to unit ``n``, with
+    ``t1 x t2 = n``; a fixed function of ``n`` (the helper axis is the world axis least aligned
+    with ``n``)."""
+    n = np.asarray(n, dtype=float)
+    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+    t1 = np.cross(helper, n)
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(n, t1)
+    return np.column_stack([t1, t2])
+
+
+def _truncated_normal_var(sigma: np.ndarray, c: float) -> np.ndarray:
+    """Variance of e ~ N(0, sigma^2) conditioned on |e| < c (elementwise, sigma > 0)."""
+    from scipy.special import erf
+
+    sigma = np.asarray(sigma, dtype=float)
+    a = c / sigma
+    small = a < 0.05
+    a_big = np.where(small, 1.0, a)
+    phi = np.exp(-0.5 * a_big**2) / np.sqrt(2.0 * np.pi)
+    ratio = 1.0 - 2.0 * a_big * phi / erf(a_big / np.sqrt(2.0))
+    var = sigma**2 * ratio
+    # series for a -> 0 (nearly uniform on [-c, c]): c^2 (1/3 - 2 a^2 / 45)
+    var_small = c**2 * (1.0 / 3.0 - 2.0 * a**2 / 45.0)
+    return np.where(small, var_small, var)
+
+
+def _as_points(points_sensor, drop_nonfinite: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """(N, 3) float64 C-contiguous points, and the indices of the finite rows (None: all)."""
+    try:
+        P = np.asarray(points_sensor, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise GraphcalError(f"extract_planes: points must be an (N, 3) array of numbers ({exc})") from None
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise GraphcalError(f"extract_planes: points must have shape (N, 3), got {P.shape}")
+    P = np.ascontiguousarray(P)
+    keep = None
+    if not np.isfinite(P.sum()):
+        finite = np.isfinite(P).all(axis=1)
+        bad = np.flatnonzero(~finite)
+        if len(bad):
+            if not drop_nonfinite:
+                raise GraphcalError(
+                    f"extract_planes: {len(bad)} of {len(P)} points are not finite (NaN or inf), "
+                    f"first at row {bad[0]}; remove them or pass drop_nonfinite=True"
+                )
+            keep = np.flatnonzero(finite)
+    n_valid = len(P) if keep is None else len(keep)
+    if n_valid < 3:
+        raise GraphcalError(f"extract_planes: a plane needs at least 3 finite points, got {n_valid}")
+    return P, keep
+
+
+def _o3d():
+    import open3d as o3d  # slow import: only when a plane is extracted
+
+    return o3d
+
+
+def _ransac(P_sample: np.ndarray, distance_m: float, iterations: int, seed: int):
+    """Open3D RANSAC on (S, 3) points -> canonical (n, d), inlier indices; None if no plane."""
+    o3d = _o3d()
+    o3d.utility.random.seed(seed)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P_sample))
+    try:
+        model, inliers = pcd.segment_plane(float(distance_m), 3, int(iterations))
+    except RuntimeError:
+        return None
+    model = np.asarray(model, dtype=float).ravel()
+    norm = np.linalg.norm(model[:3])
+    if not np.all(np.isfinite(model)) or norm < 1e-12 or len(inliers) < 3:
+        return None
+    n, d = canonical_plane(model[:3], model[3])
+    return n, d, np.asarray(inliers, dtype=np.int64)
+
+
+# Thin products (N x 3) are done without multi-threaded BLAS: on a loaded 2-core machine OpenBLAS's
+# threaded gemv of a 300k x 3 matrix waits for a busy core (measured 8 ms instead of 0.2 ms).
+_MATVEC_CHUNK_ROWS = 2048  # rows per gemv call: below OpenBLAS's threading threshold (m * n < 9216)
+
+
+def _matvec_rows(A: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """A (N, 3) C-contiguous @ v (3,), in single-threaded chunks."""
+    out = np.empty(len(A))
+    for s in range(0, len(A), _MATVEC_CHUNK_ROWS):
+        np.matmul(A[s : s + _MATVEC_CHUNK_ROWS], v, out=out[s : s + _MATVEC_CHUNK_ROWS])
+    return out
+
+
+def _dist_soa(XT: np.ndarray, n: np.ndarray, d: float, out: np.ndarray, tmp: np.ndarray) -> np.ndarray:
+    """Signed distances n . x + d of the columns of XT (3, M) (rows contiguous), into ``out``."""
+    np.multiply(XT[0], n[0], out=out)
+    np.multiply(XT[1], n[1], out=tmp)
+    out += tmp
+    np.multiply(XT[2], n[2], out=tmp)
+    out += tmp
+    out += d
+    return out
+
+
+def _gram_soa(XT: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """sum_i w_i x_i x_i^T (3, 3) for the columns of XT (3, M), elementwise (no threaded BLAS)."""
+    S = np.empty((3, 3))
+    tmp = np.empty(XT.shape[1])
+    for i in range(3):
+        xi = XT[i] if w is None else XT[i] * w
+        for j in range(i, 3):
+            np.multiply(xi, XT[j], out=tmp)
+            S[i, j] = S[j, i] = tmp.sum()
+    return S
+
+
+@dataclass(frozen=True)
+class _Refined:
+    n: np.ndarray  # (3,) normal (shifted frame: same directions as the sensor frame)
+    d_shift: float  # offset in the shifted frame x - q
+    keep: np.ndarray  # (M,) bool over the candidates
+    count: int
+    mean_shift: np.ndarray  # (3,) centroid of the kept points, shifted frame
+    scatter: np.ndarray  # (3, 3) sum of centred outer products of the kept points
+    lam0: float  # smallest eigenvalue of scatter / count (mean squared distance)
+    iterations: int
+    converged: bool
+    threshold: float  # final 2 sigma_d
+
+
+def _pca(s1: np.ndarray, S2: np.ndarray, count: int, n_ref: np.ndarray):
+    """Plane of the points with sum s1 and sum of outer products S2 (shifted frame)."""
+    mean = s1 / count
+    scatter = S2 - count * (mean[:, None] * mean)
+    w, V = np.linalg.eigh(scatter / count)
+    n = V[:, 0]
+    if n @ n_ref < 0:
+        n = -n
+    return n, float(-(n @ mean)), mean, scatter, w
+
+
+def _check_not_collinear(w: np.ndarray, what: str) -> None:
+    """Raise if the eigenvalues (ascending) of a scatter matrix say the points are on a line."""
+    if not np.all(np.isfinite(w)) or w[2] <= 0.0 or w[1] <= 1e-12 * w[2]:
+        raise GraphcalError(
+            f"extract_planes: the {what} lie on a line (or a point): no unique plane "
+            f"(scatter eigenvalues {w[0]:.3g}, {w[1]:.3g}, {w[2]:.3g} m^2)"
+        )
+
+
+def _moments_drop(Cd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sum, sum of outer products) of the columns of Cd (3, k)."""
+    if Cd.shape[1] <= 16384:  # small: one single-threaded BLAS call
+        return Cd.sum(axis=1), Cd @ Cd.T
+    return Cd.sum(axis=1), _gram_soa(Cd)
+
+
+def _chai_refine(CT: np.ndarray, n0: np.ndarray, max_iterations: int) -> _Refined:
+    """Chai's iterative 2-sigma PCA on the candidates CT (3, M) (shifted frame, float64, rows
+    contiguous).
+
+    Exact shortcut ("watch set"): every kept point outside the watch set is known to satisfy
+    ``|n_ref . x + d_ref| <= inner_bound`` for a reference plane; with ``|x_j| <= A_j`` its
+    distance to the current plane is at most
+    ``inner_bound + sum_j |n_j - n_ref_j| A_j + |d - d_ref|``. While that is below the current
+    threshold only the watch set can lose points and only it is tested; otherwise a full pass
+    rebuilds it. As the threshold settles the watch set is shrunk to the points near it.
+    """
+    M = CT.shape[1]
+    count = M
+    s1 = CT.sum(axis=1)
+    S2 = _gram_soa(CT)
+    keep = np.ones(M, dtype=bool)
+    A = np.maximum(CT.max(axis=1), -CT.min(axis=1))  # (3,) per-axis bound on |x_j|
+    dist = np.empty(M)
+    tmp = np.empty(M)
+    watch_idx = watch_pts = watch_keep = dw = tw = None
+    inner_bound = ref_d = 0.0
+    ref_n = n_ref = n0
+    converged = False
+    it = 0
+    w = None
+    thr = thr_prev = np.inf
+    for it in range(1, max_iterations + 1):
+        if count < 3:
+            raise GraphcalError("extract_planes: fewer than 3 points left in the 2-sigma loop")
+        n, d, mean, scatter, w = _pca(s1, S2, count, n_ref)
+        if it == 1:
+            _check_not_collinear(w, "points near the RANSAC plane")
+        n_ref = n
+        thr_prev, thr = thr, 2.0 * float(np.sqrt(max(w[0], 0.0) * count / (count - 1)))  # Eq. 16
+        safe = False
+        if watch_idx is not None:
+            dn = np.abs(n - ref_n)
+            shift = float(dn[0] * A[0] + dn[1] * A[1] + dn[2] * A[2]) + abs(d - ref_d)
+            safe = inner_bound + shift < thr
+        if safe:
+            _dist_soa(watch_pts, n, d, dw, tw)
+            np.abs(dw, out=dw)
+            drop_local = dw > thr
+            drop_local &= watch_keep
+            drop_idx = watch_idx[drop_local]
+            watch_keep &= ~drop_local
+            # shrink the watch set to the points near the threshold, if the bound allows it
+            r = min(thr / thr_prev, 1.0)
+            gamma = min(max(0.99 - 3.0 * (1.0 - r), 0.5), 0.99)
+            if gamma * thr >= inner_bound + shift:
+                sel = dw > gamma * thr
+                sel &= watch_keep
+                sel_idx = np.flatnonzero(sel)
+                if len(sel_idx) < 0.7 * len(watch_idx):
+                    watch_idx = watch_idx[sel_idx]
+                    watch_pts = np.take(watch_pts, sel_idx, axis=1)
+                    watch_keep = np.ones(len(sel_idx), dtype=bool)
+                    dw, tw = np.empty(len(sel_idx)), np.empty(len(sel_idx))
+                    inner_bound, ref_n, ref_d = gamma * thr, n, d
+        else:
+            _dist_soa(CT, n, d, dist, tmp)
+            np.abs(dist, out=dist)
+            mask = dist > thr
+            mask &= keep
+            drop_idx = np.flatnonzero(mask)
+            keep[drop_idx] = False
+            np.greater(dist, _WATCH_FRACTION * thr, out=mask)
+            mask &= keep
+            watch_idx = np.flatnonzero(mask)
+            watch_pts = np.take(CT, watch_idx, axis=1)
+            watch_keep = np.ones(len(watch_idx), dtype=bool)
+            dw, tw = np.empty(len(watch_idx)), np.empty(len(watch_idx))
+            inner_bound, ref_n, ref_d = _WATCH_FRACTION * thr, n, d
+        if len(drop_idx) == 0:
+            converged = True
+            break
+        keep[drop_idx] = False
+        ds1, dS2 = _moments_drop(np.take(CT, drop_idx, axis=1))
+        s1 -= ds1
+        S2 -= dS2
+        count -= len(drop_idx)
+    if not converged:
+        # stopped by the cap after a drop: report the PCA plane of the points actually kept
+        n, d, mean, scatter, w = _pca(s1, S2, count, n_ref)
+    _check_not_collinear(w, "plane inliers")
+    return _Refined(n, d, keep, count, mean, scatter, max(float(w[0]), 0.0), it, converged, thr)
+
+
+def _covariance(n: np.ndarray, mean: np.ndarray, scatter_w: np.ndarray, W: float) -> np.ndarray:
+    """4x4 covariance of (n, d) from the weighted information (see module docstring).
+
+    ``mean`` is the weighted centroid (sensor frame), ``scatter_w = sum w_i (x_i - m)(x_i - m)^T``
+    and ``W = sum w_i`` with ``w_i = 1 / s_i^2``. With ``J_i = (t1 . x_i, t2 . x_i, 1)`` and
+    ``x_i = m + (x_i - m)``: ``sum w J J^T`` has the blocks
+    ``T^T scatter_w T + W (T^T m)(T^T m)^T``, ``W T^T m`` and ``W``.
+    """
+    T = plane_tangent_basis(n)
+    Tm = T.T @ mean
+    H = np.empty((3, 3))
+    H[:2, :2] = T.T @ scatter_w @ T + W * np.outer(Tm, Tm)
+    H[:2, 2] = H[2, :2] = W * Tm
+    H[2, 2] = W
+    cov3 = np.linalg.inv(H)
+    G = np.zeros((4, 3))
+    G[:3, :2] = T
+    G[3, 2] = 1.0
+    cov = G @ cov3 @ G.T
+    return 0.5 * (cov + cov.T)
+
+
+def _fit_one(
+    P: np.ndarray,
+    pool: np.ndarray | None,
+    available: np.ndarray | None,
+    rng: np.random.Generator,
+    *,
+    ransac_distance_m: float,
+    candidate_distance_m: float,
+    ransac_iterations: int,
+    subsample: int,
+    min_inliers: int,
+    max_iterations: int,
+    range_noise: RangeNoise | None,
+    first: bool,
+):
+    """One plane from the points P[pool] (pool None: all of P).
+
+    Returns None (no plane) or (candidate indices, PlaneFit or None if too few inliers).
+    """
+    n_pool = len(P) if pool is None else len(pool)
+    if n_pool < 3:
+        return None
+    if n_pool > subsample:
+        pick = rng.choice(n_pool, size=subsample, replace=False)
+        P_sample = np.take(P, pick if pool is None else pool[pick], axis=0)
+    else:
+        P_sample = P if pool is None else np.take(P, pool, axis=0)
+    if first and len(P_sample) <= 4096:
+        # small input: check for a line before RANSAC (cheap here)
+        _check_not_collinear(np.linalg.eigvalsh(np.cov(P_sample.T, bias=True)), "points")
+    found = _ransac(P_sample, ransac_distance_m, ransac_iterations, int(rng.integers(0, 2**31 - 1)))
+    if found is None:
+        if first:
+            _check_not_collinear(np.linalg.eigvalsh(np.cov(P_sample.T, bias=True)), "points")
+            raise GraphcalError("extract_planes: RANSAC found no plane in the points")
+        return None
+    n0, d0, sample_inliers = found
+    q = P_sample[sample_inliers].mean(axis=0)  # shift: coordinates become small and centred
+
+    dist = _matvec_rows(P, n0)
+    dist += d0
+    np.abs(dist, out=dist)
+    cand_mask = dist <= candidate_distance_m
+    if available is not None:
+        cand_mask &= available
+    cand = np.flatnonzero(cand_mask)
+    if len(cand) < max(min_inliers, 3):
+        return None
+    CT = np.empty((3, len(cand)))
+    np.subtract(np.take(P, cand, axis=0).T, q[:, None], out=CT)  # (3, M) shifted candidates
+    ref = _chai_refine(CT, n0, max_iterations)
+    if ref.count < min_inliers:
+        return cand, None
+
+    keep_idx = np.flatnonzero(ref.keep)
+    if range_noise is None:
+        n = ref.n
+        d_shift = ref.d_shift
+        mean_shift = ref.mean_shift
+        rms = float(np.sqrt(ref.lam0))
+        var = max(ref.lam0 * ref.count / max(ref.count - 3, 1), np.finfo(float).tiny)
+        scatter_w, W = ref.scatter / var, ref.count / var
+    else:
+        Cin = np.take(CT, keep_idx, axis=1)  # (3, n_in) shifted
+        X_sensor = (Cin + q[:, None]).T  # (n_in, 3) F-contiguous view, sensor frame
+        sig = np.asarray(range_noise(X_sensor, ref.n), dtype=float).reshape(-1)
+        if sig.shape != (Cin.shape[1],) or not np.all(np.isfinite(sig)) or np.any(sig <= 0):
+            raise GraphcalError(
+                "extract_planes: range_noise must return a positive finite std (m) for every point, "
+                f"shape ({Cin.shape[1]},)"
+            )
+        w = 1.0 / _truncated_normal_var(sig, ref.threshold)
+        W = float(w.sum())
+        mean_shift = (Cin * w).sum(axis=1) / W
+        Cin -= mean_shift[:, None]
+        scatter_w = _gram_soa(Cin, w)
+        _, V = np.linalg.eigh(scatter_w / W)
+        n = V[:, 0] if V[:, 0] @ ref.n >= 0 else -V[:, 0]
+        d_shift = float(-n @ mean_shift)
+        r = _dist_soa(Cin, n, 0.0, np.empty(Cin.shape[1]), np.empty(Cin.shape[1]))
+        rms = float(np.sqrt(np.mean(r * r)))
+    n, d = canonical_plane(n, d_shift - n @ q)
+    cov = _covariance(n, mean_shift + q, scatter_w, W)
+    mask = np.zeros(len(P), dtype=bool)
+    mask[cand[keep_idx]] = True
+    fit = PlaneFit(
+        n=n,
+        d=d,
+        cov=cov,
+        n_points=int(ref.count),
+        rms=rms,
+        inlier_mask=mask,
+        iterations=int(ref.iterations),
+        converged=bool(ref.converged),
+        trim_distance_m=float(ref.threshold),
+        weighted=range_noise is not None,
+    )
+    return cand, fit
+
+
+# ----------------------------------------------------------------------------- public API
+def extract_planes(
+    points_sensor,
+    *,
+    max_planes: int = 1,
+    ransac_distance_m: float = 0.02,
+    candidate_distance_m: float | None = None,
+    subsample: int = 5000,
+    ransac_iterations: int = 100,
+    min_inliers: int | None = None,
+    max_iterations: int = 100,
+    range_noise: RangeNoise | None = None,
+    rng: np.random.Generator | int | None = None,
+    drop_nonfinite: bool = False,
+) -> list[PlaneFit]:
+    """Extract up to ``max_planes`` planes from a point cloud, largest first.
+
+    Args:
+        points_sensor: (N, 3) points in the sensor frame (m).
+        max_planes: planes to look for; after each plane its candidate points (within
+            ``candidate_distance_m`` of its RANSAC plane) are removed and the search repeats.
+        ransac_distance_m: RANSAC inlier distance (m). Should exceed ~2x the noise std along the
+            normal.
+        candidate_distance_m: half-width (m) of the band around the RANSAC plane whose points
+            (of the full cloud) enter the 2-sigma loop; default ``ransac_distance_m``.
+        subsample: RANSAC runs on this many random points (all points if fewer).
+        ransac_iterations: Open3D RANSAC iterations.
+        min_inliers: planes with fewer inliers are discarded and the search stops;
+            default ``max(50, 2 % of the finite points)``.
+        max_iterations: cap on the 2-sigma loop's iterations.
+        range_noise: ``sigma(points_sensor (M, 3), n_sensor (3,)) -> (M,)`` std (m) of each point's
+            distance along the normal (e.g. :func:`kinect_distance_sigma`): weighted final fit and
+            model-based covariance. None: unweighted, covariance from the inliers' rms.
+        rng: seed or generator for the subsample and the RANSAC.
+        drop_nonfinite: ignore rows with NaN/inf instead of raising.
+
+    Returns:
+        A list of :class:`PlaneFit` (possibly empty), in extraction order.
+
+    Raises:
+        GraphcalError: fewer than 3 finite points, non-finite points (unless ``drop_nonfinite``),
+            points on a line, bad arguments.
+    """
+    if max_planes < 1:
+        raise GraphcalError(f"extract_planes: max_planes must be >= 1, got {max_planes}")
+    if not ransac_distance_m > 0:
+        raise GraphcalError(f"extract_planes: ransac_distance_m must be > 0, got {ransac_distance_m}")
+    if subsample < 3:
+        raise GraphcalError(f"extract_planes: subsample must be >= 3, got {subsample}")
+    band = ransac_distance_m if candidate_distance_m is None else float(candidate_distance_m)
+    if not band > 0:
+        raise GraphcalError(f"extract_planes: candidate_distance_m must be > 0, got {candidate_distance_m}")
+    P, finite_idx = _as_points(points_sensor, drop_nonfinite)
+    n_valid = len(P) if finite_idx is None else len(finite_idx)
+    if min_inliers is None:
+        min_inliers = max(50, int(np.ceil(0.02 * n_valid)))
+    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+    available: np.ndarray | None = None
+    pool = finite_idx
+    if finite_idx is not None:
+        available = np.zeros(len(P), dtype=bool)
+        available[finite_idx] = True
+        P = P.copy()
+        P[~available] = 0.0  # never a candidate: masked out by `available`
+    planes: list[PlaneFit] = []
+    for k in range(max_planes):
+        out = _fit_one(
+            P,
+            pool,
+            available,
+            gen,
+            ransac_distance_m=ransac_distance_m,
+            candidate_distance_m=band,
+            ransac_iterations=ransac_iterations,
+            subsample=subsample,
+            min_inliers=min_inliers,
+            max_iterations=max_iterations,
+            range_noise=range_noise,
+            first=(k == 0),
+        )
+        if out is None:
+            break
+        cand, fit = out
+        if fit is None:
+            break
+        planes.append(fit)
+        if k + 1 == max_planes:
+            break
+        if available is None:
+            available = np.ones(len(P), dtype=bool)
+        available[cand] = False
+        pool = np.flatnonzero(available)
+    return planes
+
+
+def fit_ground_plane(
+    points_sensor,
+    *,
+    up_sensor=None,
+    max_tilt_deg: float = 30.0,
+    max_candidates: int = 3,
+    **kwargs,
+) -> PlaneFit:
+    """The ground plane of a frame (see :func:`extract_planes` for the method and ``kwargs``).
+
+    Without ``up_sensor``: the largest plane. With ``up_sensor`` (3,), the expected up direction in
+    the sensor frame (e.g. from the IMU and the extrinsic prior): the plane with most inliers among
+    the first ``max_candidates`` whose normal is within ``max_tilt_deg`` of it (the canonical normal
+    points towards the sensor, i.e. up for a ground below it).
+
+    Raises:
+        GraphcalError: no plane (or none within the tilt), or the errors of :func:`extract_planes`.
+    """
+    if up_sensor is None:
+        planes = extract_planes(points_sensor, max_planes=1, **kwargs)
+        if not planes:
+            raise GraphcalError("fit_ground_plane: no plane with enough inliers in the points")
+        return planes[0]
+    up = np.asarray(up_sensor, dtype=float)
+    if up.shape != (3,) or not np.isfinite(up).all() or np.linalg.norm(up) == 0:
+        raise GraphcalError(f"fit_ground_plane: up_sensor must be a nonzero 3-vector, got {up_sensor!r}")
+    up = up / np.linalg.norm(up)
+    planes = extract_planes(points_sensor, max_planes=max_candidates, **kwargs)
+    cos_max = np.cos(np.radians(max_tilt_deg))
+    ok = [p for p in planes if p.n @ up >= cos_max]
+    if not ok:
+        raise GraphcalError(
+            f"fit_ground_plane: none of the {len(planes)} planes found is within {max_tilt_deg} deg of up_sensor"
+        )
+    return max(ok, key=lambda p: p.n_points)
