@@ -97,7 +97,7 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_extract_planes(args) -> int:
-    from .simulation.run import extract_planes_to_csv
+    from .plane_table import extract_planes_to_csv
 
     out = extract_planes_to_csv(args.dataset, args.out, max_planes=args.max_planes, progress=not args.quiet)
     print(f"wrote {out}")

@@ -775,7 +775,7 @@ def _read_csv(path: Path, kind: str) -> _Parsed:
             rows.append(row)
             lines.append(reader.line_num)
     except csv.Error as exc:
-        raise DatasetError(path, f"line {reader.line_num + 1}", "well-formed CSV", str(exc)) from None
+        raise DatasetError(path, f"line {max(reader.line_num, 1)}", "well-formed CSV", str(exc)) from None
     if header is None:
         raise DatasetError(path, "header", "a first line with the column names", "an empty file")
 

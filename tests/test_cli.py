@@ -1,0 +1,106 @@
+"""The command line as a user meets it: exit codes, one-line errors without tracebacks, outputs that
+never overwrite what the user has, and the example scripts."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run(*args, check_rc=None):
+    proc = subprocess.run([sys.executable, "-m", "graphcal", *map(str, args)], capture_output=True, text=True,
+                          timeout=600)
+    if check_rc is not None:
+        assert proc.returncode == check_rc, proc.stderr + proc.stdout
+    return proc
+
+
+@pytest.fixture(scope="module")
+def small_dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "octopus"
+    run("simulate", "--robot", "octopus", "--program", "random", "--stations", "8", "--sessions", "2",
+        "--cloud-stride", "8", "--out", out, "--quiet", "--effect", "link_length:joint=rm_foot_joint,delta_m=0.015",
+        check_rc=0)
+    return out
+
+
+def test_simulate_writes_a_valid_dataset_with_truth_beside_it(small_dataset):
+    assert (small_dataset / "dataset.yaml").is_file()
+    assert len(list((small_dataset / "clouds" / "depth").glob("*.ply"))) == 8
+    truth = yaml.safe_load((small_dataset / "truth.yaml").read_text())
+    assert truth["effects"]["link_length"]["rm_foot_joint"]["delta_m"] == pytest.approx(0.015)
+    proc = run("validate", small_dataset, check_rc=0)
+    assert "8 in 2 session(s)" in proc.stdout
+
+
+def test_simulate_refuses_to_overwrite_a_users_folder(tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("precious")
+    proc = run("simulate", "--robot", "octopus", "--program", "random", "--stations", "3", "--out", out, "--quiet")
+    assert proc.returncode == 2
+    assert "not empty" in proc.stderr and "Traceback" not in proc.stderr
+    assert (out / "notes.txt").read_text() == "precious"
+
+
+@pytest.mark.parametrize(
+    "effect, words",
+    [("volcano", "unknown cause"), ("link_length:joint=rm_foot_joint", "missing parameter delta_m"),
+     ("ground_tilt:tilt_rad=abc", "not a number"), ("joint_offset:joint=nope_joint,offset_rad=0.03", "nope_joint")],
+)
+def test_bad_effect_is_one_line_exit_2(tmp_path, effect, words):
+    proc = run("simulate", "--program", "random", "--stations", "3", "--out", tmp_path / "x", "--quiet",
+               "--effect", effect)
+    assert proc.returncode == 2, proc.stderr
+    assert words in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "x").exists()
+
+
+def test_validate_malformed_dataset_exit_2_names_file_and_row(small_dataset, tmp_path):
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(small_dataset, broken)
+    lines = (broken / "stations.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    row = lines[3].split(",")
+    row[header.index("body_qw")] = "0.5"  # no longer a unit quaternion
+    lines[3] = ",".join(row)
+    (broken / "stations.csv").write_text("\n".join(lines) + "\n")
+    proc = run("validate", broken)
+    assert proc.returncode == 2
+    assert "stations.csv" in proc.stderr and "row 3" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_extract_planes_writes_once_and_never_overwrites(small_dataset, tmp_path):
+    out = tmp_path / "planes.csv"
+    run("extract-planes", small_dataset, "--out", out, "--quiet", check_rc=0)
+    rows = out.read_text().splitlines()
+    assert rows[0].startswith("station,sensor,nx,ny,nz,d")
+    assert len(rows) == 1 + 8
+    before = out.read_bytes()
+    proc = run("extract-planes", small_dataset, "--out", out, "--quiet")
+    assert proc.returncode == 2 and "never overwrites" in proc.stderr
+    assert out.read_bytes() == before
+
+
+def test_example_simulate_and_validate(tmp_path):
+    spec = importlib.util.spec_from_file_location("example", ROOT / "examples" / "simulate_and_validate.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    result = mod.main(tmp_path / "octopus")
+    assert result["stations"] == 52
+    # Kinect noise over ~16k points per frame: the fitted ground is within hundredths of a degree
+    # and a fraction of a millimetre of the truth (a frame error would show up as degrees / cm)
+    assert result["plane_angle_err_deg"][1] < 0.05
+    assert result["plane_dist_err_mm"][1] < 1.0

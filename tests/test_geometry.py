@@ -1,0 +1,122 @@
+"""The frame rules, checked against the libraries they must agree with (GTSAM, Pinocchio)."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from graphcal import geometry as g
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(42)
+
+
+def random_pose(rng):
+    return g.se3_exp(np.r_[rng.normal(0, 1.0, 3), rng.normal(0, 1.0, 3)])
+
+
+def test_rpy_is_ros_convention_and_round_trips(rng):
+    for _ in range(50):
+        rpy = rng.uniform([-np.pi, -1.5, -np.pi], [np.pi, 1.5, np.pi])
+        R = g.matrix_from_rpy(rpy)
+        assert np.allclose(R, g.rot_z(rpy[2]) @ g.rot_y(rpy[1]) @ g.rot_x(rpy[0]))
+        assert np.allclose(g.rpy_from_matrix(R), rpy)
+        # same as GTSAM's Rot3.RzRyRx (ypr)
+        assert np.allclose(R, gtsam.Rot3.Ypr(rpy[2], rpy[1], rpy[0]).matrix())
+    batch = rng.uniform(-1, 1, (20, 3))
+    assert np.allclose(g.matrix_from_rpy(batch), np.array([g.matrix_from_rpy(r) for r in batch]))
+
+
+def test_quaternion_round_trip_and_sign(rng):
+    for _ in range(50):
+        R = random_pose(rng)[:3, :3]
+        q = g.quat_wxyz_from_matrix(R)
+        assert q[0] >= 0 and np.linalg.norm(q) == pytest.approx(1.0)
+        assert np.allclose(g.matrix_from_quat_wxyz(q), R)
+        gq = gtsam.Rot3(R).toQuaternion()
+        assert np.allclose(abs(q @ [gq.w(), gq.x(), gq.y(), gq.z()]), 1.0)
+    # a rotation of ~pi exercises the other branches of Shepperd's method
+    for axis in np.eye(3):
+        R = g.matrix_from_axis_angle(axis, np.pi - 1e-3)
+        assert np.allclose(g.matrix_from_quat_wxyz(g.quat_wxyz_from_matrix(R)), R)
+
+
+def test_T_a_b_maps_b_to_a_and_composes(rng):
+    T_a_b, T_b_c = random_pose(rng), random_pose(rng)
+    p_c = rng.normal(size=(5, 3))
+    p_b = g.transform_points(T_b_c, p_c)
+    assert np.allclose(g.transform_points(T_a_b, p_b), g.transform_points(T_a_b @ T_b_c, p_c))
+    assert np.allclose(g.invert_pose(T_a_b) @ T_a_b, np.eye(4))
+    batch = np.stack([T_a_b, T_b_c])
+    assert np.allclose(g.invert_pose(batch)[1], g.invert_pose(T_b_c))
+
+
+def test_se3_exp_matches_gtsam_expmap_in_omega_v_order(rng):
+    for _ in range(20):
+        xi = rng.normal(0, 0.8, 6)
+        assert np.allclose(g.se3_exp(xi), gtsam.Pose3.Expmap(xi).matrix())
+    xi = np.r_[1e-12, 0, 0, 1.0, 2.0, 3.0]  # near-zero rotation branch
+    assert np.allclose(g.se3_exp(xi), gtsam.Pose3.Expmap(xi).matrix())
+
+
+def test_gtsam_boundary_round_trip(rng):
+    T = random_pose(rng)
+    assert np.allclose(g.from_gtsam_pose(g.to_gtsam_pose(T)), T)
+
+
+def test_pinocchio_boundary_reorders_tangents(rng):
+    T = random_pose(rng)
+    M = g.to_pinocchio_se3(T)
+    assert np.allclose(g.from_pinocchio_se3(M), T)
+    # the same twist: Pinocchio's log6 is [v, omega], GTSAM's Logmap is [omega, v]
+    v_pin = pin.log6(M).vector
+    xi = gtsam.Pose3.Logmap(g.to_gtsam_pose(T))
+    assert np.allclose(g.tangent_from_pinocchio(v_pin), xi)
+    assert np.allclose(g.tangent_to_pinocchio(xi), v_pin)
+    J = rng.normal(size=(6, 4))
+    assert np.allclose(g.tangent_to_pinocchio(g.tangent_from_pinocchio(J)), J)
+
+
+def test_transform_plane_keeps_points_on_the_plane(rng):
+    T_a_b = random_pose(rng)
+    n_b, d_b = g.canonical_plane(rng.normal(size=3), 0.7)
+    t1 = np.cross(n_b, [1, 0, 0])
+    t2 = np.cross(n_b, t1)
+    p_b = -d_b * n_b + rng.normal(size=(10, 1)) * t1 + rng.normal(size=(10, 1)) * t2
+    n_a, d_a = g.transform_plane(T_a_b, n_b, d_b)
+    assert np.allclose(g.transform_points(T_a_b, p_b) @ n_a + d_a, 0.0)
+    # the same as GTSAM's OrientedPlane3.transform (which maps a plane into the pose's frame)
+    plane = gtsam.OrientedPlane3(*n_b, d_b).transform(g.to_gtsam_pose(g.invert_pose(T_a_b)))
+    assert np.allclose(plane.planeCoefficients(), np.r_[n_a, d_a])
+
+
+def test_canonical_plane_points_to_origin():
+    n, d = g.canonical_plane([0, 0, -2.0], 3.0)  # the plane z = 1.5, not of unit scale
+    assert np.allclose(n, [0, 0, -1]) and d == pytest.approx(1.5)
+    n, d = g.canonical_plane([0, 0, 1.0], -1.5)
+    assert d == pytest.approx(1.5) and np.allclose(n, [0, 0, -1])
+
+
+def test_fit_rigid_transform_recovers_a_pose(rng):
+    T = random_pose(rng)
+    p_b = rng.normal(size=(6, 3))
+    assert np.allclose(g.fit_rigid_transform(p_b, g.transform_points(T, p_b)), T)
+    # with noise the fit is the least-squares one: better than the truth on the noisy data
+    p_a = g.transform_points(T, p_b) + rng.normal(0, 1e-3, (6, 3))
+    T_fit = g.fit_rigid_transform(p_b, p_a)
+    cost = lambda X: np.sum((g.transform_points(X, p_b) - p_a) ** 2)  # noqa: E731
+    assert cost(T_fit) <= cost(T)
+    assert np.linalg.det(T_fit[:3, :3]) == pytest.approx(1.0)
+
+
+def test_axis_angle_round_trip(rng):
+    for angle in (1e-3, 0.5, 2.0, np.pi - 1e-8):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        a, t = g.axis_angle_from_matrix(g.matrix_from_axis_angle(axis, angle))
+        assert t == pytest.approx(angle, abs=1e-6)
+        assert np.allclose(g.matrix_from_axis_angle(a, t), g.matrix_from_axis_angle(axis, angle), atol=1e-6)
