@@ -137,7 +137,7 @@ CASES = [
     ("yaml-not-utf8", write_file(Y, b"format: graphcal-dataset/1\nrobot: \xff\xfe\n"), Y, ["line 2", "UTF-8"]),
     ("yaml-duplicate-key", yaml_replace("ground:", "sensors: {}\nground:"), Y, ["line ", "duplicate key 'sensors'"]),
     ("yaml-not-mapping", write_file(Y, "- a\n- b\n"), Y, ["top level", "a mapping"]),
-    ("format-wrong", yaml_replace("graphcal-dataset/1", "graphcal-dataset/2"), Y, ["format", "graphcal-dataset/2"]),
+    ("format-wrong", yaml_replace("format: graphcal-dataset/1", "format: graphcal-dataset/2"), Y, ["format", "graphcal-dataset/2"]),
     ("format-missing", yaml_replace("format: graphcal-dataset/1", ""), Y, ["format", "missing"]),
     ("robot-base-missing", yaml_replace("  base_frame: body\n", ""), Y, ["robot.base_frame", "missing"]),
     ("robot-feet-missing", yaml_replace("  feet: [lf_foot, lm_foot, lr_foot, rf_foot, rm_foot, rr_foot]\n", ""),
@@ -150,6 +150,8 @@ CASES = [
     ("robot-model-unknown", yaml_replace("model: octopus", "model: octopuz"), Y, ["robot.model", "octopuz"]),
     ("robot-base-absent", yaml_replace("base_frame: body", "base_frame: torso"), Y, ["robot.base_frame", "torso"]),
     ("robot-foot-absent", yaml_replace("[lf_foot, lm_foot", "[lf_toe, lm_foot"), Y, ["robot.feet[0]", "lf_toe"]),
+    ("robot-foot-not-below", yaml_replace("base_frame: body", "base_frame: lf_femur"), Y,
+     ["robot.feet", "below the base frame", "lm_foot"]),
     ("robot-foot-twice", yaml_replace("[lf_foot, lm_foot", "[lf_foot, lf_foot"), Y, ["robot.feet[1]", "once"]),
     ("urdf-absolute", yaml_replace("model: octopus", "urdf: /etc/robot.urdf"), Y, ["robot.urdf", "absolute"]),
     ("urdf-escapes", yaml_replace("model: octopus", "urdf: ../robot.urdf"), Y, ["robot.urdf", "inside the dataset"]),
@@ -172,6 +174,8 @@ CASES = [
      ["sensors.depth.T_body_sensor_prior.rpy_deg[1]", "a number"]),
     ("prior-rpy-inf", yaml_replace("[-90.0, 0.0, -120.0]", "[-90.0, .inf, -120.0]"), Y,
      ["T_body_sensor_prior.rpy_deg[1]", "finite"]),
+    ("prior-rpy-range", yaml_replace("[-90.0, 0.0, -120.0]", "[-90.0, 0.0, 720]"), Y,
+     ["sensors.depth.T_body_sensor_prior.rpy_deg[2]", "[-360, 360]"]),
     ("prior-sigma-negative", yaml_replace("sigma_mm: 50", "sigma_mm: -50"), Y,
      ["sensors.depth.T_body_sensor_prior.sigma_mm", ">= 0"]),
     ("prior-sigma-bool", yaml_replace("sigma_rpy_deg: 5", "sigma_rpy_deg: yes"), Y,
@@ -191,7 +195,7 @@ CASES = [
     ("stations-no-station", drop_column(S, "station"), S, ["column station", "required"]),
     ("stations-unknown-column", add_column(S, "temperature", "20"), S, ["column temperature", "unknown column"]),
     ("stations-contact-not-allowed", add_column(S, "contact_lf_foot", "1"), S, ["column contact_lf_foot"]),
-    ("stations-duplicate-header", rename_column(S, "time", "session"), S, ["header, column 2", "once"]),
+    ("stations-duplicate-header", rename_column(S, "time", "session"), S, ["header, column 3", "once"]),
     ("stations-body-incomplete", drop_column(S, "body_qz"), S, ["column body_qz", "all of body_x"]),
     ("stations-imu-incomplete", drop_column(S, "imu_gy"), S, ["column imu_gy", "all of imu_gx"]),
     ("stations-text-cell", set_cell(S, 2, "q_lf_coxa_joint", "abc"), S,
@@ -216,7 +220,8 @@ CASES = [
     ("stations-joint-missing", drop_column(S, "q_rr_tibia_joint"), S, ["column q_rr_tibia_joint", "missing"]),
     ("stations-imu-in-g", chain(*[set_cell(S, r, "imu_az", "1.0") for r in (1, 2, 3, 4)]), S,
      ["column imu_ax..imu_az", "units of g"]),
-    ("stations-q-without-robot", chain(yaml_replace("robot:", "robot: null\nxrobot:"), remove(T), remove(M)), S,
+    ("stations-q-without-robot", chain(yaml_replace("robot:", "robot: null\nxrobot:"), remove(T), remove(M),
+                                                   remove("clouds/depth/t10.01.ply")), S,
      ["column q_lf_coxa_joint", "a robot in dataset.yaml"]),
     ("stations-not-utf8", write_file(S, b"station,time\n1,0.5\n2,\xe9\n"), S, ["line 3", "UTF-8"]),
     # timeseries.csv
@@ -311,7 +316,7 @@ CLOUD_CASES = [
     ("ply-zero-points", write_file("clouds/depth/1.ply", PLY_HEAD.format(n=0)), ["unreadable or empty PLY"]),
     ("ply-truncated-ascii", write_file("clouds/depth/1.ply", PLY_HEAD.format(n=3) + "0 0 1\n0 1\n"),
      ["body", "unreadable or empty PLY"]),
-    ("ply-text-value", write_file("clouds/depth/1.ply", PLY_HEAD.format(n=1) + "0 zero 1\n"), ["a number", "zero"]),
+    ("ply-text-value", write_file("clouds/depth/1.ply", PLY_HEAD.format(n=1) + "0 zero 1\n"), ["a number", "'zero'"]),
     ("ply-nan", write_file("clouds/depth/1.ply", PLY_HEAD.format(n=2) + "0 0 1\n0 nan 1\n"),
      ["point 2 (1-based)", "finite"]),
     ("ply-millimetres", cloud_points("clouds/depth/1.ply", [[100, 200, 1500], [0, 0, 1200]]),
@@ -328,7 +333,7 @@ def test_bad_cloud_is_refused_by_validate(dataset_copy, mutate, fragments):
     with pytest.raises(DatasetError) as info:
         validate_dataset(dataset_copy)
     msg = str(info.value)
-    assert "clouds/depth/1.ply" in msg, msg
+    assert "clouds/depth/1.ply" in msg and "\n" not in msg, msg
     for frag in fragments:
         assert frag in msg, (frag, msg)
 
@@ -392,3 +397,17 @@ def test_lenient_csv_details(dataset_copy):
     ds = read_dataset(dataset_copy)
     assert ds.planes.columns[0] == "station" and ds.planes["sensor"].tolist() == ["depth"] * 4
     assert ds.planes["d"].tolist() == [0.9, 0.91, 0.92, 0.93]
+
+
+def test_warnings_of_a_valid_dataset(dataset_copy):
+    drop_column(S, "session")(dataset_copy)
+    set_cell(S, 2, "q_lf_tibia_joint", "143.2")(dataset_copy)  # degrees, by mistake
+    yaml_replace("sensors:", "sensors:\n  laser:\n    type: laser_scanner\n    T_body_sensor_prior: "
+                 "{xyz: [0.2, 0, 0.1], rpy_deg: [0, 0, 0], sigma_mm: 10, sigma_rpy_deg: 2}")(dataset_copy)
+    report = validate_dataset(dataset_copy)
+    assert report.warnings == (
+        "stations.csv has no session column (which stations share a stance is unknown)",
+        "sensor 'laser' has no cloud and no plane",
+        "stations.csv: q_lf_tibia_joint outside the URDF limits [-2.5, 2.5] on 1 row(s)",
+    )
+    assert "warning: sensor 'laser' has no cloud and no plane" in report.summary()

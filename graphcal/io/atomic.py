@@ -36,6 +36,14 @@ _UMASK_LOCK = threading.Lock()
 
 
 def _current_umask() -> int:
+    """The process umask, read without changing it where the OS allows (Linux), else briefly set."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
     with _UMASK_LOCK:
         mask = os.umask(0o022)
         os.umask(mask)

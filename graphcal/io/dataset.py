@@ -30,9 +30,9 @@ import csv
 import difflib
 import io
 import math
-import os
 import re
 import shutil
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, Iterable, Mapping, Sequence
@@ -404,7 +404,8 @@ class ValidationReport:
             f"{self.path}: valid {FORMAT} dataset",
             f"  robot: {self.robot}",
             f"  sensors: {self.n_sensors} ({', '.join(self.sensors) or 'none'})",
-            f"  stations: {self.n_stations} in {self.n_sessions} session(s); timeseries samples: {self.n_timeseries_rows}",
+            f"  stations: {self.n_stations} in {self.n_sessions} session(s); "
+            f"timeseries samples: {self.n_timeseries_rows}",
             f"  clouds: {self.n_clouds} ({self.n_cloud_points} points); planes: {self.n_planes}; "
             f"mocap rows: {self.n_mocap_rows}",
             f"  time span: {span}",
@@ -449,8 +450,9 @@ class _YamlDumper(yaml.SafeDumper):
 _YamlDumper.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeDumper.yaml_implicit_resolvers.items()}
 for _first, _resolvers in _YamlLoader.yaml_implicit_resolvers.items():
     for _tag, _regexp in _resolvers:
-        if _tag == "tag:yaml.org,2002:float" and (_tag, _regexp) not in _YamlDumper.yaml_implicit_resolvers.get(_first, []):
-            _YamlDumper.yaml_implicit_resolvers.setdefault(_first, []).append((_tag, _regexp))
+        known = _YamlDumper.yaml_implicit_resolvers.setdefault(_first, [])
+        if _tag == "tag:yaml.org,2002:float" and (_tag, _regexp) not in known:
+            known.append((_tag, _regexp))
 
 
 def _load_yaml(path: Path) -> Any:
@@ -465,11 +467,11 @@ def _load_yaml(path: Path) -> Any:
         mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else "YAML syntax"
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise DatasetError(path, where, "valid YAML", str(problem)) from None
+        raise DatasetError(path, where, "valid YAML", _one_line(problem)) from None
     except RecursionError:
         raise DatasetError(path, "YAML syntax", "valid YAML of reasonable nesting depth") from None
     except (ValueError, TypeError, OverflowError) as exc:  # e.g. a date such as 2024-13-45
-        raise DatasetError(path, "YAML value", "valid YAML values", str(exc)) from None
+        raise DatasetError(path, "YAML value", "valid YAML values", _one_line(str(exc))) from None
 
 
 def _decode(raw: bytes, path: Path) -> str:
@@ -477,7 +479,8 @@ def _decode(raw: bytes, path: Path) -> str:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         line = raw[: exc.start].count(b"\n") + 1
-        raise DatasetError(path, f"line {line} (byte {exc.start})", "UTF-8 text", f"byte 0x{raw[exc.start]:02x}") from None
+        raise DatasetError(path, f"line {line} (byte {exc.start})", "UTF-8 text",
+                           f"byte 0x{raw[exc.start]:02x}") from None  # fmt: skip
 
 
 class _Y:
@@ -526,8 +529,18 @@ class _Y:
             for k in m:
                 if k not in allowed:
                     raise self.err(
-                        f"{key}.{k}", f"one of the keys {', '.join(allowed)}{_suggest(k, allowed)}", f"unknown key {k!r}"
+                        f"{key}.{k}", f"one of the keys {', '.join(allowed)}{_suggest(k, allowed)}",
+                        f"unknown key {k!r}",
                     )
+
+
+def _cell(text: str) -> str:
+    """A cell or token for a message: verbatim if printable, else its repr (one line, visible)."""
+    return text if text.isprintable() else repr(text)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
 
 
 def _show(v: object) -> str:
@@ -745,7 +758,12 @@ def _column_ok(kind: str, name: str) -> bool:
     return any(name.startswith(p) and len(name) > len(p) for p in prefixes)
 
 
-_REQUIRED = {"stations": ("station",), "timeseries": ("time",), "planes": PLANE_REQUIRED_COLUMNS, "mocap": MOCAP_COLUMNS}
+_REQUIRED = {
+    "stations": ("station",),
+    "timeseries": ("time",),
+    "planes": PLANE_REQUIRED_COLUMNS,
+    "mocap": MOCAP_COLUMNS,
+}
 _GROUPS = {
     "stations": (BODY_POSE_COLUMNS, IMU_ACCEL_COLUMNS, IMU_GYRO_COLUMNS),
     "timeseries": (BODY_POSE_COLUMNS, IMU_ACCEL_COLUMNS, IMU_GYRO_COLUMNS),
@@ -775,13 +793,15 @@ def _read_csv(path: Path, kind: str) -> _Parsed:
             rows.append(row)
             lines.append(reader.line_num)
     except csv.Error as exc:
-        raise DatasetError(path, f"line {max(reader.line_num, 1)}", "well-formed CSV", str(exc)) from None
+        raise DatasetError(path, f"line {max(reader.line_num, 1)}", "well-formed CSV", _one_line(str(exc))) from None
     if header is None:
         raise DatasetError(path, "header", "a first line with the column names", "an empty file")
 
     for j, name in enumerate(header):
         if not name:
             raise DatasetError(path, f"header, column {j + 1}", "a column name", "an empty name")
+        if not name.isprintable():
+            raise DatasetError(path, f"header, column {j + 1}", "a column name of printable characters", _cell(name))
         if name in header[:j]:
             raise DatasetError(path, f"header, column {j + 1}", "each column name once", f"{name!r} again")
         if kind == "timeseries" and name == "station":
@@ -828,7 +848,7 @@ def _read_csv(path: Path, kind: str) -> _Parsed:
         if bad.any():
             i = int(np.argmax(bad))
             raise DatasetError(path, f"row {i + 1} (line {lines[i]}), column station", "an integer station id",
-                               cells[header.index("station")][i].strip())
+                               _cell(cells[header.index("station")][i].strip()))
         data["station"] = st.astype(np.int64)
     return _Parsed(path, Table(tuple(header), data), lines_a)
 
@@ -848,9 +868,9 @@ def _numbers(col: Sequence[str], path: Path, name: str, lines: list[int]) -> np.
             raise DatasetError(path, where, "a number", "an empty cell")
         if not _NUMBER_RE.fullmatch(s):
             nonfinite = s.lower().lstrip("+-") in ("nan", "inf", "infinity")
-            raise DatasetError(path, where, "a finite number" if nonfinite else "a number", s)
+            raise DatasetError(path, where, "a finite number" if nonfinite else "a number", _cell(s))
         if not math.isfinite(float(s)):
-            raise DatasetError(path, where, "a finite number (this one overflows to infinity)", s)
+            raise DatasetError(path, where, "a finite number (this one overflows to infinity)", _cell(s))
     raise AssertionError("unreachable: a column failed the fast path but every cell passed")  # pragma: no cover
 
 
@@ -898,7 +918,7 @@ def _check_timeseries(p: _Parsed, header: _Header, root: Path) -> set[Path]:
         back = np.diff(time) < 0
         if back.any():
             i = int(np.argmax(back)) + 1
-            raise p.err(i, "time", f"times that never decrease (row {i} has {time[i - 1]!r})", float(time[i]))
+            raise p.err(i, "time", f"times that never decrease (row {i} has {float(time[i - 1])!r})", float(time[i]))
     _check_body_imu(p, stations=False)
     feet = header.robot.feet if header.robot else ()
     for foot in t.suffixes("contact_"):
@@ -1071,7 +1091,8 @@ def _station_clouds(
             sid = int(stem) if re.fullmatch(r"[+-]?[0-9]+", stem) else None
             if sid is not None and sid in ids:
                 if (sdir.name, sid) in out:
-                    raise DatasetError(f, "file", f"one cloud per station (also {out[(sdir.name, sid)].name})", rel)
+                    other = out[(sdir.name, sid)].name
+                    raise DatasetError(f, "file", "one cloud per station", f"{other} and {f.name} for station {sid}")
                 out[(sdir.name, sid)] = f
             elif f.resolve() not in ref_resolved:
                 expected = "<station>.ply with a station id of stations.csv"
@@ -1103,7 +1124,17 @@ def _read(path: str | Path) -> tuple[Dataset, object | None, dict[str, _Parsed],
     if header.robot is not None and header.robot.urdf is not None:
         urdf = _inside(root, header.robot.urdf, y.path, "robot.urdf")
         if not urdf.is_file():
-            raise y.err("robot.urdf", "an existing URDF file inside the dataset folder", f"{header.robot.urdf} (no such file)")
+            raise y.err("robot.urdf", "an existing URDF file inside the dataset folder",
+                        f"{header.robot.urdf} (no such file)")  # fmt: skip
+
+    robot = None
+    if header.robot is not None:
+        robot = _load_robot_spec(root, header.robot, y.path)
+        frames = set(robot.frame_names)
+        for name, m in header.mocap_markers.items():
+            if m.link not in frames:
+                raise y.err(f"mocap.markers.{name}.link", "a frame of the URDF",
+                            f"{m.link!r}{_suggest(m.link, frames)}")  # fmt: skip
 
     parsed: dict[str, _Parsed] = {}
     for kind, name in _KIND_FILES.items():
@@ -1112,6 +1143,7 @@ def _read(path: str | Path) -> tuple[Dataset, object | None, dict[str, _Parsed],
             parsed[kind] = _read_csv(f, kind)
     if "stations" not in parsed and "timeseries" not in parsed:
         raise DatasetError(root, "files", "stations.csv or timeseries.csv (or both)", "neither")
+    _check_joint_columns(robot, parsed)
 
     station_ids = None
     if "stations" in parsed:
@@ -1123,20 +1155,11 @@ def _read(path: str | Path) -> tuple[Dataset, object | None, dict[str, _Parsed],
     if "planes" in parsed:
         _check_planes(parsed["planes"], header, station_ids)
     if "mocap" in parsed:
-        times = [parsed[k].table["time"] for k in ("stations", "timeseries") if k in parsed and parsed[k].table.has("time")]
+        times = [
+            parsed[k].table["time"] for k in ("stations", "timeseries") if k in parsed and parsed[k].table.has("time")
+        ]
         _check_mocap(parsed["mocap"], header, np.concatenate(times) if times else None)
     _station_clouds(root, header.sensors, station_ids, referenced)
-
-    robot = None
-    if header.robot is not None:
-        robot = _check_robot(root, header, parsed)
-    else:
-        for kind in ("stations", "timeseries"):
-            if kind in parsed:
-                for c in parsed[kind].table.columns:
-                    if c.startswith(("q_", "tau_")):
-                        raise DatasetError(parsed[kind].file, f"header, column {c}",
-                                           "a robot in dataset.yaml to name the joints", "no robot")
 
     ds = Dataset(
         root=root,
@@ -1162,28 +1185,50 @@ def _load_robot_spec(root: Path | None, spec: RobotSpec, yaml_file: Path | str):
     kwargs: dict[str, Any] = {"base_frame": spec.base_frame}
     if spec.urdf is not None:
         if root is None:
-            raise DatasetError(yaml_file, "robot.urdf", "a dataset read from a folder (the URDF file is relative to it)")
+            raise DatasetError(yaml_file, "robot.urdf",
+                               "a dataset read from a folder (the URDF file is relative to it)")  # fmt: skip
         kwargs["urdf"] = root / spec.urdf.replace("\\", "/")
     else:
         kwargs["model"] = spec.model
+    def text(exc: ModelError) -> str:
+        msg = str(exc)
+        if spec.urdf is not None:
+            msg = msg.replace(str(kwargs["urdf"]), spec.urdf)
+        return _one_line(msg)
+
     try:
         return load_robot(feet=spec.feet, **kwargs)
     except ModelError as exc:
         first = exc
     # find which key is at fault
     src = "robot.urdf" if spec.urdf is not None else "robot.model"
+    src_value = spec.urdf if spec.urdf is not None else spec.model
     try:
-        model = load_robot(feet=(), **kwargs)
-    except ModelError as exc:
-        if "base frame" in str(exc):
-            raise DatasetError(yaml_file, "robot.base_frame", "a frame of the URDF", str(exc)) from None
-        raise DatasetError(yaml_file, src, "a robot graphcal can load", str(exc)) from None
+        if spec.model is not None:
+            from graphcal.models.builtin import BUILTIN_MODELS, builtin_urdf
+
+            if spec.model not in BUILTIN_MODELS:
+                raise ModelError(str(first))
+            urdf_text = builtin_urdf(spec.model)
+        else:
+            urdf_text = Path(kwargs["urdf"]).read_text(encoding="utf-8")
+        tree = ET.fromstring(urdf_text)
+        names = {e.get("name") for e in tree.iter() if e.tag in ("link", "joint")} - {None}
+    except (ModelError, OSError, UnicodeDecodeError, ET.ParseError):
+        raise DatasetError(yaml_file, src, f"a robot graphcal can load ({text(first)})", src_value) from None
+    if spec.base_frame not in names:
+        raise DatasetError(yaml_file, "robot.base_frame", "a link or joint of the URDF",
+                           f"{spec.base_frame!r}{_suggest(spec.base_frame, names)}") from None  # fmt: skip
     for i, foot in enumerate(spec.feet):
-        if foot not in model.frame_names:
-            raise DatasetError(yaml_file, f"robot.feet[{i}]", "a frame of the URDF",
-                               f"{foot!r}{_suggest(foot, model.frame_names)}") from None
-    raise DatasetError(yaml_file, "robot.feet", "foot frames below the base frame, on chains of 1-DOF joints",
-                       str(first)) from None
+        if foot not in names:
+            raise DatasetError(yaml_file, f"robot.feet[{i}]", "a link or joint of the URDF",
+                               f"{foot!r}{_suggest(foot, names)}") from None  # fmt: skip
+    try:
+        load_robot(urdf_xml=urdf_text, base_frame=spec.base_frame, feet=())
+    except ModelError as exc:
+        raise DatasetError(yaml_file, src, f"a robot graphcal can load ({text(exc)})", src_value) from None
+    raise DatasetError(yaml_file, "robot.feet", f"foot frames below the base frame, on chains of 1-DOF joints "
+                       f"({text(first)})", list(spec.feet)) from None  # fmt: skip
 
 
 def load_dataset_robot(ds: Dataset):
@@ -1195,30 +1240,30 @@ def load_dataset_robot(ds: Dataset):
     return _load_robot_spec(ds.root, ds.robot, yaml_file)
 
 
-def _check_robot(root: Path, header: _Header, parsed: Mapping[str, _Parsed]):
-    yaml_file = root / "dataset.yaml"
-    robot = _load_robot_spec(root, header.robot, yaml_file)
-    joints = set(robot.joint_names)
-    leg_joints = [(j, foot) for foot in robot.feet for j in robot.legs[foot].joint_names]
+def _check_joint_columns(robot, parsed: Mapping[str, _Parsed]) -> None:
+    """q_/tau_ columns name moving joints of the URDF, and every leg joint has a q_ column."""
     for kind in ("stations", "timeseries"):
         if kind not in parsed:
             continue
         p = parsed[kind]
+        if robot is None:
+            for c in p.table.columns:
+                if c.startswith(("q_", "tau_")):
+                    raise DatasetError(p.file, f"header, column {c}", "a robot in dataset.yaml to name the joints",
+                                       "no robot")  # fmt: skip
+            continue
+        joints = set(robot.joint_names)
         for prefix in ("q_", "tau_"):
             for j in p.table.suffixes(prefix):
                 if j not in joints:
                     raise DatasetError(p.file, f"header, column {prefix}{j}", "a moving joint of the URDF",
-                                       f"{j!r}{_suggest(j, joints)}")
-        for j, foot in leg_joints:
-            if not p.table.has(f"q_{j}"):
-                raise DatasetError(p.file, f"header, column q_{j}",
-                                   f"a column for every moving joint on a leg (joint {j!r} of foot {foot!r})", "missing")
-    frames = set(robot.frame_names)
-    for name, m in header.mocap_markers.items():
-        if m.link not in frames:
-            raise DatasetError(yaml_file, f"mocap.markers.{name}.link", "a frame of the URDF",
-                               f"{m.link!r}{_suggest(m.link, frames)}")
-    return robot
+                                       f"{j!r}{_suggest(j, joints)}")  # fmt: skip
+        for foot in robot.feet:
+            for j in robot.legs[foot].joint_names:
+                if not p.table.has(f"q_{j}"):
+                    raise DatasetError(p.file, f"header, column q_{j}",
+                                       f"a column for every moving joint on a leg (joint {j!r} of foot {foot!r})",
+                                       "missing")  # fmt: skip
 
 
 def read_dataset(path: str | Path) -> Dataset:
@@ -1259,10 +1304,16 @@ def load_cloud(ds: Dataset, sensor: str, station: int) -> np.ndarray:
     """
     if ds.root is None:
         raise ValueError("load_cloud needs a dataset read from a folder (ds.root is None)")
-    path = cloud_paths(ds).get((sensor, int(station)))
-    if path is None:
-        path = ds.root / "clouds" / sensor / f"{int(station)}.ply"
-        raise DatasetError(path, "file", f"the cloud of station {int(station)} seen by sensor {sensor!r}", "no such file")
+    station = int(station)
+    path = ds.root / "clouds" / sensor / f"{station}.ply"
+    if path.is_file():
+        _inside(ds.root, f"clouds/{sensor}/{station}.ply", path, "file")
+    else:  # another spelling of the id, e.g. 007.ply
+        found = cloud_paths(ds).get((sensor, station))
+        if found is None:
+            raise DatasetError(path, "file", f"the cloud of station {station} seen by sensor {sensor!r}",
+                               "no such file")  # fmt: skip
+        path = found
     return _read_cloud(path)
 
 
@@ -1316,7 +1367,9 @@ def validate_dataset(path: str | Path) -> ValidationReport:
                     q = t[f"q_{j}"]
                     out = int(((q < lo - 1e-3) | (q > hi + 1e-3)).sum())
                     if out and np.isfinite([lo, hi]).all() and lo < hi:
-                        warnings.append(f"{kind}.csv: q_{j} outside the URDF limits [{lo:.4g}, {hi:.4g}] on {out} row(s)")
+                        warnings.append(
+                            f"{kind}.csv: q_{j} outside the URDF limits [{lo:.4g}, {hi:.4g}] on {out} row(s)"
+                        )
     if ds.robot is None:
         desc = "none"
     elif ds.robot.model is not None:
@@ -1459,7 +1512,9 @@ def write_dataset(
         raise DatasetError(out, "files", "a dataset with stations or a timeseries (or both)", "neither")
     doc = _yaml_doc(ds)
     try:
-        yaml_text = yaml.dump(doc, Dumper=_YamlDumper, sort_keys=False, default_flow_style=None, allow_unicode=True, width=100)
+        yaml_text = yaml.dump(
+            doc, Dumper=_YamlDumper, sort_keys=False, default_flow_style=None, allow_unicode=True, width=100
+        )
     except yaml.YAMLError as exc:
         raise DatasetError(out / "dataset.yaml", "extra", "plain YAML values (text, numbers, lists, mappings)",
                            str(exc)) from None  # fmt: skip
@@ -1484,7 +1539,8 @@ def write_dataset(
         sensor, station = key
         target = out / "clouds" / str(sensor) / f"{int(station)}.ply"
         if sensor not in ds.sensors:
-            raise DatasetError(f"{target} (not written)", "clouds", f"a sensor of the dataset ({', '.join(ds.sensors) or 'none'})", sensor)
+            raise DatasetError(f"{target} (not written)", "clouds",
+                               f"a sensor of the dataset ({', '.join(ds.sensors) or 'none'})", sensor)  # fmt: skip
         if int(station) not in station_ids:
             raise DatasetError(f"{target} (not written)", "clouds", "a station of stations", int(station))
         a = np.asarray(pts, dtype=np.float64)

@@ -75,7 +75,7 @@ def read_ply_header(path: str | Path, data: bytes | None = None) -> PlyHeader:
     end = data.find(b"end_header", 0, _MAX_HEADER_BYTES)
     if not data.startswith(b"ply") or end < 0:
         raise _bad(path, "header", "a PLY file (starting with 'ply', header ending with 'end_header'); "
-                   "unreadable or empty PLY", data[:20].decode("ascii", "replace"))
+                   "unreadable or empty PLY", repr(data[:20].decode("ascii", "replace")) if data else "an empty file")
     nl = data.find(b"\n", end)
     if nl < 0:
         raise _bad(path, "header", "a line break after 'end_header'; unreadable or empty PLY")
@@ -87,7 +87,7 @@ def read_ply_header(path: str | Path, data: bytes | None = None) -> PlyHeader:
     if data[end:nl].strip() != b"end_header":
         raise _bad(path, "header", "'end_header' alone on its line; unreadable or empty PLY")
     if lines[0].strip() != "ply":
-        raise _bad(path, "header line 1", "'ply'", lines[0])
+        raise _bad(path, "header line 1", "'ply'", repr(lines[0]))
     fmt = None
     elements: list[list] = []
     for i, line in enumerate(lines[1:], start=2):
@@ -97,23 +97,23 @@ def read_ply_header(path: str | Path, data: bytes | None = None) -> PlyHeader:
         where = f"header line {i}"
         if words[0] == "format":
             if len(words) != 3 or words[1] not in _FORMATS or words[2] != "1.0":
-                raise _bad(path, where, "'format ascii|binary_little_endian|binary_big_endian 1.0'", line)
+                raise _bad(path, where, "'format ascii|binary_little_endian|binary_big_endian 1.0'", repr(line))
             fmt = words[1]
         elif words[0] == "element":
             if len(words) != 3 or not words[2].isdigit():
-                raise _bad(path, where, "'element <name> <count>'", line)
+                raise _bad(path, where, "'element <name> <count>'", repr(line))
             elements.append([words[1], int(words[2]), []])
         elif words[0] == "property":
             if not elements:
-                raise _bad(path, where, "a property after an element", line)
+                raise _bad(path, where, "a property after an element", repr(line))
             if len(words) == 3 and words[1] in _TYPE_SIZES:
                 elements[-1][2].append((words[2], words[1], False, None))
             elif len(words) == 5 and words[1] == "list" and words[2] in _TYPE_SIZES and words[3] in _TYPE_SIZES:
                 elements[-1][2].append((words[4], words[3], True, words[2]))
             else:
-                raise _bad(path, where, "'property <type> <name>' or 'property list <type> <type> <name>'", line)
+                raise _bad(path, where, "'property <type> <name>' or 'property list <type> <type> <name>'", repr(line))
         else:
-            raise _bad(path, where, "a PLY header line (format, element, property, comment)", line)
+            raise _bad(path, where, "a PLY header line (format, element, property, comment)", repr(line))
     if fmt is None:
         raise _bad(path, "header", "a 'format' line; unreadable or empty PLY")
     vertex = [e for e in elements if e[0] == "vertex"]
@@ -187,7 +187,7 @@ def _check_ascii_numbers(path: Path, body: bytes) -> None:
                 float(tok)
             except ValueError:
                 raise _bad(path, f"value {k + 1} after the header", "a number",
-                           tok[:40].decode("ascii", "replace")) from None
+                           repr(tok[:40].decode("ascii", "replace"))) from None
         raise _bad(path, "body", "numbers") from None
 
 

@@ -154,23 +154,12 @@ class SimulationResult:
     truth: dict
 
 
-def _chain_points_world(robot, foot: str, q_leg: np.ndarray, T_world_base: np.ndarray, pin_data) -> np.ndarray:
-    """World positions of every joint origin of a leg and of its foot (for the leg meshes)."""
-    import pinocchio as pin
+def _chain_points_world(leg, q_leg: np.ndarray, T_world_base: np.ndarray) -> np.ndarray:
+    """World positions (n + 1, 3) of every joint origin of a leg and of its foot (for the leg meshes)."""
+    from ..models.kinematics import joint_frames
 
-    m = robot.pin_model
-    q = pin.neutral(m)
-    leg = robot.leg(foot)
-    for name, val in zip(leg.joint_names, q_leg):
-        jid = m.getJointId(name)
-        q[m.joints[jid].idx_q] = val
-    pin.forwardKinematics(m, pin_data, q)
-    pin.updateFramePlacements(m, pin_data)
-    T_root_base = pin_data.oMf[m.getFrameId(robot.base_frame)].homogeneous
-    pts_root = [pin_data.oMi[m.getJointId(n)].translation for n in leg.joint_names]
-    pts_root.append(pin_data.oMf[m.getFrameId(foot)].translation)
-    T_world_root = T_world_base @ invert_pose(T_root_base)
-    return transform_points(T_world_root, np.array(pts_root))
+    _, origins_base, _, p_foot = joint_frames(leg, q_leg[None, :])
+    return transform_points(T_world_base, np.vstack([origins_base[0], p_foot]))
 
 
 def _true_robot(robot, config: SimulationConfig, rng: np.random.Generator):
@@ -302,7 +291,6 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
 
     # -- stations
     q_prev = _nominal_q(robot, info)
-    pin_data = true_robot.pin_model.createData()
     records: list[StationRecord] = []
     real_poses = {}
     leg_q_true = {}
@@ -349,7 +337,7 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
     for rec in records:
         leg_meshes: list[Mesh] = []
         for f in robot.feet:
-            pts = _chain_points_world(true_robot, f, leg_q_true[rec.station][f], rec.T_world_body_real, pin_data)
+            pts = _chain_points_world(true_robot.leg(f), leg_q_true[rec.station][f], rec.T_world_body_real)
             for a, b in zip(pts[:-1], pts[1:]):
                 if np.linalg.norm(b - a) > 1e-6:
                     leg_meshes.append(cylinder_mesh(a, b, leg_radius, LABEL_ROBOT))
