@@ -32,8 +32,19 @@ Method (one plane)
    after a full pass only a "watch set" (points near the threshold) is re-tested while a bound on
    the plane's motion proves that no other point can cross the threshold; otherwise a full pass.
    The result is exactly that of the plain loop.
-4. For ``max_planes > 1`` the candidates are removed and the next plane is searched in the
+4. **Plane check.** Chai's rule only trims a peaked distribution: if the candidates spread over
+   the whole band (inlier rms > 0.42 band; a plane with noise std band/2 gives 0.36, a uniform
+   spread 0.58) RANSAC's plane is no plane (on stairs seen from above, a slanted plane through
+   the nosings has more points within 2 cm than any tread). It is rejected, its candidates are
+   excluded from the RANSAC sampling (not from later planes' candidates) and RANSAC's threshold
+   is halved (down to a quarter), at most 3 times.
+5. For ``max_planes > 1`` the candidates are removed and the next plane is searched in the
    remaining points.
+
+Speed (300k-point frame, 2 cores, see ``bench/plane_extraction.py``): Open3D's RANSAC costs
+~0.9 ms per 1000 subsampled points (100 iterations), hence the default ``subsample=5000``; the
+rest is a few passes over the frame. Thin products (N x 3) avoid multi-threaded BLAS, which
+stalls on a busy core.
 
 Covariance
 ----------
@@ -611,12 +622,15 @@ def _fit_one(
         tau = float(truncation_variance_ratio(a))
         info_scale = tau  # H = sum J J^T / sigma_i^2 (ref.scatter, ref.W are weighted)
     n, d = canonical_plane(n_fit, d_shift - n_fit @ q)
+    n.flags.writeable = False
     cov = _covariance(n, ref.mean_shift + q, ref.scatter * info_scale, ref.W * info_scale)
+    cov.flags.writeable = False
     mask = np.zeros(len(P), dtype=bool)
     mask[cand[keep_idx]] = True
+    mask.flags.writeable = False
     fit = PlaneFit(
         n=n,
-        d=d,
+        d=float(d),
         cov=cov,
         n_points=int(ref.count),
         rms=rms,

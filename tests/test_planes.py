@@ -188,6 +188,7 @@ def test_thirty_percent_clutter_does_not_bias_the_plane(clutter_frame, weighted)
 
 
 # ----------------------------------------------------------------------------- covariance honesty
+@pytest.mark.slow
 def test_covariance_monte_carlo_kinect_with_range_noise():
     """300 simulated Kinect frames (~23k points): the spread of the estimates matches the predicted
     covariance, the estimates are unbiased, and the residual noise matches the Kinect model."""
@@ -226,6 +227,7 @@ def test_covariance_monte_carlo_kinect_with_range_noise():
     assert np.mean(raw_ratio) == pytest.approx(1.0, abs=0.10)
 
 
+@pytest.mark.slow
 def test_covariance_monte_carlo_equal_noise_unweighted(floor_frame):
     """Chai's metric loop with equal noise on all points: the empirical-rms covariance is honest."""
     P, n_true, d_true = floor_frame
