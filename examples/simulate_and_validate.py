@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from graphcal.geometry import invert_pose, pose_from_xyz_quat_wxyz, rotation_angle_between, transform_plane
+from graphcal.geometry import invert_pose, pose_from_xyz_quat_wxyz, transform_plane
 from graphcal.io.dataset import read_dataset, validate_dataset
 from graphcal.simulation.run import simulate_to_folder
 

@@ -87,7 +87,7 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
     ``out``).
     """
     from .io.atomic import atomic_write_text
-    from .io.dataset import cloud_paths, load_cloud, read_dataset
+    from .io.dataset import Table, cloud_paths, load_cloud, read_dataset, table_csv_text
 
     ds = read_dataset(dataset)
     out_path = Path(out) if out is not None else Path(dataset) / "planes.csv"
@@ -100,9 +100,5 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
     types = {name: spec.type for name, spec in ds.sensors.items()}
     pairs = ((key, load_cloud(ds, *key)) for key in sorted(paths))
     rows = planes_rows(pairs, types, max_planes=max_planes, progress=progress)
-    lines = [",".join(PLANE_COLUMNS)]
-    for k in range(len(rows["station"])):
-        lines.append(",".join(str(rows[c][k]) if c in ("station", "sensor") else repr(float(rows[c][k]))
-                              for c in PLANE_COLUMNS))
-    atomic_write_text(out_path, "\n".join(lines) + "\n")
+    atomic_write_text(out_path, table_csv_text(Table.from_columns(rows)), overwrite=False)
     return out_path

@@ -25,7 +25,7 @@ from typing import Iterator
 
 from graphcal.errors import GraphcalError
 
-__all__ = ["OutputExistsError", "atomic_write_text", "atomic_write_bytes", "atomic_directory", "fsync_directory"]
+__all__ = ["OutputExistsError", "atomic_file", "atomic_write_text", "atomic_write_bytes", "atomic_directory", "fsync_directory"]
 
 
 class OutputExistsError(GraphcalError, FileExistsError):
@@ -69,6 +69,45 @@ def _temp_sibling(path: Path, suffix: str = ".tmp") -> tuple[int, Path]:
     return fd, Path(name)
 
 
+@contextlib.contextmanager
+def atomic_file(path: str | Path, *, overwrite: bool = True, suffix: str = ".tmp") -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; when the block ends without an exception, flush it to
+    disk and rename it onto ``path``; otherwise remove it and leave ``path`` unchanged.
+
+    For writers that need a file name (Open3D, ``numpy.save``): write the whole file to the yielded
+    path inside the ``with`` block. ``suffix`` lets such writers see the right extension (".ply").
+    The result gets the permissions of the file it replaces, or ``0o666`` minus the umask.
+
+    Raises:
+        OutputExistsError: ``overwrite`` is False and ``path`` exists (checked before and at the end).
+    """
+    path = Path(path)
+    if not overwrite and (path.exists() or path.is_symlink()):
+        raise OutputExistsError(f"{path}: already exists; refusing to replace it (overwrite=False)")
+    try:
+        mode = path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~_current_umask()
+    except OSError:
+        mode = 0o666 & ~_current_umask()
+    fd, tmp = _temp_sibling(path, suffix)
+    os.close(fd)
+    try:
+        yield tmp
+        fd = os.open(str(tmp), os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.chmod(tmp, mode)
+        if not overwrite and (path.exists() or path.is_symlink()):
+            raise OutputExistsError(f"{path}: already exists; refusing to replace it (overwrite=False)")
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    fsync_directory(path.parent)
+
+
 def atomic_write_bytes(path: str | Path, data: bytes, *, overwrite: bool = True) -> Path:
     """Write ``data`` to ``path`` atomically (temp file in the same folder, fsync, ``os.replace``).
 
@@ -83,29 +122,9 @@ def atomic_write_bytes(path: str | Path, data: bytes, *, overwrite: bool = True)
     The new file gets the permissions of the file it replaces, or ``0o666`` minus the umask.
     On any failure the temporary file is removed and ``path`` is unchanged.
     """
-    path = Path(path)
-    if not overwrite and (path.exists() or path.is_symlink()):
-        raise OutputExistsError(f"{path}: already exists; refusing to replace it (overwrite=False)")
-    try:
-        mode = path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~_current_umask()
-    except OSError:
-        mode = 0o666 & ~_current_umask()
-    fd, tmp = _temp_sibling(path)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, mode)
-        if not overwrite and (path.exists() or path.is_symlink()):
-            raise OutputExistsError(f"{path}: already exists; refusing to replace it (overwrite=False)")
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    fsync_directory(path.parent)
-    return path
+    with atomic_file(path, overwrite=overwrite) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
 
 
 def atomic_write_text(path: str | Path, text: str, *, overwrite: bool = True, encoding: str = "utf-8") -> Path:

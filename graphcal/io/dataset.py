@@ -1433,7 +1433,8 @@ def _yaml_doc(ds: Dataset) -> dict:
     return doc
 
 
-def _csv_text(t: Table) -> str:
+def table_csv_text(t: Table) -> str:
+    """The CSV text of a table (header + rows; floats as shortest repr, an exact float64 round trip)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(t.columns)
@@ -1579,7 +1580,7 @@ def write_dataset(
                         ("planes.csv", ds.planes), ("mocap.csv", ds.mocap)):  # fmt: skip
             if t is not None:
                 _check_table_text(t, f"{out / name} (not written)")
-                atomic_write_text(tmp / name, _csv_text(t))
+                atomic_write_text(tmp / name, table_csv_text(t))
         if urdf_rel is not None:
             atomic_write_bytes(dest(urdf_rel), urdf_bytes)
         for (sensor, station), a in new_clouds.items():

@@ -15,16 +15,13 @@ frame). :func:`write_ply` writes binary (exact float64) by default; Open3D's ASC
 
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from graphcal.errors import DatasetError
-from graphcal.io.atomic import OutputExistsError, _current_umask, fsync_directory
+from graphcal.io.atomic import atomic_file
 
 __all__ = ["read_ply", "write_ply", "read_ply_header", "PlyHeader"]
 
@@ -213,30 +210,12 @@ def write_ply(path: str | Path, points, *, binary: bool = True, overwrite: bool 
         raise ValueError(f"write_ply({str(path)!r}): points must be a non-empty (N, 3) array, got shape {pts.shape}")
     if not np.isfinite(pts).all():
         raise ValueError(f"write_ply({str(path)!r}): points must be finite")
-    if not overwrite and (path.exists() or path.is_symlink()):
-        raise OutputExistsError(f"{path}: already exists; refusing to replace it (overwrite=False)")
-
     import open3d as o3d
 
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp.ply", dir=str(path.parent))
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
+    with atomic_file(path, overwrite=overwrite, suffix=".tmp.ply") as tmp:
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(pts)))
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             ok = o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=not binary)
         if not ok:
             raise OSError(f"Open3D could not write {path}")
-        fd = os.open(str(tmp), os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.chmod(tmp, 0o666 & ~_current_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    fsync_directory(path.parent)
     return path
