@@ -238,3 +238,28 @@ def test_draw_effect_is_within_the_catalogue_magnitudes(cause):
 def test_bad_simulation_requests_are_named(kwargs, words):
     with pytest.raises(GraphcalError, match=words):
         simulate(SimulationConfig(**{**dict(robot="octopus", program="chai2015", **FAST), **kwargs}))
+
+
+def test_a_users_own_hexapod_urdf_is_simulated_and_written_in_the_contract(tmp_path):
+    import custom_hexapod
+
+    from graphcal.io.dataset import read_dataset, validate_dataset
+    from graphcal.simulation.run import write_simulation
+    from graphcal.simulation.session import CustomRobot
+
+    config = SimulationConfig(robot="sidewinder", program="random", n_stations=10, n_sessions=3, seed=8,
+                              custom_robot=CustomRobot(custom_hexapod.urdf_xml(), custom_hexapod.info()),
+                              tilt_scale=0.6, **FAST)
+    res = simulate(config)
+    # the IMU is mounted turned by 90 deg: gravity must appear in the IMU frame, not the body's
+    R_body_imu = custom_hexapod.T_BODY_IMU[:3, :3]
+    for r in res.stations:
+        g_imu = (r.T_world_body_real[:3, :3] @ R_body_imu).T @ np.array([0, 0, GRAVITY_M_S2])
+        assert np.linalg.norm(r.imu_accel - g_imu) < 0.15
+    out = tmp_path / "sidewinder"
+    write_simulation(res, out)
+    ds = read_dataset(out)
+    assert ds.robot.urdf == "robot.urdf" and ds.robot.model is None
+    assert "q_front_left_knee" in ds.stations.columns
+    assert len(set(ds.stations["session"].tolist())) == 3
+    assert validate_dataset(out).n_clouds == 10

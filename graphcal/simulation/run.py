@@ -46,12 +46,10 @@ def effect_from_words(cause: str, params: dict, *, seed: int, config: Simulation
             f"expected {', '.join(sorted(_PARAMS[cause]))}"
         )
     if not params:
-        from ..models.builtin import builtin_info
-        from ..models.robot import load_robot
         from .programs import station_program
+        from .session import robot_and_info
 
-        info = builtin_info(config.robot)
-        robot = load_robot(model=config.robot)
+        robot, info = robot_and_info(config)
         cmds = station_program(config.program, default_height_m=info.default_body_height_m,
                                n_stations=config.n_stations, n_sessions=config.n_sessions, seed=config.seed)
         sensors = tuple(config.sensors) if config.sensors else tuple(info.sensors)
@@ -102,10 +100,10 @@ def result_to_dataset(result: SimulationResult, *, with_planes: bool, progress: 
     the clouds when ``with_planes``)."""
     from ..geometry import xyz_quat_wxyz_from_pose
     from ..io.dataset import Dataset, ImuSpec, PosePrior, RobotSpec, SensorSpec, Table
-    from ..models.builtin import builtin_info
     from ..plane_table import planes_rows
+    from .session import robot_and_info
 
-    info = builtin_info(result.robot_name)
+    _, info = robot_and_info(result.config)
     sensors = {
         name: SensorSpec(name, cad.type, PosePrior.from_matrix(cad.T_body_sensor, cad.sigma_m, cad.sigma_rad))
         for name, cad in result.sensor_cad.items()
@@ -133,7 +131,12 @@ def result_to_dataset(result: SimulationResult, *, with_planes: bool, progress: 
         if rows["station"]:
             planes = Table.from_columns(rows)
     return Dataset(
-        robot=RobotSpec(urdf=None, model=result.robot_name, base_frame=info.base_frame, feet=info.feet),
+        robot=RobotSpec(
+            urdf="robot.urdf" if result.config.custom_robot is not None else None,
+            model=None if result.config.custom_robot is not None else result.robot_name,
+            base_frame=info.base_frame,
+            feet=info.feet,
+        ),
         sensors=sensors,
         imu=imu,
         ground={"type": "level"},
@@ -141,6 +144,32 @@ def result_to_dataset(result: SimulationResult, *, with_planes: bool, progress: 
         stations=Table.from_columns(cols),
         planes=planes,
     )
+
+
+def write_simulation(result: SimulationResult, out_dir: str | Path, *, output: str = "both",
+                     overwrite: bool = False, progress: bool = False):
+    """Write a simulation as a dataset folder: the contract's files (clouds and/or planes) and
+    ``truth.yaml`` beside ``dataset.yaml``; a custom robot's URDF as ``robot.urdf``. Returns the
+    written :class:`~graphcal.io.dataset.Dataset` (in memory)."""
+    import yaml
+
+    from ..io.dataset import write_dataset
+
+    if output not in ("clouds", "planes", "both"):
+        raise GraphcalError(f"output must be clouds, planes or both, got {output!r}")
+    ds = result_to_dataset(result, with_planes=output in ("planes", "both"), progress=progress)
+    clouds = result.clouds if output in ("clouds", "both") else {}
+    truth = dict(result.truth)
+    c = result.config
+    truth["config"] = {
+        "robot": c.robot, "program": c.program, "ground": c.ground, "seed": c.seed, "n_sessions": c.n_sessions,
+        "output": output, "cloud_stride": c.cloud_stride,
+        "leg_error_sigma_rad": c.leg_error_sigma_rad, "leg_error_sigma_m": c.leg_error_sigma_m,
+    }
+    urdf = c.custom_robot.urdf_xml if c.custom_robot is not None else None
+    write_dataset(ds, out_dir, clouds=clouds, robot_urdf_xml=urdf, overwrite=overwrite,
+                  extra_files={"truth.yaml": yaml.safe_dump(truth, sort_keys=False)})
+    return ds
 
 
 def simulate_to_folder(
@@ -170,10 +199,6 @@ def simulate_to_folder(
     Returns:
         A one-paragraph summary of what was written.
     """
-    import yaml
-
-    from ..io.dataset import write_dataset
-
     if output not in ("clouds", "planes", "both"):
         raise GraphcalError(f"output must be clouds, planes or both, got {output!r}")
     if cloud_stride < 1:
@@ -196,15 +221,8 @@ def simulate_to_folder(
 
     config = replace(config, effects=combined)
     result = simulate(config, progress=progress)
-    ds = result_to_dataset(result, with_planes=output in ("planes", "both"), progress=progress)
+    ds = write_simulation(result, out_dir, output=output, overwrite=overwrite, progress=progress)
     clouds = result.clouds if output in ("clouds", "both") else {}
-    truth = dict(result.truth)
-    truth["config"] = {
-        "robot": robot, "program": program, "ground": ground, "seed": seed, "n_sessions": n_sessions,
-        "output": output, "cloud_stride": cloud_stride, "leg_errors": leg_errors,
-    }
-    write_dataset(ds, out_dir, clouds=clouds, overwrite=overwrite,
-                  extra_files={"truth.yaml": yaml.safe_dump(truth, sort_keys=False)})
     n_planes = len(ds.planes) if ds.planes is not None else 0
     sessions = len(set(r.session for r in result.stations))
     hidden = ", ".join(combined.active()) or "none"

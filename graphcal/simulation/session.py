@@ -70,6 +70,28 @@ def _nominal_q(robot, info) -> dict:
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class CustomRobot:
+    """A robot that is not built in: its URDF text and what the simulator needs to know about it
+    (a :class:`graphcal.models.builtin.BuiltinInfo`: base frame, feet, standing height, nominal
+    stance, sensors with their CAD poses, IMU pose)."""
+
+    urdf_xml: str
+    info: object
+
+
+def robot_and_info(config: "SimulationConfig"):
+    """(RobotModel, BuiltinInfo) of the configured robot, built-in or custom."""
+    from ..models.builtin import builtin_info
+    from ..models.robot import load_robot
+
+    if config.custom_robot is not None:
+        info = config.custom_robot.info
+        robot = load_robot(urdf_xml=config.custom_robot.urdf_xml, base_frame=info.base_frame, feet=info.feet)
+        return robot, info
+    return load_robot(model=config.robot), builtin_info(config.robot)
+
+
 @dataclass(frozen=True)
 class SimulationConfig:
     """What to simulate. Units SI; angles in rad.
@@ -93,6 +115,8 @@ class SimulationConfig:
         imu_accel_bias_sigma_m_s2, imu_gyro_bias_sigma_rad_s: constant IMU biases drawn once.
         tilt_scale: scales commanded roll/pitch (None: the model's default).
         effects: hidden discrepancy effects (see graphcal.simulation.effects).
+        custom_robot: simulate this robot instead of the built-in ``robot`` (then ``robot`` is only
+            its name in the outputs).
     """
 
     robot: str = "octopus"
@@ -115,6 +139,7 @@ class SimulationConfig:
     imu_gyro_bias_sigma_rad_s: float = 1e-3
     tilt_scale: float | None = None
     effects: Effects = field(default_factory=Effects)
+    custom_robot: CustomRobot | None = None
 
 
 @dataclass(frozen=True)
@@ -137,7 +162,7 @@ class SimulationResult:
 
     Attributes:
         config: the configuration.
-        robot_name: built-in model name.
+        robot_name: built-in model name (or the custom robot's name).
         stations: the station records, in order.
         clouds: (sensor, station) -> points (N, 3) in the sensor frame (m), as measured.
         cloud_labels: (sensor, station) -> labels (N,) of each point (ground/robot/obstacle/stairs).
@@ -214,13 +239,10 @@ def leg_link_joints(robot) -> dict[str, tuple[str, ...]]:
 
 def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationResult:
     """Run the simulation described by ``config`` (see the module docstring for the physics)."""
-    from ..models.builtin import builtin_info
     from ..models.kinematics import foot_positions, ik_leg
-    from ..models.robot import load_robot
 
     rng = np.random.default_rng(config.seed)
-    info = builtin_info(config.robot)
-    robot = load_robot(model=config.robot)
+    robot, info = robot_and_info(config)
     h0 = info.default_body_height_m
     tilt_scale = config.tilt_scale if config.tilt_scale is not None else DEFAULT_TILT_SCALE.get(config.robot, 1.0)
     sensor_names = tuple(config.sensors) if config.sensors is not None else tuple(info.sensors)

@@ -1,0 +1,132 @@
+"""What a calibration returns: estimates with their covariance, residuals before and after, outliers.
+
+Frames and units: ``T_body_sensor`` maps sensor coordinates to the body frame (4x4, m). Every
+covariance is of the right perturbation ``T = T_hat * Exp(xi)``, ``xi = [omega (rad), v (m)]``
+(GTSAM's tangent order, SI units), unless its name says otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class ExtrinsicSegment:
+    """The extrinsic of one sensor over a run of stations (a new segment starts when the sensor
+    was knocked). ``first_station``/``last_station`` are station ids (inclusive)."""
+
+    first_station: int
+    last_station: int
+    T_body_sensor: np.ndarray
+    covariance: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class SensorEstimate:
+    """The calibrated pose of one sensor.
+
+    Attributes:
+        name, type: as in dataset.yaml.
+        T_body_sensor: (4, 4) estimate (of the last segment when the sensor moved).
+        covariance: (6, 6) of ``xi = [omega, v]`` with ``T = T_hat * Exp(xi)`` (rad, m).
+        T_body_sensor_prior: (4, 4) the CAD value from dataset.yaml.
+        sigma_rot_deg: (3,) 1-sigma rotation about the body x, y, z axes (deg).
+        sigma_xyz_mm: (3,) 1-sigma translation along the body x, y, z axes (mm).
+        correlation: (6, 6) correlation matrix in the body-axis order [rx, ry, rz, x, y, z].
+        unobservable: one sentence per direction the data does not determine, naming the motion
+            that would determine it; empty when everything is determined.
+        segments: the extrinsic segments in station order (one when the sensor never moved).
+        change_stations: station ids where a change of the extrinsic was detected.
+    """
+
+    name: str
+    type: str
+    T_body_sensor: np.ndarray
+    covariance: np.ndarray
+    T_body_sensor_prior: np.ndarray
+    sigma_rot_deg: np.ndarray
+    sigma_xyz_mm: np.ndarray
+    correlation: np.ndarray
+    unobservable: tuple[str, ...] = ()
+    segments: tuple[ExtrinsicSegment, ...] = ()
+    change_stations: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class LegEstimate:
+    """Estimated kinematic parameters of one leg: ``names`` like ``lf_femur_joint.offset_rad`` or
+    ``lf_foot_joint.delta_m`` (SI units in the name), ``values`` and ``sigmas`` (same units)."""
+
+    foot: str
+    names: tuple[str, ...]
+    values: np.ndarray
+    sigmas: np.ndarray
+
+
+@dataclass(frozen=True)
+class StationResidual:
+    """Plane residual of one station and sensor, against the model before (CAD prior, body poses
+    from kinematics) and after calibration. Chai 2015's theta (angle between measured and predicted
+    ground, deg) and e_d (distance error, mm)."""
+
+    station: int
+    sensor: str
+    angle_before_deg: float
+    distance_before_mm: float
+    angle_after_deg: float
+    distance_after_mm: float
+    chi2_after: float
+    outlier: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class IncrementalStep:
+    """After adding one station to the incremental (iSAM2) solver: the sensor's estimate and 1-sigma
+    (body axes, deg and mm), the window chi-square statistic and whether a change was declared."""
+
+    station: int
+    sensor: str
+    T_body_sensor: np.ndarray
+    sigma_rot_deg: np.ndarray
+    sigma_xyz_mm: np.ndarray
+    window_chi2: float
+    window_dof: int
+    change_detected: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Everything ``graphcal calibrate`` found.
+
+    Attributes:
+        dataset: path of the dataset folder.
+        robot_urdf_xml: the nominal URDF (the calibrated one is written from it).
+        base_frame: URDF frame of the body.
+        sensors: name -> :class:`SensorEstimate`, dataset order.
+        legs: foot -> :class:`LegEstimate` (empty without ``--legs``).
+        outliers: station ids the robust loss down-weighted.
+        residuals: per station and sensor, before and after.
+        normal_rms_deg, distance_rms_mm: RMS of the plane angle and distance residuals after.
+        T_world_body: station id -> (4, 4) estimated body pose.
+        solver: ``"batch"`` or ``"incremental"``.
+        iterations: solver iterations (batch) or stations added (incremental).
+        history: incremental steps (empty for batch).
+        warnings: human-readable warnings (e.g. a direction not determined).
+    """
+
+    dataset: str
+    robot_urdf_xml: str
+    base_frame: str
+    sensors: dict
+    legs: dict = field(default_factory=dict)
+    outliers: tuple[int, ...] = ()
+    residuals: tuple[StationResidual, ...] = ()
+    normal_rms_deg: float = float("nan")
+    distance_rms_mm: float = float("nan")
+    T_world_body: dict = field(default_factory=dict)
+    solver: str = "batch"
+    iterations: int = 0
+    history: tuple[IncrementalStep, ...] = ()
+    warnings: tuple[str, ...] = ()
