@@ -56,6 +56,19 @@ def _build_parser() -> argparse.ArgumentParser:
     v = sub.add_parser("validate", help="check a dataset against the contract (docs/dataset.md)")
     v.add_argument("dataset", type=Path)
 
+    c = sub.add_parser("calibrate", help="calibrate the sensors (and legs) of a dataset: calibration.yaml, URDF, report")
+    c.add_argument("dataset", type=Path)
+    c.add_argument("--out", required=True, type=Path,
+                   help="output folder (created; a previous graphcal calibration there is replaced only at the end)")
+    c.add_argument("--incremental", action="store_true", help="iSAM2, one station at a time, with change detection")
+    c.add_argument("--legs", action="store_true", help="also estimate leg joint offsets and link lengths")
+    c.add_argument("--quiet", action="store_true")
+
+    g = sub.add_parser("suggest-poses", help="propose the k body poses that most shrink the extrinsic covariance")
+    g.add_argument("dataset", type=Path)
+    g.add_argument("-k", type=int, default=10, help="number of poses (default 10)")
+    g.add_argument("--out", type=Path, default=None, help="write the poses as CSV here")
+
     e = sub.add_parser("extract-planes", help="fit planes to a dataset's clouds and write planes.csv")
     e.add_argument("dataset", type=Path)
     e.add_argument("--out", type=Path, default=None,
@@ -88,6 +101,21 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _cmd_calibrate(args) -> int:
+    from .calibration.calibrate import run_calibrate
+
+    print(run_calibrate(args.dataset, args.out, legs=args.legs, incremental=args.incremental,
+                        progress=not args.quiet))
+    return 0
+
+
+def _cmd_suggest(args) -> int:
+    from .calibration.suggest import suggest_poses_command
+
+    print(suggest_poses_command(args.dataset, args.k, out=args.out))
+    return 0
+
+
 def _cmd_validate(args) -> int:
     from .io.dataset import validate_dataset
 
@@ -108,7 +136,13 @@ def main(argv: list[str] | None = None) -> int:
     from .errors import GraphcalError
 
     args = _build_parser().parse_args(argv)
-    handlers = {"simulate": _cmd_simulate, "validate": _cmd_validate, "extract-planes": _cmd_extract_planes}
+    handlers = {
+        "simulate": _cmd_simulate,
+        "validate": _cmd_validate,
+        "calibrate": _cmd_calibrate,
+        "suggest-poses": _cmd_suggest,
+        "extract-planes": _cmd_extract_planes,
+    }
     try:
         return handlers[args.command](args)
     except GraphcalError as exc:

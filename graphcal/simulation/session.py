@@ -111,6 +111,8 @@ class SimulationConfig:
             every leg joint (0 = the true legs equal the URDF, apart from ``effects``).
         tracking_sigma_rad: joint servo tracking error.
         encoder_sigma_rad: joint encoder noise.
+        joint_flex_sigma_rad: deflection/backlash between encoder and link, per joint and station,
+            that the encoder does not see (0 by default).
         imu_accel_sigma_m_s2, imu_gyro_sigma_rad_s: IMU noise of a station average.
         imu_accel_bias_sigma_m_s2, imu_gyro_bias_sigma_rad_s: constant IMU biases drawn once.
         tilt_scale: scales commanded roll/pitch (None: the model's default).
@@ -133,6 +135,7 @@ class SimulationConfig:
     leg_error_sigma_m: float = 0.0
     tracking_sigma_rad: float = float(np.radians(0.2))
     encoder_sigma_rad: float = float(np.radians(0.02))
+    joint_flex_sigma_rad: float = 0.0
     imu_accel_sigma_m_s2: float = 0.005
     imu_gyro_sigma_rad_s: float = 2e-4
     imu_accel_bias_sigma_m_s2: float = 0.02
@@ -339,11 +342,20 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
             p_body_true.append(foot_positions(true_robot.leg(f), qa[None, :])[0])
         T_real = fit_rigid_transform(np.array(p_body_true), feet_world_real[cmd.session])
         real_poses[cmd.station] = T_real
+        # the legs comply: every joint settles where the true leg reaches its planted foot from the
+        # real body pose (the chain closes exactly); the encoders read these angles
+        p_body_planted = transform_points(invert_pose(T_real), feet_world_real[cmd.session])
+        for k, f in enumerate(robot.feet):
+            q_c, ok = ik_leg(true_robot.leg(f), p_body_planted[k][None, :], q_act[f][None, :])
+            if not ok[0]:
+                raise GraphcalError(f"station {cmd.station}: foot {f} cannot stay planted (IK of the true leg failed)")
+            q_act[f] = q_c[0]
         leg_q_true[cmd.station] = q_act
         q_meas = {}
         for f in robot.feet:
             leg = robot.leg(f)
-            noisy = q_act[f] + rng.normal(0.0, config.encoder_sigma_rad, leg.n_joints)
+            flex = rng.normal(0.0, config.joint_flex_sigma_rad, leg.n_joints) if config.joint_flex_sigma_rad > 0 else 0.0
+            noisy = q_act[f] - flex + rng.normal(0.0, config.encoder_sigma_rad, leg.n_joints)
             for name, val in zip(leg.joint_names, noisy):
                 q_meas[name] = float(val)
         R_world_imu = T_real[:3, :3] @ R_body_imu_true
@@ -467,6 +479,7 @@ def _truth_dict(
         "noise": {
             "tracking_sigma_rad": config.tracking_sigma_rad,
             "encoder_sigma_rad": config.encoder_sigma_rad,
+            "joint_flex_sigma_rad": config.joint_flex_sigma_rad,
             "imu_accel_sigma_m_s2": config.imu_accel_sigma_m_s2,
             "imu_gyro_sigma_rad_s": config.imu_gyro_sigma_rad_s,
         },

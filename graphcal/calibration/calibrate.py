@@ -1,0 +1,232 @@
+"""``graphcal calibrate``: from a dataset to the pose of every sensor on the body, with covariance.
+
+Batch mode: build the graph (graph.py), solve it with Levenberg–Marquardt driven from Python
+(solvers/batch.py) under a Huber loss, list the measurements that fail a chi-square test as outliers
+and solve again without them, then read the marginal covariances (solvers/covariance.py).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry import from_gtsam_pose
+from .graph import CalibrationOptions, CalibrationProblem, build_problem, predicted_plane_errors
+from .measurements import CalibrationData, calibration_data
+from .result import CalibrationResult, ExtrinsicSegment, LegEstimate, SensorEstimate, StationResidual
+
+
+def _outlier_measurements(problem: CalibrationProblem, values, options: CalibrationOptions) -> tuple[set, dict]:
+    """(measurements failing the chi-square test, chi2 per measurement) at ``values``."""
+    from scipy.stats import chi2 as chi2_dist
+
+    from ..solvers.batch import whitened_errors
+
+    idx = list(problem.plane_factors)
+    errs = whitened_errors(problem.graph, values, idx)
+    bad, stats = set(), {}
+    for i, e in zip(idx, errs):
+        m = problem.plane_factors[i]
+        dof = problem.graph.at(i).dim()
+        stats[m] = float(e)
+        if e > chi2_dist.ppf(options.outlier_p, dof):
+            bad.add(m)
+    return bad, stats
+
+
+def solve_problem(problem: CalibrationProblem, *, progress: bool = False):
+    """Levenberg–Marquardt on a built problem; returns the solver result."""
+    from ..solvers.batch import solve_lm
+
+    cb = None
+    if progress:
+        import sys
+
+        def cb(it, err):
+            print(f"\rcalibrate: LM iteration {it}, error {err:.6g}", end="", file=sys.stderr, flush=True)
+
+    result = solve_lm(problem.graph, problem.initial, progress=cb)
+    if progress:
+        import sys
+
+        print(file=sys.stderr)
+    return result
+
+
+def calibrate(
+    dataset,
+    *,
+    options: CalibrationOptions = CalibrationOptions(),
+    progress: bool = False,
+    data: CalibrationData | None = None,
+) -> CalibrationResult:
+    """Calibrate every sensor of a dataset (and the legs with ``options.legs``) in batch.
+
+    Args:
+        dataset: a dataset folder, or a :class:`graphcal.io.dataset.Dataset` already read.
+        options: noise models and switches.
+        progress: print progress to stderr.
+        data: the dataset's measurements when already gathered (skips reading clouds again).
+    """
+    from ..io.dataset import Dataset, load_dataset_robot, read_dataset
+
+    ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+    robot = load_dataset_robot(ds)
+    if data is None:
+        data = calibration_data(ds, robot, progress=progress)
+    problem = build_problem(ds, robot, data, options)
+    lm = solve_problem(problem, progress=progress)
+    values = lm.values
+    iterations = lm.iterations
+    outliers: set = set()
+    if options.robust:
+        bad, _ = _outlier_measurements(problem, values, options)
+        if bad:
+            outliers = bad
+            problem = build_problem(ds, robot, data, options, exclude=frozenset(bad))
+            lm = solve_problem(problem, progress=progress)
+            values = lm.values
+            iterations += lm.iterations
+    if options.estimate_noise:
+        for _ in range(VCE_ROUNDS):
+            scaled, changed = rescaled_options(options, problem, values)
+            if not changed:
+                break
+            options = scaled
+            problem = build_problem(ds, robot, data, options, exclude=frozenset(outliers))
+            lm = solve_problem(problem, progress=progress)
+            values = lm.values
+            iterations += lm.iterations
+    return _result(ds, robot, data, problem, values, outliers, iterations, options)
+
+
+VCE_ROUNDS = 3
+#: a group's sigma is re-estimated only with at least this much redundancy (dof), and this share
+#: of its rows: below it the residuals say little about the noise (e.g. the planes, whose errors the
+#: body poses can absorb almost entirely)
+VCE_MIN_REDUNDANCY = 3.0
+VCE_MIN_REDUNDANCY_SHARE = 0.05
+#: bounds on a re-estimated sigma relative to its default, and absolute floors (SI)
+VCE_SCALE_BOUNDS = (0.02, 50.0)
+VCE_FLOOR = {"sigma_joint_rad": 1e-6, "sigma_contact_m": 1e-6, "sigma_ground_m": 5e-5, "sigma_imu_rad": 1e-5,
+             "sigma_commanded_rad": 1e-5, "sigma_commanded_m": 5e-5}
+
+
+def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, values) -> tuple[CalibrationOptions, bool]:
+    """Options with every noise group's sigma multiplied by its variance-component scale
+    (noise_estimation.py); ``changed`` is False once every scale is within 5 % of 1."""
+    import dataclasses
+
+    from .noise_estimation import group_variances
+
+    stats = group_variances(problem.graph, values, problem.factor_groups)
+    scale = {g: float(np.clip(v.scale, *VCE_SCALE_BOUNDS)) for g, v in stats.items()
+             if v.redundancy >= max(VCE_MIN_REDUNDANCY, VCE_MIN_REDUNDANCY_SHARE * v.rows)}
+    changed = any(abs(s - 1.0) > 0.05 for s in scale.values())
+    fields = {"stance_foot": ("sigma_joint_rad", "sigma_contact_m"), "foot_on_ground": ("sigma_ground_m",), "imu": ("sigma_imu_rad",),
+              "commanded": ("sigma_commanded_rad", "sigma_commanded_m")}
+    update = {}
+    for group, names in fields.items():
+        if group in scale:
+            for name in names:
+                update[name] = max(getattr(options, name) * scale[group], VCE_FLOOR[name])
+    planes = dict(options.plane_sigma_scales)
+    for group, s in scale.items():
+        if group.startswith("plane:"):
+            sensor = group.split(":", 1)[1]
+            planes[sensor] = planes.get(sensor, 1.0) * s
+    update["plane_sigma_scales"] = tuple(sorted(planes.items()))
+    return dataclasses.replace(options, **update), changed
+
+
+def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set, iterations: int,
+            options: CalibrationOptions) -> CalibrationResult:
+    from ..solvers.covariance import body_axis_sigmas, marginal_covariances, unobservable_directions
+
+    keys = list(problem.sensor_keys.values()) + [k for k, _ in problem.leg_keys.values()]
+    covs = marginal_covariances(problem.graph, values, keys)
+    sensors, warnings = {}, []
+    for name, key in problem.sensor_keys.items():
+        T = from_gtsam_pose(values.atPose3(key))
+        cov = np.asarray(covs[key])
+        T_cad, sig_m, sig_rad = problem.sensor_priors[name]
+        cov_prior = np.diag([sig_rad**2] * 3 + [sig_m**2] * 3)
+        s_rot, s_xyz, corr, _ = body_axis_sigmas(T, cov)
+        unobs = tuple(unobservable_directions(T, cov, cov_prior))
+        warnings += [f"{name}: {u}" for u in unobs]
+        ids = [st.station for st in data.stations]
+        sensors[name] = SensorEstimate(
+            name=name, type=ds.sensors[name].type, T_body_sensor=T, covariance=cov, T_body_sensor_prior=T_cad,
+            sigma_rot_deg=np.asarray(s_rot), sigma_xyz_mm=np.asarray(s_xyz), correlation=np.asarray(corr),
+            unobservable=unobs, segments=(ExtrinsicSegment(min(ids), max(ids), T, cov),),
+        )
+    legs = {}
+    for foot, (key, param) in problem.leg_keys.items():
+        legs[foot] = LegEstimate(foot, tuple(param.names), np.asarray(values.atVector(key)),
+                                 np.sqrt(np.clip(np.diag(covs[key]), 0.0, None)))
+    T_world_body = {st: from_gtsam_pose(values.atPose3(k)) for st, k in problem.station_keys.items()}
+    residuals = _residuals(data, problem, values, T_world_body, sensors, outliers)
+    after = [r for r in residuals if not r.outlier]
+    normal_rms = float(np.sqrt(np.mean([r.angle_after_deg**2 for r in after]))) if after else float("nan")
+    dist_rms = float(np.sqrt(np.mean([r.distance_after_mm**2 for r in after]))) if after else float("nan")
+    return CalibrationResult(
+        dataset=str(ds.root) if ds.root is not None else "",
+        robot_urdf_xml=robot.urdf_xml,
+        base_frame=robot.base_frame,
+        sensors=sensors,
+        legs=legs,
+        outliers=tuple(sorted({m[0] for m in outliers})),
+        residuals=tuple(residuals),
+        normal_rms_deg=normal_rms,
+        distance_rms_mm=dist_rms,
+        T_world_body=T_world_body,
+        solver="batch",
+        iterations=iterations,
+        warnings=tuple(warnings),
+    )
+
+
+def _residuals(data, problem, values, T_world_body, sensors, outliers) -> list[StationResidual]:
+    from ..solvers.batch import whitened_errors
+
+    index_of = {m: i for i, m in problem.plane_factors.items()}
+    out = []
+    for (station, sensor), p in sorted(data.planes.items()):
+        if sensor not in sensors:
+            continue
+        T_cad = problem.sensor_priors[sensor][0]
+        a0, d0 = predicted_plane_errors(problem.initial_body[station], T_cad, p.n, p.d)
+        a1, d1 = predicted_plane_errors(T_world_body[station], sensors[sensor].T_body_sensor, p.n, p.d)
+        i = index_of.get((station, sensor))
+        chi2 = float(whitened_errors(problem.graph, values, [i])[0]) if i is not None else float("nan")
+        out.append(StationResidual(station, sensor, a0, d0, a1, d1, chi2, (station, sensor) in outliers))
+    return out
+
+
+def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,
+                  progress: bool = True) -> str:
+    """The ``graphcal calibrate`` command: calibrate and write the outputs; returns a summary."""
+    from ..report.write import write_calibration_outputs
+
+    options = CalibrationOptions(legs=legs)
+    if incremental:
+        from .incremental import calibrate_incremental
+
+        result = calibrate_incremental(dataset, options=options, progress=progress)
+    else:
+        result = calibrate(dataset, options=options, progress=progress)
+    written = write_calibration_outputs(result, out_dir)
+    lines = [f"calibrated {len(result.sensors)} sensor(s) from {dataset} ({result.solver}); wrote {out_dir}:"]
+    for name, s in result.sensors.items():
+        lines.append(
+            f"  {name}: xyz {np.round(s.T_body_sensor[:3, 3], 4).tolist()} m, "
+            f"sigma rot {np.round(s.sigma_rot_deg, 3).tolist()} deg, xyz {np.round(s.sigma_xyz_mm, 2).tolist()} mm"
+        )
+        for u in s.unobservable:
+            lines.append(f"  warning: {name}: {u}")
+    lines.append(f"  residuals after: normal {result.normal_rms_deg:.3f} deg RMS, distance {result.distance_rms_mm:.2f} mm RMS")
+    if result.outliers:
+        lines.append(f"  outlier stations: {', '.join(map(str, result.outliers))}")
+    lines.append("  files: " + ", ".join(sorted(p.name for p in written.values())))
+    return "\n".join(lines)

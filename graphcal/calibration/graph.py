@@ -1,0 +1,309 @@
+"""The self-calibration factor graph of a static dataset.
+
+Variables (factors/keys.py): X(i) body pose per station, S(k) extrinsic per sensor, F(j) planted
+foot per (session, foot), L(l) leg parameters per leg (with ``legs``).
+
+Factors:
+* plane observation (X, S): the ground plane each camera measured, with its covariance (Chai 2015);
+* point-to-plane (X, S): laser-scanner points on the ground (Łabęcki 2012, z_M = 0);
+* stance foot (X, F[, L]): forward kinematics of the measured joint angles against the planted foot;
+* foot on ground (F): the planted foot lies on the ground z = 0;
+* IMU attitude (X[, M]): the measured specific force is "up"; with the IMU mounting rotation M
+  estimated by default (a custom factor), else the built-in AttitudeFactorPose3;
+* commanded-pose prior (X): the set pose, loose (x, y and yaw are otherwise a free gauge);
+* extrinsic prior (S): the CAD value and its sigma from dataset.yaml;
+* leg-offset prior (L).
+
+The initial values come in closed form: body poses from the stance feet (kinematic_pose.py), the
+extrinsic rotation from the normals (Wahba) and its translation from the plane distances (linear
+least squares), laser scanners from their points (linear) — see graphcal/solvers/closed_form.py.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from factors.keys import F, L, M, S, X
+from ..errors import GraphcalError
+from ..geometry import pose_matrix, to_gtsam_pose
+from .kinematic_pose import feet_in_body, ground_from_feet, initial_body_pose
+from .measurements import CalibrationData
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Noise models and switches of the calibration graph (SI units).
+
+    Attributes:
+        legs: estimate leg kinematic parameters (joint offsets, link lengths) beside the extrinsics.
+        sigma_commanded_rad, sigma_commanded_m: commanded-pose prior. Default 1 deg / 10 mm: the
+            controller holds the set pose within servo tracking, but kinematic errors move the real
+            pose by millimetres to centimetres (Chai 2015 section 4.2).
+        sigma_joint_rad, sigma_contact_m: stance-foot noise: joint-angle noise (encoder, backlash)
+            mapped through the leg's Jacobian, plus an isotropic contact/compliance term; 0.1 deg and
+            1 mm by default.
+        sigma_ground_m: a planted foot's height above the nominal ground, 3 mm.
+        sigma_imu_rad: attitude from the accelerometer of a station average, 0.5 deg (an AHRS's
+            static accuracy, Łabęcki 2012; the constant bias dominates).
+        sigma_scan_m: laser range noise per point, 10 mm (URG-04LX).
+        plane_angle_floor_rad, plane_distance_floor_m: added to every plane's covariance
+            (unmodelled ground roughness); 0 by default.
+        robust: Huber loss on the plane and scan factors (k = ``huber_k`` whitened units); stations
+            whose plane fails the chi-square test at ``outlier_p`` are listed as outliers and left out
+            of a second solve.
+        leg_offset_sigma_rad, leg_length_sigma_m: leg-parameter priors (how far the URDF may be off).
+        plane_sigma_scales: (sensor, scale) pairs multiplying that sensor's plane/scan noise.
+        estimate_imu_mounting: estimate the IMU's mounting rotation M (prior: dataset.yaml's
+            T_body_imu_prior, sigma ``max(its sigma, sigma_imu_mounting_rad)``). A station-average
+            accelerometer's constant bias tilts its "up" by a near-constant angle (0.1 deg for
+            0.02 m/s^2); with M estimated the IMU tells relative attitude and the stance feet the
+            absolute one. Off: the IMU is trusted as mounted (a bias then tilts every body pose).
+        estimate_noise: re-estimate the sigma of every factor group from the residuals
+            (variance-component estimation, noise_estimation.py) so that the covariance is honest
+            when the defaults above do not fit the robot.
+    """
+
+    legs: bool = False
+    sigma_commanded_rad: float = float(np.radians(1.0))
+    sigma_commanded_m: float = 0.01
+    sigma_joint_rad: float = float(np.radians(0.1))
+    sigma_contact_m: float = 0.001
+    sigma_ground_m: float = 0.003
+    sigma_imu_rad: float = float(np.radians(0.5))
+    sigma_scan_m: float = 0.01
+    plane_angle_floor_rad: float = 0.0
+    plane_distance_floor_m: float = 0.0
+    robust: bool = True
+    huber_k: float = 3.0
+    outlier_p: float = 0.999
+    leg_offset_sigma_rad: float = float(np.radians(3.0))
+    leg_length_sigma_m: float = 0.02
+    plane_sigma_scales: tuple[tuple[str, float], ...] = ()
+    estimate_noise: bool = True
+    estimate_imu_mounting: bool = True
+    sigma_imu_mounting_rad: float = float(np.radians(2.0))
+
+    def plane_scale(self, sensor: str) -> float:
+        """Multiplier of the plane (or scan) noise of ``sensor`` (from variance-component estimation)."""
+        return dict(self.plane_sigma_scales).get(sensor, 1.0)
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationProblem:
+    """A built graph with its initial values and the bookkeeping to read results back.
+
+    Attributes:
+        graph, initial: the factor graph and initial gtsam.Values.
+        sensor_keys: sensor name -> key of its extrinsic.
+        sensor_priors: sensor name -> (T_cad 4x4, sigma_m, sigma_rad).
+        station_keys: station id -> key of its body pose.
+        leg_keys: foot -> (key, LegParameterization) with ``legs``.
+        plane_factors: factor index -> (station, sensor) of every plane / scan factor.
+        initial_body: station id -> (4, 4) kinematic body pose (the "before" model).
+        initial_extrinsics: sensor -> (4, 4) closed-form extrinsic.
+        excluded: (station, sensor) measurements left out (outliers of a previous solve).
+        factor_groups: factor index -> noise group ("plane:<sensor>", "stance_foot",
+            "foot_on_ground", "imu", "commanded"); priors on S and L belong to no group.
+    """
+
+    graph: gtsam.NonlinearFactorGraph
+    initial: gtsam.Values
+    sensor_keys: dict
+    sensor_priors: dict
+    station_keys: dict
+    leg_keys: dict
+    plane_factors: dict
+    initial_body: dict
+    initial_extrinsics: dict
+    excluded: frozenset = field(default_factory=frozenset)
+    factor_groups: dict = field(default_factory=dict)
+
+
+def _kinematic_bodies(data: CalibrationData, robot) -> tuple[dict, dict, dict]:
+    """station -> (u_body, height, T_world_body initial) from the stance feet (or the commanded pose)."""
+    out_u, out_h, out_T = {}, {}, {}
+    for st in data.stations:
+        if len(st.q_by_foot) >= 3:
+            u, h = ground_from_feet(feet_in_body(robot, st.q_by_foot))
+            T = initial_body_pose(u, h, st.T_world_body_cmd)
+        elif st.T_world_body_cmd is not None:
+            T = st.T_world_body_cmd
+            u, h = T[:3, :3].T @ np.array([0.0, 0.0, 1.0]), float(T[2, 3])
+        else:
+            raise GraphcalError(
+                f"station {st.station}: fewer than 3 legs with joint angles and no commanded pose; "
+                "the body pose cannot be known"
+            )
+        out_u[st.station], out_h[st.station], out_T[st.station] = u, h, T
+    return out_u, out_h, out_T
+
+
+def _robust_closed_form_extrinsic(u: np.ndarray, n: np.ndarray, d: np.ndarray, z: np.ndarray, T_prior: np.ndarray):
+    """Closed-form extrinsic from planes, with stations whose residual is far off the rest trimmed
+    (outlier stations would otherwise pull the closed form)."""
+    from ..solvers.closed_form import rotation_from_normals, translation_from_distances
+
+    keep = np.ones(len(u), dtype=bool)
+    for _ in range(4):
+        R, _ = rotation_from_normals(u[keep], n[keep], R_prior=T_prior[:3, :3])
+        ang = np.arccos(np.clip(np.einsum("ij,ij->i", (n @ R.T), u), -1.0, 1.0))
+        t, _ = translation_from_distances(u[keep], d[keep], z[keep], t_prior=T_prior[:3, 3])
+        res = d - z - u @ t
+        a_med = np.median(ang[keep])
+        r_mad = np.median(np.abs(res[keep] - np.median(res[keep]))) + 1e-6
+        new_keep = (ang < max(6 * a_med, np.radians(0.3))) & (np.abs(res - np.median(res[keep])) < max(8 * r_mad, 0.005))
+        if new_keep.sum() < 3 or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    return pose_matrix(R, t)
+
+
+def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions, *,
+                  exclude: frozenset = frozenset()) -> CalibrationProblem:
+    """Build the calibration graph of a dataset (see the module docstring)."""
+    from factors.foot_on_ground import foot_on_ground_factor
+    from factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
+    from factors.plane_observation import plane_observation_factor
+    from factors.point_to_plane import point_to_plane_factor
+    from factors.priors import commanded_pose_prior, extrinsic_prior, leg_offset_prior
+    from factors.stance_foot import joint_noise_covariance, stance_foot_factor
+    from ..models.leg_params import leg_parameterization
+    from ..solvers.closed_form import extrinsic_from_scan_points
+
+    if not data.stations:
+        raise GraphcalError("the dataset has no stations")
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    groups: dict[int, str] = {}
+
+    def add(factor, group: str | None = None) -> None:
+        if group is not None:
+            groups[graph.size()] = group
+        graph.add(factor)
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k) if options.robust else None
+
+    u_body, height, T_body0 = _kinematic_bodies(data, robot)
+    station_keys = {st.station: X(st.station) for st in data.stations}
+    for st in data.stations:
+        values.insert(station_keys[st.station], to_gtsam_pose(T_body0[st.station]))
+
+    # sensors: closed-form initial extrinsic and the CAD prior
+    sensor_keys, sensor_priors, ext0 = {}, {}, {}
+    for k, (name, spec) in enumerate(ds.sensors.items()):
+        T_cad = spec.T_body_sensor_prior.matrix
+        prior = (T_cad, spec.T_body_sensor_prior.sigma_m, spec.T_body_sensor_prior.sigma_rad)
+        planes = [(st.station, data.planes[(st.station, name)]) for st in data.stations
+                  if (st.station, name) in data.planes and (st.station, name) not in exclude]
+        scans = [(st.station, data.scan_points[(st.station, name)]) for st in data.stations
+                 if (st.station, name) in data.scan_points and (st.station, name) not in exclude]
+        if not planes and not scans:
+            continue  # a sensor with no data at the stations: nothing to calibrate
+        if planes:
+            ids = [s for s, _ in planes]
+            T0 = _robust_closed_form_extrinsic(
+                np.array([u_body[s] for s in ids]), np.array([p.n for _, p in planes]),
+                np.array([p.d for _, p in planes]), np.array([height[s] for s in ids]), T_cad)
+        else:
+            T0, _ = extrinsic_from_scan_points([u_body[s] for s, _ in scans], [height[s] for s, _ in scans],
+                                               [p for _, p in scans], T_prior=T_cad)
+        key = S(k)
+        sensor_keys[name], sensor_priors[name], ext0[name] = key, prior, T0
+        values.insert(key, to_gtsam_pose(T0))
+        sig_m = max(prior[1], 1e-6)
+        sig_r = max(prior[2], 1e-9)
+        graph.add(extrinsic_prior(key, T_cad, sig_m, sig_r))
+    if not sensor_keys:
+        raise GraphcalError("no sensor has ground planes or scan points at any station: nothing to calibrate")
+
+    plane_factors = {}
+    for name, key in sensor_keys.items():
+        for st in data.stations:
+            m = (st.station, name)
+            if m in exclude:
+                continue
+            if m in data.planes:
+                p = data.planes[m]
+                cov = p.cov if p.cov is not None else np.diag([1e-6, 1e-6, 1e-6, 1e-6])
+                cov = cov * options.plane_scale(name) ** 2
+                f = plane_observation_factor(
+                    station_keys[st.station], key, p.n, p.d, cov,
+                    sigma_angle_floor_rad=options.plane_angle_floor_rad,
+                    sigma_distance_floor_m=options.plane_distance_floor_m, robust=huber)
+            elif m in data.scan_points:
+                f = point_to_plane_factor(station_keys[st.station], key, data.scan_points[m],
+                                          options.sigma_scan_m * options.plane_scale(name), robust=huber)
+            else:
+                continue
+            plane_factors[graph.size()] = m
+            add(f, f"plane:{name}")
+
+    # legs and stance
+    leg_keys = {}
+    if options.legs:
+        for idx, foot in enumerate(robot.feet):
+            param = leg_parameterization(robot, foot)
+            sig = np.array([options.leg_offset_sigma_rad if nm.endswith(".offset_rad") else options.leg_length_sigma_m
+                            for nm in param.names])
+            leg_keys[foot] = (L(idx), param)
+            values.insert(L(idx), np.zeros(len(param.names)))
+            graph.add(leg_offset_prior(L(idx), len(param.names), sig))
+    sessions = list(dict.fromkeys(st.session for st in data.stations))
+    foot_index = {(s, f): j for j, (s, f) in enumerate((s, f) for s in sessions for f in robot.feet)}
+    feet_sum: dict = {}
+    for st in data.stations:
+        T = T_body0[st.station]
+        for f, q in st.q_by_foot.items():
+            j = foot_index[(st.session, f)]
+            leg_key, param = leg_keys.get(f, (None, None))
+            cov = joint_noise_covariance(robot.leg(f), q, options.sigma_joint_rad, options.sigma_contact_m)
+            add(stance_foot_factor(station_keys[st.station], F(j), q, robot.leg(f), l_key=leg_key, param=param,
+                                   cov_m2=cov), "stance_foot")
+            p_world = T[:3, :3] @ feet_in_body(robot, {f: q})[0] + T[:3, 3]
+            feet_sum.setdefault(j, []).append(p_world)
+        if st.imu_accel is not None and ds.imu is not None:
+            R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3]
+            if options.estimate_imu_mounting:
+                if not values.exists(M(0)):
+                    values.insert(M(0), gtsam.Rot3(R_body_imu))
+                    sig = max(ds.imu.T_body_imu_prior.sigma_rad, options.sigma_imu_mounting_rad)
+                    graph.add(gtsam.PriorFactorRot3(M(0), gtsam.Rot3(R_body_imu),
+                                                    gtsam.noiseModel.Isotropic.Sigma(3, sig)))
+                add(imu_attitude_misaligned_factor(station_keys[st.station], M(0), st.imu_accel,
+                                                   options.sigma_imu_rad), "imu")
+            else:
+                add(imu_attitude_factor(station_keys[st.station], st.imu_accel, options.sigma_imu_rad,
+                                        R_body_imu=R_body_imu), "imu")
+        if st.T_world_body_cmd is not None:
+            add(commanded_pose_prior(station_keys[st.station], st.T_world_body_cmd,
+                                     options.sigma_commanded_rad, options.sigma_commanded_m), "commanded")
+    for j, pts in feet_sum.items():
+        p0 = np.mean(pts, axis=0)
+        p0[2] = 0.0
+        values.insert(F(j), p0)
+        add(foot_on_ground_factor(F(j), options.sigma_ground_m), "foot_on_ground")
+    if not any(st.T_world_body_cmd is not None for st in data.stations):
+        # no commanded poses: x, y and yaw of each session are a free gauge; pin them loosely
+        first = {}
+        for st in data.stations:
+            first.setdefault(st.session, st.station)
+        for s, station in first.items():
+            sig = np.array([1e3, 1e3, 0.1, 0.1, 0.1, 1e3])
+            graph.add(gtsam.PriorFactorPose3(station_keys[station], to_gtsam_pose(T_body0[station]),
+                                             gtsam.noiseModel.Diagonal.Sigmas(sig)))
+    return CalibrationProblem(graph, values, sensor_keys, sensor_priors, station_keys, leg_keys, plane_factors,
+                              T_body0, ext0, frozenset(exclude), groups)
+
+
+def predicted_plane_errors(T_world_body: np.ndarray, T_body_sensor: np.ndarray, n_m, d_m) -> tuple[float, float]:
+    """Chai's theta (deg) and e_d (mm) of a measured plane against the ground z = 0 seen from the
+    given body pose and extrinsic."""
+    from factors.plane_observation import plane_angle_distance_error
+
+    ang, dist = plane_angle_distance_error(T_world_body @ T_body_sensor, n_m, d_m)
+    return float(np.degrees(ang)), float(1e3 * abs(dist))
+
+
+__all__ = ["CalibrationOptions", "CalibrationProblem", "build_problem", "predicted_plane_errors"]

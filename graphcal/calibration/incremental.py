@@ -1,0 +1,745 @@
+"""Incremental (online) recalibration with iSAM2, one station per update, with change detection.
+
+The graph is the batch one (graph.py: the same variables, factors and noise models), fed to
+gtsam's iSAM2 in dataset order (docs/incremental.md):
+
+* every station makes two updates, each with a FRESH ``NonlinearFactorGraph`` and ``Values``
+  (old factors are never fed again — re-feeding counts them twice and makes the covariance
+  overconfident, see the engineering notes):
+
+  A. the station's body pose X(i), the feet F(j) of a session seen for the first time (with their
+     foot-on-ground factors), the extrinsic S(k) of a sensor seen for the first time (with its CAD
+     prior), the leg parameters L(l) (with their priors) the first time, and the station's
+     stance-foot, IMU-attitude and commanded-pose factors;
+  B. the station's plane / scan factors, after the change test (change_detection.py) has
+     computed their innovation against the body pose predicted by update A;
+
+* after update B, the extrinsic estimate and ``isam.marginalCovariance`` give the
+  :class:`~graphcal.calibration.result.IncrementalStep` of every sensor (1-sigma in body axes).
+
+On a detected change of a sensor's extrinsic, a new key ``S(next)`` starts a new extrinsic
+segment: a prior equal to the old estimate with the CAD sigmas, and the plane factors from the
+change station on move to it (already fused ones are removed from iSAM2 by index and added
+again on the new key: removed, not counted twice).
+
+:class:`IncrementalCalibrator` is the lower-level, dataset-free interface (the online EKF / robot
+code feeds it station by station); :func:`calibrate_incremental` runs it over a dataset and
+returns a :class:`~graphcal.calibration.result.CalibrationResult` like the batch ``calibrate``.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+from functools import partial
+from typing import Callable, Mapping
+
+import gtsam
+import numpy as np
+
+from factors.keys import F, L, S, X
+from ..errors import GraphcalError
+from ..geometry import from_gtsam_pose, to_gtsam_pose
+from .change_detection import ChangeDetector, Decision, innovation_nis, joint_covariance
+from .graph import CalibrationOptions, CalibrationProblem, build_problem
+from .measurements import CalibrationData, PlaneMeasurement, StationMeasurements, calibration_data
+from .result import CalibrationResult, ExtrinsicSegment, IncrementalStep, SensorEstimate
+
+__all__ = ["IncrementalCalibrator", "calibrate_incremental", "station_updates", "GAUGE_PRIOR_SIGMAS"]
+
+#: loose prior on the first station of a session when no station has a commanded pose (as graph.py)
+GAUGE_PRIOR_SIGMAS = np.array([1e3, 1e3, 0.1, 0.1, 0.1, 1e3])
+
+_DEFAULT_PLANE_COV = np.diag([1e-6, 1e-6, 1e-6, 1e-6])  # graph.py's stand-in for a missing covariance
+
+
+class IncrementalCalibrator:
+    """iSAM2 calibration fed one station at a time, with change detection per sensor.
+
+    Args:
+        robot: the :class:`~graphcal.models.robot.RobotModel` (legs for the stance-foot factors).
+        sensors: sensor name -> ``(T_cad (4, 4), sigma_m, sigma_rad)``: the CAD prior of each
+            extrinsic (``CalibrationProblem.sensor_priors`` has this form).
+        options: noise models and switches (the batch's :class:`CalibrationOptions`). With
+            ``options.robust`` the plane / scan factors get the Huber loss (as the batch's first
+            solve) and the outlier guard of the change test is on.
+        sensor_types: sensor name -> type (``"depth_camera"``...), for the reported estimates.
+        sensor_keys: sensor name -> gtsam key of its first extrinsic segment (default ``S(i)`` in
+            ``sensors`` order); new segments take the next free ``S`` indices.
+        initial_extrinsics: sensor name -> (4, 4) initial value (default: the CAD value). Only a
+            linearisation point: iSAM2 relinearises as the data arrive.
+        R_body_imu: (3, 3) IMU mounting rotation (its prior with ``options.estimate_imu_mounting``);
+            None ignores the accelerometer.
+        imu_sigma_rad: sigma of that mounting prior (dataset.yaml's; at least
+            ``options.sigma_imu_mounting_rad`` is used, as graph.py does).
+        detect_changes: run the change test before fusing each plane / scan.
+        window, p_false_alarm, n_tests: the window chi-square test (:class:`ChangeDetector`):
+            ``p_false_alarm`` is spread over ``n_tests`` tests (Bonferroni; 1 = per test).
+        outlier_guard: hold an individually inconsistent station until the next one decides
+            between an outlier and a change (default: ``options.robust``).
+        relinearize_threshold: iSAM2's relinearisation threshold (tangent units, rad and m).
+    """
+
+    def __init__(
+        self,
+        robot,
+        sensors: Mapping[str, tuple],
+        *,
+        options: CalibrationOptions = CalibrationOptions(),
+        sensor_types: Mapping[str, str] | None = None,
+        sensor_keys: Mapping[str, int] | None = None,
+        initial_extrinsics: Mapping[str, np.ndarray] | None = None,
+        R_body_imu: np.ndarray | None = np.eye(3),
+        imu_sigma_rad: float = 0.0,
+        detect_changes: bool = True,
+        window: int = 3,
+        p_false_alarm: float = 1e-4,
+        n_tests: int = 1,
+        outlier_guard: bool | None = None,
+        relinearize_threshold: float = 1e-3,
+    ):
+        if not sensors:
+            raise GraphcalError("IncrementalCalibrator needs at least one sensor")
+        self.robot = robot
+        self.options = options
+        self._priors = {name: (np.asarray(p[0], dtype=float), float(p[1]), float(p[2])) for name, p in sensors.items()}
+        self._types = dict(sensor_types or {})
+        keys = dict(sensor_keys) if sensor_keys is not None else {n: S(i) for i, n in enumerate(self._priors)}
+        missing = set(self._priors) - set(keys)
+        if missing:
+            raise GraphcalError(f"sensor_keys lacks {', '.join(sorted(missing))}")
+        self._key = {n: int(keys[n]) for n in self._priors}
+        self._base_key = dict(self._key)
+        self._next_s = max(gtsam.Symbol(k).index() for k in self._key.values()) + 1
+        init = dict(initial_extrinsics or {})
+        self._init_ext = {n: np.asarray(init.get(n, self._priors[n][0]), dtype=float) for n in self._priors}
+        self._R_body_imu = None if R_body_imu is None else np.asarray(R_body_imu, dtype=float)
+        self._imu_sigma_rad = float(imu_sigma_rad)
+        self._huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k) if options.robust else None
+        self.detect_changes = bool(detect_changes)
+        guard = options.robust if outlier_guard is None else bool(outlier_guard)
+        self._detector = {n: ChangeDetector(window=window, p_false_alarm=p_false_alarm, n_tests=n_tests, guard=guard)
+                          for n in self._priors}
+
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(float(relinearize_threshold))
+        params.relinearizeSkip = 1
+        self._isam = gtsam.ISAM2(params)
+        # hold the linearisation point alive: pybind11 then passes it to the Python factors by
+        # reference instead of copying every Values at every callback (engineering notes)
+        self._lp = self._isam.getLinearizationPoint()
+
+        self._dims: dict[int, int] = {}
+        self._in_isam: set[int] = set()
+        self._foot_index: dict[tuple[str, str], int] = {}
+        self._sessions: set[str] = set()
+        self._leg_keys: dict = {}
+        self._stations: list[int] = []
+        self._initial_body: dict[int, np.ndarray] = {}
+        self._makers: dict[tuple[int, str], Callable] = {}  # (station, sensor) -> make(s_key) -> factor
+        self._isam_index: dict[tuple[int, str], int] = {}  # fused measurement -> iSAM2 factor index
+        self._segments: dict[str, list[dict]] = {n: [] for n in self._priors}  # {"key", "stations"}
+        self._held: dict[str, int | None] = {n: None for n in self._priors}
+        self._outliers: set[tuple[int, str]] = set()
+        self._changes: dict[str, list[int]] = {n: [] for n in self._priors}
+        self._last_window: dict[str, tuple[float, int]] = {n: (0.0, 0) for n in self._priors}
+        self.history: list[IncrementalStep] = []
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def stations(self) -> tuple[int, ...]:
+        """Station ids added so far, in order."""
+        return tuple(self._stations)
+
+    @property
+    def sensors(self) -> tuple[str, ...]:
+        return tuple(self._priors)
+
+    @property
+    def isam(self) -> gtsam.ISAM2:
+        """The underlying iSAM2 (read-only use)."""
+        return self._isam
+
+    def current_key(self, sensor: str) -> int:
+        """Key of the sensor's current extrinsic segment."""
+        return self._key[sensor]
+
+    # ------------------------------------------------------------------ station factors (online path)
+    def _kinematic_body(self, st: StationMeasurements) -> np.ndarray:
+        """T_world_body from the stance feet and the commanded pose (graph.py's initial value)."""
+        from .kinematic_pose import feet_in_body, ground_from_feet, initial_body_pose
+
+        if len(st.q_by_foot) >= 3:
+            u, h = ground_from_feet(feet_in_body(self.robot, st.q_by_foot))
+            return initial_body_pose(u, h, st.T_world_body_cmd)
+        if st.T_world_body_cmd is not None:
+            return np.asarray(st.T_world_body_cmd, dtype=float)
+        raise GraphcalError(
+            f"station {st.station}: fewer than 3 legs with joint angles and no commanded pose; "
+            "the body pose cannot be known"
+        )
+
+    def _proprioceptive(self, st: StationMeasurements, T0: np.ndarray, sensors_seen) -> tuple:
+        """Update A of the online path, built as graph.py builds the batch graph: the station's
+        body pose, new feet / legs / IMU mounting / extrinsics with their priors, and its
+        stance-foot, IMU and commanded-pose factors (a fresh graph and values)."""
+        from factors.foot_on_ground import foot_on_ground_factor
+        from factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
+        from factors.keys import M
+        from factors.priors import commanded_pose_prior, extrinsic_prior, leg_offset_prior
+        from factors.stance_foot import stance_foot_factor
+        from .kinematic_pose import feet_in_body
+
+        o = self.options
+        known = self._in_isam
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        x_key = X(st.station)
+        values.insert(x_key, to_gtsam_pose(T0))
+        if o.legs and not self._leg_keys:
+            from ..models.leg_params import leg_parameterization
+
+            for idx, foot in enumerate(self.robot.feet):
+                param = leg_parameterization(self.robot, foot)
+                sig = np.array([o.leg_offset_sigma_rad if nm.endswith(".offset_rad") else o.leg_length_sigma_m
+                                for nm in param.names])
+                self._leg_keys[foot] = (L(idx), param)
+                values.insert(L(idx), np.zeros(len(param.names)))
+                graph.add(leg_offset_prior(L(idx), len(param.names), sig))
+        first_of_session = st.session not in self._sessions
+        self._sessions.add(st.session)
+        for foot, q in st.q_by_foot.items():
+            fk = (st.session, foot)
+            if fk not in self._foot_index:
+                j = len(self._foot_index)
+                self._foot_index[fk] = j
+                p = T0[:3, :3] @ feet_in_body(self.robot, {foot: q})[0] + T0[:3, 3]
+                p[2] = 0.0
+                values.insert(F(j), p)
+                graph.add(foot_on_ground_factor(F(j), o.sigma_ground_m))
+            leg_key, param = self._leg_keys.get(foot, (None, None))
+            graph.add(stance_foot_factor(x_key, F(self._foot_index[fk]), q, self.robot.leg(foot), o.sigma_foot_m,
+                                         l_key=leg_key, param=param))
+        if st.imu_accel is not None and self._R_body_imu is not None:
+            if getattr(o, "estimate_imu_mounting", False):
+                if M(0) not in known:
+                    values.insert(M(0), gtsam.Rot3(self._R_body_imu))
+                    sig = max(self._imu_sigma_rad, o.sigma_imu_mounting_rad)
+                    graph.add(gtsam.PriorFactorRot3(M(0), gtsam.Rot3(self._R_body_imu),
+                                                    gtsam.noiseModel.Isotropic.Sigma(3, sig)))
+                graph.add(imu_attitude_misaligned_factor(x_key, M(0), st.imu_accel, o.sigma_imu_rad))
+            else:
+                graph.add(imu_attitude_factor(x_key, st.imu_accel, o.sigma_imu_rad, R_body_imu=self._R_body_imu))
+        if st.T_world_body_cmd is not None:
+            graph.add(commanded_pose_prior(x_key, st.T_world_body_cmd, o.sigma_commanded_rad, o.sigma_commanded_m))
+        elif first_of_session:
+            graph.add(gtsam.PriorFactorPose3(x_key, to_gtsam_pose(T0), gtsam.noiseModel.Diagonal.Sigmas(GAUGE_PRIOR_SIGMAS)))
+        for name in sensors_seen:
+            key = self._base_key[name]
+            if key in known:
+                continue
+            T_cad, sig_m, sig_r = self._priors[name]
+            values.insert(key, to_gtsam_pose(self._init_ext[name]))
+            graph.add(extrinsic_prior(key, T_cad, max(sig_m, 1e-6), max(sig_r, 1e-9)))
+        return graph, values
+
+    def measurement_factor(self, station: int, sensor: str, s_key: int, *, plane: PlaneMeasurement | None = None,
+                           points: np.ndarray | None = None) -> gtsam.NonlinearFactor:
+        """The plane (camera) or point-to-plane (laser) factor of one station and sensor on the
+        extrinsic key ``s_key``, built as graph.py builds it (Huber with ``options.robust``)."""
+        from factors.plane_observation import plane_observation_factor
+        from factors.point_to_plane import point_to_plane_factor
+
+        o = self.options
+        scale = o.plane_scale(sensor) if hasattr(o, "plane_scale") else 1.0
+        if plane is not None:
+            cov = plane.cov if plane.cov is not None else _DEFAULT_PLANE_COV
+            return plane_observation_factor(
+                X(station), s_key, np.asarray(plane.n, dtype=float), float(plane.d), cov * scale**2,
+                sigma_angle_floor_rad=o.plane_angle_floor_rad, sigma_distance_floor_m=o.plane_distance_floor_m,
+                robust=self._huber)
+        if points is None:
+            raise GraphcalError(f"station {station}, sensor {sensor}: give a plane or scan points")
+        return point_to_plane_factor(X(station), s_key, np.asarray(points, dtype=float), o.sigma_scan_m * scale,
+                                     robust=self._huber)
+
+    def add_station(
+        self,
+        station: StationMeasurements,
+        planes: Mapping[str, PlaneMeasurement] | None = None,
+        scan_points: Mapping[str, np.ndarray] | None = None,
+        *,
+        T_world_body_init: np.ndarray | None = None,
+    ) -> tuple[IncrementalStep, ...]:
+        """Add one station from its measurements (the online path).
+
+        Args:
+            station: joint angles, commanded pose, IMU of the station (``station.station`` is its
+                id; ids must be unique).
+            planes: sensor name -> ground plane seen at this station (cameras).
+            scan_points: sensor name -> (M, 3) ground points in the sensor frame (laser scanners).
+            T_world_body_init: initial body pose (default: from the stance feet, as graph.py).
+
+        Returns:
+            As :meth:`add_factors`.
+        """
+        sid = int(station.station)
+        if sid in self._initial_body:
+            raise GraphcalError(f"station {sid} was already added")
+        planes = dict(planes or {})
+        scans = dict(scan_points or {})
+        unknown = (set(planes) | set(scans)) - set(self._priors)
+        if unknown:
+            raise GraphcalError(f"station {sid}: measurements of unknown sensor(s) {', '.join(sorted(unknown))}")
+        makers = {}
+        for name in self._priors:
+            if name in planes:
+                makers[name] = partial(self._make, sid, name, planes[name], None)
+            elif name in scans:
+                makers[name] = partial(self._make, sid, name, None, scans[name])
+        T0 = np.asarray(T_world_body_init, dtype=float) if T_world_body_init is not None else self._kinematic_body(station)
+        graph, values = self._proprioceptive(station, T0, makers)
+        return self.add_factors(sid, graph, values, makers, initial_body=T0)
+
+    def _make(self, station, sensor, plane, points, s_key):
+        return self.measurement_factor(station, sensor, s_key, plane=plane, points=points)
+
+    # ------------------------------------------------------------------ the update
+    def _covariance_of(self, keys) -> np.ndarray:
+        return joint_covariance(self._isam, keys, [self._dims[int(k)] for k in keys])
+
+    def add_factors(
+        self,
+        station: int,
+        factors: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        measurements: Mapping[str, Callable[[int], gtsam.NonlinearFactor]],
+        *,
+        initial_body: np.ndarray | None = None,
+    ) -> tuple[IncrementalStep, ...]:
+        """Add one station from ready-made factors (the lower-level path).
+
+        Args:
+            station: the station id; its body pose is ``X(station)``.
+            factors: update A: every factor of the station except its sensor measurements, and the
+                priors of the variables it introduces (extrinsics included: a sensor's key must be
+                in ``values`` with its prior the first time the sensor has a measurement).
+            values: initial values of exactly the variables this station introduces.
+            measurements: sensor name -> ``make(s_key) -> factor``: the station's measurement of
+                that sensor on the extrinsic key ``s_key`` (the key of its current segment).
+            initial_body: the body pose's initial value (for the "before" residuals; default: from
+                ``values``).
+
+        Returns:
+            One :class:`IncrementalStep` per sensor that has an extrinsic estimate (sensor order):
+            the estimate and body-axis 1-sigma after this station, the window statistic, and
+            whether a change was declared here.
+        """
+        from ..solvers.covariance import body_axis_sigmas
+
+        sid = int(station)
+        x_key = X(sid)
+        if sid in self._initial_body:
+            raise GraphcalError(f"station {sid} was already added")
+        unknown = set(measurements) - set(self._priors)
+        if unknown:
+            raise GraphcalError(f"station {sid}: measurements of unknown sensor(s) {', '.join(sorted(unknown))}")
+
+        # -- update A: variables and proprioceptive factors (fresh graph and values, never re-fed)
+        self._isam.update(factors, values)
+        for k, d in values.dims().items():
+            self._dims[int(k)] = int(d)
+            self._in_isam.add(int(k))
+        self._stations.append(sid)
+        self._initial_body[sid] = (np.asarray(initial_body, dtype=float) if initial_body is not None
+                                   else from_gtsam_pose(values.atPose3(x_key)))
+        missing = [n for n in measurements if self._key[n] not in self._in_isam]
+        if missing:
+            raise GraphcalError(f"station {sid}: the extrinsic of {', '.join(missing)} has no value and prior yet "
+                                "(introduce it in this station's factors)")
+
+        # -- change test on each measurement, before it is fused
+        decisions: dict[str, Decision] = {}
+        for name, make in measurements.items():
+            self._makers[(sid, name)] = make
+            if not self.detect_changes:
+                continue
+            key = self._key[name]
+            est = gtsam.Values()
+            est.insert(x_key, self._isam.calculateEstimatePose3(x_key))
+            est.insert(key, self._isam.calculateEstimatePose3(key))
+            nis, dof = innovation_nis(make(key), est, self._covariance_of)
+            decisions[name] = self._detector[name].test(sid, nis, dof)
+
+        # -- update B: the measurements (a fresh graph; moved factors removed by index)
+        graph, new_values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        added: list[tuple[int, tuple[int, str]]] = []
+        remove: list[int] = []
+        changed: set[str] = set()
+        for name in measurements:
+            dec = decisions.get(name)
+            if dec is not None:
+                self._last_window[name] = (dec.window_chi2, dec.window_dof)
+                if dec.outlier_station is not None:
+                    self._outliers.add((dec.outlier_station, name))
+                    self._held[name] = None
+            action = "accept" if dec is None else dec.action
+            if action == "hold":
+                self._held[name] = sid
+                continue
+            if not self._segments[name]:
+                self._segments[name].append({"key": self._key[name], "stations": []})
+            if action == "change":
+                changed.add(name)
+                self._start_segment(name, dec, graph, new_values, remove, added)
+            added.append((graph.size(), (sid, name)))
+            graph.add(measurements[name](self._key[name]))
+            self._segments[name][-1]["stations"].append(sid)
+        if graph.size() or remove:
+            result = self._isam.update(graph, new_values, remove)
+            indices = list(result.getNewFactorsIndices())
+            for pos, m in added:
+                self._isam_index[m] = int(indices[pos])
+            for k, d in new_values.dims().items():
+                self._dims[int(k)] = int(d)
+                self._in_isam.add(int(k))
+
+        # -- the steps
+        steps = []
+        for name in self._priors:
+            key = self._key[name]
+            if key not in self._in_isam:
+                continue
+            T = from_gtsam_pose(self._isam.calculateEstimatePose3(key))
+            cov = np.asarray(self._isam.marginalCovariance(key), dtype=float)
+            s_rot, s_xyz, _, _ = body_axis_sigmas(T, cov)
+            chi, dof = self._last_window[name]
+            steps.append(IncrementalStep(sid, name, T, np.asarray(s_rot), np.asarray(s_xyz), float(chi), int(dof),
+                                         name in changed))
+        self.history.extend(steps)
+        return tuple(steps)
+
+    def _start_segment(self, name: str, dec: Decision, graph, values, remove: list, added: list) -> None:
+        """A change of ``name``'s extrinsic at ``dec.change_station``: new key with a loose prior at
+        the old estimate; the measurements from the change station on move to it."""
+        from factors.priors import extrinsic_prior
+
+        old = self._key[name]
+        new = int(S(self._next_s))
+        self._next_s += 1
+        T_old = self._isam.calculateEstimatePose3(old)
+        _, sig_m, sig_r = self._priors[name]
+        values.insert(new, T_old)
+        graph.add(extrinsic_prior(new, from_gtsam_pose(T_old), max(sig_m, 1e-6), max(sig_r, 1e-9)))
+        self._key[name] = new
+        self._changes[name].append(int(dec.change_station))
+        old_seg = self._segments[name][-1]
+        new_seg = {"key": new, "stations": []}
+        for st in dec.reroute:
+            m = (st, name)
+            if m in self._isam_index:
+                remove.append(self._isam_index.pop(m))
+            if st in old_seg["stations"]:
+                old_seg["stations"].remove(st)
+            if m in self._makers:
+                added.append((graph.size(), m))
+                graph.add(self._makers[m](new))
+                new_seg["stations"].append(st)
+        if self._held[name] in dec.reroute:
+            self._held[name] = None
+        self._segments[name].append(new_seg)
+        if not old_seg["stations"]:
+            # nothing left on the old key but its prior: drop the empty segment from the report
+            self._segments[name].remove(old_seg)
+
+    # ------------------------------------------------------------------ results
+    def refine(self, max_updates: int = 20) -> int:
+        """Extra iSAM2 updates without new factors until no variable needs relinearising (the
+        estimate then equals the batch optimum to within the relinearisation threshold).
+        Returns the number of updates made."""
+        n = 0
+        for n in range(1, max_updates + 1):
+            r = self._isam.update()
+            if r.getVariablesRelinearized() == 0:
+                break
+        return n
+
+    def held_stations(self) -> dict[str, int]:
+        """sensor -> station held by the outlier guard (not fused, waiting for the next station)."""
+        return {n: s for n, s in self._held.items() if s is not None}
+
+    def outliers(self) -> frozenset:
+        """(station, sensor) measurements left out as outliers by the outlier guard."""
+        return frozenset(self._outliers)
+
+    def change_stations(self, sensor: str) -> tuple[int, ...]:
+        """Stations where a change of the sensor's extrinsic was detected (the first station of
+        each new segment)."""
+        return tuple(self._changes[sensor])
+
+    def segment_keys(self, sensor: str) -> list[tuple[int, tuple[int, ...]]]:
+        """[(key, station ids)] of the sensor's extrinsic segments in order."""
+        return [(s["key"], tuple(s["stations"])) for s in self._segments[sensor]]
+
+    def sigmas(self, sensor: str) -> tuple[np.ndarray, np.ndarray]:
+        """(sigma_rot_deg (3,), sigma_xyz_mm (3,)) of the current segment in body axes."""
+        from ..solvers.covariance import body_axis_sigmas
+
+        key = self._key[sensor]
+        if key not in self._in_isam:
+            return np.full(3, np.inf), np.full(3, np.inf)
+        T = from_gtsam_pose(self._isam.calculateEstimatePose3(key))
+        s_rot, s_xyz, _, _ = body_axis_sigmas(T, np.asarray(self._isam.marginalCovariance(key)))
+        return np.asarray(s_rot), np.asarray(s_xyz)
+
+    def estimate(self, sensor: str) -> SensorEstimate:
+        """The sensor's current estimate (last segment), covariance from iSAM2's marginal, its
+        earlier segments and the stations where it changed."""
+        from ..solvers.covariance import body_axis_sigmas, unobservable_directions
+
+        if sensor not in self._priors:
+            raise GraphcalError(f"unknown sensor {sensor!r}; known: {', '.join(self._priors)}")
+        key = self._key[sensor]
+        if key not in self._in_isam:
+            raise GraphcalError(f"sensor {sensor!r} has no measurement yet")
+        segs = []
+        for s in self._segments[sensor]:
+            T_s = from_gtsam_pose(self._isam.calculateEstimatePose3(s["key"]))
+            C_s = np.asarray(self._isam.marginalCovariance(s["key"]), dtype=float)
+            ids = s["stations"] or [self._stations[-1]]
+            segs.append(ExtrinsicSegment(ids[0], ids[-1], T_s, C_s))
+        T = from_gtsam_pose(self._isam.calculateEstimatePose3(key))
+        cov = np.asarray(self._isam.marginalCovariance(key), dtype=float)
+        T_cad, sig_m, sig_r = self._priors[sensor]
+        s_rot, s_xyz, corr, _ = body_axis_sigmas(T, cov)
+        prior = np.diag([max(sig_r, 1e-9) ** 2] * 3 + [max(sig_m, 1e-6) ** 2] * 3)
+        return SensorEstimate(
+            name=sensor, type=self._types.get(sensor, ""), T_body_sensor=T, covariance=cov, T_body_sensor_prior=T_cad,
+            sigma_rot_deg=np.asarray(s_rot), sigma_xyz_mm=np.asarray(s_xyz), correlation=np.asarray(corr),
+            unobservable=tuple(unobservable_directions(T, cov, prior)), segments=tuple(segs),
+            change_stations=self.change_stations(sensor),
+        )
+
+    def problem(self) -> tuple[CalibrationProblem, gtsam.Values]:
+        """The graph iSAM2 holds (removed factors left out) as a :class:`CalibrationProblem`, and
+        the current estimate: for reports and batch covariances. ``sensor_keys`` are the current
+        (last) segments."""
+        factors = self._isam.getFactorsUnsafe()
+        graph = gtsam.NonlinearFactorGraph()
+        remap = {}
+        for i in range(factors.size()):
+            f = factors.at(i)
+            if f is None:
+                continue
+            remap[i] = graph.size()
+            graph.add(f)
+        plane_factors = {remap[i]: m for m, i in self._isam_index.items() if i in remap}
+        values = self._isam.calculateEstimate()
+        stations = {s: X(s) for s in self._stations}
+        ext0 = {n: self._init_ext[n] for n in self._priors if self._key[n] in self._in_isam}
+        problem = CalibrationProblem(
+            graph=graph, initial=values, sensor_keys={n: self._key[n] for n in ext0},
+            sensor_priors={n: self._priors[n] for n in ext0}, station_keys=stations, leg_keys=dict(self._leg_keys),
+            plane_factors=plane_factors, initial_body=dict(self._initial_body), initial_extrinsics=ext0,
+            excluded=frozenset(self._outliers) | frozenset((s, n) for n, s in self.held_stations().items()),
+        )
+        return problem, values
+
+
+def station_updates(problem: CalibrationProblem, data: CalibrationData):
+    """Split a built batch problem into one update per station, in dataset order.
+
+    Yields, per station, ``(factors, values, measurements)``: a fresh graph with the factors that
+    involve this station's body pose X(i) — and the factors that touch no body pose (extrinsic,
+    leg and IMU-mounting priors, foot-on-ground) with the update that first introduces their
+    variable —, the initial values of the variables first used here, and sensor name -> index of
+    the station's plane / scan factor in ``problem.graph`` (kept apart: the change test looks at
+    it before it is fused). Every factor of ``problem.graph`` is yielded exactly once.
+    """
+    order = {st.station: i for i, st in enumerate(data.stations)}
+    x_step = {int(problem.station_keys[s]): i for s, i in order.items() if s in problem.station_keys}
+    graph = problem.graph
+    n = graph.size()
+    step = [None] * n
+    intro: dict[int, int] = {}
+    for i in range(n):
+        keys = [int(k) for k in graph.at(i).keys()]
+        xs = [x_step[k] for k in keys if k in x_step]
+        if xs:
+            step[i] = max(xs)
+            for k in keys:
+                intro[k] = min(intro.get(k, step[i]), step[i])
+    for i in range(n):
+        if step[i] is None:
+            step[i] = max((intro.get(int(k), 0) for k in graph.at(i).keys()), default=0)
+    for k in problem.initial.keys():
+        intro.setdefault(int(k), 0)
+    by_step: list[list[int]] = [[] for _ in data.stations]
+    for i in range(n):
+        by_step[step[i]].append(i)
+    keys_by_step: list[list[int]] = [[] for _ in data.stations]
+    for k, s in intro.items():
+        keys_by_step[s].append(k)
+    for s in range(len(data.stations)):
+        g, v, meas = gtsam.NonlinearFactorGraph(), gtsam.Values(), {}
+        for i in by_step[s]:
+            if i in problem.plane_factors:
+                meas[problem.plane_factors[i][1]] = i
+            else:
+                g.add(graph.at(i))
+        for k in keys_by_step[s]:
+            v.insert(k, _value(problem.initial, k))
+        yield g, v, meas
+
+
+def _value(values: gtsam.Values, key: int):
+    """The value of ``key`` in a form ``Values.insert`` accepts (Pose3, Rot3, Point3 or Vector)."""
+    for read in (values.atPose3, values.atRot3, values.atPoint3, values.atVector):
+        try:
+            return read(key)
+        except RuntimeError:
+            continue
+    raise GraphcalError(f"cannot read variable {gtsam.DefaultKeyFormatter(key)} of the initial values")
+
+
+def _batch_or_rebuilt(problem: CalibrationProblem, cal: IncrementalCalibrator, data: CalibrationData, station: int,
+                      sensor: str, index: int, s_key: int) -> gtsam.NonlinearFactor:
+    """The batch graph's own measurement factor on its own key; rebuilt on a new segment's key."""
+    if s_key == problem.sensor_keys[sensor]:
+        return problem.graph.at(index)
+    m = (station, sensor)
+    if m in data.planes:
+        return cal.measurement_factor(station, sensor, s_key, plane=data.planes[m])
+    return cal.measurement_factor(station, sensor, s_key, points=data.scan_points[m])
+
+
+def _sigmas_below(cal: IncrementalCalibrator, target_deg: float | None, target_mm: float | None) -> bool:
+    for name in cal.sensors:
+        if cal.current_key(name) not in cal._in_isam:
+            return False
+        s_rot, s_xyz = cal.sigmas(name)
+        if target_deg is not None and not np.all(s_rot < target_deg):
+            return False
+        if target_mm is not None and not np.all(s_xyz < target_mm):
+            return False
+    return True
+
+
+def calibrate_incremental(
+    dataset,
+    *,
+    options: CalibrationOptions = CalibrationOptions(),
+    progress: bool = False,
+    sigma_target_deg: float | None = None,
+    sigma_target_mm: float | None = None,
+    window: int = 3,
+    p_false_alarm: float = 1e-4,
+    detect_changes: bool = True,
+    data: CalibrationData | None = None,
+) -> CalibrationResult:
+    """Calibrate a dataset incrementally: iSAM2, one station per update in dataset order.
+
+    Args:
+        dataset: a dataset folder or a :class:`graphcal.io.dataset.Dataset`.
+        options: noise models and switches (as the batch).
+        progress: print one line per station to stderr.
+        sigma_target_deg, sigma_target_mm: stop rule: stop adding stations once every sensor's
+            1-sigma about every body axis is below ``sigma_target_deg`` and along every body axis
+            below ``sigma_target_mm`` (either may be None: not checked). The station where it
+            stopped is the last of ``history`` and is named in ``warnings``.
+        window, p_false_alarm: change test (change_detection.py): a window of stations, and the
+            probability of any false alarm in the run per sensor (Bonferroni over the stations).
+        detect_changes: run the change test.
+        data: the dataset's measurements when already gathered.
+
+    Returns:
+        A :class:`CalibrationResult` with ``solver="incremental"``, ``iterations`` = stations
+        added, ``history`` = one :class:`IncrementalStep` per station and sensor, and per sensor
+        its extrinsic segments and change stations.
+    """
+    from ..io.dataset import Dataset, load_dataset_robot, read_dataset
+    from ..solvers.covariance import marginal_covariances
+    from .calibrate import _residuals, _result
+
+    ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+    robot = load_dataset_robot(ds)
+    if data is None:
+        data = calibration_data(ds, robot, progress=progress)
+    problem = build_problem(ds, robot, data, options)
+    R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
+    cal = IncrementalCalibrator(
+        robot, problem.sensor_priors, options=options,
+        sensor_types={n: ds.sensors[n].type for n in problem.sensor_keys}, sensor_keys=problem.sensor_keys,
+        initial_extrinsics=problem.initial_extrinsics, R_body_imu=R_body_imu,
+        imu_sigma_rad=ds.imu.T_body_imu_prior.sigma_rad if ds.imu is not None else 0.0,
+        detect_changes=detect_changes, window=window, p_false_alarm=p_false_alarm,
+        n_tests=max(1, len(data.stations)),
+    )
+    warnings: list[str] = []
+    stopped = None
+    targets = sigma_target_deg is not None or sigma_target_mm is not None
+    for st, (graph_a, values_a, meas) in zip(data.stations, station_updates(problem, data)):
+        makers = {}
+        for name, idx in meas.items():
+            makers[name] = partial(_batch_or_rebuilt, problem, cal, data, st.station, name, idx)
+        steps = cal.add_factors(st.station, graph_a, values_a, makers, initial_body=problem.initial_body[st.station])
+        if progress:
+            txt = "; ".join(f"{s.sensor}: rot {np.round(s.sigma_rot_deg, 3).tolist()} deg, "
+                            f"xyz {np.round(s.sigma_xyz_mm, 2).tolist()} mm"
+                            + (" CHANGE" if s.change_detected else "") for s in steps)
+            print(f"calibrate --incremental: station {st.station}: {txt}", file=sys.stderr, flush=True)
+        if targets and _sigmas_below(cal, sigma_target_deg, sigma_target_mm):
+            stopped = st.station
+            break
+    cal.refine()
+    for name, s in cal.held_stations().items():
+        warnings.append(f"{name}: station {s}'s measurement disagreed with the extrinsic and no later station "
+                        "confirmed a change; it was left out")
+    if stopped is not None:
+        n_left = len(data.stations) - len(cal.stations)
+        warnings.append(f"stop rule: every sigma below the target after station {stopped} "
+                        f"({len(cal.stations)} stations); {n_left} later station(s) not used")
+    for name in cal.sensors:
+        for c in cal.change_stations(name):
+            warnings.append(f"{name}: the extrinsic changed at station {c} (new segment from there on)")
+
+    # -- the result, assembled as the batch's (calibrate._result) on the graph iSAM2 holds
+    inc_problem, values = cal.problem()
+    used = set(cal.stations)
+    sub = CalibrationData(
+        stations=tuple(st for st in data.stations if st.station in used),
+        planes={m: p for m, p in data.planes.items() if m[0] in used and m[1] in inc_problem.sensor_keys},
+        scan_points={m: p for m, p in data.scan_points.items() if m[0] in used},
+        sensor_types=data.sensor_types,
+    )
+    inc_problem = replace(inc_problem, initial_body={s: problem.initial_body[s] for s in used})
+    outliers = set(inc_problem.excluded)
+    res = _result(ds, robot, sub, inc_problem, values, outliers, len(cal.stations), options)
+
+    seg_keys = {n: cal.segment_keys(n) for n in res.sensors}
+    all_keys = [k for segs in seg_keys.values() for k, _ in segs]
+    covs = marginal_covariances(inc_problem.graph, values, all_keys)
+    sensors = {}
+    residuals = {(r.station, r.sensor): r for r in res.residuals}
+    T_world_body = res.T_world_body
+    for name, est in res.sensors.items():
+        segments = []
+        for k, ids in seg_keys[name]:
+            T_k = from_gtsam_pose(values.atPose3(k))
+            ids = ids or (max(used),)
+            segments.append(ExtrinsicSegment(ids[0], ids[-1], T_k, np.asarray(covs[k])))
+            if k != inc_problem.sensor_keys[name]:
+                # residuals of an earlier segment: against that segment's extrinsic
+                part = CalibrationData(sub.stations, {m: p for m, p in sub.planes.items()
+                                                      if m[1] == name and m[0] in ids}, {}, sub.sensor_types)
+                for r in _residuals(part, inc_problem, values, T_world_body,
+                                    {name: replace(est, T_body_sensor=T_k)}, outliers):
+                    residuals[(r.station, r.sensor)] = r
+        sensors[name] = replace(est, segments=tuple(segments), change_stations=cal.change_stations(name))
+    res_list = tuple(sorted(residuals.values(), key=lambda r: (r.station, r.sensor)))
+    after = [r for r in res_list if not r.outlier]
+    normal_rms = float(np.sqrt(np.mean([r.angle_after_deg**2 for r in after]))) if after else float("nan")
+    dist_rms = float(np.sqrt(np.mean([r.distance_after_mm**2 for r in after]))) if after else float("nan")
+    return replace(
+        res, sensors=sensors, residuals=res_list, normal_rms_deg=normal_rms, distance_rms_mm=dist_rms,
+        solver="incremental", history=tuple(cal.history), warnings=tuple(res.warnings) + tuple(warnings),
+    )

@@ -1,0 +1,144 @@
+"""A dataset's stations as the arrays the calibration graph needs.
+
+Everything is read from a :class:`graphcal.io.dataset.Dataset` (never from ``truth.yaml``):
+joint angles per leg, commanded body poses, IMU specific force, the ground plane each camera saw
+(``planes.csv``, or fitted here from the clouds) and laser-scanner points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import DatasetError
+from ..geometry import pose_from_xyz_quat_wxyz
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneMeasurement:
+    """The ground plane seen by ``sensor`` at ``station``: (n, d) in the sensor frame (canonical,
+    n points towards the sensor), its 4x4 covariance of (nx, ny, nz, d), inlier count and rms (m)."""
+
+    station: int
+    sensor: str
+    n: np.ndarray
+    d: float
+    cov: np.ndarray
+    n_points: int
+
+
+@dataclass(frozen=True, eq=False)
+class StationMeasurements:
+    """What one static station measured.
+
+    Attributes:
+        station: id; session: stance label (feet planted within it).
+        q_by_foot: foot -> (n,) measured joint angles of that leg (rad / m), Leg order.
+        T_world_body_cmd: (4, 4) commanded pose, or None.
+        imu_accel: (3,) specific force in the IMU frame (m/s^2), or None.
+    """
+
+    station: int
+    session: str
+    q_by_foot: dict
+    T_world_body_cmd: np.ndarray | None
+    imu_accel: np.ndarray | None
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationData:
+    """Stations in file order, the planes per (station, sensor), and scan points per (station,
+    sensor) for laser scanners (sensor frame, m)."""
+
+    stations: tuple[StationMeasurements, ...]
+    planes: dict
+    scan_points: dict
+    sensor_types: dict
+
+
+def station_measurements(ds, robot) -> tuple[StationMeasurements, ...]:
+    """Per-station joint angles, commanded poses and IMU readings of ``ds`` (stations.csv)."""
+    t = ds.stations
+    if t is None:
+        raise DatasetError(ds.root or "dataset", "stations.csv", "a stations.csv for a static calibration")
+    n = len(t)
+    sessions = t["session"] if t.has("session") else np.array(["default"] * n)
+    has_cmd = t.has("body_x")
+    has_imu = t.has("imu_ax")
+    legs = {f: robot.leg(f) for f in robot.feet}
+    out = []
+    for i in range(n):
+        q_by_foot = {}
+        for f, leg in legs.items():
+            if all(t.has(f"q_{j}") for j in leg.joint_names):
+                q_by_foot[f] = np.array([t[f"q_{j}"][i] for j in leg.joint_names])
+        T_cmd = None
+        if has_cmd:
+            T_cmd = pose_from_xyz_quat_wxyz(
+                [t["body_x"][i], t["body_y"][i], t["body_z"][i]],
+                np.array([t["body_qw"][i], t["body_qx"][i], t["body_qy"][i], t["body_qz"][i]])
+                / np.linalg.norm([t["body_qw"][i], t["body_qx"][i], t["body_qy"][i], t["body_qz"][i]]),
+            )
+        accel = np.array([t["imu_ax"][i], t["imu_ay"][i], t["imu_az"][i]]) if has_imu else None
+        out.append(StationMeasurements(int(t["station"][i]), str(sessions[i]), q_by_foot, T_cmd, accel))
+    return tuple(out)
+
+
+def ground_planes(ds, *, progress: bool = False) -> dict:
+    """(station, sensor) -> :class:`PlaneMeasurement` of every camera: from planes.csv when the
+    dataset has it, otherwise fitted from the clouds. Where a station has several planes (stairs,
+    walls) the one with most points is taken as the ground."""
+    from ..plane_table import planes_rows
+
+    types = {name: spec.type for name, spec in ds.sensors.items()}
+    if ds.planes is not None:
+        p = ds.planes
+        rows = {c: p[c] for c in p.columns}
+        count = len(p)
+    else:
+        from ..io.dataset import cloud_paths, load_cloud
+
+        cams = {k: v for k, v in cloud_paths(ds).items() if types.get(k[0]) in ("depth_camera", "stereo_camera")}
+        pairs = ((key, load_cloud(ds, *key)) for key in sorted(cams))
+        rows = planes_rows(pairs, types, progress=progress)
+        count = len(rows["station"])
+    best: dict = {}
+    for k in range(count):
+        key = (int(rows["station"][k]), str(rows["sensor"][k]))
+        npts = int(rows["n_points"][k]) if "n_points" in rows else 0
+        if key in best and best[key].n_points >= npts:
+            continue
+        if all(f"cov_{i}{j}" in rows for i in range(4) for j in range(4)):
+            cov = np.array([[float(rows[f"cov_{i}{j}"][k]) for j in range(4)] for i in range(4)])
+        else:
+            cov = None
+        n = np.array([float(rows["nx"][k]), float(rows["ny"][k]), float(rows["nz"][k])])
+        best[key] = PlaneMeasurement(key[0], key[1], n, float(rows["d"][k]), cov, npts)
+    return best
+
+
+def scan_points(ds, *, max_points: int = 200, seed: int = 0) -> dict:
+    """(station, sensor) -> (M, 3) points of every laser scanner cloud, evenly subsampled to at most
+    ``max_points`` (the dense point-to-plane factors do not need every beam)."""
+    from ..io.dataset import cloud_paths, load_cloud
+
+    out = {}
+    for (sensor, station), _ in sorted(cloud_paths(ds).items()):
+        if ds.sensors[sensor].type != "laser_scanner":
+            continue
+        pts = load_cloud(ds, sensor, station)
+        if len(pts) > max_points:
+            pts = pts[np.linspace(0, len(pts) - 1, max_points).round().astype(int)]
+        out[(station, sensor)] = pts
+    return out
+
+
+def calibration_data(ds, robot, *, progress: bool = False) -> CalibrationData:
+    """Everything the calibration graph reads from a dataset."""
+    return CalibrationData(
+        stations=station_measurements(ds, robot),
+        planes=ground_planes(ds, progress=progress),
+        scan_points=scan_points(ds),
+        sensor_types={name: spec.type for name, spec in ds.sensors.items()},
+    )

@@ -1,0 +1,233 @@
+"""``report.html``: one self-contained page (inline CSS, PNG figures as base64 data URIs, no script,
+nothing fetched from the network) summarising a calibration for a human."""
+
+from __future__ import annotations
+
+import base64
+import html
+import math
+
+import numpy as np
+
+from graphcal.geometry import axis_angle_from_matrix, rotation_angle_between, rpy_from_matrix
+from graphcal.report.calibration_yaml import residual_summary
+from graphcal.report.plots import figure_png, report_figures
+from graphcal.report.ros import static_transform_publisher_command
+
+__all__ = ["report_html"]
+
+_CSS = """
+body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:2em auto;max-width:1000px;color:#222;padding:0 1em}
+h1{font-size:1.6em}h2{font-size:1.25em;border-bottom:1px solid #ddd;padding-bottom:.2em;margin-top:1.6em}
+h3{font-size:1.05em}
+table{border-collapse:collapse;margin:.5em 0 1em 0;font-size:.9em}
+th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}
+th{background:#f3f3f3}td.l,th.l{text-align:left}
+.warn{background:#fff4e5;border:1px solid #f0a030;border-left:6px solid #f0a030;padding:.6em 1em;margin:.6em 0}
+.ok{color:#2a7a2a}
+pre{background:#f6f6f6;border:1px solid #ddd;padding:.6em;overflow-x:auto;font-size:.8em}
+figure{margin:1em 0}figure img{max-width:100%;border:1px solid #eee}figcaption{font-size:.85em;color:#555}
+.small{font-size:.85em;color:#555}
+"""
+
+
+def _e(x) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def _n(x, fmt: str = ".3f") -> str:
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return _e(x)
+    if math.isnan(x):
+        return "–"
+    if math.isinf(x):
+        return "∞" if x > 0 else "−∞"
+    text = format(x, fmt)
+    if text.lstrip("+-").strip("0.") == "":  # -0.000 -> 0.000
+        text = text.lstrip("+-")
+    return text
+
+
+def _log_so3(R) -> np.ndarray:
+    """Rotation vector (rad) of R."""
+    axis, angle = axis_angle_from_matrix(R)
+    return axis * angle
+
+
+def _row(cells, header: bool = False, first_left: bool = True) -> str:
+    tag = "th" if header else "td"
+    out = []
+    for i, c in enumerate(cells):
+        cls = ' class="l"' if (i == 0 and first_left) else ""
+        out.append(f"<{tag}{cls}>{c}</{tag}>")
+    return "<tr>" + "".join(out) + "</tr>"
+
+
+def _sensor_section(name: str, s, base_frame: str) -> str:
+    T, P = np.asarray(s.T_body_sensor, dtype=float), np.asarray(s.T_body_sensor_prior, dtype=float)
+    xyz, xyz0 = T[:3, 3] * 1000.0, P[:3, 3] * 1000.0
+    rpy, rpy0 = np.rad2deg(rpy_from_matrix(T[:3, :3])), np.rad2deg(rpy_from_matrix(P[:3, :3]))
+    parts = [f"<h3>Sensor <code>{_e(name)}</code> ({_e(s.type)})</h3>"]
+    parts.append(
+        f'<p class="small">T_{_e(base_frame)}_{_e(name)}: translation in mm, ROS roll/pitch/yaw in deg '
+        f"(R = Rz(yaw) Ry(pitch) Rx(roll)).</p>"
+    )
+    head = _row(["", "x [mm]", "y [mm]", "z [mm]", "roll [deg]", "pitch [deg]", "yaw [deg]"], header=True)
+    rows = [head]
+    for lab, t, r in (("prior (CAD)", xyz0, rpy0), ("estimate", xyz, rpy)):
+        rows.append(_row([lab] + [_n(v, ".2f") for v in t] + [_n(v, ".3f") for v in r]))
+    parts.append("<table>" + "".join(rows) + "</table>")
+    # change and uncertainty along / about the body axes (left perturbation, same axes as sigma)
+    d_rot = np.rad2deg(_log_so3(T[:3, :3] @ P[:3, :3].T))
+    head = _row(["body axes", "along x [mm]", "along y [mm]", "along z [mm]", "about x [deg]", "about y [deg]",
+                 "about z [deg]"], header=True)  # fmt: skip
+    rows = [
+        head,
+        _row(["estimate − prior"] + [_n(v, "+.2f") for v in xyz - xyz0] + [_n(v, "+.3f") for v in d_rot]),
+        _row(["1-σ"] + [_n(v, ".3f") for v in s.sigma_xyz_mm] + [_n(v, ".4f") for v in s.sigma_rot_deg]),
+    ]
+    parts.append("<table>" + "".join(rows) + "</table>")
+    dang = np.rad2deg(rotation_angle_between(P[:3, :3], T[:3, :3]))
+    parts.append(
+        f'<p class="small">Change from the prior: {_n(np.linalg.norm(xyz - xyz0), ".2f")} mm, '
+        f"{_n(dang, '.3f')} deg.</p>"
+    )
+    if s.unobservable:
+        items = "".join(f"<li>{_e(u)}</li>" for u in s.unobservable)
+        parts.append(
+            f'<div class="warn"><strong>Not determined by the data ({len(s.unobservable)} '
+            f"direction{'s' if len(s.unobservable) != 1 else ''}):</strong><ul>{items}</ul>"
+            f"The data does not support the estimate along these directions; each entry names the "
+            f"motion that would determine it.</div>"
+        )
+    else:
+        parts.append('<p class="ok">All six directions are determined by the data.</p>')
+    if len(s.segments) > 1 or s.change_stations:
+        rows = [_row(["stations", "x [mm]", "y [mm]", "z [mm]", "roll [deg]", "pitch [deg]", "yaw [deg]"], header=True)]
+        for seg in s.segments:
+            Ts = np.asarray(seg.T_body_sensor, dtype=float)
+            r = np.rad2deg(rpy_from_matrix(Ts[:3, :3]))
+            rows.append(_row([f"{int(seg.first_station)}–{int(seg.last_station)}"]
+                             + [_n(v * 1000.0, ".2f") for v in Ts[:3, 3]] + [_n(v, ".3f") for v in r]))  # fmt: skip
+        chg = ", ".join(str(int(c)) for c in s.change_stations) or "none"
+        parts.append(
+            f'<div class="warn"><strong>The sensor moved during the session</strong> (change detected at '
+            f"station{'s' if len(s.change_stations) != 1 else ''} {_e(chg)}). The estimate above is the last "
+            f"segment's.</div><table>{''.join(rows)}</table>"
+        )
+    return "\n".join(parts)
+
+
+def _legs_section(result) -> str:
+    if not result.legs:
+        return '<p class="small">Leg kinematics were not calibrated (run with <code>--legs</code>).</p>'
+    rows = [_row(["foot", "parameter", "value", "1-σ", "unit"], header=True)]
+    for foot, leg in result.legs.items():
+        for n, v, sg in zip(leg.names, leg.values, leg.sigmas):
+            n = str(n)
+            if n.endswith("_rad"):
+                val, sig, unit = _n(np.rad2deg(v), "+.4f"), _n(np.rad2deg(sg), ".4f"), "deg"
+            elif n.endswith("_m"):
+                val, sig, unit = _n(v * 1000.0, "+.3f"), _n(sg * 1000.0, ".3f"), "mm"
+            else:
+                val, sig, unit = _n(v, "+.6g"), _n(sg, ".3g"), ""
+            rows.append("<tr>" + f'<td class="l">{_e(foot)}</td><td class="l"><code>{_e(n)}</code></td>'
+                        f"<td>{val}</td><td>{sig}</td><td class=\"l\">{unit}</td></tr>")  # fmt: skip
+    return "<table>" + "".join(rows) + "</table>"
+
+
+def _residual_section(result) -> str:
+    rows = [
+        _row(["sensor", "stations", "θ RMS before [deg]", "θ RMS after [deg]", "e_d RMS before [mm]",
+              "e_d RMS after [mm]", "θ mean / max after [deg]", "e_d mean / max after [mm]"], header=True)  # fmt: skip
+    ]
+    names = list(result.sensors) + sorted({r.sensor for r in result.residuals} - set(result.sensors))
+    for s in names:
+        sm = residual_summary(result, s)
+        if sm["stations"] == 0 and sm["outlier_rows"] == 0:
+            continue
+        rows.append(_row([
+            f"<code>{_e(s)}</code>", f"{sm['stations']} (+{sm['outlier_rows']} outl.)",
+            _n(sm["normal_rms_deg_before"], ".4f"), _n(sm["normal_rms_deg_after"], ".4f"),
+            _n(sm["distance_rms_mm_before"], ".3f"), _n(sm["distance_rms_mm_after"], ".3f"),
+            f"{_n(sm['angle_mean_deg_after'], '.4f')} / {_n(sm['angle_max_deg_after'], '.4f')}",
+            f"{_n(sm['distance_mean_mm_after'], '.3f')} / {_n(sm['distance_max_mm_after'], '.3f')}",
+        ]))  # fmt: skip
+    total = residual_summary(result)
+    rows.append(_row([
+        "<strong>all (solver)</strong>", str(total["stations"]),
+        _n(total["normal_rms_deg_before"], ".4f"), _n(result.normal_rms_deg, ".4f"),
+        _n(total["distance_rms_mm_before"], ".3f"), _n(result.distance_rms_mm, ".3f"), "", "",
+    ]))  # fmt: skip
+    return (
+        "<table>" + "".join(rows) + "</table>"
+        '<p class="small">θ: angle between the measured and the predicted ground plane; e_d = |d_T − d_M|: '
+        "difference of their distances from the sensor (Chai et al. 2015, Sec. 5.2). Before: CAD prior; "
+        "after: calibrated model. Statistics over the non-outlier stations; the last row's “after” values "
+        "are the solver's own RMS.</p>"
+    )
+
+
+def report_html(result, *, title: str = "graphcal calibration report") -> str:
+    """The HTML report of ``result`` (a CalibrationResult) as one self-contained page.
+
+    Sections: summary per sensor (prior vs estimate, σ per body axis in mm/deg, undetermined
+    directions in a warning box, segments when the sensor moved), legs, outliers, residual RMS
+    before/after, the figures of :func:`graphcal.report.plots.report_figures` (one ``<img>`` each,
+    PNG data URI), warnings and the ROS 2 static_transform_publisher lines.
+    """
+    base = str(result.base_frame)
+    out = [
+        "<!DOCTYPE html>",
+        '<html lang="en">',
+        "<head>",
+        '<meta charset="utf-8">',
+        '<meta name="viewport" content="width=device-width, initial-scale=1">',
+        f"<title>{_e(title)}</title>",
+        f"<style>{_CSS}</style>",
+        "</head>",
+        "<body>",
+        f"<h1>{_e(title)}</h1>",
+        f'<p class="small">Dataset: <code>{_e(result.dataset)}</code> · base frame <code>{_e(base)}</code> · '
+        f"solver: {_e(result.solver)} ({int(result.iterations)} "
+        f"{'iterations' if result.solver == 'batch' else 'stations'}) · "
+        f"sensors: {', '.join(f'<code>{_e(s)}</code>' for s in result.sensors) or 'none'}</p>",
+    ]
+    if result.warnings:
+        items = "".join(f"<li>{_e(w)}</li>" for w in result.warnings)
+        out.append(f'<div class="warn"><strong>Warnings</strong><ul>{items}</ul></div>')
+    out.append("<h2>Sensors</h2>")
+    for name, s in result.sensors.items():
+        out.append(_sensor_section(str(name), s, base))
+    out.append("<h2>Legs</h2>")
+    out.append(_legs_section(result))
+    out.append("<h2>Outliers</h2>")
+    if result.outliers:
+        out.append(
+            f"<p>{len(result.outliers)} station{'s' if len(result.outliers) != 1 else ''} down-weighted by the "
+            f"robust loss: {_e(', '.join(str(int(s)) for s in sorted(result.outliers)))}.</p>"
+        )
+    else:
+        out.append("<p>None: no station was down-weighted by the robust loss.</p>")
+    out.append("<h2>Plane residuals</h2>")
+    out.append(_residual_section(result))
+    out.append("<h2>Figures</h2>")
+    for caption, fig in report_figures(result):
+        data = base64.b64encode(figure_png(fig)).decode("ascii")
+        out.append(
+            f'<figure><img src="data:image/png;base64,{data}" alt="{_e(caption)}">'
+            f"<figcaption>{_e(caption)}</figcaption></figure>"
+        )
+    out.append("<h2>ROS 2 static transforms</h2>")
+    out.append(
+        '<p class="small">ROS 2 Humble or newer; also written to <code>static_transforms.sh</code>. '
+        "Alternatively load <code>robot_calibrated.urdf</code> in robot_state_publisher (not both).</p>"
+    )
+    cmds = "\n".join(static_transform_publisher_command(base, str(n), s.T_body_sensor) for n, s in result.sensors.items())
+    out.append(f"<pre>{_e(cmds)}</pre>")
+    out.append('<p class="small">Written by graphcal calibrate.</p>')
+    out.append("</body>")
+    out.append("</html>")
+    return "\n".join(out) + "\n"
