@@ -184,7 +184,18 @@ def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set,
         solver="batch",
         iterations=iterations,
         warnings=tuple(warnings),
+        noise=noise_summary(options, problem),
     )
+
+
+def noise_summary(options: CalibrationOptions, problem: CalibrationProblem) -> dict:
+    """The noise model of the final solve, SI units."""
+    out = {name: float(getattr(options, name)) for name in
+           ("sigma_joint_rad", "sigma_contact_m", "sigma_ground_m", "sigma_imu_rad", "sigma_commanded_rad",
+            "sigma_commanded_m")}
+    for sensor in problem.sensor_keys:
+        out[f"plane_scale:{sensor}"] = options.plane_scale(sensor)
+    return out
 
 
 def _residuals(data, problem, values, T_world_body, sensors, outliers) -> list[StationResidual]:

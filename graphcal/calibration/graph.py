@@ -51,9 +51,10 @@ class CalibrationOptions:
         sigma_scan_m: laser range noise per point, 10 mm (URG-04LX).
         plane_angle_floor_rad, plane_distance_floor_m: added to every plane's covariance
             (unmodelled ground roughness); 0 by default.
-        robust: Huber loss on the plane and scan factors (k = ``huber_k`` whitened units); stations
-            whose plane fails the chi-square test at ``outlier_p`` are listed as outliers and left out
-            of a second solve.
+        robust: Huber loss on the plane and scan factors (threshold: the ``huber_p`` chi-square
+            quantile of the factor's dimension, on the whole factor's whitened norm); stations whose
+            plane fails the chi-square test at ``outlier_p`` are listed as outliers and left out of
+            a second solve.
         leg_offset_sigma_rad, leg_length_sigma_m: leg-parameter priors (how far the URDF may be off).
         plane_sigma_scales: (sensor, scale) pairs multiplying that sensor's plane/scan noise.
         estimate_imu_mounting: estimate the IMU's mounting rotation M (prior: dataset.yaml's
@@ -77,7 +78,7 @@ class CalibrationOptions:
     plane_angle_floor_rad: float = 0.0
     plane_distance_floor_m: float = 0.0
     robust: bool = True
-    huber_k: float = 3.0
+    huber_p: float = 0.99
     outlier_p: float = 0.999
     leg_offset_sigma_rad: float = float(np.radians(3.0))
     leg_length_sigma_m: float = 0.02
@@ -183,7 +184,17 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         if group is not None:
             groups[graph.size()] = group
         graph.add(factor)
-    huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k) if options.robust else None
+
+    def huber(dim: int):
+        """Huber loss for a factor of ``dim`` rows. GTSAM's Robust model applies the M-estimator to
+        the whole factor's whitened norm, so its threshold must grow with the dimension: k is the
+        chi-square quantile ``huber_p`` of ``dim`` dof (a whole station's plane or scan that no
+        noise explains is down-weighted; ordinary noise never is)."""
+        if not options.robust:
+            return None
+        from scipy.stats import chi2
+
+        return gtsam.noiseModel.mEstimator.Huber.Create(float(np.sqrt(chi2.ppf(options.huber_p, dim))))
 
     u_body, height, T_body0 = _kinematic_bodies(data, robot)
     station_keys = {st.station: X(st.station) for st in data.stations}
@@ -231,10 +242,12 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
                 f = plane_observation_factor(
                     station_keys[st.station], key, p.n, p.d, cov,
                     sigma_angle_floor_rad=options.plane_angle_floor_rad,
-                    sigma_distance_floor_m=options.plane_distance_floor_m, robust=huber)
+                    sigma_distance_floor_m=options.plane_distance_floor_m, robust=huber(3))
             elif m in data.scan_points:
-                f = point_to_plane_factor(station_keys[st.station], key, data.scan_points[m],
-                                          options.sigma_scan_m * options.plane_scale(name), robust=huber)
+                pts = data.scan_points[m]
+                sig = scan_point_sigmas(pts, T_body0[st.station] @ ext0[name], options.sigma_scan_m)
+                f = point_to_plane_factor(station_keys[st.station], key, pts, sig * options.plane_scale(name),
+                                          robust=huber(len(pts)))
             else:
                 continue
             plane_factors[graph.size()] = m
@@ -297,6 +310,17 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
                               T_body0, ext0, frozenset(exclude), groups)
 
 
+def scan_point_sigmas(points_sensor: np.ndarray, T_world_sensor: np.ndarray, sigma_range_m: float,
+                      floor_m: float = 0.001) -> np.ndarray:
+    """Per-point sigma (m) of a range point's height above the ground: range noise along the beam
+    projected on the ground normal, ``sigma_range |n . d|`` with d the beam direction (grazing beams
+    barely move vertically), plus a small floor for the ground's own roughness."""
+    P = np.asarray(points_sensor, dtype=float)
+    d = P / np.maximum(np.linalg.norm(P, axis=1, keepdims=True), 1e-9)
+    up_sensor = T_world_sensor[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    return np.sqrt((sigma_range_m * (d @ up_sensor)) ** 2 + floor_m**2)
+
+
 def predicted_plane_errors(T_world_body: np.ndarray, T_body_sensor: np.ndarray, n_m, d_m) -> tuple[float, float]:
     """Chai's theta (deg) and e_d (mm) of a measured plane against the ground z = 0 seen from the
     given body pose and extrinsic."""
@@ -306,4 +330,4 @@ def predicted_plane_errors(T_world_body: np.ndarray, T_body_sensor: np.ndarray, 
     return float(np.degrees(ang)), float(1e3 * abs(dist))
 
 
-__all__ = ["CalibrationOptions", "CalibrationProblem", "build_problem", "predicted_plane_errors"]
+__all__ = ["CalibrationOptions", "CalibrationProblem", "build_problem", "predicted_plane_errors", "scan_point_sigmas"]

@@ -118,9 +118,39 @@ def ground_planes(ds, *, progress: bool = False) -> dict:
     return best
 
 
+def ground_line_inliers(points_sensor: np.ndarray, *, distance_m: float = 0.03, iterations: int = 200,
+                        seed: int = 0) -> np.ndarray:
+    """Boolean mask of the points of one laser scan that lie on its dominant straight line.
+
+    A 2D scanner's scan plane cuts flat ground in a straight line; points on the robot's legs or on
+    obstacles do not lie on it. RANSAC over point pairs (``distance_m`` ~ 3 sigma of the range
+    noise), then the largest inlier set is refined once by a least-squares line.
+    """
+    P = np.asarray(points_sensor, dtype=float)[:, :2]
+    n = len(P)
+    if n < 3:
+        return np.ones(n, dtype=bool)
+    rng = np.random.default_rng(seed)
+    best = np.zeros(n, dtype=bool)
+    for _ in range(iterations):
+        i, j = rng.choice(n, 2, replace=False)
+        d = P[j] - P[i]
+        norm = np.linalg.norm(d)
+        if norm < 1e-6:
+            continue
+        normal = np.array([-d[1], d[0]]) / norm
+        mask = np.abs((P - P[i]) @ normal) < distance_m
+        if mask.sum() > best.sum():
+            best = mask
+    c = P[best].mean(axis=0)
+    _, _, Vt = np.linalg.svd(P[best] - c)
+    return np.abs((P - c) @ Vt[1]) < distance_m
+
+
 def scan_points(ds, *, max_points: int = 200, seed: int = 0) -> dict:
-    """(station, sensor) -> (M, 3) points of every laser scanner cloud, evenly subsampled to at most
-    ``max_points`` (the dense point-to-plane factors do not need every beam)."""
+    """(station, sensor) -> (M, 3) ground points of every laser scanner cloud: the points on the
+    scan's ground line (:func:`ground_line_inliers`; legs and obstacles dropped), evenly subsampled
+    to at most ``max_points`` (the dense point-to-plane factors do not need every beam)."""
     from ..io.dataset import cloud_paths, load_cloud
 
     out = {}
@@ -128,6 +158,7 @@ def scan_points(ds, *, max_points: int = 200, seed: int = 0) -> dict:
         if ds.sensors[sensor].type != "laser_scanner":
             continue
         pts = load_cloud(ds, sensor, station)
+        pts = pts[ground_line_inliers(pts, seed=seed)]
         if len(pts) > max_points:
             pts = pts[np.linspace(0, len(pts) - 1, max_points).round().astype(int)]
         out[(station, sensor)] = pts

@@ -114,6 +114,8 @@ class CalibrationResult:
         iterations: solver iterations (batch) or stations added (incremental).
         history: incremental steps (empty for batch).
         warnings: human-readable warnings (e.g. a direction not determined).
+        noise: the noise model the final solve used (SI; after variance-component estimation):
+            name -> value, e.g. ``sigma_joint_rad``, ``plane_scale:depth``.
     """
 
     dataset: str
@@ -130,3 +132,4 @@ class CalibrationResult:
     iterations: int = 0
     history: tuple[IncrementalStep, ...] = ()
     warnings: tuple[str, ...] = ()
+    noise: dict = field(default_factory=dict)

@@ -300,6 +300,9 @@ def extrinsic_from_scan_points(
     * 3D points (not all in the sensor's x-y plane): all 12 unknowns (R and t). A second candidate
       comes from a plane fitted to each station's points (:func:`rotation_from_normals`,
       :func:`translation_from_distances`); the one with the lower point residual wins.
+    * with ``T_prior`` given, the prior is one more starting point for the Gauss–Newton polish: with
+      little tilt variation the linear system has a degenerate near-solution (the scan plane lying
+      on the ground) that only a start near the truth avoids; the lowest point residual wins.
 
     The linear least-squares solution is projected to SO(3) (polar decomposition), then t is
     solved again by linear least squares given R, then (``gauss_newton_iterations`` > 0) a few
@@ -383,6 +386,11 @@ def extrinsic_from_scan_points(
                                             min_spread_deg=min_spread_deg)
             candidates.append(R_pl)
 
+    # The prior as one more start: with little tilt variation the linear system has a degenerate
+    # near-solution (the scan plane lying on the ground: r1, r2 -> 0, every point "on" it), which
+    # Gauss-Newton from the linear answer cannot leave; the lower point residual decides.
+    if T_prior is not None:
+        candidates.append(Rp)
     scale = np.array([L, L, L, 1.0, 1.0, 1.0])  # rotation columns in metres at the point range
     best = None
     for M in candidates:
