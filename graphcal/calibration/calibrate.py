@@ -7,6 +7,7 @@ and solve again without them, then read the marginal covariances (solvers/covari
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -77,31 +78,65 @@ def calibrate(
         data = calibration_data(ds, robot, progress=progress)
     problem = build_problem(ds, robot, data, options)
     lm = solve_problem(problem, progress=progress)
-    values = lm.values
-    iterations = lm.iterations
+    values, iterations = lm.values, lm.iterations
     outliers: set = set()
-    if options.robust:
-        bad, _ = _outlier_measurements(problem, values, options)
-        if bad:
-            outliers = bad
-            problem = build_problem(ds, robot, data, options, exclude=frozenset(bad))
-            lm = solve_problem(problem, progress=progress)
-            values = lm.values
-            iterations += lm.iterations
-    if options.estimate_noise:
+    warnings: list[str] = []
+
+    def resolve(opts, excluded):
+        nonlocal problem, values, iterations
+        problem = build_problem(ds, robot, data, opts, exclude=frozenset(excluded))
+        lm = solve_problem(problem, progress=progress)
+        values = lm.values
+        iterations += lm.iterations
+
+    def estimate_noise(opts):
+        # variance-component estimation under the Huber loss (outliers are down-weighted)
         for _ in range(VCE_ROUNDS):
-            scaled, changed = rescaled_options(options, problem, values)
+            scaled, changed = rescaled_options(opts, problem, values)
             if not changed:
                 break
-            options = scaled
-            problem = build_problem(ds, robot, data, options, exclude=frozenset(outliers))
-            lm = solve_problem(problem, progress=progress)
-            values = lm.values
-            iterations += lm.iterations
-    return _result(ds, robot, data, problem, values, outliers, iterations, options)
+            opts = scaled
+            resolve(opts, outliers)
+        return opts
+
+    if options.estimate_noise:
+        options = estimate_noise(options)
+    if options.robust:
+        # data snooping with the learned noise model: leave out the worst measurements (within 10x
+        # of the worst chi-square), solve again, repeat until every measurement passes; one gross
+        # outlier left in biases the estimate enough to make good stations fail the test
+        per_sensor = {}
+        for m in problem.plane_factors.values():
+            per_sensor[m[1]] = per_sensor.get(m[1], 0) + 1
+        for _ in range(MAX_OUTLIER_ROUNDS):
+            bad, stats = _outlier_measurements(problem, values, options)
+            if not bad:
+                break
+            worst = max(stats[m] for m in bad)
+            new = {m for m in bad if stats[m] >= 0.1 * worst}
+            over = [sn for sn in per_sensor
+                    if sum(1 for m in outliers | new if m[1] == sn) > MAX_OUTLIER_SHARE * per_sensor[sn]]
+            if over:
+                warnings.append(
+                    f"more than {MAX_OUTLIER_SHARE:.0%} of the measurements of {', '.join(over)} fail the "
+                    "chi-square test: the model does not fit these data (see graphcal diagnose); none more "
+                    "were left out")
+                break
+            outliers |= new
+            resolve(options, outliers)
+        if outliers and options.estimate_noise:
+            options = estimate_noise(options)
+    result = _result(ds, robot, data, problem, values, outliers, iterations, options)
+    if warnings:
+        result = dataclasses.replace(result, warnings=tuple(warnings) + result.warnings)
+    return result
 
 
 VCE_ROUNDS = 3
+MAX_OUTLIER_ROUNDS = 10
+#: at most this share of a sensor's measurements is left out as outliers; beyond it the model, not
+#: the data, is wrong and calibrate says so instead of discarding the data
+MAX_OUTLIER_SHARE = 0.2
 #: a group's sigma is re-estimated only with at least this much redundancy (dof), and this share
 #: of its rows: below it the residuals say little about the noise (e.g. the planes, whose errors the
 #: body poses can absorb almost entirely)

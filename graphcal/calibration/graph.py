@@ -5,7 +5,8 @@ foot per (session, foot), L(l) leg parameters per leg (with ``legs``).
 
 Factors:
 * plane observation (X, S): the ground plane each camera measured, with its covariance (Chai 2015);
-* point-to-plane (X, S): laser-scanner points on the ground (Łabęcki 2012, z_M = 0);
+* range-to-plane (X, S): every laser beam's range against where it meets the ground (Łabęcki
+  2012's z_M = 0 criterion, made unbiased for noise along the beams: factors/range_to_plane.py);
 * stance foot (X, F[, L]): forward kinematics of the measured joint angles against the planted foot;
 * foot on ground (F): the planted foot lies on the ground z = 0;
 * IMU attitude (X[, M]): the measured specific force is "up"; with the IMU mounting rotation M
@@ -168,7 +169,7 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
     from factors.foot_on_ground import foot_on_ground_factor
     from factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
     from factors.plane_observation import plane_observation_factor
-    from factors.point_to_plane import point_to_plane_factor
+    from factors.range_to_plane import range_to_plane_factor
     from factors.priors import commanded_pose_prior, extrinsic_prior, leg_offset_prior
     from factors.stance_foot import joint_noise_covariance, stance_foot_factor
     from ..models.leg_params import leg_parameterization
@@ -245,9 +246,8 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
                     sigma_distance_floor_m=options.plane_distance_floor_m, robust=huber(3))
             elif m in data.scan_points:
                 pts = data.scan_points[m]
-                sig = scan_point_sigmas(pts, T_body0[st.station] @ ext0[name], options.sigma_scan_m)
-                f = point_to_plane_factor(station_keys[st.station], key, pts, sig * options.plane_scale(name),
-                                          robust=huber(len(pts)))
+                f = range_to_plane_factor(station_keys[st.station], key, pts,
+                                          options.sigma_scan_m * options.plane_scale(name), robust=huber(len(pts)))
             else:
                 continue
             plane_factors[graph.size()] = m
@@ -310,17 +310,6 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
                               T_body0, ext0, frozenset(exclude), groups)
 
 
-def scan_point_sigmas(points_sensor: np.ndarray, T_world_sensor: np.ndarray, sigma_range_m: float,
-                      floor_m: float = 0.001) -> np.ndarray:
-    """Per-point sigma (m) of a range point's height above the ground: range noise along the beam
-    projected on the ground normal, ``sigma_range |n . d|`` with d the beam direction (grazing beams
-    barely move vertically), plus a small floor for the ground's own roughness."""
-    P = np.asarray(points_sensor, dtype=float)
-    d = P / np.maximum(np.linalg.norm(P, axis=1, keepdims=True), 1e-9)
-    up_sensor = T_world_sensor[:3, :3].T @ np.array([0.0, 0.0, 1.0])
-    return np.sqrt((sigma_range_m * (d @ up_sensor)) ** 2 + floor_m**2)
-
-
 def predicted_plane_errors(T_world_body: np.ndarray, T_body_sensor: np.ndarray, n_m, d_m) -> tuple[float, float]:
     """Chai's theta (deg) and e_d (mm) of a measured plane against the ground z = 0 seen from the
     given body pose and extrinsic."""
@@ -330,4 +319,4 @@ def predicted_plane_errors(T_world_body: np.ndarray, T_body_sensor: np.ndarray, 
     return float(np.degrees(ang)), float(1e3 * abs(dist))
 
 
-__all__ = ["CalibrationOptions", "CalibrationProblem", "build_problem", "predicted_plane_errors", "scan_point_sigmas"]
+__all__ = ["CalibrationOptions", "CalibrationProblem", "build_problem", "predicted_plane_errors"]
