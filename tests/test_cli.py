@@ -104,3 +104,21 @@ def test_example_simulate_and_validate(tmp_path):
     # and a fraction of a millimetre of the truth (a frame error would show up as degrees / cm)
     assert result["plane_angle_err_deg"][1] < 0.05
     assert result["plane_dist_err_mm"][1] < 1.0
+
+
+def test_calibrate_writes_the_outputs_and_never_into_the_dataset(small_dataset, tmp_path):
+    from graphcal.report.calibration_yaml import read_calibration_yaml
+
+    out = tmp_path / "cal"
+    proc = run("calibrate", small_dataset, "--out", out, "--quiet", check_rc=0)
+    assert "depth:" in proc.stdout
+    doc = read_calibration_yaml(out / "calibration.yaml")
+    assert doc["format"] == "graphcal-calibration/1"
+    assert set(doc["sensors"]["depth"]) >= {"T_body_sensor", "covariance", "sigma", "unobservable"}
+    assert len(doc["sensors"]["depth"]["covariance"]) == 6
+    for name in ("robot_calibrated.urdf", "static_transforms.sh", "report.html"):
+        assert (out / name).stat().st_size > 0
+    before = sorted(p.name for p in small_dataset.iterdir())
+    proc = run("calibrate", small_dataset, "--out", small_dataset, "--quiet")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert sorted(p.name for p in small_dataset.iterdir()) == before

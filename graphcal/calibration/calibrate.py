@@ -36,22 +36,17 @@ def _outlier_measurements(problem: CalibrationProblem, values, options: Calibrat
     return bad, stats
 
 
-def solve_problem(problem: CalibrationProblem, *, progress: bool = False):
-    """Levenberg–Marquardt on a built problem; returns the solver result."""
+def solve_problem(problem: CalibrationProblem, *, progress: bool = False, stage: str = "solve"):
+    """Levenberg–Marquardt on a built problem; returns the solver result. With ``progress`` one line
+    per solve goes to stderr."""
+    import sys
+
     from ..solvers.batch import solve_lm
 
-    cb = None
+    result = solve_lm(problem.graph, problem.initial)
     if progress:
-        import sys
-
-        def cb(it, err):
-            print(f"\rcalibrate: LM iteration {it}, error {err:.6g}", end="", file=sys.stderr, flush=True)
-
-    result = solve_lm(problem.graph, problem.initial, progress=cb)
-    if progress:
-        import sys
-
-        print(file=sys.stderr)
+        print(f"calibrate: {stage}: {problem.graph.size()} factors, {result.iterations} LM iterations, "
+              f"error {result.error_initial:.4g} -> {result.error_final:.4g}", file=sys.stderr, flush=True)
     return result
 
 
@@ -77,15 +72,15 @@ def calibrate(
     if data is None:
         data = calibration_data(ds, robot, progress=progress)
     problem = build_problem(ds, robot, data, options)
-    lm = solve_problem(problem, progress=progress)
+    lm = solve_problem(problem, progress=progress, stage="first solve (closed-form start, default noise)")
     values, iterations = lm.values, lm.iterations
     outliers: set = set()
     warnings: list[str] = []
 
-    def resolve(opts, excluded):
+    def resolve(opts, excluded, stage):
         nonlocal problem, values, iterations
         problem = build_problem(ds, robot, data, opts, exclude=frozenset(excluded))
-        lm = solve_problem(problem, progress=progress)
+        lm = solve_problem(problem, progress=progress, stage=stage)
         values = lm.values
         iterations += lm.iterations
 
@@ -96,7 +91,7 @@ def calibrate(
             if not changed:
                 break
             opts = scaled
-            resolve(opts, outliers)
+            resolve(opts, outliers, "noise re-estimated")
         return opts
 
     if options.estimate_noise:
@@ -123,7 +118,7 @@ def calibrate(
                     "were left out")
                 break
             outliers |= new
-            resolve(options, outliers)
+            resolve(options, outliers, f"{len(outliers)} outlier measurement(s) left out")
         if outliers and options.estimate_noise:
             options = estimate_noise(options)
     result = _result(ds, robot, data, problem, values, outliers, iterations, options)
@@ -272,6 +267,10 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
         for u in s.unobservable:
             lines.append(f"  warning: {name}: {u}")
     lines.append(f"  residuals after: normal {result.normal_rms_deg:.3f} deg RMS, distance {result.distance_rms_mm:.2f} mm RMS")
+    if result.noise:
+        n = result.noise
+        lines.append(f"  noise learned from the data: joints {np.degrees(n['sigma_joint_rad']):.3f} deg, "
+                     f"contact {1e3 * n['sigma_contact_m']:.2f} mm, IMU {np.degrees(n['sigma_imu_rad']):.3f} deg")
     if result.outliers:
         lines.append(f"  outlier stations: {', '.join(map(str, result.outliers))}")
     lines.append("  files: " + ", ".join(sorted(p.name for p in written.values())))

@@ -205,6 +205,10 @@ def calibration_to_dict(result) -> dict:
     }
     doc["solver"] = {"kind": str(result.solver), "iterations": int(result.iterations)}
     doc["warnings"] = [str(w) for w in result.warnings]
+    noise = getattr(result, "noise", None) or {}
+    if noise:
+        # the noise model of the final solve (SI units; learned by variance-component estimation)
+        doc["noise_model"] = {str(k): float(v) for k, v in noise.items()}
     return doc
 
 
