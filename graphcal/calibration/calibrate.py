@@ -127,7 +127,11 @@ def calibrate(
     return result
 
 
-VCE_ROUNDS = 3
+VCE_ROUNDS = 8
+#: exponent of the update (s <- s * ratio**omega); 1 is Förstner's (2 oscillated: measured)
+VCE_RELAXATION = 1.0
+#: stop once every scale is within this of 1
+VCE_TOLERANCE = 0.02
 MAX_OUTLIER_ROUNDS = 10
 #: at most this share of a sensor's measurements is left out as outliers; beyond it the model, not
 #: the data, is wrong and calibrate says so instead of discarding the data
@@ -139,7 +143,7 @@ VCE_MIN_REDUNDANCY = 3.0
 VCE_MIN_REDUNDANCY_SHARE = 0.05
 #: bounds on a re-estimated sigma relative to its default, and absolute floors (SI)
 VCE_SCALE_BOUNDS = (0.02, 50.0)
-VCE_FLOOR = {"sigma_joint_rad": 1e-6, "sigma_contact_m": 1e-6, "sigma_ground_m": 5e-5, "sigma_imu_rad": 1e-5,
+VCE_FLOOR = {"sigma_joint_rad": 1e-6, "sigma_contact_m": 1e-6, "sigma_ground_m": 1e-6, "sigma_imu_rad": 1e-5,
              "sigma_commanded_rad": 1e-5, "sigma_commanded_m": 5e-5}
 
 
@@ -150,11 +154,11 @@ def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, v
 
     from .noise_estimation import group_variances
 
-    stats = group_variances(problem.graph, values, problem.factor_groups)
-    scale = {g: float(np.clip(v.scale, *VCE_SCALE_BOUNDS)) for g, v in stats.items()
+    stats = group_variances(problem.graph, values, problem.factor_groups, problem.factor_components)
+    scale = {g: float(np.clip(v.scale**VCE_RELAXATION, *VCE_SCALE_BOUNDS)) for g, v in stats.items()
              if v.redundancy >= max(VCE_MIN_REDUNDANCY, VCE_MIN_REDUNDANCY_SHARE * v.rows)}
-    changed = any(abs(s - 1.0) > 0.05 for s in scale.values())
-    fields = {"stance_foot": ("sigma_joint_rad", "sigma_contact_m"), "foot_on_ground": ("sigma_ground_m",), "imu": ("sigma_imu_rad",),
+    changed = any(abs(s - 1.0) > VCE_TOLERANCE for s in scale.values())
+    fields = {"stance_foot/joint": ("sigma_joint_rad",), "stance_foot/contact": ("sigma_contact_m",), "foot_on_ground": ("sigma_ground_m",), "imu": ("sigma_imu_rad",),
               "commanded": ("sigma_commanded_rad", "sigma_commanded_m")}
     update = {}
     for group, names in fields.items():

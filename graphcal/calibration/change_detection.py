@@ -172,15 +172,22 @@ class ChangeDetector:
         self.guard = bool(guard)
         self._entries: deque = deque(maxlen=self.window)  # (station, nis, dof)
         self._held: tuple[int, float, int] | None = None
+        self._quantiles: dict[tuple[float, int], float] = {}
 
     # -- thresholds
     def threshold(self, dof: int) -> float:
         """Chi-square quantile of the window test (level ``alpha``)."""
-        return float(chi2.isf(self.alpha, dof))
+        return self._quantile(self.alpha, dof)
 
     def station_threshold(self, dof: int) -> float:
         """Chi-square quantile of a single station's NIS at ``p_station``."""
-        return float(chi2.isf(self.p_station, dof))
+        return self._quantile(self.p_station, dof)
+
+    def _quantile(self, p: float, dof: int) -> float:
+        q = self._quantiles.get((p, dof))
+        if q is None:
+            q = self._quantiles[(p, dof)] = float(chi2.isf(p, dof))
+        return q
 
     @property
     def held(self) -> int | None:

@@ -109,6 +109,8 @@ class CalibrationProblem:
         excluded: (station, sensor) measurements left out (outliers of a previous solve).
         factor_groups: factor index -> noise group ("plane:<sensor>", "stance_foot",
             "foot_on_ground", "imu", "commanded"); priors on S and L belong to no group.
+        factor_components: factor index -> {component: covariance} for factors whose noise is a sum
+            of components (stance feet: "joint", "contact").
     """
 
     graph: gtsam.NonlinearFactorGraph
@@ -122,6 +124,7 @@ class CalibrationProblem:
     initial_extrinsics: dict
     excluded: frozenset = field(default_factory=frozenset)
     factor_groups: dict = field(default_factory=dict)
+    factor_components: dict = field(default_factory=dict)
 
 
 def _kinematic_bodies(data: CalibrationData, robot) -> tuple[dict, dict, dict]:
@@ -163,16 +166,101 @@ def _robust_closed_form_extrinsic(u: np.ndarray, n: np.ndarray, d: np.ndarray, z
     return pose_matrix(R, t)
 
 
+#: prior pinning x, y and yaw of a session's first body pose when the dataset has no commanded
+#: poses (those directions are a free gauge); sigmas [roll, pitch, yaw (rad), x, y, z (m)]
+GAUGE_PRIOR_SIGMAS = np.array([1e3, 1e3, 0.1, 0.1, 0.1, 1e3])
+#: plane covariance used when planes.csv gives none (of (nx, ny, nz, d))
+DEFAULT_PLANE_COV = np.diag([1e-6, 1e-6, 1e-6, 1e-6])
+
+
+def huber_loss(dim: int, options: CalibrationOptions):
+    """Huber loss for a factor of ``dim`` rows. GTSAM's Robust model applies the M-estimator to the
+    whole factor's whitened norm, so its threshold grows with the dimension: k is the chi-square
+    quantile ``huber_p`` of ``dim`` dof (a whole station's plane or scan that no noise explains is
+    down-weighted; ordinary noise never is)."""
+    from scipy.stats import chi2
+
+    return gtsam.noiseModel.mEstimator.Huber.Create(float(np.sqrt(chi2.ppf(options.huber_p, dim))))
+
+
+def measurement_factor(x_key: int, s_key: int, sensor: str, options: CalibrationOptions, *, plane=None,
+                       points=None, robust: bool = False):
+    """The factor of what one sensor saw at one station: the ground plane of a camera
+    (plane_observation, its covariance scaled by the sensor's noise scale) or the beams of a laser
+    scan (range_to_plane). ``robust``: Huber loss sized to the factor's dimension."""
+    from factors.plane_observation import plane_observation_factor
+    from factors.range_to_plane import range_to_plane_factor
+
+    scale = options.plane_scale(sensor)
+    if plane is not None:
+        cov = (plane.cov if plane.cov is not None else DEFAULT_PLANE_COV) * scale**2
+        return plane_observation_factor(
+            x_key, s_key, np.asarray(plane.n, dtype=float), float(plane.d), cov,
+            sigma_angle_floor_rad=options.plane_angle_floor_rad,
+            sigma_distance_floor_m=options.plane_distance_floor_m,
+            robust=huber_loss(3, options) if robust else None)
+    if points is None:
+        raise GraphcalError(f"sensor {sensor}: a measurement needs a plane or scan points")
+    pts = np.asarray(points, dtype=float)
+    return range_to_plane_factor(x_key, s_key, pts, options.sigma_scan_m * scale,
+                                 robust=huber_loss(len(pts), options) if robust else None)
+
+
+def leg_parameter_priors(robot, options: CalibrationOptions) -> list:
+    """(foot, key L(l), LegParameterization, prior factor) per leg, for ``options.legs``."""
+    from factors.priors import leg_offset_prior
+    from ..models.leg_params import leg_parameterization
+
+    out = []
+    for idx, foot in enumerate(robot.feet):
+        param = leg_parameterization(robot, foot)
+        sig = np.array([options.leg_offset_sigma_rad if nm.endswith(".offset_rad") else options.leg_length_sigma_m
+                        for nm in param.names])
+        out.append((foot, L(idx), param, leg_offset_prior(L(idx), len(param.names), sig)))
+    return out
+
+
+def imu_mounting_prior(R_body_imu: np.ndarray, prior_sigma_rad: float, options: CalibrationOptions):
+    """Prior on the IMU mounting rotation M(0) (dataset.yaml's prior, at least
+    ``options.sigma_imu_mounting_rad``)."""
+    sig = max(prior_sigma_rad, options.sigma_imu_mounting_rad)
+    return gtsam.PriorFactorRot3(M(0), gtsam.Rot3(R_body_imu), gtsam.noiseModel.Isotropic.Sigma(3, sig))
+
+
+def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, options: CalibrationOptions, *,
+                    R_body_imu: np.ndarray | None) -> list:
+    """The proprioceptive factors of one station, as (factor, noise group, noise components or None):
+    a stance-foot factor per planted foot (noise: joint noise through the leg plus contact noise),
+    the IMU attitude, and the commanded-pose prior."""
+    from factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
+    from factors.priors import commanded_pose_prior
+    from factors.stance_foot import joint_noise_covariance, stance_foot_factor
+
+    out = []
+    for f, q in st.q_by_foot.items():
+        leg_key, param = leg_keys.get(f, (None, None))
+        cov_joint = joint_noise_covariance(robot.leg(f), q, options.sigma_joint_rad, 0.0)
+        cov_contact = options.sigma_contact_m**2 * np.eye(3)
+        factor = stance_foot_factor(x_key, foot_keys[f], q, robot.leg(f), l_key=leg_key, param=param,
+                                    cov_m2=cov_joint + cov_contact)
+        out.append((factor, "stance_foot", {"joint": cov_joint, "contact": cov_contact}))
+    if st.imu_accel is not None and R_body_imu is not None:
+        if options.estimate_imu_mounting:
+            out.append((imu_attitude_misaligned_factor(x_key, M(0), st.imu_accel, options.sigma_imu_rad), "imu", None))
+        else:
+            out.append((imu_attitude_factor(x_key, st.imu_accel, options.sigma_imu_rad, R_body_imu=R_body_imu),
+                        "imu", None))
+    if st.T_world_body_cmd is not None:
+        out.append((commanded_pose_prior(x_key, st.T_world_body_cmd, options.sigma_commanded_rad,
+                                         options.sigma_commanded_m), "commanded", None))
+    return out
+
+
 def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions, *,
                   exclude: frozenset = frozenset()) -> CalibrationProblem:
     """Build the calibration graph of a dataset (see the module docstring)."""
     from factors.foot_on_ground import foot_on_ground_factor
-    from factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
-    from factors.plane_observation import plane_observation_factor
-    from factors.range_to_plane import range_to_plane_factor
-    from factors.priors import commanded_pose_prior, extrinsic_prior, leg_offset_prior
-    from factors.stance_foot import joint_noise_covariance, stance_foot_factor
-    from ..models.leg_params import leg_parameterization
+    from factors.priors import extrinsic_prior
     from ..solvers.closed_form import extrinsic_from_scan_points
 
     if not data.stations:
@@ -180,22 +268,12 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     groups: dict[int, str] = {}
+    components: dict[int, dict] = {}
 
     def add(factor, group: str | None = None) -> None:
         if group is not None:
             groups[graph.size()] = group
         graph.add(factor)
-
-    def huber(dim: int):
-        """Huber loss for a factor of ``dim`` rows. GTSAM's Robust model applies the M-estimator to
-        the whole factor's whitened norm, so its threshold must grow with the dimension: k is the
-        chi-square quantile ``huber_p`` of ``dim`` dof (a whole station's plane or scan that no
-        noise explains is down-weighted; ordinary noise never is)."""
-        if not options.robust:
-            return None
-        from scipy.stats import chi2
-
-        return gtsam.noiseModel.mEstimator.Huber.Create(float(np.sqrt(chi2.ppf(options.huber_p, dim))))
 
     u_body, height, T_body0 = _kinematic_bodies(data, robot)
     station_keys = {st.station: X(st.station) for st in data.stations}
@@ -237,17 +315,11 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
             if m in exclude:
                 continue
             if m in data.planes:
-                p = data.planes[m]
-                cov = p.cov if p.cov is not None else np.diag([1e-6, 1e-6, 1e-6, 1e-6])
-                cov = cov * options.plane_scale(name) ** 2
-                f = plane_observation_factor(
-                    station_keys[st.station], key, p.n, p.d, cov,
-                    sigma_angle_floor_rad=options.plane_angle_floor_rad,
-                    sigma_distance_floor_m=options.plane_distance_floor_m, robust=huber(3))
+                f = measurement_factor(station_keys[st.station], key, name, options, plane=data.planes[m],
+                                       robust=options.robust)
             elif m in data.scan_points:
-                pts = data.scan_points[m]
-                f = range_to_plane_factor(station_keys[st.station], key, pts,
-                                          options.sigma_scan_m * options.plane_scale(name), robust=huber(len(pts)))
+                f = measurement_factor(station_keys[st.station], key, name, options, points=data.scan_points[m],
+                                       robust=options.robust)
             else:
                 continue
             plane_factors[graph.size()] = m
@@ -256,42 +328,29 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
     # legs and stance
     leg_keys = {}
     if options.legs:
-        for idx, foot in enumerate(robot.feet):
-            param = leg_parameterization(robot, foot)
-            sig = np.array([options.leg_offset_sigma_rad if nm.endswith(".offset_rad") else options.leg_length_sigma_m
-                            for nm in param.names])
-            leg_keys[foot] = (L(idx), param)
-            values.insert(L(idx), np.zeros(len(param.names)))
-            graph.add(leg_offset_prior(L(idx), len(param.names), sig))
+        for foot, key, param, prior in leg_parameter_priors(robot, options):
+            leg_keys[foot] = (key, param)
+            values.insert(key, np.zeros(len(param.names)))
+            graph.add(prior)
     sessions = list(dict.fromkeys(st.session for st in data.stations))
     foot_index = {(s, f): j for j, (s, f) in enumerate((s, f) for s in sessions for f in robot.feet)}
     feet_sum: dict = {}
+    R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
     for st in data.stations:
         T = T_body0[st.station]
+        if R_body_imu is not None and st.imu_accel is not None and options.estimate_imu_mounting \
+                and not values.exists(M(0)):
+            values.insert(M(0), gtsam.Rot3(R_body_imu))
+            graph.add(imu_mounting_prior(R_body_imu, ds.imu.T_body_imu_prior.sigma_rad, options))
+        foot_keys = {f: F(foot_index[(st.session, f)]) for f in st.q_by_foot}
+        for factor, group, comps in station_factors(robot, st, station_keys[st.station], foot_keys, leg_keys,
+                                                    options, R_body_imu=R_body_imu):
+            if comps is not None:
+                components[graph.size()] = comps
+            add(factor, group)
         for f, q in st.q_by_foot.items():
-            j = foot_index[(st.session, f)]
-            leg_key, param = leg_keys.get(f, (None, None))
-            cov = joint_noise_covariance(robot.leg(f), q, options.sigma_joint_rad, options.sigma_contact_m)
-            add(stance_foot_factor(station_keys[st.station], F(j), q, robot.leg(f), l_key=leg_key, param=param,
-                                   cov_m2=cov), "stance_foot")
             p_world = T[:3, :3] @ feet_in_body(robot, {f: q})[0] + T[:3, 3]
-            feet_sum.setdefault(j, []).append(p_world)
-        if st.imu_accel is not None and ds.imu is not None:
-            R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3]
-            if options.estimate_imu_mounting:
-                if not values.exists(M(0)):
-                    values.insert(M(0), gtsam.Rot3(R_body_imu))
-                    sig = max(ds.imu.T_body_imu_prior.sigma_rad, options.sigma_imu_mounting_rad)
-                    graph.add(gtsam.PriorFactorRot3(M(0), gtsam.Rot3(R_body_imu),
-                                                    gtsam.noiseModel.Isotropic.Sigma(3, sig)))
-                add(imu_attitude_misaligned_factor(station_keys[st.station], M(0), st.imu_accel,
-                                                   options.sigma_imu_rad), "imu")
-            else:
-                add(imu_attitude_factor(station_keys[st.station], st.imu_accel, options.sigma_imu_rad,
-                                        R_body_imu=R_body_imu), "imu")
-        if st.T_world_body_cmd is not None:
-            add(commanded_pose_prior(station_keys[st.station], st.T_world_body_cmd,
-                                     options.sigma_commanded_rad, options.sigma_commanded_m), "commanded")
+            feet_sum.setdefault(foot_index[(st.session, f)], []).append(p_world)
     for j, pts in feet_sum.items():
         p0 = np.mean(pts, axis=0)
         p0[2] = 0.0
@@ -303,11 +362,10 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         for st in data.stations:
             first.setdefault(st.session, st.station)
         for s, station in first.items():
-            sig = np.array([1e3, 1e3, 0.1, 0.1, 0.1, 1e3])
             graph.add(gtsam.PriorFactorPose3(station_keys[station], to_gtsam_pose(T_body0[station]),
-                                             gtsam.noiseModel.Diagonal.Sigmas(sig)))
+                                             gtsam.noiseModel.Diagonal.Sigmas(GAUGE_PRIOR_SIGMAS)))
     return CalibrationProblem(graph, values, sensor_keys, sensor_priors, station_keys, leg_keys, plane_factors,
-                              T_body0, ext0, frozenset(exclude), groups)
+                              T_body0, ext0, frozenset(exclude), groups, components)
 
 
 def predicted_plane_errors(T_world_body: np.ndarray, T_body_sensor: np.ndarray, n_m, d_m) -> tuple[float, float]:

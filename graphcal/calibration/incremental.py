@@ -22,9 +22,27 @@ segment: a prior equal to the old estimate with the CAD sigmas, and the plane fa
 change station on move to it (already fused ones are removed from iSAM2 by index and added
 again on the new key: removed, not counted twice).
 
-:class:`IncrementalCalibrator` is the lower-level, dataset-free interface (the online EKF / robot
-code feeds it station by station); :func:`calibrate_incremental` runs it over a dataset and
-returns a :class:`~graphcal.calibration.result.CalibrationResult` like the batch ``calibrate``.
+:class:`IncrementalCalibrator` is the lower-level, dataset-free interface: the online EKF / robot
+code feeds it station by station with :meth:`~IncrementalCalibrator.add_station` (joint angles,
+IMU, commanded pose and planes; the factors are built as graph.py builds them), or with ready-made
+factors through :meth:`~IncrementalCalibrator.add_factors`. :func:`calibrate_incremental` builds
+the batch problem with ``build_problem`` and feeds ITS factors, split per station by
+:func:`station_updates`, so the incremental graph is the batch graph factor for factor; it returns
+a :class:`~graphcal.calibration.result.CalibrationResult` like the batch ``calibrate`` (assembled
+by the batch's own ``_result`` / ``_residuals`` on the graph iSAM2 holds).
+
+Robustness: the plane / scan factors are Gaussian, and outliers are gated by the change test's
+outlier guard (an inconsistent station is held until the next one shows whether it was an
+outlier or a change) instead of the batch's Huber loss. iSAM2 freezes a robust factor's weight
+where it was linearised: just after its station was added, before the body pose had moved to fit
+the plane, almost every plane sits far in the Huber tail (its innovation is dominated by the body
+pose's prediction error, many times the plane's own sigma), and as the variables then move less
+than the relinearisation threshold the weight is never updated: the covariance came out up to
+20 % too large (measured on synthetic runs).
+
+Not done incrementally: the variance-component re-estimation of the noise
+(``options.estimate_noise``) needs every residual at once; the incremental solver uses the
+options' sigmas as given (pass the batch's re-estimated options to get its covariances).
 """
 
 from __future__ import annotations
@@ -37,20 +55,15 @@ from typing import Callable, Mapping
 import gtsam
 import numpy as np
 
-from factors.keys import F, L, S, X
+from factors.keys import F, S, X
 from ..errors import GraphcalError
 from ..geometry import from_gtsam_pose, to_gtsam_pose
 from .change_detection import ChangeDetector, Decision, innovation_nis, joint_covariance
-from .graph import CalibrationOptions, CalibrationProblem, build_problem
+from .graph import GAUGE_PRIOR_SIGMAS, CalibrationOptions, CalibrationProblem, build_problem
 from .measurements import CalibrationData, PlaneMeasurement, StationMeasurements, calibration_data
 from .result import CalibrationResult, ExtrinsicSegment, IncrementalStep, SensorEstimate
 
-__all__ = ["IncrementalCalibrator", "calibrate_incremental", "station_updates", "GAUGE_PRIOR_SIGMAS"]
-
-#: loose prior on the first station of a session when no station has a commanded pose (as graph.py)
-GAUGE_PRIOR_SIGMAS = np.array([1e3, 1e3, 0.1, 0.1, 0.1, 1e3])
-
-_DEFAULT_PLANE_COV = np.diag([1e-6, 1e-6, 1e-6, 1e-6])  # graph.py's stand-in for a missing covariance
+__all__ = ["IncrementalCalibrator", "calibrate_incremental", "station_updates"]
 
 
 class IncrementalCalibrator:
@@ -60,9 +73,9 @@ class IncrementalCalibrator:
         robot: the :class:`~graphcal.models.robot.RobotModel` (legs for the stance-foot factors).
         sensors: sensor name -> ``(T_cad (4, 4), sigma_m, sigma_rad)``: the CAD prior of each
             extrinsic (``CalibrationProblem.sensor_priors`` has this form).
-        options: noise models and switches (the batch's :class:`CalibrationOptions`). With
-            ``options.robust`` the plane / scan factors get the Huber loss (as the batch's first
-            solve) and the outlier guard of the change test is on.
+        options: noise models and switches (the batch's :class:`CalibrationOptions`).
+            ``options.robust`` switches the outlier guard of the change test on (the plane / scan
+            factors stay Gaussian: see the module docstring).
         sensor_types: sensor name -> type (``"depth_camera"``...), for the reported estimates.
         sensor_keys: sensor name -> gtsam key of its first extrinsic segment (default ``S(i)`` in
             ``sensors`` order); new segments take the next free ``S`` indices.
@@ -77,7 +90,8 @@ class IncrementalCalibrator:
             ``p_false_alarm`` is spread over ``n_tests`` tests (Bonferroni; 1 = per test).
         outlier_guard: hold an individually inconsistent station until the next one decides
             between an outlier and a change (default: ``options.robust``).
-        relinearize_threshold: iSAM2's relinearisation threshold (tangent units, rad and m).
+        relinearize_threshold, relinearize_skip: iSAM2's relinearisation threshold (tangent units,
+            rad and m) and how many updates apart it checks it.
     """
 
     def __init__(
@@ -96,7 +110,8 @@ class IncrementalCalibrator:
         p_false_alarm: float = 1e-4,
         n_tests: int = 1,
         outlier_guard: bool | None = None,
-        relinearize_threshold: float = 1e-3,
+        relinearize_threshold: float = 1e-2,
+        relinearize_skip: int = 1,
     ):
         if not sensors:
             raise GraphcalError("IncrementalCalibrator needs at least one sensor")
@@ -115,15 +130,15 @@ class IncrementalCalibrator:
         self._init_ext = {n: np.asarray(init.get(n, self._priors[n][0]), dtype=float) for n in self._priors}
         self._R_body_imu = None if R_body_imu is None else np.asarray(R_body_imu, dtype=float)
         self._imu_sigma_rad = float(imu_sigma_rad)
-        self._huber = gtsam.noiseModel.mEstimator.Huber.Create(options.huber_k) if options.robust else None
         self.detect_changes = bool(detect_changes)
+        self.max_extra_updates = 5
         guard = options.robust if outlier_guard is None else bool(outlier_guard)
         self._detector = {n: ChangeDetector(window=window, p_false_alarm=p_false_alarm, n_tests=n_tests, guard=guard)
                           for n in self._priors}
 
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(float(relinearize_threshold))
-        params.relinearizeSkip = 1
+        params.relinearizeSkip = int(relinearize_skip)
         self._isam = gtsam.ISAM2(params)
         # hold the linearisation point alive: pybind11 then passes it to the Python factors by
         # reference instead of copying every Values at every callback (engineering notes)
@@ -184,10 +199,9 @@ class IncrementalCalibrator:
         body pose, new feet / legs / IMU mounting / extrinsics with their priors, and its
         stance-foot, IMU and commanded-pose factors (a fresh graph and values)."""
         from factors.foot_on_ground import foot_on_ground_factor
-        from factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
         from factors.keys import M
-        from factors.priors import commanded_pose_prior, extrinsic_prior, leg_offset_prior
-        from factors.stance_foot import stance_foot_factor
+        from factors.priors import extrinsic_prior
+        from .graph import imu_mounting_prior, leg_parameter_priors, station_factors
         from .kinematic_pose import feet_in_body
 
         o = self.options
@@ -196,17 +210,13 @@ class IncrementalCalibrator:
         x_key = X(st.station)
         values.insert(x_key, to_gtsam_pose(T0))
         if o.legs and not self._leg_keys:
-            from ..models.leg_params import leg_parameterization
-
-            for idx, foot in enumerate(self.robot.feet):
-                param = leg_parameterization(self.robot, foot)
-                sig = np.array([o.leg_offset_sigma_rad if nm.endswith(".offset_rad") else o.leg_length_sigma_m
-                                for nm in param.names])
-                self._leg_keys[foot] = (L(idx), param)
-                values.insert(L(idx), np.zeros(len(param.names)))
-                graph.add(leg_offset_prior(L(idx), len(param.names), sig))
+            for foot, key, param, prior in leg_parameter_priors(self.robot, o):
+                self._leg_keys[foot] = (key, param)
+                values.insert(key, np.zeros(len(param.names)))
+                graph.add(prior)
         first_of_session = st.session not in self._sessions
         self._sessions.add(st.session)
+        foot_keys = {}
         for foot, q in st.q_by_foot.items():
             fk = (st.session, foot)
             if fk not in self._foot_index:
@@ -216,22 +226,15 @@ class IncrementalCalibrator:
                 p[2] = 0.0
                 values.insert(F(j), p)
                 graph.add(foot_on_ground_factor(F(j), o.sigma_ground_m))
-            leg_key, param = self._leg_keys.get(foot, (None, None))
-            graph.add(stance_foot_factor(x_key, F(self._foot_index[fk]), q, self.robot.leg(foot), o.sigma_foot_m,
-                                         l_key=leg_key, param=param))
-        if st.imu_accel is not None and self._R_body_imu is not None:
-            if getattr(o, "estimate_imu_mounting", False):
-                if M(0) not in known:
-                    values.insert(M(0), gtsam.Rot3(self._R_body_imu))
-                    sig = max(self._imu_sigma_rad, o.sigma_imu_mounting_rad)
-                    graph.add(gtsam.PriorFactorRot3(M(0), gtsam.Rot3(self._R_body_imu),
-                                                    gtsam.noiseModel.Isotropic.Sigma(3, sig)))
-                graph.add(imu_attitude_misaligned_factor(x_key, M(0), st.imu_accel, o.sigma_imu_rad))
-            else:
-                graph.add(imu_attitude_factor(x_key, st.imu_accel, o.sigma_imu_rad, R_body_imu=self._R_body_imu))
-        if st.T_world_body_cmd is not None:
-            graph.add(commanded_pose_prior(x_key, st.T_world_body_cmd, o.sigma_commanded_rad, o.sigma_commanded_m))
-        elif first_of_session:
+            foot_keys[foot] = F(self._foot_index[fk])
+        if st.imu_accel is not None and self._R_body_imu is not None and o.estimate_imu_mounting \
+                and M(0) not in known and not values.exists(M(0)):
+            values.insert(M(0), gtsam.Rot3(self._R_body_imu))
+            graph.add(imu_mounting_prior(self._R_body_imu, self._imu_sigma_rad, o))
+        for factor, _, _ in station_factors(self.robot, st, x_key, foot_keys, self._leg_keys, o,
+                                            R_body_imu=self._R_body_imu):
+            graph.add(factor)
+        if st.T_world_body_cmd is None and first_of_session:
             graph.add(gtsam.PriorFactorPose3(x_key, to_gtsam_pose(T0), gtsam.noiseModel.Diagonal.Sigmas(GAUGE_PRIOR_SIGMAS)))
         for name in sensors_seen:
             key = self._base_key[name]
@@ -244,23 +247,12 @@ class IncrementalCalibrator:
 
     def measurement_factor(self, station: int, sensor: str, s_key: int, *, plane: PlaneMeasurement | None = None,
                            points: np.ndarray | None = None) -> gtsam.NonlinearFactor:
-        """The plane (camera) or point-to-plane (laser) factor of one station and sensor on the
-        extrinsic key ``s_key``, built as graph.py builds it (Huber with ``options.robust``)."""
-        from factors.plane_observation import plane_observation_factor
-        from factors.point_to_plane import point_to_plane_factor
+        """The plane (camera) or range-to-plane (laser) factor of one station and sensor on the
+        extrinsic key ``s_key``, built by graph.py's builder but always Gaussian: the incremental
+        solver gates outliers with the change test instead of a robust loss (module docstring)."""
+        from .graph import measurement_factor
 
-        o = self.options
-        scale = o.plane_scale(sensor) if hasattr(o, "plane_scale") else 1.0
-        if plane is not None:
-            cov = plane.cov if plane.cov is not None else _DEFAULT_PLANE_COV
-            return plane_observation_factor(
-                X(station), s_key, np.asarray(plane.n, dtype=float), float(plane.d), cov * scale**2,
-                sigma_angle_floor_rad=o.plane_angle_floor_rad, sigma_distance_floor_m=o.plane_distance_floor_m,
-                robust=self._huber)
-        if points is None:
-            raise GraphcalError(f"station {station}, sensor {sensor}: give a plane or scan points")
-        return point_to_plane_factor(X(station), s_key, np.asarray(points, dtype=float), o.sigma_scan_m * scale,
-                                     robust=self._huber)
+        return measurement_factor(X(station), s_key, sensor, self.options, plane=plane, points=points, robust=False)
 
     def add_station(
         self,
@@ -344,8 +336,14 @@ class IncrementalCalibrator:
         if unknown:
             raise GraphcalError(f"station {sid}: measurements of unknown sensor(s) {', '.join(sorted(unknown))}")
 
-        # -- update A: variables and proprioceptive factors (fresh graph and values, never re-fed)
+        # -- update A: variables and proprioceptive factors (fresh graph and values, never re-fed),
+        # then empty updates until nothing needs relinearising: the new body pose's initial value
+        # can be far off (no commanded pose: yaw and x, y start at 0) and the change test needs its
+        # prediction converged, not one Gauss-Newton step from there
         self._isam.update(factors, values)
+        for _ in range(self.max_extra_updates):
+            if self._isam.update().getVariablesRelinearized() == 0:
+                break
         for k, d in values.dims().items():
             self._dims[int(k)] = int(d)
             self._in_isam.add(int(k))
@@ -359,6 +357,7 @@ class IncrementalCalibrator:
 
         # -- change test on each measurement, before it is fused
         decisions: dict[str, Decision] = {}
+        built: dict[str, tuple[int, gtsam.NonlinearFactor]] = {}  # the factor tested, fused if its key holds
         for name, make in measurements.items():
             self._makers[(sid, name)] = make
             if not self.detect_changes:
@@ -367,7 +366,8 @@ class IncrementalCalibrator:
             est = gtsam.Values()
             est.insert(x_key, self._isam.calculateEstimatePose3(x_key))
             est.insert(key, self._isam.calculateEstimatePose3(key))
-            nis, dof = innovation_nis(make(key), est, self._covariance_of)
+            built[name] = (key, make(key))
+            nis, dof = innovation_nis(built[name][1], est, self._covariance_of)
             decisions[name] = self._detector[name].test(sid, nis, dof)
 
         # -- update B: the measurements (a fresh graph; moved factors removed by index)
@@ -391,8 +391,9 @@ class IncrementalCalibrator:
             if action == "change":
                 changed.add(name)
                 self._start_segment(name, dec, graph, new_values, remove, added)
+            key = self._key[name]
             added.append((graph.size(), (sid, name)))
-            graph.add(measurements[name](self._key[name]))
+            graph.add(built[name][1] if name in built and built[name][0] == key else measurements[name](key))
             self._segments[name][-1]["stations"].append(sid)
         if graph.size() or remove:
             result = self._isam.update(graph, new_values, remove)
@@ -612,14 +613,16 @@ def _batch_or_rebuilt(problem: CalibrationProblem, cal: IncrementalCalibrator, d
     return cal.measurement_factor(station, sensor, s_key, points=data.scan_points[m])
 
 
-def _sigmas_below(cal: IncrementalCalibrator, target_deg: float | None, target_mm: float | None) -> bool:
+def _sigmas_below(cal: IncrementalCalibrator, steps, target_deg: float | None, target_mm: float | None) -> bool:
+    """Every sensor has an estimate and all its body-axis sigmas are below the targets."""
+    by_sensor = {s.sensor: s for s in steps}
     for name in cal.sensors:
-        if cal.current_key(name) not in cal._in_isam:
+        s = by_sensor.get(name)
+        if s is None:
             return False
-        s_rot, s_xyz = cal.sigmas(name)
-        if target_deg is not None and not np.all(s_rot < target_deg):
+        if target_deg is not None and not np.all(s.sigma_rot_deg < target_deg):
             return False
-        if target_mm is not None and not np.all(s_xyz < target_mm):
+        if target_mm is not None and not np.all(s.sigma_xyz_mm < target_mm):
             return False
     return True
 
@@ -664,7 +667,7 @@ def calibrate_incremental(
     robot = load_dataset_robot(ds)
     if data is None:
         data = calibration_data(ds, robot, progress=progress)
-    problem = build_problem(ds, robot, data, options)
+    problem = build_problem(ds, robot, data, replace(options, robust=False))  # Gaussian planes, gated
     R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
     cal = IncrementalCalibrator(
         robot, problem.sensor_priors, options=options,
@@ -687,7 +690,7 @@ def calibrate_incremental(
                             f"xyz {np.round(s.sigma_xyz_mm, 2).tolist()} mm"
                             + (" CHANGE" if s.change_detected else "") for s in steps)
             print(f"calibrate --incremental: station {st.station}: {txt}", file=sys.stderr, flush=True)
-        if targets and _sigmas_below(cal, sigma_target_deg, sigma_target_mm):
+        if targets and _sigmas_below(cal, steps, sigma_target_deg, sigma_target_mm):
             stopped = st.station
             break
     cal.refine()
@@ -711,7 +714,8 @@ def calibrate_incremental(
         scan_points={m: p for m, p in data.scan_points.items() if m[0] in used},
         sensor_types=data.sensor_types,
     )
-    inc_problem = replace(inc_problem, initial_body={s: problem.initial_body[s] for s in used})
+    inc_problem = replace(inc_problem, initial_body={s: problem.initial_body[s] for s in used},
+                          leg_keys=dict(problem.leg_keys))
     outliers = set(inc_problem.excluded)
     res = _result(ds, robot, sub, inc_problem, values, outliers, len(cal.stations), options)
 

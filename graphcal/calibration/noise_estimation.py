@@ -13,6 +13,18 @@ absorbs). ``sum r_i`` is the degrees of freedom the group contributes; under a c
 E[s_g^2] = 1. Each group's sigma is multiplied by s_g and the graph is solved again; two or three
 rounds converge. h_i comes from the joint marginal covariance of the factor's variables
 (``gtsam.Marginals``), so the cost grows with the number of factors, not with a dense inverse.
+
+A group whose covariance is a sum of components, ``Sigma = sum_k Sigma_k`` (a foot: joint noise
+through the leg Jacobian plus isotropic contact noise), gets one scale per component (Förstner's
+iterative estimator): in the factor's whitened space ``C_k = L^-1 Sigma_k L^-T`` (``Sigma = L L^T``),
+``R = I - A Sigma_x A^T`` its redundancy matrix and ``b`` its whitened residual,
+
+    s_k^2 = sum_factors b^T C_k b / sum_factors tr(R C_k),
+
+which reduces to the formula above for a single component (``C = I``). Components that the data
+tell apart only by direction converge slowly with that update, so the components of one group are
+solved together with Helmert's equations instead, ``sum_l tr(R C_k R C_l) theta_l = sum b^T C_k b``
+(summed over the group's factors, each factor's own block of R), and ``s_k^2 = theta_k``.
 """
 
 from __future__ import annotations
@@ -34,16 +46,29 @@ class GroupVariance:
     redundancy: float
     rows: int
 
+    helmert_theta: float | None = None
+
     @property
     def scale(self) -> float:
         """The factor to apply to the group's sigma (1 = the noise model fits)."""
+        if self.helmert_theta is not None:
+            return float(np.sqrt(max(self.helmert_theta, 1e-8)))
         if self.redundancy <= 1e-6:
             return 1.0
         return float(np.sqrt(self.chi2 / self.redundancy))
 
 
-def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, groups: dict) -> dict:
-    """group -> :class:`GroupVariance` at ``values`` (see the module docstring)."""
+def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, groups: dict,
+                    components: dict | None = None) -> dict:
+    """group (or ``group/component``) -> :class:`GroupVariance` at ``values`` (module docstring).
+
+    Args:
+        groups: factor index -> group name.
+        components: factor index -> {component name: covariance Sigma_k (unwhitened, the factor's
+            current value)} for factors whose covariance is a sum of components; their results are
+            keyed ``group/component``.
+    """
+    components = components or {}
     try:
         marginals = gtsam.Marginals(graph, values)
     except RuntimeError as exc:
@@ -51,6 +76,7 @@ def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gro
     lin = graph.linearize(values)
     acc: dict[str, list[float]] = {}
     cache: dict[tuple, np.ndarray] = {}
+    helmert: dict[str, tuple[list, dict, dict]] = {}  # group -> (component names, N, q)
     for i, g in groups.items():
         f = lin.at(i)
         A, b = f.jacobian()
@@ -60,10 +86,35 @@ def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gro
             jm = marginals.jointMarginalCovariance(gtsam.KeyVector(keys))
             sig = np.block([[np.asarray(jm.at(a, c)) for c in keys] for a in keys])
             cache[tuple(keys)] = sig
-        h = np.einsum("ij,jk,ik->i", A, sig, A)
-        r = np.clip(1.0 - h, 0.0, 1.0)
-        a = acc.setdefault(g, [0.0, 0.0, 0])
-        a[0] += float(b @ b)
-        a[1] += float(r.sum())
-        a[2] += len(b)
-    return {g: GroupVariance(g, a[0], a[1], a[2]) for g, a in acc.items()}
+        comps = components.get(i)
+        if not comps:
+            h = np.einsum("ij,jk,ik->i", A, sig, A)
+            r = np.clip(1.0 - h, 0.0, 1.0)
+            a = acc.setdefault(g, [0.0, 0.0, 0])
+            a[0] += float(b @ b)
+            a[1] += float(r.sum())
+            a[2] += len(b)
+            continue
+        R = np.eye(len(b)) - A @ sig @ A.T
+        total = sum(comps.values())
+        L_inv = np.linalg.inv(np.linalg.cholesky(total))
+        names, N, q = helmert.setdefault(g, (list(comps), {}, {}))
+        C = {name: L_inv @ Sk @ L_inv.T for name, Sk in comps.items()}
+        for k in names:
+            RCk = R @ C[k]
+            q[k] = q.get(k, 0.0) + float(b @ C[k] @ b)
+            for m in names:
+                N[(k, m)] = N.get((k, m), 0.0) + float(np.trace(RCk @ R @ C[m]))
+            a = acc.setdefault(f"{g}/{k}", [0.0, 0.0, 0])
+            a[0] += float(b @ C[k] @ b)
+            a[1] += float(max(np.trace(RCk), 0.0))
+            a[2] += len(b)
+    out = {g: GroupVariance(g, a[0], a[1], a[2]) for g, a in acc.items()}
+    for g, (names, N, q) in helmert.items():
+        Nm = np.array([[N[(k, m)] for m in names] for k in names])
+        qv = np.array([q[k] for k in names])
+        theta = np.linalg.lstsq(Nm, qv, rcond=None)[0]
+        for k, th in zip(names, theta):
+            key = f"{g}/{k}"
+            out[key] = GroupVariance(key, out[key].chi2, out[key].redundancy, out[key].rows, float(th))
+    return out
