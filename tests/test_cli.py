@@ -122,3 +122,15 @@ def test_calibrate_writes_the_outputs_and_never_into_the_dataset(small_dataset, 
     proc = run("calibrate", small_dataset, "--out", small_dataset, "--quiet")
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert sorted(p.name for p in small_dataset.iterdir()) == before
+
+
+def test_suggest_poses_prints_and_writes_reachable_poses(small_dataset, tmp_path):
+    out = tmp_path / "poses.csv"
+    proc = run("suggest-poses", small_dataset, "-k", "4", "--out", out, check_rc=0)
+    assert "rank" in proc.stdout
+    rows = out.read_text().splitlines()
+    assert len(rows) == 1 + 4 and rows[0].startswith("station,session,body_x")
+    # predicted sigma never grows as stations are added (the 4 data rows of the table)
+    table = [line.split() for line in proc.stdout.splitlines() if line.strip()[:1].isdigit()]
+    sig_rot_x = [float(r[7]) for r in table]
+    assert all(b <= a + 1e-9 for a, b in zip(sig_rot_x, sig_rot_x[1:]))

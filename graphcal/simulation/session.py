@@ -113,6 +113,10 @@ class SimulationConfig:
         encoder_sigma_rad: joint encoder noise.
         joint_flex_sigma_rad: deflection/backlash between encoder and link, per joint and station,
             that the encoder does not see (0 by default).
+        extrinsic_seed: draw the true extrinsics from this seed instead of ``seed`` (the same sensor
+            mounting over runs that differ in noise, as on one physical robot).
+        depth_noise_scale: multiplies the depth camera's noise (Chai's illumination conditions:
+            weak/strong light made the Kinect noisier).
         imu_accel_sigma_m_s2, imu_gyro_sigma_rad_s: IMU noise of a station average.
         imu_accel_bias_sigma_m_s2, imu_gyro_bias_sigma_rad_s: constant IMU biases drawn once.
         tilt_scale: scales commanded roll/pitch (None: the model's default).
@@ -136,6 +140,8 @@ class SimulationConfig:
     tracking_sigma_rad: float = float(np.radians(0.2))
     encoder_sigma_rad: float = float(np.radians(0.02))
     joint_flex_sigma_rad: float = 0.0
+    depth_noise_scale: float = 1.0
+    extrinsic_seed: int | None = None
     imu_accel_sigma_m_s2: float = 0.005
     imu_gyro_sigma_rad_s: float = 2e-4
     imu_accel_bias_sigma_m_s2: float = 0.02
@@ -260,9 +266,10 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
 
     # -- hidden truth: sensor extrinsics, legs, IMU
     T_body_sensor_true = {}
+    ext_rng = rng if config.extrinsic_seed is None else np.random.default_rng(config.extrinsic_seed)
     for s in sensor_names:
         cad = info.sensors[s]
-        xi = np.r_[rng.normal(0, config.extrinsic_sigma_rad, 3), rng.normal(0, config.extrinsic_sigma_m, 3)]
+        xi = np.r_[ext_rng.normal(0, config.extrinsic_sigma_rad, 3), ext_rng.normal(0, config.extrinsic_sigma_m, 3)]
         T_body_sensor_true[s] = cad.T_body_sensor @ se3_exp(xi)
     true_robot, joint_offsets, link_changes = _true_robot(robot, config, rng)
     R_body_imu_true = info.T_body_imu[:3, :3].copy()
@@ -383,6 +390,10 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
                 T_bs = pose_matrix(R_knock @ T_bs[:3, :3], T_bs[:3, 3] + np.asarray(change.translation_m))
             ext_by_station[(s, rec.station)] = T_bs
             sensor = sensor_for_type(info.sensors[s].type)
+            if config.depth_noise_scale != 1.0 and hasattr(sensor, "noise_coeff_per_m"):
+                from dataclasses import replace as _replace
+
+                sensor = _replace(sensor, noise_coeff_per_m=sensor.noise_coeff_per_m * config.depth_noise_scale)
             sensor = _strided(sensor, config.cloud_stride)
             scan = capture(
                 sensor,
