@@ -15,10 +15,10 @@ import numpy as np
 from graphcal.errors import ModelError
 from graphcal.models.robot import Leg
 
-__all__ = ["fk_leg", "foot_positions", "leg_jacobian", "ik_leg", "joint_frames"]
+__all__ = ["fk_leg", "foot_positions", "leg_jacobian", "ik_leg", "joint_frames", "as_batch", "rodrigues_batch"]
 
 
-def _as_batch(leg: Leg, q) -> tuple[np.ndarray, bool]:
+def as_batch(leg: Leg, q) -> tuple[np.ndarray, bool]:
     """(N, n) float array and whether the input was a single (n,) configuration."""
     q = np.asarray(q, dtype=float)
     single = q.ndim == 1
@@ -32,7 +32,7 @@ def _as_batch(leg: Leg, q) -> tuple[np.ndarray, bool]:
     return q, single
 
 
-def _rodrigues(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
+def rodrigues_batch(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """(N, 3, 3) rotations about the unit ``axis`` (3,) by ``angles`` (N,) rad."""
     K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
     s = np.sin(angles)[:, None, None]
@@ -53,7 +53,7 @@ def joint_frames(leg: Leg, q) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
             the origin before its own motion);
         R_base_foot (N, 3, 3), p_base_foot (N, 3) (m).
     """
-    q, _ = _as_batch(leg, q)
+    q, _ = as_batch(leg, q)
     N = q.shape[0]
     n = leg.n_joints
     R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
@@ -68,7 +68,7 @@ def joint_frames(leg: Leg, q) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
         axes_base[:, j] = R @ a
         origins_base[:, j] = p
         if leg.joint_types[j] == "revolute":
-            R = R @ _rodrigues(a, q[:, j])
+            R = R @ rodrigues_batch(a, q[:, j])
         else:  # prismatic
             p = p + q[:, j, None] * axes_base[:, j]
     Tf = leg.T_lastjoint_foot
@@ -88,7 +88,7 @@ def fk_leg(leg: Leg, q) -> np.ndarray:
     Returns:
         T_base_foot (N, 4, 4): foot frame in the leg's base frame, m.
     """
-    _, single = _as_batch(leg, q)
+    _, single = as_batch(leg, q)
     _, _, R, p = joint_frames(leg, q)
     T = np.zeros((R.shape[0], 4, 4))
     T[:, :3, :3] = R
@@ -99,7 +99,7 @@ def fk_leg(leg: Leg, q) -> np.ndarray:
 
 def foot_positions(leg: Leg, q) -> np.ndarray:
     """p_base_foot (N, 3), m, for joint values q (N, n); (3,) for a single (n,) configuration."""
-    _, single = _as_batch(leg, q)
+    _, single = as_batch(leg, q)
     p = joint_frames(leg, q)[3]
     return p[0] if single else p
 
@@ -111,7 +111,7 @@ def leg_jacobian(leg: Leg, q) -> np.ndarray:
     ``axis_base_j x (p_foot - origin_j)``, prismatic joint j ``axis_base_j``.
     Units: m/rad (revolute columns), m/m (prismatic columns). A single (n,) q gives (3, n).
     """
-    _, single = _as_batch(leg, q)
+    _, single = as_batch(leg, q)
     axes, origins, _, p = joint_frames(leg, q)
     J = np.empty((axes.shape[0], 3, leg.n_joints))
     for j, jtype in enumerate(leg.joint_types):

@@ -302,31 +302,19 @@ def perturbation_from_params(param: LegParameterization, theta) -> LegPerturbati
 
 
 # ----------------------------------------------------------------------------- kinematics
-def _rodrigues(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotations about the unit ``axis`` (3,) by ``angles`` (N,) rad."""
-    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    s = np.sin(angles)[:, None, None]
-    c = np.cos(angles)[:, None, None]
-    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
-
-
 def _prepare(leg: Leg, param: LegParameterization, q, theta) -> tuple[np.ndarray, np.ndarray, bool]:
+    from graphcal.models.kinematics import as_batch
+
     param.check_leg(leg)
     theta = param._check_theta(theta)
-    q = np.asarray(q, dtype=float)
-    single = q.ndim == 1
-    if single:
-        q = q[None, :]
-    if q.ndim != 2 or q.shape[1] != leg.n_joints:
-        raise ModelError(
-            f"leg of {leg.foot!r} has {leg.n_joints} joints ({', '.join(leg.joint_names)}); "
-            f"q must have shape (N, {leg.n_joints}), got {np.shape(q)}"
-        )
+    q, single = as_batch(leg, q)
     return q, theta, single
 
 
 def _fk(leg: Leg, param: LegParameterization, q: np.ndarray, theta: np.ndarray, want_jacobian: bool):
     """p_base_foot (N, 3) and, if asked, d p / d theta (N, 3, k)."""
+    from graphcal.models.kinematics import rodrigues_batch
+
     N, n = q.shape
     offsets = np.zeros(n)
     offsets[list(param.offset_joints)] = theta[: param.n_offsets]
@@ -354,7 +342,7 @@ def _fk(leg: Leg, param: LegParameterization, q: np.ndarray, theta: np.ndarray, 
         axes_base[:, j] = R @ a
         origins[:, j] = p
         if leg.joint_types[j] == "revolute":
-            R = R @ _rodrigues(a, q_true[:, j])
+            R = R @ rodrigues_batch(a, q_true[:, j])
         else:
             p = p + q_true[:, j, None] * axes_base[:, j]
     t = leg.T_lastjoint_foot[:3, 3]

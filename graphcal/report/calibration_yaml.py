@@ -16,7 +16,6 @@ Every number is a plain Python ``float`` or ``int`` (no numpy scalars, no YAML t
 from __future__ import annotations
 
 import math
-import re
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -234,29 +233,7 @@ def calibration_yaml_text(result, *, extra: Mapping[str, Any] | None = None) -> 
 
 
 # ----------------------------------------------------------------------------- reading
-class _Loader(yaml.SafeLoader):
-    """SafeLoader that refuses duplicate keys and reads YAML 1.2 floats such as ``1e-3``."""
-
-    def construct_mapping(self, node, deep=False):
-        if isinstance(node, yaml.MappingNode):
-            seen = set()
-            for key_node, _ in node.value:
-                if isinstance(key_node, yaml.ScalarNode):
-                    if key_node.value in seen:
-                        raise yaml.constructor.ConstructorError(
-                            "while constructing a mapping", node.start_mark,
-                            f"found duplicate key {key_node.value!r}", key_node.start_mark,
-                        )  # fmt: skip
-                    seen.add(key_node.value)
-        return super().construct_mapping(node, deep=deep)
-
-
-_Loader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
-_Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$"),
-    list("-+0123456789."),
-)
+from graphcal.io.yaml_strict import StrictSafeLoader as _Loader  # noqa: E402
 
 
 def _is_num(x) -> bool:
