@@ -11,8 +11,10 @@ with e_i the whitened residual rows and r_i = 1 - h_i their redundancy numbers, 
 the hat matrix A (A^T A)^-1 A^T of the whitened linear system (how much of row i the solution
 absorbs). ``sum r_i`` is the degrees of freedom the group contributes; under a correct noise model
 E[s_g^2] = 1. Each group's sigma is multiplied by s_g and the graph is solved again; two or three
-rounds converge. h_i comes from the joint marginal covariance of the factor's variables
-(``gtsam.Marginals``), so the cost grows with the number of factors, not with a dense inverse.
+rounds converge. h_i comes from the joint marginal covariance of the factor's variables: read from
+one dense inverse of the information matrix for graphs of up to ``DENSE_MAX_DIM`` unknowns (a
+calibration of a few hundred stations), otherwise from ``gtsam.Marginals`` factor by factor (cost
+growing with the number of factors, not cubically).
 
 A group whose covariance is a sum of components, ``Sigma = sum_k Sigma_k`` (a foot: joint noise
 through the leg Jacobian plus isotropic contact noise), gets one scale per component (Förstner's
@@ -58,6 +60,44 @@ class GroupVariance:
         return float(np.sqrt(self.chi2 / self.redundancy))
 
 
+#: graphs with at most this many unknowns get their joint marginals from one dense inverse
+DENSE_MAX_DIM = 3000
+
+
+def _joint_covariance_reader(graph, values, lin):
+    """A function keys -> joint marginal covariance (blocks in the order of ``keys``)."""
+    keys = sorted(int(k) for k in graph.keyVector())
+    dims = {int(k): int(d) for k, d in values.dims().items()}
+    if sum(dims[k] for k in keys) <= DENSE_MAX_DIM:
+        ordering = gtsam.Ordering()
+        offsets, off = {}, 0
+        for k in keys:
+            ordering.push_back(k)
+            offsets[k] = off
+            off += dims[k]
+        H, _ = lin.hessian(ordering)
+        try:
+            cov = np.linalg.inv(np.asarray(H, dtype=float))
+        except np.linalg.LinAlgError:
+            raise GraphcalError("noise estimation: the graph has an undetermined variable") from None
+
+        def dense(ks):
+            idx = np.concatenate([np.arange(offsets[int(k)], offsets[int(k)] + dims[int(k)]) for k in ks])
+            return cov[np.ix_(idx, idx)]
+
+        return dense
+    try:
+        marginals = gtsam.Marginals(graph, values)
+    except RuntimeError as exc:
+        raise GraphcalError(f"noise estimation: the graph has an undetermined variable ({exc})") from None
+
+    def sparse(ks):
+        jm = marginals.jointMarginalCovariance(gtsam.KeyVector(ks))
+        return np.block([[np.asarray(jm.at(a, c)) for c in ks] for a in ks])
+
+    return sparse
+
+
 def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, groups: dict,
                     components: dict | None = None) -> dict:
     """group (or ``group/component``) -> :class:`GroupVariance` at ``values`` (module docstring).
@@ -69,11 +109,8 @@ def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gro
             keyed ``group/component``.
     """
     components = components or {}
-    try:
-        marginals = gtsam.Marginals(graph, values)
-    except RuntimeError as exc:
-        raise GraphcalError(f"noise estimation: the graph has an undetermined variable ({exc})") from None
     lin = graph.linearize(values)
+    joint = _joint_covariance_reader(graph, values, lin)
     acc: dict[str, list[float]] = {}
     cache: dict[tuple, np.ndarray] = {}
     helmert: dict[str, tuple[list, dict, dict]] = {}  # group -> (component names, N, q)
@@ -83,8 +120,7 @@ def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gro
         keys = list(f.keys())
         sig = cache.get(tuple(keys))
         if sig is None:
-            jm = marginals.jointMarginalCovariance(gtsam.KeyVector(keys))
-            sig = np.block([[np.asarray(jm.at(a, c)) for c in keys] for a in keys])
+            sig = joint(keys)
             cache[tuple(keys)] = sig
         comps = components.get(i)
         if not comps:
