@@ -69,17 +69,11 @@ def _joint_covariance_reader(graph, values, lin):
     keys = sorted(int(k) for k in graph.keyVector())
     dims = {int(k): int(d) for k, d in values.dims().items()}
     if sum(dims[k] for k in keys) <= DENSE_MAX_DIM:
-        ordering = gtsam.Ordering()
-        offsets, off = {}, 0
-        for k in keys:
-            ordering.push_back(k)
-            offsets[k] = off
-            off += dims[k]
-        H, _ = lin.hessian(ordering)
-        try:
-            cov = np.linalg.inv(np.asarray(H, dtype=float))
-        except np.linalg.LinAlgError:
-            raise GraphcalError("noise estimation: the graph has an undetermined variable") from None
+        from ..solvers.covariance import dense_covariance
+
+        cov, null, offsets = dense_covariance(lin, keys, dims)
+        if null.shape[1]:
+            raise GraphcalError("noise estimation: the graph has an undetermined variable")
 
         def dense(ks):
             idx = np.concatenate([np.arange(offsets[int(k)], offsets[int(k)] + dims[int(k)]) for k in ks])

@@ -205,19 +205,25 @@ def _unconstrained(keys, dims, out: MarginalCovariances) -> None:
         _finish(out, k, cov, np.eye(d))
 
 
-def _dense_marginals(lin, graph_keys, dims, keys) -> MarginalCovariances:
-    out = MarginalCovariances(method="dense")
-    gk = sorted(graph_keys)
-    keys_in = keys
+def dense_covariance(lin, graph_keys, dims) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(full covariance, null directions (n, m), key -> column offset) of a linearised graph, from
+    one dense inverse of its information matrix (columns in sorted key order; free directions get
+    inf on the diagonal and appear in the null columns)."""
     ordering = gtsam.Ordering()
     offsets, off = {}, 0
-    for k in gk:
+    for k in sorted(graph_keys):
         ordering.push_back(k)
         offsets[k] = off
         off += dims[k]
     H, _ = lin.hessian(ordering)
-    H = np.asarray(H, dtype=float)
-    cov_full, null = _inverse_with_null(H)
+    cov_full, null = _inverse_with_null(np.asarray(H, dtype=float))
+    return cov_full, null, offsets
+
+
+def _dense_marginals(lin, graph_keys, dims, keys) -> MarginalCovariances:
+    out = MarginalCovariances(method="dense")
+    keys_in = keys
+    cov_full, null, offsets = dense_covariance(lin, graph_keys, dims)
     # _inverse_with_null put inf on the touched diagonal entries of the full matrix already
     for k in keys_in:
         o, d = offsets[k], dims[k]
