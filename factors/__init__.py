@@ -21,6 +21,7 @@ module                        variables            error
 :mod:`.imu_attitude`          X [, M]              accelerometer "up" vs. predicted up (2)
 :mod:`.foot_on_ground`        F [, G]              foot's distance to the ground plane (1)
 :mod:`.priors`                X / S / L            CAD extrinsic, commanded pose, leg parameters
+:mod:`.mocap_marker`          V [, L] [, K]        foot markers (mocap frame) vs. leg FK, N samples (3N)
 ============================  ===================  ================================================
 """
 
@@ -43,6 +44,7 @@ from factors.plane_observation import (
 from factors.point_to_plane import point_to_plane_error, point_to_plane_factor, point_to_plane_noise_model
 from factors.priors import commanded_pose_prior, extrinsic_prior, leg_offset_prior, pose_prior_sigmas
 from factors.stance_foot import stance_foot_error, stance_foot_factor
+from factors.mocap_marker import mocap_marker_error, mocap_marker_factor
 
 __all__ = [
     "FactorShapeError",
@@ -58,6 +60,8 @@ __all__ = [
     "point_to_plane_noise_model",
     "stance_foot_error",
     "stance_foot_factor",
+    "mocap_marker_error",
+    "mocap_marker_factor",
     "imu_up_direction",
     "imu_attitude_error",
     "imu_attitude_factor",

@@ -75,6 +75,18 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="planes.csv to write (default: DATASET/planes.csv, only if it does not exist)")
     e.add_argument("--max-planes", type=int, default=1)
     e.add_argument("--quiet", action="store_true")
+
+    il = sub.add_parser("identify-legs", help="identify leg kinematic parameters from motion capture (mocap.csv): "
+                                              "legs.yaml, calibrated URDF, report")
+    il.add_argument("dataset", type=Path)
+    il.add_argument("--out", required=True, type=Path, help="output folder (replaces only a previous identify-legs output)")
+    il.add_argument("--mocap-free", default=None,
+                    help="unknown components of T_body_mocap, e.g. 'rz,z' (Yuan's alpha_h, z_h); default all six")
+    il.add_argument("--origins", choices=("first", "all", "none"), default="first",
+                    help="3-D joint origin changes: first joint only (hip position, default), every joint, none")
+    il.add_argument("--sigma-marker-mm", type=float, default=1.0, help="a-priori marker noise (mm)")
+    il.add_argument("--sigma-joint-deg", type=float, default=0.0, help="a-priori joint encoder noise (deg)")
+    il.add_argument("--quiet", action="store_true")
     return p
 
 
@@ -132,6 +144,15 @@ def _cmd_extract_planes(args) -> int:
     return 0
 
 
+def _cmd_identify_legs(args) -> int:
+    from .legs.command import run_identify_legs
+
+    print(run_identify_legs(args.dataset, args.out, progress=not args.quiet, mocap_free=args.mocap_free,
+                            origins=args.origins, sigma_marker_mm=args.sigma_marker_mm,
+                            sigma_joint_deg=args.sigma_joint_deg))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     from .errors import GraphcalError
 
@@ -142,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         "calibrate": _cmd_calibrate,
         "suggest-poses": _cmd_suggest,
         "extract-planes": _cmd_extract_planes,
+        "identify-legs": _cmd_identify_legs,
     }
     try:
         return handlers[args.command](args)

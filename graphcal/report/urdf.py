@@ -9,7 +9,9 @@
   :mod:`graphcal.models.perturb`): ``<joint>.offset_rad`` is an encoder zero offset
   (``origin_R <- origin_R Rot(axis, offset)``; ``<joint>.offset_m`` on a prismatic joint moves the
   origin along the axis), ``<joint>.delta_m`` a link-length change (``origin_xyz += delta
-  xyz / |xyz|``). All are applied by :func:`graphcal.models.perturb.apply_perturbation`.
+  xyz / |xyz|``), ``<joint>.dx_m`` / ``.dy_m`` / ``.dz_m`` a change of one component of the origin
+  (parent link frame; :mod:`graphcal.legs.params`, e.g. the hip position). All are applied by
+  :func:`graphcal.models.perturb.apply_perturbation`.
 
 The rest of the URDF (and its comments) is left as it was. Angles written with ``repr`` precision.
 """
@@ -28,7 +30,8 @@ from graphcal.models.perturb import LegPerturbation, apply_perturbation, link_le
 __all__ = ["calibrated_urdf", "leg_perturbation_from_parameters", "LEG_PARAMETER_KINDS"]
 
 #: Supported leg parameter suffixes (``<joint>.<kind>``), as named by graphcal.models.leg_params.
-LEG_PARAMETER_KINDS = ("offset_rad", "offset_m", "delta_m")
+LEG_PARAMETER_KINDS = ("offset_rad", "offset_m", "delta_m", "dx_m", "dy_m", "dz_m")
+_ORIGIN_AXIS = {"dx_m": 0, "dy_m": 1, "dz_m": 2}
 
 
 def _fmt(x: float) -> str:
@@ -65,13 +68,14 @@ def leg_perturbation_from_parameters(urdf_xml: str, legs: Mapping[str, Mapping[s
     joints = {j.get("name"): j for j in _parse(urdf_xml).findall("joint")}
     offsets: dict[str, float] = {}
     lengths: dict[str, float] = {}
+    components: dict[str, np.ndarray] = {}
     for foot, params in legs.items():
         for name, value in params.items():
             joint, _, kind = str(name).rpartition(".")
             if not joint or kind not in LEG_PARAMETER_KINDS:
                 raise ModelError(
                     f"leg parameter {name!r} of foot {foot!r}: expected '<joint>.offset_rad', '<joint>.offset_m' "
-                    f"or '<joint>.delta_m'"
+                    f"or '<joint>.delta_m' (or '<joint>.dx_m', '.dy_m', '.dz_m')"
                 )
             value = float(value)
             if not np.isfinite(value):
@@ -83,6 +87,17 @@ def leg_perturbation_from_parameters(urdf_xml: str, legs: Mapping[str, Mapping[s
                     f"leg parameter {name!r} of foot {foot!r}: {joint!r} is not a URDF joint, so the URDF cannot "
                     f"carry a link length change there"
                 )
+            if kind in _ORIGIN_AXIS:
+                if joint not in joints:
+                    if value == 0.0:
+                        continue
+                    raise ModelError(f"leg parameter {name!r} of foot {foot!r}: {joint!r} is not a URDF joint")
+                comp = components.setdefault(joint, np.full(3, np.nan))
+                a = _ORIGIN_AXIS[kind]
+                if not np.isnan(comp[a]) and comp[a] != value:
+                    raise ModelError(f"leg parameter {name!r} given twice with different values ({comp[a]} and {value})")
+                comp[a] = value
+                continue
             if kind.startswith("offset") and joint in joints:
                 jtype = joints[joint].get("type")
                 want = "offset_m" if jtype == "prismatic" else "offset_rad"
@@ -93,6 +108,8 @@ def leg_perturbation_from_parameters(urdf_xml: str, legs: Mapping[str, Mapping[s
                 raise ModelError(f"leg parameter {name!r} given twice with different values ({table[joint]} and {value})")
             table[joint] = value
     deltas = {j: tuple(link_length_delta(urdf_xml, j, d)) for j, d in lengths.items()}
+    for j, comp in components.items():
+        deltas[j] = tuple(np.asarray(deltas.get(j, (0.0, 0.0, 0.0))) + np.nan_to_num(comp, nan=0.0))
     return LegPerturbation(joint_offsets_rad=offsets, origin_deltas_m=deltas)
 
 
@@ -147,6 +164,7 @@ def calibrated_urdf(
     legs: Mapping[str, Mapping[str, float]] | None = None,
     *,
     dataset: str | None = None,
+    command: str = "calibrate",
 ) -> str:
     """URDF text of the calibrated robot.
 
@@ -157,6 +175,7 @@ def calibrated_urdf(
         sensors: sensor name -> calibrated ``T_body_sensor`` (4x4, m).
         legs: foot -> {``"<joint>.offset_rad"`` / ``"<joint>.offset_m"`` / ``"<joint>.delta_m"``: value}, or None.
         dataset: the dataset path, named in the provenance comment at the top.
+        command: the graphcal command named in that comment (``calibrate``, ``identify-legs``).
 
     Returns:
         URDF text (UTF-8, with an ``<?xml?>`` declaration and a provenance comment).
@@ -265,7 +284,7 @@ def calibrated_urdf(
     ds = _comment_text(dataset) if dataset is not None else "(unknown dataset)"
     sensor_list = ", ".join(str(s) for s in sensors) or "none"
     comment = (
-        f"<!-- Calibrated robot model written by graphcal calibrate from dataset {ds}. "
+        f"<!-- Calibrated robot model written by graphcal {_comment_text(command)} from dataset {ds}. "
         f"Calibrated sensor joints of ({_comment_text(sensor_list)}), "
         f"{'with' if legs else 'without'} calibrated leg parameters. -->"
     )

@@ -1,0 +1,15 @@
+"""Leg kinematic identification from motion capture (Yuan et al.'s virtual fixed base, generalised).
+
+Modules (docs/legs.md):
+
+* :mod:`.params`          -- the identification parameters of a leg (joint offsets, link lengths,
+  3-D joint origins) and the vectorised kinematics of a marker on the foot with analytic Jacobians;
+* :mod:`.virtual_base`    -- Yuan's virtual base from the four body markers (mean origin, orthonormal axes);
+* :mod:`.mocap_data`      -- ``mocap.csv`` + joint values of a dataset as marker tracks;
+* :mod:`.identifiability` -- which parameters the data determine (column-scaled SVD, pivoted QR);
+* :mod:`.identify`        -- the graph, the identifiable set, LM to convergence, covariance;
+* :mod:`.report`          -- legs.yaml, calibrated URDF, report.html;
+* :mod:`.command`         -- ``graphcal identify-legs``.
+
+Nothing is imported here, so ``import graphcal.legs.params`` stays light.
+"""

@@ -1,0 +1,84 @@
+"""``graphcal identify-legs DATASET --out DIR``: leg kinematic identification from motion capture.
+
+Reads the dataset (``mocap.csv`` with foot markers, optionally Yuan's body markers), identifies the
+parameters of every leg that carries a marker (:func:`graphcal.legs.identify.identify_legs_dataset`)
+and writes ``legs.yaml``, ``robot_calibrated.urdf``, ``report.html`` and one PNG per foot
+(:func:`graphcal.legs.report.write_identification_outputs`). Bad input raises
+:class:`~graphcal.errors.DatasetError` (the command line prints it and exits with code 2).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from graphcal.errors import GraphcalError
+from graphcal.legs.identify import MOCAP_COMPONENTS, IdentifyOptions, identify_legs_dataset
+
+__all__ = ["run_identify_legs", "parse_mocap_free"]
+
+_STAGES = 7  # read, start, before, identifiability, after, covariance, write
+
+
+def parse_mocap_free(text: str | None) -> tuple[str, ...]:
+    """``"rz,z"`` -> ("rz", "z"); None or "all" -> every component. GraphcalError on unknown names."""
+    if text is None or text.strip().lower() == "all":
+        return MOCAP_COMPONENTS
+    comps = tuple(c.strip() for c in text.split(",") if c.strip())
+    bad = [c for c in comps if c not in MOCAP_COMPONENTS]
+    if bad or not comps:
+        raise GraphcalError(f"--mocap-free: expected a comma-separated subset of {', '.join(MOCAP_COMPONENTS)} or 'all', got {text!r}")
+    return comps
+
+
+def run_identify_legs(dataset: str | Path, out: str | Path, progress: bool = True, *, mocap_free: str | None = None,
+                      origins: str = "first", sigma_marker_mm: float = 1.0, sigma_joint_deg: float = 0.0) -> str:
+    """Run the identification on ``dataset`` and write the outputs into ``out``; returns a summary.
+
+    Args:
+        dataset: dataset folder.
+        out: output folder (created; replaces only a previous identify-legs output).
+        progress: progress bar on stderr (tqdm).
+        mocap_free: components of T_body_mocap that are unknown ("rx,ry,rz,x,y,z" default; Yuan: "rz,z").
+        origins: leg model (``first``, ``all``, ``none``; :func:`graphcal.legs.params.leg_model`).
+        sigma_marker_mm, sigma_joint_deg: a-priori noise (the covariance is scaled by sigma0^2).
+    """
+    from graphcal.legs.report import check_output_folder, write_identification_outputs
+
+    check_output_folder(Path(out))  # fail before the work, not after
+    options = IdentifyOptions(sigma_marker_m=sigma_marker_mm / 1000.0, sigma_joint_rad=sigma_joint_deg * 3.141592653589793 / 180.0,
+                              origins=origins, mocap_free=parse_mocap_free(mocap_free))
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=_STAGES, desc="identify-legs", unit="stage", file=sys.stderr, leave=False)
+
+    def say(stage: str) -> None:
+        if bar is not None:
+            bar.set_postfix_str(stage[:40])
+            bar.update(1)
+
+    try:
+        result = identify_legs_dataset(dataset, options=options, progress=say)
+        say("write outputs")
+        written = write_identification_outputs(result, out, dataset=str(dataset))
+    finally:
+        if bar is not None:
+            bar.close()
+    lines = [f"identified the legs of {', '.join(result.legs)} from {dataset} "
+             f"({'virtual base' if result.frame == 'vbase' else 'mocap frame fixed to the base'}); wrote {out}:"]
+    for foot, params in result.legs.items():
+        b, a = result.rmse_mm(foot)
+        lines.append(f"  {foot}: marker RMSE {b:.2f} mm (nominal legs) -> {a:.2f} mm (identified)")
+        for p in params:
+            if p.free:
+                unit, f = ("deg", 57.29577951308232) if p.name.endswith("_rad") else ("mm", 1000.0)
+                lines.append(f"    {p.name} = {f * p.value:+.3f} ± {f * p.sigma:.3f} {unit}")
+    held = [p for p in result.identifiability.parameters if not p.free]
+    if held:
+        lines.append("  held at their nominal value: " + ", ".join(f"{p.name} ({p.status})" for p in held))
+    for w in result.warnings:
+        lines.append(f"  warning: {w}")
+    lines.append("  files: " + ", ".join(sorted(p.name for p in written.values())))
+    return "\n".join(lines)

@@ -1,0 +1,600 @@
+"""Leg kinematic identification from motion capture: graph, identifiable set, LM to convergence, covariance.
+
+Unknowns: ``T_body_mocap`` (Pose3, key ``V(0)``: the motion-capture frame, or Yuan's virtual base,
+in the body frame), per leg the parameters ``theta`` of :mod:`graphcal.legs.params` (Vector, key
+``L(l)``), per marker whose position on the foot is not given its ``p_foot_marker`` (Point3, key
+``K(j)``). One :func:`factors.mocap_marker.mocap_marker_factor` per marker holds all its samples.
+
+Steps of :func:`identify_legs`:
+
+1. start: ``T_body_mocap`` nominal when known, else a rigid fit (Kabsch) of the nominal-model
+   marker positions to the measured ones, alternated with a linear fit of unknown markers;
+2. **before**: Levenberg-Marquardt (graphcal's Python-driven :func:`~graphcal.solvers.batch.solve_lm`)
+   over ``T_body_mocap`` and the unknown markers with the legs at their nominal URDF -- the best
+   the nominal model can do; its residuals are the "before" errors;
+3. **identifiable set** (:mod:`graphcal.legs.identifiability`) on the stacked whitened Jacobian
+   at that point: every candidate (the free components of ``T_body_mocap``, every leg parameter,
+   the unknown marker coordinates) is identifiable, only in a combination, or not identifiable;
+   the parameters outside the chosen free set are held at their nominal value (leg parameters
+   are removed from the L variable; pose and marker components get a prior of
+   ``HELD_SIGMA`` = 1e-9 rad / m);
+4. **after**: LM iterated to convergence (not Yuan's single linearised step, Eq. 13) over the
+   free set;
+5. covariance (:func:`~graphcal.solvers.covariance.marginal_covariances`), multiplied by the
+   a-posteriori variance factor ``sigma0^2 = chi^2 / (m - u)`` (m residuals, u free unknowns)
+   unless ``IdentifyOptions.scale_covariance`` is False -- the noise level of real data is not
+   known exactly, and ``sigma0 ~ 1`` when the noise model is right.
+
+Noise model per sample (mocap frame): ``sigma_marker^2 I + sigma_joint^2 J_q J_q^T`` plus the
+virtual base's uncertainty when body markers are used (:attr:`MarkerTrack.cov_extra`), evaluated
+once at the start (nominal legs).
+
+Errors reported (``TrackResiduals``): measured minus predicted marker position rotated into BODY
+axes (m); RMSE = ``sqrt(mean |e_i|^2)`` over the samples (3-D), in mm in the summaries.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from factors.keys import K, L, V
+from factors.mocap_marker import marker_covariance, mocap_marker_error, mocap_marker_factor, sqrt_information
+from graphcal.errors import GraphcalError
+from graphcal.geometry import fit_rigid_transform, invert_pose
+from graphcal.legs.identifiability import IdentifiabilityReport, identifiability
+from graphcal.legs.mocap_data import MarkerTrack, MocapData
+from graphcal.legs.params import LegModel, leg_model, point_kinematics
+
+__all__ = [
+    "MOCAP_COMPONENTS",
+    "HELD_SIGMA",
+    "IdentifyOptions",
+    "ParameterEstimate",
+    "TrackResiduals",
+    "LegIdentificationResult",
+    "identify_legs",
+    "identify_legs_dataset",
+]
+
+#: tangent components of T_body_mocap, GTSAM order [omega, v] (right perturbation, mocap axes)
+MOCAP_COMPONENTS = ("rx", "ry", "rz", "x", "y", "z")
+#: prior sigma (rad / m) holding a pose or marker component at its value
+HELD_SIGMA = 1e-9
+_LOOSE_SIGMA = 1e3
+
+
+@dataclass(frozen=True)
+class IdentifyOptions:
+    """Settings of :func:`identify_legs`.
+
+    Attributes:
+        sigma_marker_m: marker noise per coordinate (m), a priori.
+        sigma_joint_rad: joint encoder noise per joint (rad; m for prismatic), a priori.
+        origins: leg model: ``"first"`` (hip position 3-D, default), ``"all"`` or ``"none"``
+            (:func:`graphcal.legs.params.leg_model`).
+        link_lengths: include link-length parameters.
+        joint_offsets: include joint-offset parameters (all three switched off with
+            ``origins="none"``: the nominal model, only the pose and the markers are fitted).
+        mocap_free: components of ``T_body_mocap`` that are unknown (the others are held at the
+            nominal pose). Default all six; Yuan's setting is ``("rz", "z")`` (his alpha_h, z_h).
+        scale_offset_rad, scale_length_m, scale_mocap_rad, scale_mocap_m, scale_marker_m:
+            a-priori error scales for the identifiability analysis (SI).
+        rtol, s_min, f_identifiable: identifiability tolerances (:mod:`graphcal.legs.identifiability`).
+        scale_covariance: multiply the covariance by ``sigma0^2``.
+        max_iterations: LM limit.
+    """
+
+    sigma_marker_m: float = 0.001
+    sigma_joint_rad: float = 0.0
+    origins: str = "first"
+    link_lengths: bool = True
+    joint_offsets: bool = True
+    mocap_free: tuple[str, ...] = MOCAP_COMPONENTS
+    scale_offset_rad: float = math.radians(2.0)
+    scale_length_m: float = 0.01
+    scale_mocap_rad: float = 1.0
+    scale_mocap_m: float = 1.0
+    scale_marker_m: float = 0.1
+    rtol: float = 1e-8
+    s_min: float = 3.0
+    f_identifiable: float = 0.05
+    scale_covariance: bool = True
+    max_iterations: int = 100
+
+    def __post_init__(self):
+        bad = [c for c in self.mocap_free if c not in MOCAP_COMPONENTS]
+        if bad:
+            raise GraphcalError(f"mocap_free: unknown component(s) {bad}; choose from {', '.join(MOCAP_COMPONENTS)}")
+        if not (self.sigma_marker_m > 0):
+            raise GraphcalError(f"sigma_marker_m must be > 0, got {self.sigma_marker_m}")
+        if self.sigma_joint_rad < 0:
+            raise GraphcalError(f"sigma_joint_rad must be >= 0, got {self.sigma_joint_rad}")
+        object.__setattr__(self, "mocap_free", tuple(self.mocap_free))
+
+
+@dataclass(frozen=True)
+class ParameterEstimate:
+    """One estimated (or held) parameter, SI units.
+
+    Attributes:
+        name: parameter name (``<joint>.offset_rad``, ``T_body_mocap.rz``, ``<marker>.p_foot_marker.x``).
+        value: estimate (leg parameters: the change from the nominal URDF; pose components: the
+            right-perturbation tangent from the reference pose, see
+            :attr:`LegIdentificationResult.T_body_mocap_reference`; marker coordinates: the position).
+        sigma: 1-sigma (0 when held).
+        status: identifiability verdict (``identifiable`` / ``combination`` / ``unidentifiable`` /
+            ``known`` for a pose component that is not a candidate).
+        free: estimated (True) or held at its nominal value (False).
+        note: the identifiability sentence.
+    """
+
+    name: str
+    value: float
+    sigma: float
+    status: str
+    free: bool
+    note: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class TrackResiduals:
+    """Errors of one marker (measured minus predicted, body axes, m).
+
+    Attributes:
+        marker, foot: names.
+        time: (N,) sample times.
+        before: (N, 3) nominal legs (pose and unknown markers fitted).
+        after: (N, 3) identified legs.
+        nominal: (N, 3) everything nominal (only when the nominal T_body_mocap is known), else None.
+    """
+
+    marker: str
+    foot: str
+    time: np.ndarray
+    before: np.ndarray
+    after: np.ndarray
+    nominal: np.ndarray | None = None
+
+    @staticmethod
+    def _rmse(e) -> float:
+        return float(np.sqrt(np.mean(np.sum(np.asarray(e) ** 2, axis=1)))) if len(e) else float("nan")
+
+    @property
+    def rmse_before_mm(self) -> float:
+        """3-D RMS error before (mm)."""
+        return 1e3 * self._rmse(self.before)
+
+    @property
+    def rmse_after_mm(self) -> float:
+        """3-D RMS error after (mm)."""
+        return 1e3 * self._rmse(self.after)
+
+    @property
+    def rmse_nominal_mm(self) -> float | None:
+        """3-D RMS error with everything nominal (mm), or None."""
+        return None if self.nominal is None else 1e3 * self._rmse(self.nominal)
+
+
+@dataclass(frozen=True, eq=False)
+class LegIdentificationResult:
+    """What :func:`identify_legs` returns.
+
+    Attributes:
+        models: foot -> :class:`~graphcal.legs.params.LegModel`.
+        legs: foot -> tuple of :class:`ParameterEstimate` (``model.names`` order).
+        theta: foot -> (k,) identified parameter vector.
+        theta_covariance: foot -> (k, k) covariance (zeros on held parameters).
+        T_body_mocap: (4, 4) estimated pose of the measurement frame in the body frame.
+        T_body_mocap_covariance: (6, 6) covariance of its right perturbation [omega, v].
+        T_body_mocap_reference: (4, 4) the pose the ``T_body_mocap.*`` values are relative to (the
+            nominal pose when known, else the "before" fit).
+        T_body_mocap_before: (4, 4) the "before" fit (nominal legs).
+        marker_positions_before: marker -> (3,) marker positions of the "before" fit.
+        mocap: tuple of :class:`ParameterEstimate` for rx, ry, rz, x, y, z.
+        markers: marker -> tuple of :class:`ParameterEstimate` (x, y, z in the foot frame) -- only
+            for markers whose position was estimated.
+        marker_positions: marker -> (3,) position in the foot frame used (known or estimated).
+        identifiability: the :class:`~graphcal.legs.identifiability.IdentifiabilityReport`.
+        residuals: one :class:`TrackResiduals` per marker.
+        sigma0: a-posteriori standard deviation of unit weight (1 when the noise model fits).
+        dof: residuals minus free unknowns.
+        iterations, converged: of the final LM.
+        frame: ``"mocap"`` or ``"vbase"``; pose_name: ``"T_body_mocap"`` or ``"T_body_vbase"``.
+        base_frame, robot_name, urdf_xml: the robot.
+        source: dataset path or description.
+        options: the :class:`IdentifyOptions`.
+        warnings: sentences.
+    """
+
+    models: dict
+    legs: dict
+    theta: dict
+    theta_covariance: dict
+    T_body_mocap: np.ndarray
+    T_body_mocap_covariance: np.ndarray
+    T_body_mocap_reference: np.ndarray
+    T_body_mocap_before: np.ndarray
+    marker_positions_before: dict
+    mocap: tuple
+    markers: dict
+    marker_positions: dict
+    identifiability: IdentifiabilityReport
+    residuals: tuple
+    sigma0: float
+    dof: int
+    iterations: int
+    converged: bool
+    frame: str
+    pose_name: str
+    base_frame: str
+    robot_name: str
+    urdf_xml: str
+    source: str
+    options: IdentifyOptions
+    warnings: tuple = field(default_factory=tuple)
+
+    @property
+    def feet(self) -> tuple[str, ...]:
+        return tuple(self.models)
+
+    def rmse_mm(self, foot: str) -> tuple[float, float]:
+        """(before, after) 3-D RMS error of every marker of ``foot`` together (mm)."""
+        rs = [r for r in self.residuals if r.foot == foot]
+        b = np.concatenate([r.before for r in rs])
+        a = np.concatenate([r.after for r in rs])
+        return 1e3 * TrackResiduals._rmse(b), 1e3 * TrackResiduals._rmse(a)
+
+    def parameter(self, foot: str, name: str) -> ParameterEstimate:
+        """The estimate of leg parameter ``name`` of ``foot``."""
+        for p in self.legs[foot]:
+            if p.name == name:
+                return p
+        raise KeyError(f"{name!r} is not a parameter of the leg of {foot!r}")
+
+    def leg_values(self) -> dict[str, dict[str, float]]:
+        """foot -> {parameter: value} of the estimated (free) leg parameters (for the URDF)."""
+        return {f: {p.name: p.value for p in ps if p.free} for f, ps in self.legs.items()}
+
+
+# ----------------------------------------------------------------------------- helpers
+@dataclass
+class _Track:
+    track: MarkerTrack
+    leg: object
+    model: LegModel
+    k_key: int | None
+    marker: np.ndarray  # current / fixed position
+    cov: np.ndarray | None = None  # (N,3,3) mocap frame
+    L: np.ndarray | None = None
+
+
+def _fk_points(tr: _Track, theta) -> tuple[np.ndarray, object]:
+    pk = point_kinematics(tr.leg, tr.model, tr.track.q, theta, tr.marker)
+    return pk.p_base_point, pk
+
+
+def _initial_pose(tracks: list[_Track], thetas: Mapping[str, np.ndarray], T0, known_T: bool, n_alt: int = 8):
+    """T_body_mocap start (rigid fit unless known) and linear fits of the unknown markers."""
+    T = None if T0 is None else np.asarray(T0, dtype=float)
+    for _ in range(n_alt if any(t.k_key is not None for t in tracks) else 1):
+        if not known_T:
+            Pb = np.concatenate([_fk_points(t, thetas[t.track.foot])[0] for t in tracks])
+            Pm = np.concatenate([t.track.p_meas for t in tracks])
+            try:
+                T_mb = fit_rigid_transform(Pb, Pm)
+            except np.linalg.LinAlgError:
+                raise GraphcalError("cannot start: the marker positions do not determine a rigid fit") from None
+            T = invert_pose(T_mb)
+        T_mb = invert_pose(T)
+        for t in tracks:
+            if t.k_key is None:
+                continue
+            pk = point_kinematics(t.leg, t.model, t.track.q, thetas[t.track.foot], np.zeros(3))
+            A = np.einsum("ij,njk->nik", T_mb[:3, :3], pk.R_base_foot).reshape(-1, 3)
+            b = (t.track.p_meas - (pk.p_base_point @ T_mb[:3, :3].T + T_mb[:3, 3])).reshape(-1)
+            t.marker = np.linalg.lstsq(A, b, rcond=None)[0]
+        if known_T:
+            break
+    return T
+
+
+def _pose_prior(T, held: Sequence[bool]) -> gtsam.PriorFactorPose3:
+    s = np.where(np.asarray(held, dtype=bool), HELD_SIGMA, _LOOSE_SIGMA)
+    return gtsam.PriorFactorPose3(V(0), gtsam.Pose3(np.asarray(T, dtype=float)), gtsam.noiseModel.Diagonal.Sigmas(s))
+
+
+def _errors_body(tr: _Track, T, theta, marker) -> np.ndarray:
+    e, _ = mocap_marker_error(T, theta, marker, tr.track.q, tr.track.p_meas, tr.leg, tr.model, False)
+    return e @ np.asarray(T)[:3, :3].T  # mocap axes -> body axes
+
+
+def _right_log(T_ref, T) -> np.ndarray:
+    return np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T_ref)).between(gtsam.Pose3(np.asarray(T)))), dtype=float)
+
+
+# ----------------------------------------------------------------------------- main
+def identify_legs(
+    robot,
+    tracks: Sequence[MarkerTrack],
+    *,
+    options: IdentifyOptions = IdentifyOptions(),
+    T_body_mocap_nominal=None,
+    frame: str = "mocap",
+    source: str = "",
+    warnings: Sequence[str] = (),
+    progress: Callable[[str], None] | None = None,
+) -> LegIdentificationResult:
+    """Identify the kinematic parameters of the legs that carry markers (see module docstring).
+
+    Args:
+        robot: the :class:`~graphcal.models.robot.RobotModel` (nominal URDF).
+        tracks: the markers' samples (:class:`~graphcal.legs.mocap_data.MarkerTrack`), measurement
+            frame = motion-capture frame (or virtual base when ``frame="vbase"``).
+        options: :class:`IdentifyOptions`.
+        T_body_mocap_nominal: (4, 4) nominal pose of the measurement frame in the body frame, or
+            None (unknown: a rigid fit starts it; every component should then be in ``mocap_free``).
+        frame: ``"mocap"`` or ``"vbase"`` (names the pose ``T_body_mocap`` / ``T_body_vbase``).
+        source: description for reports.
+        warnings: sentences carried into the result.
+        progress: called with a stage description before each stage.
+
+    Raises:
+        GraphcalError: no tracks, a foot that is not a foot of the robot, a graph the data do not
+            determine (:class:`~graphcal.solvers.batch.UnderdeterminedError`).
+    """
+    from graphcal.solvers.batch import solve_lm
+    from graphcal.solvers.covariance import marginal_covariances
+
+    say = progress or (lambda s: None)
+    opts = options
+    if not tracks:
+        raise GraphcalError("identify_legs: no marker tracks")
+    warnings = list(warnings)
+    pose_name = "T_body_vbase" if frame == "vbase" else "T_body_mocap"
+    feet = []
+    for t in tracks:
+        if t.foot not in feet:
+            feet.append(t.foot)
+    feet = [f for f in robot.feet if f in feet] + [f for f in feet if f not in robot.feet]
+    models = {f: leg_model(robot, f, origins=opts.origins, link_lengths=opts.link_lengths,
+                           joint_offsets=opts.joint_offsets) for f in feet}
+    legs = {f: robot.leg(f) for f in feet}
+    zero = {f: np.zeros(models[f].dim) for f in feet}
+
+    trs: list[_Track] = []
+    n_unknown = 0
+    for t in tracks:
+        known = t.p_foot_marker is not None
+        k_key = None if known else K(n_unknown)
+        n_unknown += 0 if known else 1
+        trs.append(_Track(t, legs[t.foot], models[t.foot], k_key,
+                          np.zeros(3) if not known else np.asarray(t.p_foot_marker, dtype=float)))
+
+    # 1. start
+    say("start: nominal model, rigid fit")
+    known_T = T_body_mocap_nominal is not None
+    T0 = _initial_pose(trs, zero, T_body_mocap_nominal, known_T)
+    held_pose = [c not in opts.mocap_free for c in MOCAP_COMPONENTS]
+    if not known_T and any(held_pose):
+        held_names = ", ".join(c for c, h in zip(MOCAP_COMPONENTS, held_pose) if h)
+        warnings.append(f"{pose_name} has no nominal value: its held components ({held_names}) "
+                        "are held at the rigid-fit start")
+
+    # noise model (fixed for the whole identification)
+    R_bm = T0[:3, :3]
+    for tr in trs:
+        extra = tr.track.cov_extra
+        if opts.sigma_joint_rad > 0 or extra is not None:
+            _, pk = _fk_points(tr, zero[tr.track.foot])
+            Jq_m = np.einsum("ji,njk->nik", R_bm, pk.J_q)  # R^T J_q
+            tr.cov = marker_covariance(Jq_m, opts.sigma_marker_m, opts.sigma_joint_rad, extra)
+            tr.L = sqrt_information(tr.cov)
+
+    def build(free_theta: Mapping[str, np.ndarray] | None, held_T: Sequence[bool], T_hold, marker_held: Mapping[int, np.ndarray]):
+        g = gtsam.NonlinearFactorGraph()
+        for tr in trs:
+            f = tr.track.foot
+            kw = dict(cov_m2=tr.cov) if tr.cov is not None else dict(sigma_m=opts.sigma_marker_m)
+            if tr.k_key is None:
+                kw["p_foot_marker"] = tr.marker
+            else:
+                kw["k_key"] = tr.k_key
+            if free_theta is not None and free_theta[f].size:
+                kw.update(l_key=L(feet.index(f)), free=free_theta[f])
+            g.add(mocap_marker_factor(V(0), tr.track.q, tr.track.p_meas, tr.leg, tr.model, **kw))
+        if any(held_T):
+            g.add(_pose_prior(T_hold, held_T))
+        for key, (pos, held) in marker_held.items():
+            s = np.where(held, HELD_SIGMA, _LOOSE_SIGMA)
+            g.add(gtsam.PriorFactorPoint3(key, np.asarray(pos, dtype=float), gtsam.noiseModel.Diagonal.Sigmas(s)))
+        return g
+
+    # 2. before: nominal legs, pose and unknown markers fitted
+    say("before: fit the pose (and markers) with the nominal legs")
+    vals = gtsam.Values()
+    vals.insert(V(0), gtsam.Pose3(T0))
+    for tr in trs:
+        if tr.k_key is not None:
+            vals.insertPoint3(tr.k_key, tr.marker)
+    gA = build(None, held_pose, T0, {})
+    resA = solve_lm(gA, vals, max_iterations=opts.max_iterations)
+    TA = np.asarray(resA.values.atPose3(V(0)).matrix())
+    for tr in trs:
+        if tr.k_key is not None:
+            tr.marker = np.asarray(resA.values.atPoint3(tr.k_key), dtype=float)
+    markerA = {tr.track.marker: tr.marker.copy() for tr in trs}
+    before = {tr.track.marker: _errors_body(tr, TA, zero[tr.track.foot], tr.marker) for tr in trs}
+    nominal = {}
+    if known_T:
+        _initial_pose(trs, zero, T_body_mocap_nominal, True)  # markers fitted with the nominal pose
+        nominal = {tr.track.marker: _errors_body(tr, T0, zero[tr.track.foot], tr.marker) for tr in trs}
+        for tr in trs:
+            tr.marker = markerA[tr.track.marker]
+
+    # 3. identifiability on the stacked whitened Jacobian at the "before" point
+    say("identifiability: SVD / pivoted QR of the identification Jacobian")
+    cand_names: list[str] = []
+    scales: list[float] = []
+    pose_cols = [i for i, c in enumerate(MOCAP_COMPONENTS) if c in opts.mocap_free]
+    for i in pose_cols:
+        cand_names.append(f"{pose_name}.{MOCAP_COMPONENTS[i]}")
+        scales.append(opts.scale_mocap_rad if i < 3 else opts.scale_mocap_m)
+    dup = {n for f in feet for n in models[f].names if sum(n in models[g].names for g in feet) > 1}
+    theta_off: dict[str, int] = {}
+    for f in feet:
+        theta_off[f] = len(cand_names)
+        for i, n in enumerate(models[f].names):
+            cand_names.append(f"{f}:{n}" if n in dup else n)
+            scales.append(opts.scale_offset_rad if models[f].is_angle(i) else opts.scale_length_m)
+    marker_off: dict[str, int] = {}
+    for tr in trs:
+        if tr.k_key is not None:
+            marker_off[tr.track.marker] = len(cand_names)
+            for a in "xyz":
+                cand_names.append(f"{tr.track.marker}.p_foot_marker.{a}")
+                scales.append(opts.scale_marker_m)
+    blocks = []
+    for tr in trs:
+        f = tr.track.foot
+        e, H = mocap_marker_error(TA, zero[f], tr.marker, tr.track.q, tr.track.p_meas, tr.leg, tr.model, True)
+        N = e.shape[0]
+        A = np.zeros((N, 3, len(cand_names)))
+        A[:, :, : len(pose_cols)] = H[0][:, :, pose_cols]
+        A[:, :, theta_off[f] : theta_off[f] + models[f].dim] = H[1]
+        if tr.k_key is not None:
+            o = marker_off[tr.track.marker]
+            A[:, :, o : o + 3] = H[2]
+        A = tr.L @ A if tr.L is not None else A / opts.sigma_marker_m
+        blocks.append(A.reshape(3 * N, -1))
+    report = identifiability(np.concatenate(blocks), cand_names, scales, rtol=opts.rtol, s_min=opts.s_min,
+                             f_identifiable=opts.f_identifiable)
+    free_names = set(report.free)
+    held_T = [True] * 6
+    for i in pose_cols:
+        held_T[i] = cand_names[pose_cols.index(i)] not in free_names
+    free_theta = {f: np.array([i for i in range(models[f].dim) if cand_names[theta_off[f] + i] in free_names], dtype=int)
+                  for f in feet}
+    marker_held = {}
+    for tr in trs:
+        if tr.k_key is not None:
+            o = marker_off[tr.track.marker]
+            h = np.array([cand_names[o + a] not in free_names for a in range(3)])
+            marker_held[tr.k_key] = (tr.marker.copy(), h)
+    for f in feet:
+        if free_theta[f].size == 0 and models[f].dim:
+            warnings.append(f"no kinematic parameter of the leg of {f!r} is identifiable from these data")
+
+    # 4. after: LM to convergence over the free set
+    say("after: Levenberg-Marquardt over the identifiable parameters")
+    vals = gtsam.Values()
+    vals.insert(V(0), gtsam.Pose3(TA))
+    for tr in trs:
+        if tr.k_key is not None:
+            vals.insertPoint3(tr.k_key, tr.marker)
+    for f in feet:
+        if free_theta[f].size:
+            vals.insert(L(feet.index(f)), np.zeros(free_theta[f].size))
+    gB = build(free_theta, held_T, TA, marker_held)
+    resB = solve_lm(gB, vals, max_iterations=opts.max_iterations)
+    v = resB.values
+    T_est = np.asarray(v.atPose3(V(0)).matrix())
+    theta = {}
+    for f in feet:
+        th = np.zeros(models[f].dim)
+        if free_theta[f].size:
+            th[free_theta[f]] = np.asarray(v.atVector(L(feet.index(f))), dtype=float)
+        theta[f] = th
+    for tr in trs:
+        if tr.k_key is not None:
+            tr.marker = np.asarray(v.atPoint3(tr.k_key), dtype=float)
+
+    # 5. covariance, scaled by the variance factor
+    say("covariance")
+    m_rows = sum(3 * len(tr.track) for tr in trs)
+    u = sum(not h for h in held_T) + sum(int(free_theta[f].size) for f in feet) + sum(int((~h).sum()) for _, h in marker_held.values())
+    dof = m_rows - u
+    chi2 = 2.0 * float(sum(gB.at(i).error(v) for i in range(len(trs))))
+    sigma0 = math.sqrt(chi2 / dof) if dof > 0 else float("nan")
+    keys = [V(0)] + [L(feet.index(f)) for f in feet if free_theta[f].size] + [tr.k_key for tr in trs if tr.k_key is not None]
+    covs = marginal_covariances(gB, v, keys)
+    warnings.extend(covs.warnings)
+    factor = sigma0**2 if (opts.scale_covariance and math.isfinite(sigma0)) else 1.0
+
+    cov_T = np.asarray(covs[V(0)]) * factor
+    cov_T[np.asarray(held_T), :] = 0.0
+    cov_T[:, np.asarray(held_T)] = 0.0
+    T_ref = np.asarray(T_body_mocap_nominal, dtype=float) if known_T else TA
+    xi = _right_log(T_ref, T_est)
+    by_name = {p.name: p for p in report.parameters}
+
+    def est(name: str, value: float, var: float, candidate: bool) -> ParameterEstimate:
+        if not candidate:
+            return ParameterEstimate(name, value, 0.0, "known", False, f"{name}: known (held at its nominal value)")
+        p = by_name[name]
+        s = math.sqrt(max(var, 0.0)) if p.free else 0.0
+        return ParameterEstimate(name, value, s, p.status, p.free, p.text)
+
+    mocap = tuple(est(f"{pose_name}.{c}", float(xi[i]), float(cov_T[i, i]), c in opts.mocap_free)
+                  for i, c in enumerate(MOCAP_COMPONENTS))
+    legs_out, theta_cov = {}, {}
+    for f in feet:
+        k = models[f].dim
+        Ck = np.zeros((k, k))
+        if free_theta[f].size:
+            Cf = np.asarray(covs[L(feet.index(f))]) * factor
+            Ck[np.ix_(free_theta[f], free_theta[f])] = Cf
+        theta_cov[f] = Ck
+        ests = (est(cand_names[theta_off[f] + i], float(theta[f][i]), float(Ck[i, i]), True) for i in range(k))
+        # plain parameter names in the per-leg output (the report may prefix a shared joint with its foot)
+        legs_out[f] = tuple(ParameterEstimate(n, p.value, p.sigma, p.status, p.free, p.note)
+                            for n, p in zip(models[f].names, ests))
+    markers_out, marker_pos = {}, {}
+    for tr in trs:
+        marker_pos[tr.track.marker] = tr.marker.copy()
+        if tr.k_key is None:
+            continue
+        Cm = np.asarray(covs[tr.k_key]) * factor
+        o = marker_off[tr.track.marker]
+        markers_out[tr.track.marker] = tuple(
+            est(cand_names[o + a], float(tr.marker[a]), float(Cm[a, a]), True) for a in range(3))
+    residuals = tuple(
+        TrackResiduals(tr.track.marker, tr.track.foot, tr.track.time, before[tr.track.marker],
+                       _errors_body(tr, T_est, theta[tr.track.foot], tr.marker), nominal.get(tr.track.marker))
+        for tr in trs)
+    if not resB.converged:
+        warnings.append(f"Levenberg-Marquardt did not converge: {resB.message}")
+    return LegIdentificationResult(
+        models=models, legs=legs_out, theta=theta, theta_covariance=theta_cov, T_body_mocap=T_est,
+        T_body_mocap_covariance=cov_T, T_body_mocap_reference=T_ref, T_body_mocap_before=TA,
+        marker_positions_before=markerA, mocap=mocap, markers=markers_out,
+        marker_positions=marker_pos, identifiability=report, residuals=residuals, sigma0=sigma0, dof=dof,
+        iterations=resB.iterations, converged=resB.converged, frame=frame, pose_name=pose_name,
+        base_frame=robot.base_frame, robot_name=robot.name, urdf_xml=robot.urdf_xml, source=source,
+        options=opts, warnings=tuple(warnings))
+
+
+def identify_legs_dataset(dataset, *, options: IdentifyOptions = IdentifyOptions(), sigma_body_marker_m: float | None = None,
+                          progress: Callable[[str], None] | None = None) -> LegIdentificationResult:
+    """:func:`identify_legs` on a dataset folder (``mocap.csv``; :func:`~graphcal.legs.mocap_data.mocap_data_from_dataset`).
+
+    ``sigma_body_marker_m`` (default: ``options.sigma_marker_m``) is the body markers' noise,
+    propagated through the virtual base when the dataset has body markers.
+    """
+    say = progress or (lambda s: None)
+    say("read the dataset")
+    sb = options.sigma_marker_m if sigma_body_marker_m is None else sigma_body_marker_m
+    data: MocapData = (dataset if isinstance(dataset, MocapData)
+                       else _mocap_data(dataset, sb))
+    return identify_legs(data.robot, data.tracks, options=options, T_body_mocap_nominal=data.T_body_mocap_nominal,
+                         frame=data.frame, source=data.source, warnings=data.warnings, progress=progress)
+
+
+def _mocap_data(dataset, sigma_body_marker_m):
+    from graphcal.legs.mocap_data import mocap_data_from_dataset
+
+    return mocap_data_from_dataset(dataset, sigma_body_marker_m=sigma_body_marker_m)

@@ -1,0 +1,255 @@
+"""Motion-capture data of a dataset as arrays for leg identification (``mocap.csv`` + joint values).
+
+:func:`mocap_data_from_dataset` reads a ``graphcal-dataset/1`` folder (``read_dataset``), pairs
+each marker row of ``mocap.csv`` with the joint values of the station (``stations.csv``, by
+``time``) or sample (``timeseries.csv``) at the same time, and returns one :class:`MarkerTrack`
+per marker fixed to a foot:
+
+* a marker is on foot ``f`` when it is named ``f`` or ``f.<k>``, or when ``mocap.markers`` in
+  ``dataset.yaml`` gives it ``link: f`` (a foot frame of ``robot.feet``); its position on the foot
+  is known when ``mocap.markers.<name>.xyz`` is given (foot frame, m), else it is estimated;
+* when the four body markers ``body.1 ... body.4`` are present, every sample is expressed in
+  Yuan's virtual base (:mod:`graphcal.legs.virtual_base`) and the identification estimates
+  ``T_body_vbase``; samples without all four body markers are dropped (with a warning). The
+  nominal ``T_body_vbase`` is known when ``mocap.markers`` gives the four body markers' ``xyz`` on
+  the base frame. Without body markers the motion-capture frame is fixed to the base and
+  ``T_body_mocap`` is estimated from scratch.
+
+Bad input raises :class:`~graphcal.errors.DatasetError` naming the file and the field.
+Units: metres, radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from graphcal.errors import DatasetError, GraphcalError
+from graphcal.legs.virtual_base import (
+    BODY_MARKERS,
+    point_covariance_in_vbase,
+    vbase_points,
+    virtual_base,
+    virtual_base_covariance,
+)
+
+__all__ = ["MarkerTrack", "MocapData", "mocap_data_from_dataset", "marker_foot"]
+
+#: fewest samples of a marker for it to be used
+MIN_SAMPLES = 3
+
+
+@dataclass(frozen=True, eq=False)
+class MarkerTrack:
+    """The samples of one marker on one foot.
+
+    Attributes:
+        marker: marker name (mocap.csv).
+        foot: the foot frame it is fixed to (the leg).
+        time: (N,) sample times, s.
+        q: (N, n) measured joint values of the leg (rad / m), ``Leg.joint_names`` order.
+        p_meas: (N, 3) marker positions in the measurement frame (the motion-capture frame, or the
+            virtual base when the dataset has body markers), m.
+        p_foot_marker: (3,) known marker position in the foot frame (m), or None (estimated).
+        cov_extra: (N, 3, 3) covariance (m^2, measurement frame) the virtual base adds, or None.
+    """
+
+    marker: str
+    foot: str
+    time: np.ndarray
+    q: np.ndarray
+    p_meas: np.ndarray
+    p_foot_marker: np.ndarray | None = None
+    cov_extra: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.time.shape[0])
+
+    def select(self, rows) -> "MarkerTrack":
+        """A track with the chosen rows (boolean mask or index array)."""
+        ce = None if self.cov_extra is None else self.cov_extra[rows]
+        return MarkerTrack(self.marker, self.foot, self.time[rows], self.q[rows], self.p_meas[rows],
+                           self.p_foot_marker, ce)
+
+
+@dataclass(frozen=True, eq=False)
+class MocapData:
+    """Everything leg identification needs from a dataset.
+
+    Attributes:
+        robot: the :class:`~graphcal.models.robot.RobotModel`.
+        tracks: one :class:`MarkerTrack` per foot marker.
+        frame: ``"mocap"`` (frame fixed to the base) or ``"vbase"`` (Yuan's virtual base).
+        T_body_mocap_nominal: (4, 4) nominal pose of the measurement frame in the body frame
+            (``T_body_vbase`` from the body markers' ``xyz`` in dataset.yaml), or None (unknown).
+        source: the dataset path, for reports.
+        warnings: what was dropped and why.
+    """
+
+    robot: object
+    tracks: tuple[MarkerTrack, ...]
+    frame: str = "mocap"
+    T_body_mocap_nominal: np.ndarray | None = None
+    source: str = ""
+    warnings: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def feet(self) -> tuple[str, ...]:
+        """Feet with at least one track, in robot.feet order."""
+        have = {t.foot for t in self.tracks}
+        return tuple(f for f in self.robot.feet if f in have)
+
+
+def marker_foot(name: str, feet, markers) -> str | None:
+    """The foot a marker is fixed to (by its name or ``mocap.markers.<name>.link``), or None."""
+    if name in markers:
+        link = markers[name].link
+        return link if link in feet else None
+    if name in feet:
+        return name
+    base, dot, k = name.rpartition(".")
+    if dot and k.isdigit() and base in feet:
+        return base
+    return None
+
+
+def _joint_table(ds):
+    """(file name, Table) of the joint values with a time column: stations.csv, else timeseries.csv."""
+    root = ds.root if ds.root is not None else Path(".")
+    for name, t in (("stations.csv", ds.stations), ("timeseries.csv", ds.timeseries)):
+        if t is not None and t.has("time") and len(t):
+            return root / name, t
+    raise DatasetError(root / "stations.csv", "column time",
+                       "joint values at the times of mocap.csv (stations.csv or timeseries.csv with a time column)",
+                       "no table with times")  # fmt: skip
+
+
+def mocap_data_from_dataset(dataset, *, sigma_body_marker_m: float | None = None) -> MocapData:
+    """The motion-capture tracks of a dataset (see module docstring).
+
+    Args:
+        dataset: a dataset folder (path) or a :class:`~graphcal.io.dataset.Dataset`.
+        sigma_body_marker_m: noise of the body markers (m); when given, the virtual base's
+            uncertainty is propagated into each sample's covariance (``MarkerTrack.cov_extra``).
+
+    Raises:
+        DatasetError: no robot, no mocap.csv, no marker on a foot, too few samples, body markers
+            incomplete or degenerate, non-finite joint values (file and field named).
+    """
+    from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
+
+    ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+    root = ds.root if ds.root is not None else Path(".")
+    if ds.robot is None:
+        raise DatasetError(root / "dataset.yaml", "robot", "a robot (urdf or model, base_frame, feet) whose legs to identify",
+                           "none")  # fmt: skip
+    if ds.mocap is None:
+        raise DatasetError(root / "mocap.csv", "file", "motion-capture markers (mocap.csv: time, marker, x, y, z)",
+                           "missing")  # fmt: skip
+    mocap_file = root / "mocap.csv"
+    robot = load_dataset_robot(ds)
+    feet = tuple(robot.feet)
+    jfile, jt = _joint_table(ds)
+    row_of_time = {}
+    for i, t in enumerate(jt["time"].tolist()):
+        row_of_time.setdefault(t, i)
+
+    m = ds.mocap
+    names = m["marker"].tolist()
+    times = m["time"]
+    xyz = np.column_stack([m["x"], m["y"], m["z"]])
+    by_marker: dict[str, dict[float, np.ndarray]] = {}
+    for i, (name, t) in enumerate(zip(names, times.tolist())):
+        by_marker.setdefault(name, {})[t] = xyz[i]
+    warnings: list[str] = []
+
+    present = [b for b in BODY_MARKERS if b in by_marker]
+    use_vbase = bool(present)
+    if use_vbase and len(present) != 4:
+        raise DatasetError(mocap_file, "column marker", "all four body markers body.1 ... body.4 (Yuan's virtual base) or none",
+                           f"only {', '.join(present)}")  # fmt: skip
+    extra_body = sorted(n for n in by_marker if n.startswith("body.") and n not in BODY_MARKERS)
+    if extra_body:
+        warnings.append(f"body markers {', '.join(extra_body)} ignored (the virtual base uses body.1 ... body.4)")
+
+    T_nominal = None
+    if use_vbase:
+        specs = [ds.mocap_markers.get(b) for b in BODY_MARKERS]
+        if all(s is not None and s.xyz is not None for s in specs):
+            links = {s.link for s in specs}
+            if links == {robot.base_frame}:
+                try:
+                    T_nominal = virtual_base(np.array([s.xyz for s in specs]))
+                except GraphcalError as exc:
+                    raise DatasetError(root / "dataset.yaml", "mocap.markers.body.1 ... body.4.xyz",
+                                       "four body marker positions spanning a quadrilateral", str(exc)) from None
+            else:
+                warnings.append(f"body markers are on links {sorted(links)}, not on the base frame "
+                                f"{robot.base_frame!r}: their nominal layout is not used")
+        body_times = set.intersection(*(set(by_marker[b]) for b in BODY_MARKERS))
+
+    tracks: list[MarkerTrack] = []
+    for name in sorted(by_marker):
+        if name.startswith("body."):
+            continue
+        foot = marker_foot(name, feet, ds.mocap_markers)
+        if foot is None:
+            link = ds.mocap_markers[name].link if name in ds.mocap_markers else "?"
+            warnings.append(f"marker {name!r} (link {link!r}) is not on a foot of robot.feet: not used")
+            continue
+        leg = robot.leg(foot)
+        samples = by_marker[name]
+        ts = sorted(samples)
+        if use_vbase:
+            kept = [t for t in ts if t in body_times]
+            if len(kept) < len(ts):
+                warnings.append(f"marker {name!r}: {len(ts) - len(kept)} sample(s) without all four body markers dropped")
+            ts = kept
+        rows = [row_of_time.get(t) for t in ts]
+        if any(r is None for r in rows):  # read_dataset matched every time already; kept for safety
+            t_bad = ts[[r is None for r in rows].index(True)]
+            raise DatasetError(mocap_file, "column time", f"a time of {jfile.name}", t_bad)
+        rows = np.asarray(rows, dtype=int)
+        cols = []
+        for j in leg.joint_names:
+            c = f"q_{j}"
+            if not jt.has(c):
+                raise DatasetError(jfile, f"header, column {c}", f"joint values of every joint of the leg of {foot!r}",
+                                   "missing")  # fmt: skip
+            cols.append(np.asarray(jt[c], dtype=float)[rows])
+        q = np.column_stack(cols) if cols else np.zeros((len(rows), 0))
+        P = np.array([samples[t] for t in ts], dtype=float).reshape(-1, 3)
+        ok = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(P), axis=1)
+        if not ok.all():
+            i = int(np.argmax(~ok))
+            raise DatasetError(jfile if not np.all(np.isfinite(q[i])) else mocap_file,
+                               f"time {ts[i]!r}", f"finite joint values and marker coordinates for marker {name!r}",
+                               "nan or inf")  # fmt: skip
+        t_arr = np.asarray(ts, dtype=float)
+        cov_extra = None
+        if use_vbase and len(ts):
+            B = np.array([[by_marker[b][t] for b in BODY_MARKERS] for t in ts], dtype=float)
+            try:
+                T_mv = virtual_base(B)
+            except GraphcalError as exc:
+                raise DatasetError(mocap_file, "markers body.1 ... body.4", "four body markers spanning a quadrilateral, "
+                                   "counter-clockwise from the left front", str(exc)) from None  # fmt: skip
+            P = vbase_points(T_mv, P)
+            if sigma_body_marker_m:
+                cov_extra = point_covariance_in_vbase(P, virtual_base_covariance(B, sigma_body_marker_m))
+        if len(ts) < MIN_SAMPLES:
+            warnings.append(f"marker {name!r}: only {len(ts)} sample(s), not used (at least {MIN_SAMPLES})")
+            continue
+        spec = ds.mocap_markers.get(name)
+        pfm = None if spec is None or spec.xyz is None else np.array(spec.xyz, dtype=float)
+        tracks.append(MarkerTrack(name, foot, t_arr, q, P, pfm, cov_extra))
+    if not tracks:
+        raise DatasetError(mocap_file, "column marker",
+                           f"samples of at least one marker on a foot of robot.feet ({', '.join(feet) or 'none'}): "
+                           f"named after the foot (lf_foot, lf_foot.1) or with mocap.markers.<name>.link a foot, "
+                           f"at least {MIN_SAMPLES} samples",
+                           ", ".join(sorted(by_marker)) or "no markers")  # fmt: skip
+    source = str(root if isinstance(dataset, Dataset) else dataset)
+    return MocapData(robot, tuple(tracks), "vbase" if use_vbase else "mocap", T_nominal, source, tuple(warnings))
