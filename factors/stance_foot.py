@@ -101,6 +101,7 @@ def stance_foot_factor(
     theta=None,
     robust=None,
     cov_m2=None,
+    p_fk=None,
 ) -> gtsam.NonlinearFactor:
     """Factor on (X, F[, L]) for one planted foot at one station.
 
@@ -117,6 +118,8 @@ def stance_foot_factor(
         robust: optional gtsam mEstimator.
         cov_m2: a full 3x3 covariance (m^2) of the foot position error in the body frame instead of
             ``sigma_m`` (e.g. :func:`joint_noise_covariance`: encoder noise through the leg).
+        p_fk: FK(q; theta) (3,) when the caller has it already (without ``l_key`` only). Without
+            ``l_key`` the forward kinematics is a constant and computed once, here.
     """
     q = np.array(q, dtype=float)
     if q.shape != (leg.n_joints,) or not np.all(np.isfinite(q)):
@@ -143,10 +146,24 @@ def stance_foot_factor(
         noise = with_robust(gtsam.noiseModel.Isotropic.Sigma(3, float(sigma_m)), robust)
 
     if l_key is None:
+        if p_fk is None:
+            if param is None:
+                p_fk = foot_positions(leg, q)
+            else:
+                p_fk = fk_with_params(leg, param, q, param.zeros() if theta is None else theta)
+        p_fixed = np.array(p_fk, dtype=float).reshape(3)
+        p_fixed.setflags(write=False)
 
         def error_fn(X, F, want):
-            e, H = stance_foot_error(X, F, q, leg, param, theta, want)
-            return e, (None if H is None else H[:2])
+            R_x, t_x = X[:3, :3], X[:3, 3]
+            p_b = R_x.T @ (F - t_x)
+            e = p_fixed - p_b
+            if not want:
+                return e, None
+            H_X = np.empty((3, 6))
+            H_X[:, :3] = -skew3(p_b)
+            H_X[:, 3:] = np.eye(3)
+            return e, [H_X, np.ascontiguousarray(-R_x.T)]
 
         return checked_custom_factor(noise, [x_key, f_key], error_fn, [6, 3], 3, kinds=["Pose3", "Point3"], name="stance_foot")
 

@@ -11,7 +11,8 @@ Factors:
 * foot on ground (F): the planted foot lies on the ground z = 0;
 * IMU attitude (X[, M]): the measured specific force is "up"; with the IMU mounting rotation M
   estimated by default (a custom factor), else the built-in AttitudeFactorPose3;
-* commanded-pose prior (X): the set pose, loose (x, y and yaw are otherwise a free gauge);
+* commanded-pose prior (X): the set pose, loose (x, y and yaw are otherwise a free gauge); with
+  ``legs`` on x, y and yaw only (see :func:`station_factors`);
 * extrinsic prior (S): the CAD value and its sigma from dataset.yaml;
 * leg-offset prior (L).
 
@@ -22,12 +23,13 @@ least squares), laser scanners from their points (linear) — see graphcal/solve
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
 
-from factors.keys import F, L, M, S, X
+from factors.keys import C, F, G, L, M, S, W, X
 from ..errors import GraphcalError
 from ..geometry import pose_matrix, to_gtsam_pose
 from .kinematic_pose import feet_in_body, ground_from_feet, initial_body_pose
@@ -93,6 +95,43 @@ class CalibrationOptions:
         return dict(self.plane_sigma_scales).get(sensor, 1.0)
 
 
+@dataclass(frozen=True)
+class ModelExtensions:
+    """Extra variables of the diagnosis catalogue (graphcal/diagnosis) in the calibration graph.
+
+    Each entry adds a variable with a zero-mean prior of the given sigma (SI units): a tiny sigma
+    keeps the nominal model (the variable exists so that its Jacobian can be read), a large one lets
+    the data estimate it. All default to absent.
+
+    Attributes:
+        range_scale: (sensor, sigma) -> C(k) = [scale] of sensor k (prior 1): its planes and scans
+            read ``scale`` times the true range (factors/range_scale.py).
+        session_offset: (session, sigma_m) -> G(1 + j), the ground plane the sensors see at the
+            stations of session j, ``offset_m`` above the plane the feet (and the commanded poses)
+            stand on: the feet sank by ``offset_m`` (d of the plane = -offset_m; its tilt is held).
+        ground_tilt_sigma_rad: gravity against the ground: W(0) = R_ground_level (Rot3, prior
+            identity with this sigma on the tilt, its yaw pinned) in every IMU factor
+            (factors/gravity_tilt.py); needs the IMU mounting variable. The world stays the ground.
+        imu_mounting_sigma_rad: sigma of the prior on the IMU mounting rotation M(0) about the
+            dataset's prior (replaces ``max(dataset sigma, options.sigma_imu_mounting_rad)``).
+        leg_sigmas: (foot, per-parameter sigmas) -> L(l) for that leg (the graph's ``legs`` switch
+            then applies to the other legs only).
+        extrinsic_segments: (sensor, station): from that station on (in station order), the sensor
+            has a new extrinsic S(k + 1000 j) with the CAD prior (the sensor was knocked).
+    """
+
+    range_scale: tuple[tuple[str, float], ...] = ()
+    session_offset: tuple[tuple[str, float], ...] = ()
+    ground_tilt_sigma_rad: float | None = None
+    imu_mounting_sigma_rad: float | None = None
+    leg_sigmas: tuple[tuple[str, tuple[float, ...]], ...] = ()
+    extrinsic_segments: tuple[tuple[str, int], ...] = ()
+
+
+#: key offset of an extrinsic segment: segment j of sensor k is S(k + SEGMENT_KEY_STRIDE * j)
+SEGMENT_KEY_STRIDE = 1000
+
+
 @dataclass(frozen=True, eq=False)
 class CalibrationProblem:
     """A built graph with its initial values and the bookkeeping to read results back.
@@ -111,6 +150,11 @@ class CalibrationProblem:
             "foot_on_ground", "imu", "commanded"); priors on S and L belong to no group.
         factor_components: factor index -> {component: covariance} for factors whose noise is a sum
             of components (stance feet: "joint", "contact").
+        extensions: the :class:`ModelExtensions` the graph was built with.
+        extension_keys: extension name -> key: ``range_scale:<sensor>``, ``session_offset:<session>``,
+            ``ground_tilt``, ``imu_mounting``, ``segment:<sensor>:<station>``.
+        extension_priors: factor index -> extension name of the priors on those variables.
+        measurement_keys: (station, sensor) -> key of the extrinsic (segment) its factor uses.
     """
 
     graph: gtsam.NonlinearFactorGraph
@@ -125,14 +169,41 @@ class CalibrationProblem:
     excluded: frozenset = field(default_factory=frozenset)
     factor_groups: dict = field(default_factory=dict)
     factor_components: dict = field(default_factory=dict)
+    extensions: ModelExtensions = field(default_factory=ModelExtensions)
+    extension_keys: dict = field(default_factory=dict)
+    extension_priors: dict = field(default_factory=dict)
+    measurement_keys: dict = field(default_factory=dict)
+
+
+_LEG_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def leg_kinematics(data: CalibrationData, robot) -> dict:
+    """(station, foot) -> (p_body_foot (3,), J (3, n) position Jacobian) of the measured joint
+    angles on the nominal legs, computed once per (data, robot) and cached (graphs are rebuilt
+    many times by the noise estimation and the diagnosis)."""
+    from ..models.kinematics import foot_positions, leg_jacobian
+
+    per_data = _LEG_CACHE.setdefault(data, {})
+    out = per_data.get(id(robot))
+    if out is None or out[0] is not robot:
+        table = {}
+        for st in data.stations:
+            for f, q in st.q_by_foot.items():
+                leg = robot.leg(f)
+                table[(st.station, f)] = (foot_positions(leg, q), leg_jacobian(leg, np.asarray(q, dtype=float)))
+        out = (robot, table)
+        per_data[id(robot)] = out
+    return out[1]
 
 
 def _kinematic_bodies(data: CalibrationData, robot) -> tuple[dict, dict, dict]:
     """station -> (u_body, height, T_world_body initial) from the stance feet (or the commanded pose)."""
     out_u, out_h, out_T = {}, {}, {}
+    kin = leg_kinematics(data, robot)
     for st in data.stations:
         if len(st.q_by_foot) >= 3:
-            u, h = ground_from_feet(feet_in_body(robot, st.q_by_foot))
+            u, h = ground_from_feet(np.array([kin[(st.station, f)][0] for f in st.q_by_foot]))
             T = initial_body_pose(u, h, st.T_world_body_cmd)
         elif st.T_world_body_cmd is not None:
             T = st.T_world_body_cmd
@@ -169,6 +240,8 @@ def _robust_closed_form_extrinsic(u: np.ndarray, n: np.ndarray, d: np.ndarray, z
 #: prior pinning x, y and yaw of a session's first body pose when the dataset has no commanded
 #: poses (those directions are a free gauge); sigmas [roll, pitch, yaw (rad), x, y, z (m)]
 GAUGE_PRIOR_SIGMAS = np.array([1e3, 1e3, 0.1, 0.1, 0.1, 1e3])
+#: sigma (rad or m) of a prior's component that is meant to carry no information
+LOOSE_SIGMA = 1e3
 #: plane covariance used when planes.csv gives none (of (nx, ny, nz, d))
 DEFAULT_PLANE_COV = np.diag([1e-6, 1e-6, 1e-6, 1e-6])
 
@@ -184,26 +257,38 @@ def huber_loss(dim: int, options: CalibrationOptions):
 
 
 def measurement_factor(x_key: int, s_key: int, sensor: str, options: CalibrationOptions, *, plane=None,
-                       points=None, robust: bool = False):
+                       points=None, robust: bool = False, c_key: int | None = None, g_key: int | None = None):
     """The factor of what one sensor saw at one station: the ground plane of a camera
     (plane_observation, its covariance scaled by the sensor's noise scale) or the beams of a laser
-    scan (range_to_plane). ``robust``: Huber loss sized to the factor's dimension."""
-    from factors.plane_observation import plane_observation_factor
+    scan (range_to_plane). ``robust``: Huber loss sized to the factor's dimension. ``c_key``: the
+    sensor's range-scale variable (factors/range_scale.py); ``g_key``: an estimated ground plane
+    (cameras only)."""
+    from factors.plane_observation import plane_noise_model, plane_observation_factor
+    from factors.range_scale import scaled_plane_factor, scaled_range_factor
     from factors.range_to_plane import range_to_plane_factor
 
     scale = options.plane_scale(sensor)
     if plane is not None:
         cov = (plane.cov if plane.cov is not None else DEFAULT_PLANE_COV) * scale**2
+        n_m = np.asarray(plane.n, dtype=float)
+        if c_key is not None:
+            noise = plane_noise_model(n_m, cov, options.plane_angle_floor_rad, options.plane_distance_floor_m,
+                                      robust=huber_loss(3, options) if robust else None)
+            return scaled_plane_factor(x_key, s_key, c_key, n_m, float(plane.d), noise_model=noise, g_key=g_key)
         return plane_observation_factor(
-            x_key, s_key, np.asarray(plane.n, dtype=float), float(plane.d), cov,
+            x_key, s_key, n_m, float(plane.d), cov, g_key=g_key,
             sigma_angle_floor_rad=options.plane_angle_floor_rad,
             sigma_distance_floor_m=options.plane_distance_floor_m,
             robust=huber_loss(3, options) if robust else None)
     if points is None:
         raise GraphcalError(f"sensor {sensor}: a measurement needs a plane or scan points")
+    if g_key is not None:
+        raise GraphcalError(f"sensor {sensor}: an estimated ground plane is not supported for laser scans")
     pts = np.asarray(points, dtype=float)
-    return range_to_plane_factor(x_key, s_key, pts, options.sigma_scan_m * scale,
-                                 robust=huber_loss(len(pts), options) if robust else None)
+    rob = huber_loss(len(pts), options) if robust else None
+    if c_key is not None:
+        return scaled_range_factor(x_key, s_key, c_key, pts, options.sigma_scan_m * scale, robust=rob)
+    return range_to_plane_factor(x_key, s_key, pts, options.sigma_scan_m * scale, robust=rob)
 
 
 def leg_parameter_priors(robot, options: CalibrationOptions) -> list:
@@ -228,10 +313,11 @@ def imu_mounting_prior(R_body_imu: np.ndarray, prior_sigma_rad: float, options: 
 
 
 def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, options: CalibrationOptions, *,
-                    R_body_imu: np.ndarray | None) -> list:
-    """The proprioceptive factors of one station, as (factor, noise group, noise components or None):
+                    R_body_imu: np.ndarray | None, kinematics: dict | None = None, w_key: int | None = None) -> list:
+    """The proprioceptive factors of one station, as (factor, noise group or None, noise components or None):
     a stance-foot factor per planted foot (noise: joint noise through the leg plus contact noise),
-    the IMU attitude, and the commanded-pose prior."""
+    the IMU attitude, and the commanded-pose prior. ``kinematics``: :func:`leg_kinematics` when
+    already computed."""
     from factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
     from factors.priors import commanded_pose_prior
     from factors.stance_foot import joint_noise_covariance, stance_foot_factor
@@ -239,26 +325,56 @@ def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, opti
     out = []
     for f, q in st.q_by_foot.items():
         leg_key, param = leg_keys.get(f, (None, None))
-        cov_joint = joint_noise_covariance(robot.leg(f), q, options.sigma_joint_rad, 0.0)
+        cached = kinematics.get((st.station, f)) if kinematics is not None else None
+        if cached is not None:
+            cov_joint = options.sigma_joint_rad**2 * (cached[1] @ cached[1].T)
+        else:
+            cov_joint = joint_noise_covariance(robot.leg(f), q, options.sigma_joint_rad, 0.0)
         cov_contact = options.sigma_contact_m**2 * np.eye(3)
         factor = stance_foot_factor(x_key, foot_keys[f], q, robot.leg(f), l_key=leg_key, param=param,
-                                    cov_m2=cov_joint + cov_contact)
+                                    cov_m2=cov_joint + cov_contact,
+                                    p_fk=cached[0] if (cached is not None and leg_key is None) else None)
         out.append((factor, "stance_foot", {"joint": cov_joint, "contact": cov_contact}))
     if st.imu_accel is not None and R_body_imu is not None:
-        if options.estimate_imu_mounting:
+        if options.estimate_imu_mounting and w_key is not None:
+            from factors.gravity_tilt import imu_attitude_tilted_factor
+
+            out.append((imu_attitude_tilted_factor(x_key, M(0), w_key, st.imu_accel, options.sigma_imu_rad), "imu", None))
+        elif options.estimate_imu_mounting:
             out.append((imu_attitude_misaligned_factor(x_key, M(0), st.imu_accel, options.sigma_imu_rad), "imu", None))
         else:
             out.append((imu_attitude_factor(x_key, st.imu_accel, options.sigma_imu_rad, R_body_imu=R_body_imu),
                         "imu", None))
-    if st.T_world_body_cmd is not None:
+    if st.T_world_body_cmd is not None and options.legs:
+        # the controller computed the commanded pose with the nominal legs: its difference from the
+        # real pose is a function of the leg errors being estimated, not independent noise (as a
+        # prior on roll, pitch and height, with its sigma learned from the residuals, it pulled the
+        # legs and the extrinsic height by 10-20 sigma; docs/calibration.md, "Leg offsets from
+        # stance"). With legs it keeps only x, y and yaw (the gauge the ground cannot see) at its
+        # default sigma, in no noise group.
+        s_rad, s_m = options.sigma_commanded_rad, options.sigma_commanded_m
+        out.append((commanded_pose_prior(x_key, st.T_world_body_cmd, [LOOSE_SIGMA, LOOSE_SIGMA, s_rad],
+                                         [s_m, s_m, LOOSE_SIGMA]), None, None))
+    elif st.T_world_body_cmd is not None:
         out.append((commanded_pose_prior(x_key, st.T_world_body_cmd, options.sigma_commanded_rad,
                                          options.sigma_commanded_m), "commanded", None))
     return out
 
 
 def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions, *,
-                  exclude: frozenset = frozenset()) -> CalibrationProblem:
-    """Build the calibration graph of a dataset (see the module docstring)."""
+                  exclude: frozenset = frozenset(), extensions: ModelExtensions | None = None,
+                  initial: gtsam.Values | None = None) -> CalibrationProblem:
+    """Build the calibration graph of a dataset (see the module docstring).
+
+    Args:
+        exclude: (station, sensor) measurements to leave out.
+        extensions: extra variables of the diagnosis catalogue (:class:`ModelExtensions`).
+        initial: values to start from instead of the closed form, for every variable they hold
+            (a warm start from a previous solve of a similar graph).
+    """
+    from factors.plane_prior import plane_prior_factor
+
+    ext = extensions if extensions is not None else ModelExtensions()
     from factors.foot_on_ground import foot_on_ground_factor
     from factors.priors import extrinsic_prior
     from ..solvers.closed_form import extrinsic_from_scan_points
@@ -276,6 +392,7 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         graph.add(factor)
 
     u_body, height, T_body0 = _kinematic_bodies(data, robot)
+    kin = leg_kinematics(data, robot)
     station_keys = {st.station: X(st.station) for st in data.stations}
     for st in data.stations:
         values.insert(station_keys[st.station], to_gtsam_pose(T_body0[st.station]))
@@ -308,30 +425,107 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
     if not sensor_keys:
         raise GraphcalError("no sensor has ground planes or scan points at any station: nothing to calibrate")
 
+    ext_keys: dict[str, int] = {}
+    ext_priors: dict[int, str] = {}
+    R_body_imu_prior = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
+
+    def add_prior(factor, name: str) -> None:
+        ext_priors[graph.size()] = name
+        graph.add(factor)
+
+    sensor_index = {name: k for k, name in enumerate(ds.sensors)}
+    station_order = {st.station: i for i, st in enumerate(data.stations)}
+    for name, sig in ext.range_scale:
+        if name not in sensor_keys:
+            raise GraphcalError(f"range_scale names sensor {name!r}, which has no measurements")
+        key = C(sensor_index[name])
+        ext_keys[f"range_scale:{name}"] = key
+        values.insert(key, np.array([1.0]))
+        add_prior(gtsam.PriorFactorVector(key, np.array([1.0]), gtsam.noiseModel.Isotropic.Sigma(1, float(sig))),
+                  f"range_scale:{name}")
+    g_key = None  # the ground the sensors see: z = 0 of the world, or a session's own plane
+    w_key = None
+    if ext.ground_tilt_sigma_rad is not None and R_body_imu_prior is not None:
+        # gravity against the ground: W = R_ground_level, its rotation about the vertical pinned
+        w_key = W(0)
+        ext_keys["ground_tilt"] = w_key
+        values.insert(w_key, gtsam.Rot3())
+        sig = float(ext.ground_tilt_sigma_rad)
+        add_prior(gtsam.PriorFactorRot3(w_key, gtsam.Rot3(), gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([sig, sig, 1e-6]))), "ground_tilt")
+    segments: dict[str, list[tuple[int, int]]] = {}
+    for name, station in ext.extrinsic_segments:
+        if name not in sensor_keys:
+            raise GraphcalError(f"extrinsic segment names sensor {name!r}, which has no measurements")
+        if station not in station_order:
+            raise GraphcalError(f"extrinsic segment of {name!r} starts at station {station}, which does not exist")
+        j = len(segments.setdefault(name, [])) + 1
+        key = S(sensor_index[name] + SEGMENT_KEY_STRIDE * j)
+        segments[name].append((station_order[station], key))
+        ext_keys[f"segment:{name}:{station}"] = key
+        values.insert(key, to_gtsam_pose(ext0[name]))
+        T_cad, sig_m, sig_r = sensor_priors[name]
+        add_prior(extrinsic_prior(key, T_cad, max(sig_m, 1e-6), max(sig_r, 1e-9)), f"segment:{name}:{station}")
+
+    sessions = list(dict.fromkeys(st.session for st in data.stations))
+    session_planes = {}
+    for s_name, sig in ext.session_offset:
+        if s_name not in sessions:
+            raise GraphcalError(f"session_offset names session {s_name!r}; the sessions are {', '.join(sessions)}")
+        key = G(1 + sessions.index(s_name))
+        session_planes[s_name] = key
+        ext_keys[f"session_offset:{s_name}"] = key
+        values.insert(key, gtsam.OrientedPlane3(0.0, 0.0, 1.0, 0.0))
+        add_prior(plane_prior_factor(key, [0.0, 0.0, 1.0, 0.0], 1e-6, float(sig)), f"session_offset:{s_name}")
+    session_of = {st.station: st.session for st in data.stations}
+
+    def extrinsic_key(name: str, station: int) -> int:
+        key = sensor_keys[name]
+        for start, k in sorted(segments.get(name, [])):
+            if station_order[station] >= start:
+                key = k
+        return key
+
     plane_factors = {}
-    for name, key in sensor_keys.items():
+    measurement_keys = {}
+    for name in sensor_keys:
+        c_key = ext_keys.get(f"range_scale:{name}")
         for st in data.stations:
             m = (st.station, name)
             if m in exclude:
                 continue
+            key = extrinsic_key(name, st.station)
+            gk = session_planes.get(session_of[st.station], g_key)
             if m in data.planes:
                 f = measurement_factor(station_keys[st.station], key, name, options, plane=data.planes[m],
-                                       robust=options.robust)
+                                       robust=options.robust, c_key=c_key, g_key=gk)
             elif m in data.scan_points:
                 f = measurement_factor(station_keys[st.station], key, name, options, points=data.scan_points[m],
-                                       robust=options.robust)
+                                       robust=options.robust, c_key=c_key, g_key=gk)
             else:
                 continue
             plane_factors[graph.size()] = m
+            measurement_keys[m] = key
             add(f, f"plane:{name}")
 
     # legs and stance
     leg_keys = {}
-    if options.legs:
+    leg_sigmas = dict(ext.leg_sigmas)
+    if options.legs or leg_sigmas:
+        from factors.priors import leg_offset_prior
+
         for foot, key, param, prior in leg_parameter_priors(robot, options):
-            leg_keys[foot] = (key, param)
-            values.insert(key, np.zeros(len(param.names)))
-            graph.add(prior)
+            if foot in leg_sigmas:
+                sig = np.asarray(leg_sigmas[foot], dtype=float)
+                if sig.shape != (len(param.names),):
+                    raise GraphcalError(f"leg {foot}: {len(sig)} parameter sigmas for {len(param.names)} parameters")
+                leg_keys[foot] = (key, param)
+                values.insert(key, np.zeros(len(param.names)))
+                add_prior(leg_offset_prior(key, len(param.names), sig), f"legs:{foot}")
+            elif options.legs:
+                leg_keys[foot] = (key, param)
+                values.insert(key, np.zeros(len(param.names)))
+                graph.add(prior)
     sessions = list(dict.fromkeys(st.session for st in data.stations))
     foot_index = {(s, f): j for j, (s, f) in enumerate((s, f) for s in sessions for f in robot.feet)}
     feet_sum: dict = {}
@@ -341,15 +535,20 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         if R_body_imu is not None and st.imu_accel is not None and options.estimate_imu_mounting \
                 and not values.exists(M(0)):
             values.insert(M(0), gtsam.Rot3(R_body_imu))
-            graph.add(imu_mounting_prior(R_body_imu, ds.imu.T_body_imu_prior.sigma_rad, options))
+            if ext.imu_mounting_sigma_rad is None:
+                graph.add(imu_mounting_prior(R_body_imu, ds.imu.T_body_imu_prior.sigma_rad, options))
+            else:
+                ext_keys["imu_mounting"] = M(0)
+                add_prior(gtsam.PriorFactorRot3(M(0), gtsam.Rot3(R_body_imu), gtsam.noiseModel.Isotropic.Sigma(
+                    3, float(ext.imu_mounting_sigma_rad))), "imu_mounting")
         foot_keys = {f: F(foot_index[(st.session, f)]) for f in st.q_by_foot}
         for factor, group, comps in station_factors(robot, st, station_keys[st.station], foot_keys, leg_keys,
-                                                    options, R_body_imu=R_body_imu):
+                                                    options, R_body_imu=R_body_imu, kinematics=kin, w_key=w_key):
             if comps is not None:
                 components[graph.size()] = comps
             add(factor, group)
         for f, q in st.q_by_foot.items():
-            p_world = T[:3, :3] @ feet_in_body(robot, {f: q})[0] + T[:3, 3]
+            p_world = T[:3, :3] @ kin[(st.station, f)][0] + T[:3, 3]
             feet_sum.setdefault(foot_index[(st.session, f)], []).append(p_world)
     for j, pts in feet_sum.items():
         p0 = np.mean(pts, axis=0)
@@ -364,8 +563,26 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         for s, station in first.items():
             graph.add(gtsam.PriorFactorPose3(station_keys[station], to_gtsam_pose(T_body0[station]),
                                              gtsam.noiseModel.Diagonal.Sigmas(GAUGE_PRIOR_SIGMAS)))
+    if initial is not None:
+        for k in initial.keys():
+            if values.exists(k):
+                _copy_value(values, initial, int(k))
     return CalibrationProblem(graph, values, sensor_keys, sensor_priors, station_keys, leg_keys, plane_factors,
-                              T_body0, ext0, frozenset(exclude), groups, components)
+                              T_body0, ext0, frozenset(exclude), groups, components, ext, ext_keys, ext_priors,
+                              measurement_keys)
+
+
+def _copy_value(values: gtsam.Values, source: gtsam.Values, key: int) -> None:
+    """values[key] = source[key] for the kinds the calibration graph uses."""
+    for getter in ("atPose3", "atPoint3", "atRot3", "atOrientedPlane3", "atVector"):
+        try:
+            v = getattr(source, getter)(key)
+        except RuntimeError:
+            continue
+        if getter == "atVector" and np.size(v) != values.atVector(key).size:
+            return
+        values.update(key, v)
+        return
 
 
 def predicted_plane_errors(T_world_body: np.ndarray, T_body_sensor: np.ndarray, n_m, d_m) -> tuple[float, float]:

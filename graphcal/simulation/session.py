@@ -103,6 +103,9 @@ class SimulationConfig:
         seed: every random draw derives from it.
         n_stations: for the ``random`` program.
         n_sessions: stances; the feet are re-planted between sessions.
+        session_heading_step_deg: the robot turns by this much about the vertical between sessions
+            (and steps 0.25 m forward); heading changes are what tell a tilted floor from a tilted
+            IMU (docs/diagnosis.md).
         sensors: names of the model's sensors to simulate (default: all).
         cloud_stride: keep every k-th pixel row and column of camera images (1 = full resolution).
         extrinsic_sigma_m, extrinsic_sigma_rad: the true extrinsic is the CAD value perturbed by
@@ -131,6 +134,7 @@ class SimulationConfig:
     seed: int = 0
     n_stations: int | None = None
     n_sessions: int = 1
+    session_heading_step_deg: float = 8.0
     sensors: tuple[str, ...] | None = None
     cloud_stride: int = 4
     extrinsic_sigma_m: float = 0.01
@@ -227,18 +231,14 @@ def _true_robot(robot, config: SimulationConfig, rng: np.random.Generator):
 
 
 def _link_joints(robot, foot: str) -> tuple[str, ...]:
-    """Joints of a leg whose origin translation is a link length: every moving joint after the
-    first, and the fixed foot joint ``<leg>_foot_joint`` when the URDF has it."""
-    import xml.etree.ElementTree as ET
+    """Joints of a leg whose origin translation is a link length: the URDF joints of the leg's
+    ``delta_m`` parameters (graphcal/models/leg_params.py: every joint after the first whose origin
+    has a translation, and the fixed foot joint). A joint whose origin has no translation (two axes
+    through one point, e.g. the qingzhui's coxa-thigh pair) ends no link and is not a candidate."""
+    from ..models.leg_params import leg_parameterization
 
-    leg = robot.leg(foot)
-    names = list(leg.joint_names[1:])
-    root = ET.fromstring(robot.urdf_xml)
-    for j in root.iter("joint"):
-        child = j.find("child")
-        if child is not None and child.get("link") == foot and j.get("type") == "fixed":
-            names.append(j.get("name"))
-    return tuple(names)
+    param = leg_parameterization(robot, foot)
+    return tuple(j for j in param.link_urdf_joints if j is not None)
 
 
 def leg_link_joints(robot) -> dict[str, tuple[str, ...]]:
@@ -310,7 +310,8 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
     feet_world_assumed = {}
     feet_world_real = {}
     for k, s in enumerate(sessions):
-        T = pose_matrix(rot_z(np.radians(8.0 * k)), [0.25 * k, 0.08 * (-1) ** k * (k > 0), 0.0])
+        T = pose_matrix(rot_z(np.radians(config.session_heading_step_deg * k)),
+                        [0.25 * k, 0.08 * (-1) ** k * (k > 0), 0.0])
         T_world_stance[s] = T
         p_stance = np.array([info.nominal_stance[f] + np.array([0.0, 0.0, h0]) for f in robot.feet])
         p_assumed = transform_points(T, p_stance)

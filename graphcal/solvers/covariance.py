@@ -85,6 +85,17 @@ def _inverse_with_null(info: np.ndarray, rcond: float = NULL_RCOND) -> tuple[np.
     D = np.ones(d)
     D[pos] = 1.0 / np.sqrt(dg[pos])
     Hs = info * D[:, None] * D[None, :]
+    if d and pos.all():
+        # fast path: a clearly positive-definite system (Cholesky, ~10x faster than eigh); the
+        # pivots bound the smallest eigenvalue well above the null threshold
+        try:
+            Lc = np.linalg.cholesky(Hs)
+        except np.linalg.LinAlgError:
+            Lc = None
+        if Lc is not None and float(np.min(np.diag(Lc))) ** 2 > 1e3 * rcond * float(np.max(np.diag(Lc))) ** 2:
+            Li = np.linalg.inv(Lc)
+            cov = (Li.T @ Li) * D[:, None] * D[None, :]
+            return 0.5 * (cov + cov.T), np.zeros((d, 0))
     w, V = np.linalg.eigh(Hs)
     wmax = max(float(w.max()), 0.0) if w.size else 0.0
     keep = w > rcond * wmax if wmax > 0 else np.zeros(d, dtype=bool)

@@ -1,0 +1,165 @@
+"""The catalogue of effects ``graphcal diagnose`` can name, as candidates and findings.
+
+A :class:`Candidate` is one cause at one location (``joint_offset`` of ``lf_femur_joint``,
+``extrinsic_change`` of ``depth`` from station 31, ...); a :class:`Finding` is a candidate the data
+supports, with its estimated parameters, their sigma, the evidence and the held-out gain.
+
+The names and parameters (SI units) are those of the catalogue table (docs/diagnosis.md) and of
+the simulator's effects (graphcal/simulation/effects.py), so a finding can be compared with what
+the simulator hid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..simulation.effects import CAUSES
+
+__all__ = ["CAUSES", "Candidate", "Finding", "MIN_RELEVANT", "relevant"]
+
+#: The smallest effect worth reporting (SI units), per cause: below it a statistically significant
+#: effect is real but does not matter for calibration (e.g. a station-averaged accelerometer bias of
+#: 0.05 m/s^2 is a 0.3 deg "misalignment"). Findings are named only above these magnitudes.
+MIN_RELEVANT = {
+    "sensor_range_scale": 0.003,  # |scale - 1|
+    "session_offset": 0.003,  # m
+    "ground_tilt": float(np.radians(0.5)),
+    "imu_misalignment": float(np.radians(0.5)),
+    "joint_offset": float(np.radians(0.5)),
+    "link_length": 0.004,  # m
+    "extrinsic_change": float(np.radians(0.5)),  # or 5 mm of translation
+    "outlier_stations": 0.0,
+}
+#: translation (m) that makes an extrinsic change relevant on its own
+MIN_RELEVANT_TRANSLATION_M = 0.005
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One cause at one location.
+
+    Attributes:
+        cause: a name of :data:`CAUSES`.
+        where: location in the catalogue's terms, as sorted (key, value) pairs: ``sensor``,
+            ``session``, ``leg`` + ``joint``, ``station`` + ``sensor``, ``stations``.
+        family_size: how many candidates of this cause were tested (the multiple-comparison count).
+    """
+
+    cause: str
+    where: tuple = ()
+    family_size: int = 1
+
+    @property
+    def where_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.where}
+
+    def label(self) -> str:
+        loc = ", ".join(f"{k}={v}" for k, v in self.where_dict.items())
+        return f"{self.cause}({loc})" if loc else self.cause
+
+    def get(self, key: str):
+        return dict(self.where).get(key)
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """Evidence for a candidate against the current model.
+
+    Attributes:
+        test: ``"score"`` (Lagrange multiplier at the current fit) or ``"likelihood_ratio"``.
+        statistic: chi-square statistic; dof: its degrees of freedom (the rank of the candidate's
+            information after the current model's parameters are projected out).
+        p_value: chi-square tail probability; p_family: times the family size (Bonferroni), capped at 1.
+        log10_p_family: log10 of ``p_family`` (finite even where p underflows).
+        delta_bic: ``statistic - dof * ln(n_rows)``: > 0 favours the extended model.
+    """
+
+    test: str
+    statistic: float
+    dof: int
+    p_value: float
+    p_family: float
+    log10_p_family: float
+    delta_bic: float
+
+    def to_dict(self) -> dict:
+        return {"test": self.test, "statistic": float(self.statistic), "dof": int(self.dof),
+                "p_value": float(self.p_value), "p_family": float(self.p_family),
+                "log10_p_family": float(self.log10_p_family), "delta_bic": float(self.delta_bic)}
+
+
+@dataclass(frozen=True)
+class Gain:
+    """Held-out prediction of the sensors' measurements (whitened RMS, unitless) before and after."""
+
+    heldout_rms_before: float
+    heldout_rms_after: float
+    folds: int
+
+    @property
+    def relative(self) -> float:
+        return float(self.heldout_rms_after / self.heldout_rms_before) if self.heldout_rms_before > 0 else float("nan")
+
+    def to_dict(self) -> dict:
+        return {"heldout_rms_before": float(self.heldout_rms_before), "heldout_rms_after": float(self.heldout_rms_after),
+                "relative": self.relative, "folds": int(self.folds)}
+
+
+@dataclass(frozen=True)
+class Finding:
+    """A named cause the data supports, with the extended model's estimate.
+
+    Attributes:
+        candidate: the cause and its location.
+        parameters, sigma: estimated parameters and their 1-sigma (SI, the catalogue's names).
+        evidence: the likelihood-ratio test of the fitted extension (and the screening score).
+        score: the screening score test that selected it.
+        gain: held-out gain.
+    """
+
+    candidate: Candidate
+    parameters: dict
+    sigma: dict
+    evidence: Evidence
+    score: Evidence
+    gain: Gain | None = None
+    notes: tuple = field(default=())
+
+    def to_dict(self) -> dict:
+        return {
+            "cause": self.candidate.cause,
+            "where": self.candidate.where_dict,
+            "parameters": {k: _plain(v) for k, v in self.parameters.items()},
+            "sigma": {k: _plain(v) for k, v in self.sigma.items()},
+            "evidence": {**self.evidence.to_dict(), "screening": self.score.to_dict()},
+            "gain": self.gain.to_dict() if self.gain is not None else None,
+            "notes": list(self.notes),
+        }
+
+
+def _plain(v):
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return [float(x) for x in np.asarray(v).reshape(-1)]
+    return float(v)
+
+
+def relevant(cause: str, parameters: dict) -> bool:
+    """Whether estimated ``parameters`` of ``cause`` reach the catalogue's minimum magnitude."""
+    m = MIN_RELEVANT[cause]
+    if cause == "sensor_range_scale":
+        return abs(parameters["scale"] - 1.0) >= m
+    if cause == "session_offset":
+        return abs(parameters["offset_m"]) >= m
+    if cause in ("ground_tilt",):
+        return abs(parameters["tilt_rad"]) >= m
+    if cause == "imu_misalignment":
+        return abs(parameters["angle_rad"]) >= m
+    if cause == "joint_offset":
+        return abs(parameters["offset_rad"]) >= m
+    if cause == "link_length":
+        return abs(parameters["delta_m"]) >= m
+    if cause == "extrinsic_change":
+        return abs(parameters["angle_rad"]) >= m or abs(parameters["translation_m"]) >= MIN_RELEVANT_TRANSLATION_M
+    return True

@@ -1,0 +1,469 @@
+"""The diagnosis loop: fit, screen every candidate, name the best-supported cause, extend, repeat.
+
+1. Fit the nominal model (model.py) and learn its noise (variance components).
+2. Screen: score-test every candidate cause at every location (scores.py), with a family-wise
+   (Bonferroni) p-value per cause.
+3. The candidate with the strongest evidence that passes ``alpha`` (divided by the number of
+   causes tested) is fitted as an extension; its likelihood-ratio statistic, parameters and sigma
+   come from that fit; it is named only if its size reaches the catalogue's minimum
+   (catalogue.MIN_RELEVANT; otherwise the next candidate is tried). The held-out gain
+   (heldout.py) says how much better the extended model predicts measurements it was not fitted on.
+4. Repeat from 2 with the extended model until no candidate is significant.
+5. Unexplained structure: the planes' chi-square (their covariance is the fit's own, not learned)
+   against its redundancy; beyond the 0.999 quantile structure remains that no catalogued effect
+   explains.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from ..errors import GraphcalError
+from ..geometry import from_gtsam_pose
+from .catalogue import Candidate, Evidence, Finding, relevant
+from .model import DiagnosisModel, chi2_of, model_options
+from .scores import CandidateColumns, current_columns, evidence, linear_system, score_candidates
+
+__all__ = ["Diagnosis", "diagnose", "ALPHA", "MAX_FINDINGS"]
+
+#: family-wise significance level of a finding (before the division by the number of causes)
+ALPHA = 1e-3
+MAX_FINDINGS = 4
+#: stations on each side of an extrinsic-change candidate
+MIN_SEGMENT_STATIONS = 3
+#: at most this share of the stations is named as outliers; beyond it the model, not the data, is wrong
+MAX_OUTLIER_SHARE = 0.2
+#: rounds that may add a significant but negligible effect (a nuisance) on top of the named findings
+MAX_NUISANCE = 3
+
+
+@dataclass(frozen=True)
+class ModelSummary:
+    """Residuals of a model: Chai's theta (normal angle) and e_d (distance) RMS over the sensors'
+    planes, and chi-square per degree of freedom over every factor."""
+
+    normal_rms_deg: float
+    distance_rms_mm: float
+    chi2_per_dof: float
+
+    def to_dict(self) -> dict:
+        return {"normal_rms_deg": self.normal_rms_deg, "distance_rms_mm": self.distance_rms_mm,
+                "chi2_per_dof": self.chi2_per_dof}
+
+
+@dataclass(frozen=True, eq=False)
+class Diagnosis:
+    """Result of :func:`diagnose`.
+
+    Attributes:
+        nominal, final: residual summaries of the nominal and the final (extended) model.
+        findings: named causes, in the order found (strongest evidence first).
+        unexplained_structure: the final planes still fail their chi-square test.
+        structure_test: (chi2, redundancy, p) of that test, or None when no plane has a covariance.
+        screening: per round, the top candidates as (label, log10 family p, statistic, dof).
+        model: the final DiagnosisModel; values: its solution; problem: its graph.
+        residuals_before, residuals_after: per-measurement residual records for the plots.
+        noise: the learned noise of the final model.
+    """
+
+    nominal: ModelSummary
+    final: ModelSummary
+    findings: tuple
+    unexplained_structure: bool
+    structure_test: tuple | None
+    screening: tuple
+    model: DiagnosisModel
+    values: gtsam.Values
+    problem: object
+    residuals_before: tuple = ()
+    residuals_after: tuple = ()
+    notes: tuple = field(default=())
+    nuisance: tuple = field(default=())
+
+    def to_json(self) -> dict:
+        from ..calibration.calibrate import _result
+        from ..report.calibration_yaml import calibration_to_dict as calibration_dict
+
+        result = _result(self.model.ds, self.model.robot, self.model.data, self.problem, self.values, set(), 0,
+                         self.model.options)
+        cal = calibration_dict(result)
+        return {
+            "format": "graphcal-diagnosis/1",
+            "nominal": self.nominal.to_dict(),
+            "final": self.final.to_dict(),
+            "findings": [f.to_dict() for f in self.findings],
+            "unexplained_structure": bool(self.unexplained_structure),
+            "structure_test": None if self.structure_test is None else
+            {"chi2": self.structure_test[0], "redundancy": self.structure_test[1], "p_value": self.structure_test[2]},
+            "extended_calibration": {"sensors": cal.get("sensors", {}), "legs": cal.get("legs", {}),
+                                     **_extension_values(self)},
+            "screening": [[{"candidate": c, "log10_p_family": p, "statistic": s, "dof": d} for c, p, s, d in r]
+                          for r in self.screening],
+            "nuisance": list(self.nuisance),
+            "notes": list(self.notes),
+        }
+
+
+def _extension_values(diag: Diagnosis) -> dict:
+    out = {}
+    for f in diag.findings:
+        if f.candidate.cause in ("joint_offset", "link_length"):
+            continue
+        out.setdefault("extensions", []).append({"cause": f.candidate.cause, "where": f.candidate.where_dict,
+                                                 "parameters": f.to_dict()["parameters"]})
+    return out
+
+
+# ---------------------------------------------------------------------------- candidates
+def _candidates(model: DiagnosisModel, problem, system) -> list[CandidateColumns]:
+    """Every candidate not yet in the model, with how it enters the screening linearisation."""
+    ek = problem.extension_keys
+    out: list[CandidateColumns] = []
+
+    def columns(key, sub=None):
+        o, d = system.col[int(key)]
+        idx = np.arange(o, o + d)
+        return idx if sub is None else idx[list(sub)]
+
+    found = set(model.findings)
+    sensors = model.sensors()
+    if not model.found("sensor_range_scale"):
+        for s in sensors:
+            if f"range_scale:{s}" in ek:
+                out.append(CandidateColumns(Candidate("sensor_range_scale", (("sensor", s),), len(sensors)),
+                                            columns(ek[f"range_scale:{s}"])))
+    sessions = model.sessions()
+    if len(sessions) > 1 and len(model.found("session_offset")) < len(sessions) - 1:
+        for s in sessions:
+            c = Candidate("session_offset", (("session", s),), len(sessions))
+            if c not in found and f"session_offset:{s}" in ek:
+                out.append(CandidateColumns(c, columns(ek[f"session_offset:{s}"], (2,))))
+    if "ground_tilt" in ek and not model.found("ground_tilt"):
+        out.append(CandidateColumns(Candidate("ground_tilt", (), 1), columns(ek["ground_tilt"], (0, 1))))
+    if "imu_mounting" in ek and not model.found("imu_misalignment"):
+        out.append(CandidateColumns(Candidate("imu_misalignment", (), 1), columns(ek["imu_mounting"])))
+    params = model.leg_params()
+    n_off = sum(sum(1 for n in p.names if n.endswith(".offset_rad")) for p in params.values())
+    n_len = sum(sum(1 for n in p.names if n.endswith(".delta_m")) for p in params.values())
+    free = {(c.get("leg"), c.get("joint"), c.cause) for c in model.findings}
+    for foot, (key, param) in problem.leg_keys.items():
+        for j, name in enumerate(param.names):
+            joint, kind = name.rsplit(".", 1)
+            cause = "joint_offset" if kind == "offset_rad" else "link_length"
+            if (foot, joint, cause) in free:
+                continue
+            c = Candidate(cause, (("joint", joint), ("leg", foot)), n_off if cause == "joint_offset" else n_len)
+            out.append(CandidateColumns(c, columns(key, (j,))))
+    # extrinsic changes: per sensor, per station within its current segment
+    order = system.station_order
+    for s in sensors:
+        ms = sorted(((order[st], st) for (st, name) in system.measurement_rows if name == s))
+        keys = {st: problem.measurement_keys[(st, s)] for _, st in ms}
+        n_fam = max(len(ms) - 2 * MIN_SEGMENT_STATIONS, 1)
+        for i in range(MIN_SEGMENT_STATIONS, len(ms) - MIN_SEGMENT_STATIONS + 1):
+            st = ms[i][1]
+            key = keys[st]
+            same = [t for _, t in ms if keys[t] == key]
+            pos = same.index(st)
+            if pos < MIN_SEGMENT_STATIONS or len(same) - pos < MIN_SEGMENT_STATIONS:
+                continue
+            rows = np.concatenate([system.measurement_rows[(t, s)] for t in same[pos:]])
+            c = Candidate("extrinsic_change", (("sensor", s), ("station", int(st))), n_fam)
+            out.append(CandidateColumns(c, columns(key), rows))
+    # outlier stations: every sensor's measurement at the station set free
+    by_station: dict[int, list] = {}
+    for (st, name), rows in system.measurement_rows.items():
+        by_station.setdefault(st, []).append(rows)
+    for st, rows in by_station.items():
+        out.append(CandidateColumns(Candidate("outlier_stations", (("stations", (int(st),)),), len(by_station)),
+                                    None, np.concatenate(rows)))
+    return out
+
+
+# ---------------------------------------------------------------------------- parameters of a fit
+def _retract(values: gtsam.Values, key: int, delta: np.ndarray) -> gtsam.Values:
+    vv = gtsam.VectorValues()
+    vv.insert(int(key), np.asarray(delta, dtype=float))
+    return values.retract(vv)
+
+
+def _propagate(values, keys, cov, fn, h=1e-6):
+    """(parameters, sigmas) of ``fn(values)`` with the joint covariance ``cov`` of ``keys``."""
+    p0 = np.asarray(fn(values), dtype=float)
+    dims = [values.dims()[int(k)] if hasattr(values.dims(), "__getitem__") else None for k in keys]
+    dims = [int(dict(values.dims().items())[int(k)]) for k in keys]
+    Jc = []
+    for k, d in zip(keys, dims):
+        for i in range(d):
+            e = np.zeros(d)
+            e[i] = h
+            Jc.append((np.asarray(fn(_retract(values, k, e))) - np.asarray(fn(_retract(values, k, -e)))) / (2 * h))
+    Jm = np.array(Jc).T.reshape(len(p0), -1)
+    var = np.einsum("ij,jk,ik->i", Jm, cov, Jm)
+    return p0, np.sqrt(np.clip(var, 0.0, None))
+
+
+def _joint_cov(problem, values, keys) -> np.ndarray:
+    from ..solvers.covariance import marginal_covariances
+
+    try:
+        marg = gtsam.Marginals(problem.graph, values)
+        jm = marg.jointMarginalCovariance(gtsam.KeyVector([int(k) for k in keys]))
+        return np.block([[np.asarray(jm.at(a, c)) for c in keys] for a in keys])
+    except RuntimeError:
+        covs = marginal_covariances(problem.graph, values, list(keys))
+        from scipy.linalg import block_diag
+
+        return block_diag(*[np.asarray(covs[k]) for k in keys])
+
+
+def _parameters(cand: Candidate, model: DiagnosisModel, problem, values) -> tuple[dict, dict]:
+    ek = problem.extension_keys
+    cause = cand.cause
+    if cause == "sensor_range_scale":
+        k = ek[f"range_scale:{cand.get('sensor')}"]
+        cov = _joint_cov(problem, values, [k])
+        return {"scale": float(values.atVector(k)[0])}, {"scale": float(np.sqrt(cov[0, 0]))}
+    if cause == "session_offset":
+        k = ek[f"session_offset:{cand.get('session')}"]
+        cov = _joint_cov(problem, values, [k])
+        d = float(values.atOrientedPlane3(k).planeCoefficients()[3])
+        return {"offset_m": -d}, {"offset_m": float(np.sqrt(cov[2, 2]))}
+    if cause == "ground_tilt":
+        k = ek["ground_tilt"]
+
+        def fn(v):
+            r = gtsam.Rot3.Logmap(gtsam.Rot3(v.atRot3(k).matrix().T))  # R_tilt = W^T
+            return [np.hypot(r[0], r[1]), np.arctan2(r[1], r[0])]
+
+        p, s = _propagate(values, [k], _joint_cov(problem, values, [k]), fn)
+        return {"tilt_rad": p[0], "axis_rad": p[1]}, {"tilt_rad": s[0], "axis_rad": s[1]}
+    if cause == "imu_misalignment":
+        k = ek["imu_mounting"]
+        R_prior = model.ds.imu.T_body_imu_prior.matrix[:3, :3]
+
+        def fn(v):
+            w = gtsam.Rot3.Logmap(gtsam.Rot3(v.atRot3(k).matrix() @ R_prior.T))
+            return [np.hypot(w[0], w[1]), np.arctan2(w[1], w[0])]
+
+        p, s = _propagate(values, [k], _joint_cov(problem, values, [k]), fn)
+        return {"angle_rad": p[0], "axis_rad": p[1]}, {"angle_rad": s[0], "axis_rad": s[1]}
+    if cause in ("joint_offset", "link_length"):
+        key, param = problem.leg_keys[cand.get("leg")]
+        name = f"{cand.get('joint')}." + ("offset_rad" if cause == "joint_offset" else "delta_m")
+        j = param.names.index(name)
+        cov = _joint_cov(problem, values, [key])
+        pname = "offset_rad" if cause == "joint_offset" else "delta_m"
+        return {pname: float(values.atVector(key)[j])}, {pname: float(np.sqrt(cov[j, j]))}
+    if cause == "extrinsic_change":
+        s, st = cand.get("sensor"), int(cand.get("station"))
+        k_new = ek[f"segment:{s}:{st}"]
+        order = [x.station for x in model.data.stations]
+        before = order[order.index(st) - 1]
+        k_old = problem.measurement_keys[(before, s)]
+
+        def fn(v):
+            T_old = from_gtsam_pose(v.atPose3(k_old))
+            T_new = from_gtsam_pose(v.atPose3(k_new))
+            D = T_new @ np.linalg.inv(T_old)
+            w = gtsam.Rot3.Logmap(gtsam.Rot3(D[:3, :3]))
+            return [np.linalg.norm(w), np.linalg.norm(D[:3, 3])]
+
+        p, sg = _propagate(values, [k_old, k_new], _joint_cov(problem, values, [k_old, k_new]), fn)
+        return {"angle_rad": p[0], "translation_m": p[1]}, {"angle_rad": sg[0], "translation_m": sg[1]}
+    return {}, {}
+
+
+# ---------------------------------------------------------------------------- summaries
+def _summary(model: DiagnosisModel, problem, values) -> ModelSummary:
+    from ..calibration.graph import predicted_plane_errors
+
+    ang, dist = [], []
+    for i, (st, s) in problem.plane_factors.items():
+        if (st, s) in model.data.planes:
+            p = model.data.planes[(st, s)]
+            T_wb = from_gtsam_pose(values.atPose3(problem.station_keys[st]))
+            T_bs = from_gtsam_pose(values.atPose3(problem.measurement_keys[(st, s)]))
+            a, d = predicted_plane_errors(T_wb, T_bs, p.n, p.d)
+            ang.append(a)
+            dist.append(d)
+    chi2, rows = chi2_of(problem, values)
+    n_par = sum(int(d) for _, d in values.dims().items())
+    return ModelSummary(float(np.sqrt(np.mean(np.square(ang)))) if ang else float("nan"),
+                        float(np.sqrt(np.mean(np.square(dist)))) if dist else float("nan"),
+                        float(chi2 / max(rows - n_par, 1)))
+
+
+def _structure_test(model: DiagnosisModel, problem, values) -> tuple | None:
+    from ..calibration.noise_estimation import group_variances
+
+    with_cov = {name for (st, name), p in model.data.planes.items() if p.cov is not None}
+    if not with_cov:
+        return None
+    groups = {i: g for i, g in problem.factor_groups.items() if g.startswith("plane:") and g[6:] in with_cov}
+    stats = group_variances(problem.graph, values, groups)
+    chi2 = sum(v.chi2 for v in stats.values())
+    red = sum(v.redundancy for v in stats.values())
+    if red < 1:
+        return None
+    return float(chi2), float(red), float(chi2_dist.sf(chi2, red))
+
+
+# ---------------------------------------------------------------------------- the loop
+def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findings: int = MAX_FINDINGS,
+             heldout: bool = True) -> Diagnosis:
+    """Diagnose a dataset: see the module docstring.
+
+    Args:
+        dataset: a dataset folder or a :class:`graphcal.io.dataset.Dataset`.
+        progress: one line per step on stderr.
+        alpha: family-wise significance level (divided by the number of causes tested).
+        max_findings: stop after this many findings.
+        heldout: compute the held-out gain of each finding (two-fold, by station).
+    """
+    from ..calibration.measurements import calibration_data
+    from ..io.dataset import Dataset, load_dataset_robot, read_dataset
+
+    def say(msg):
+        if progress:
+            print(f"diagnose: {msg}", file=sys.stderr, flush=True)
+
+    ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+    robot = load_dataset_robot(ds)
+    data = calibration_data(ds, robot, progress=progress)
+    if not data.planes and not data.scan_points:
+        raise GraphcalError(f"{ds.root}: no planes or laser scans: nothing to diagnose (run graphcal extract-planes?)")
+    model = DiagnosisModel(ds, robot, data, model_options(ds))
+    model, problem, values = model.learn_noise()
+    nominal = _summary(model, problem, values)
+    nominal_model, nominal_problem, nominal_values = model, problem, values
+    say(f"nominal model: theta RMS {nominal.normal_rms_deg:.4f} deg, e_d RMS {nominal.distance_rms_mm:.3f} mm, "
+        f"chi2/dof {nominal.chi2_per_dof:.2f}")
+    findings: list[Finding] = []
+    screening = []
+    notes: list[str] = []
+    rejected: set = set()
+    order = [st.station for st in data.stations]
+    for _round in range(max_findings + MAX_NUISANCE):
+        if len(findings) >= max_findings:
+            break
+        screen = model.build(screen=True, initial=values)
+        system = linear_system(screen, screen.initial)
+        cands = [c for c in _candidates(model, screen, system) if c.candidate not in rejected]
+        scores = score_candidates(system, cands)
+        causes_tested = len({s.candidate.cause for s in scores}) or 1
+        threshold = np.log10(alpha / causes_tested)
+        scores.sort(key=lambda s: (s.evidence.log10_p_family, -s.evidence.statistic))
+        screening.append(tuple((s.candidate.label(), s.evidence.log10_p_family, s.evidence.statistic,
+                                s.evidence.dof) for s in scores[:8]))
+        significant = [s for s in scores if s.evidence.log10_p_family < threshold]
+        if not significant:
+            say("no candidate is significant")
+            break
+        sc = significant[0]
+        cand = sc.candidate
+        if cand.cause == "outlier_stations":
+            n_already = sum(len(c.get("stations")) for c in model.found("outlier_stations"))
+            cand = _outlier_group(significant, len(order), n_already)
+            if cand is None:
+                notes.append(f"more than {MAX_OUTLIER_SHARE:.0%} of the stations fail their test: the model does not "
+                             "fit these data, and no more stations are called outliers")
+                rejected.update(s.candidate for s in significant if s.candidate.cause == "outlier_stations")
+                continue
+        if cand.cause == "outlier_stations" and model.found("outlier_stations"):
+            # more outlier stations: one finding holds them all
+            old = model.found("outlier_stations")[0]
+            cand = Candidate("outlier_stations", (("stations", tuple(sorted(set(old.get("stations"))
+                                                                           | set(cand.get("stations"))))),),
+                             cand.family_size)
+            base = dataclasses.replace(model, findings=tuple(c for c in model.findings if c != old))
+        else:
+            old, base = None, model
+        ext_model = base.with_finding(cand)
+        ext_problem, ext_values = ext_model.solve(initial=values)
+        chi_cur, rows = chi2_of(problem, values)
+        chi_ext, _ = chi2_of(ext_problem, ext_values)
+        new_rows = [s.columns for s in significant if cand.cause == "outlier_stations"
+                    and s.candidate.cause == "outlier_stations" and s.candidate.get("stations")[0] in cand.get("stations")]
+        # the LR compares with the current model: its degrees of freedom are the newly freed rows
+        dof = sc.evidence.dof if cand.cause != "outlier_stations" else sum(len(c.rows) for c in new_rows)
+        ev = evidence("likelihood_ratio", chi_cur - chi_ext, dof, cand.family_size, rows)
+        params, sig = _parameters(cand, ext_model, ext_problem, ext_values)
+        if ev.log10_p_family >= threshold:
+            # the screening's linear score overstated it: the fitted extension is not significant
+            say(f"{cand.label()}: its likelihood-ratio test is not significant (log10 p {ev.log10_p_family:.1f}); "
+                "not in the model")
+            rejected.add(sc.candidate)
+            continue
+        named = relevant(cand.cause, params)
+        if heldout:
+            from .heldout import heldout_gain
+
+            j_cols = current_columns(system, cands)
+            if cand.cause == "outlier_stations":
+                drop = np.concatenate([c.rows for c in new_rows]) if new_rows else None
+                gain = heldout_gain(system, j_cols, None, order, drop_rows=drop,
+                                    skip_stations=set(int(x) for x in cand.get("stations")))
+            else:
+                gain = heldout_gain(system, j_cols, sc.columns.matrix(system), order)
+        else:
+            gain = None
+        model = ext_model
+        if not named:
+            say(f"{cand.label()}: significant (log10 p {sc.evidence.log10_p_family:.1f}) but below the catalogue's "
+                f"minimum size {params}: kept in the model as a nuisance, not named")
+            notes.append(f"{cand.label()} is significant but below the catalogue's minimum size "
+                         f"({', '.join(f'{k}={v:.3g}' for k, v in params.items())}): estimated, not named")
+            problem, values = ext_problem, ext_values
+            continue
+        say(f"found {cand.label()}: {params} (sigma {sig}); LR {ev.statistic:.1f} on {ev.dof} dof"
+            + (f"; held-out RMS {gain.heldout_rms_before:.3f} -> {gain.heldout_rms_after:.3f}" if gain else ""))
+        if old is not None:
+            findings = [f for f in findings if f.candidate != old]
+        findings.append(Finding(cand, params, sig, ev, sc.evidence, gain))
+        model, problem, values = model.learn_noise(ext_values, rounds=1)
+        # backward step: a cause named earlier can shrink once a later one explains the data better
+        # (a floor tilt first read as an IMU misalignment: both tilt gravity against the feet, only
+        # the heading changes between stations tell them apart). Below the minimum size it stays in
+        # the model as a nuisance, and is no longer named.
+        demoted = [f for f in findings[:-1]
+                   if not relevant(f.candidate.cause, _parameters(f.candidate, model, problem, values)[0])]
+        for f in demoted:
+            say(f"{f.candidate.label()}: below the catalogue's minimum size once {cand.label()} is in the model; "
+                "kept as a nuisance, no longer named")
+            notes.append(f"{f.candidate.label()} was named first; once {cand.label()} was in the model it fell below "
+                         "the catalogue's minimum size (kept as a nuisance, not named)")
+        findings = [f for f in findings if f not in demoted]
+    final = _summary(model, problem, values)
+    st = _structure_test(model, problem, values)
+    unexplained = st is not None and st[2] < 1e-3
+    # re-read every finding's parameters in the final model (later findings can move earlier ones)
+    findings = [dataclasses.replace(f, parameters=p, sigma=s) for f in findings
+                for p, s in [_parameters(f.candidate, model, problem, values)]]
+    nuisance = [c.label() for c in model.findings if c not in {f.candidate for f in findings}]
+    from .residuals import residual_records
+
+    findings.sort(key=lambda f: f.evidence.log10_p_family)
+    return Diagnosis(nominal, final, tuple(findings), unexplained, st, tuple(screening), model, values, problem,
+                     residual_records(nominal_model, nominal_problem, nominal_values),
+                     residual_records(model, problem, values), tuple(notes), tuple(nuisance))
+
+
+def _outlier_group(significant, n_stations: int, already: int) -> Candidate | None:
+    """The worst significant outlier stations as one finding: those within a factor 2 of the worst
+    statistic (a gross outlier pulls the fit and makes its neighbours look bad; they are tested
+    again in the next round), never more than MAX_OUTLIER_SHARE of the stations in all."""
+    outl = [s for s in significant if s.candidate.cause == "outlier_stations"]
+    worst = max(s.evidence.statistic for s in outl)
+    room = int(MAX_OUTLIER_SHARE * n_stations) - already
+    if room <= 0:
+        return None
+    picked = [s for s in outl if s.evidence.statistic >= 0.5 * worst][:room]
+    stations = tuple(sorted(int(s.candidate.get("stations")[0]) for s in picked))
+    return Candidate("outlier_stations", (("stations", stations),), outl[0].candidate.family_size)

@@ -1,0 +1,191 @@
+"""Chai et al. 2015's measured Octopus data (Table 2 planes, Table A1 set poses) through graphcal:
+the transcription, the frame conversion, calibrate against Eq. 32, and diagnose.
+
+examples/octopus_chai2015/run.py does the work once (module fixture); the numbers asserted here are
+the ones measured on 2026-11-21 and quoted in examples/octopus_chai2015/README.md. Margins:
+
+* pure geometry on the paper's printed numbers (checks, residuals of Eq. 32 against the set poses):
+  deterministic, so a tight tolerance (1e-3 deg, 0.02 mm) that only floating point can meet;
+* calibrate's estimates: deterministic for this input, but they depend on solver details
+  (closed-form start, LM stopping, noise learning). The margins are about a quarter of graphcal's
+  own 1-sigma of the same quantity (0.5 deg; 22 / 35 / 7 mm along body x / y / z): tighter would
+  fail on harmless solver changes, looser would miss a change of what the data is said to mean.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "octopus_chai2015"
+
+
+def _load(name):
+    if str(EXAMPLE) not in sys.path:
+        sys.path.insert(0, str(EXAMPLE))
+    spec = importlib.util.spec_from_file_location(f"chai2015_{name}", EXAMPLE / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def out():
+    run = _load("run")
+    t0, c0 = time.perf_counter(), time.process_time()
+    r = run.main()
+    r["_wall_s"], r["_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
+    return r
+
+
+# ----------------------------------------------------------------------------- the transcription
+def test_transcription_rows_and_checksum(out):
+    c = out["checks"]
+    assert c["table2_rows"] == 6
+    assert c["table2_labels"] == [1, 10, 15, 29, 34, 49]
+    # sum of |a| + |b| + |c| + |d| over the six printed rows (computed by hand from the paper: 15.0038)
+    assert c["table2_checksum"] == pytest.approx(15.0038, abs=1e-9)
+    # printed 4-decimal unit normals: norms within 6e-5 of 1 (the largest is row 34, 0.99994)
+    assert all(abs(n - 1.0) < 6e-5 for n in c["table2_normal_norms"].values())
+    # Eq. 33 is Eq. 32 printed to 4 decimals: our reading of Eq. 1-2 reproduces it
+    assert c["eq33_vs_eq32_max_abs"] < 5e-5
+
+
+def test_table3_identifies_the_poses_and_heights(out):
+    c = out["checks"]
+    # the paper's own predictions (Table 3) are those of poses 1, 15, 8, 25, 37, 45, not the labels
+    assert c["table3_association"] == {1: 1, 10: 15, 15: 8, 29: 25, 34: 37, 49: 45}
+    assert max(c["table3_match_deg"].values()) < 0.003  # 4-decimal rounding
+    assert min(c["table3_second_best_deg"].values()) > 0.9
+    # ... computed with body heights +2.0 mm (poses 1-20) and -33.0 mm (poses 21-52) off Table A1
+    for label in (1, 10, 15):
+        assert c["table3_d_minus_setpose_mm"][label] == pytest.approx(1.98, abs=0.05)
+    for label in (29, 34, 49):
+        assert c["table3_d_minus_setpose_mm"][label] == pytest.approx(-33.01, abs=0.05)
+
+
+def test_paper_metric_on_its_six_rows(out):
+    t = out["checks"]["table2_vs_table3"]
+    # Table 2 vs Table 3 = the paper's theta / e_d on the rows it prints; row 1 is its maximum 0.5219
+    assert t["theta_without_row10"]["max"] == pytest.approx(0.5198, abs=1e-3)
+    assert t["theta_without_row10"]["mean"] == pytest.approx(0.2380, abs=1e-3)
+    assert t["e_d"]["mean"] == pytest.approx(1.30, abs=0.01)
+    assert t["e_d"]["max"] == pytest.approx(2.20, abs=0.01)
+    r10 = out["checks"]["row10"]
+    assert r10["angle_to_table3_as_printed_deg"] == pytest.approx(26.978, abs=1e-3)
+    assert r10["angle_to_table3_c_flipped_deg"] == pytest.approx(0.126, abs=1e-3)
+
+
+def test_frame_conversion_roundtrip(out):
+    md = _load("make_dataset")
+    run = _load("run")
+    eq32 = out["paper"]["eq32"]
+    back = run.chai_parameters(md.paper_T_body_sensor())
+    for k, v in back.items():
+        assert v == pytest.approx(eq32[k], abs=1e-9), k
+    # the same residual computed in the paper's frames (checks) and in graphcal's frames (the
+    # dataset's plane, set pose and converted Eq. 32 through graphcal's predicted_plane_errors)
+    pr = out["variants"]["printed"]["residuals_setpose_eq32"]
+    assert pr["theta_deg"][0] == pytest.approx(out["checks"]["table2_vs_printed_pose_deg"][1], abs=1e-6)
+    # d renormalised by the printed norm (1.0000037): 3.7 micrometres
+    assert pr["e_d_mm"][0] == pytest.approx(out["checks"]["table2_d_minus_setpose_mm"][1], abs=0.01)
+
+
+def test_datasets_validate(out):
+    v = out["variants"]
+    assert all(x["valid"] for x in v.values())
+    assert v["printed"]["plane_stations"] == [1, 10, 15, 29, 34, 49]
+    assert v["table3"]["plane_stations"] == [1, 8, 15, 25, 37, 45]
+    assert v["table3_without_row10"]["plane_stations"] == [1, 8, 25, 37, 45]
+    assert all(x["n_stations"] == 52 for x in v.values())
+
+
+# ----------------------------------------------------------------------------- calibrate vs Eq. 32
+def test_printed_labels_contradict_eq32(out):
+    v = out["variants"]["printed"]
+    # Eq. 32 itself does not fit the planes at the printed poses (geometry, deterministic)
+    assert v["residuals_setpose_eq32"]["theta"]["mean"] == pytest.approx(19.259, abs=1e-3)
+    assert v["residuals_setpose_eq32"]["theta"]["max"] == pytest.approx(38.674, abs=1e-3)
+    # nor does anything graphcal finds: 53.6 deg from Eq. 32, set-pose residuals of ~19 deg
+    assert v["vs_eq32"]["rotation_deg"] > 20.0
+    assert v["residuals_setpose"]["theta"]["mean"] > 10.0
+
+
+def test_sign_error_row_pulls_the_answer(out):
+    v = out["variants"]["table3"]
+    assert v["vs_eq32"]["rotation_deg"] > 10.0  # measured 18.4 deg
+    assert v["outliers"] == []  # calibrate does not flag it (README.md: absorbed by the body pose)
+    assert v["body_minus_setpose"][15]["rotation_deg"] > 10.0  # measured 16.8 deg
+
+
+def test_table3_association_matches_eq32_rotation_not_translation(out):
+    v = out["variants"]["table3_without_row10"]
+    e = v["vs_eq32"]
+    assert e["rotation_deg"] < 0.5  # measured 0.364; graphcal's 1-sigma 0.5 / 0.5 / 1.6 deg
+    dx, dy, dz = e["translation_body_xyz_mm"]
+    assert dx == pytest.approx(-8.7, abs=5.0)
+    assert dy == pytest.approx(72.0, abs=8.0)  # 2 sigma off Eq. 32: the height discrepancy
+    assert dz == pytest.approx(-27.6, abs=3.0)
+    s = v["residuals_setpose"]
+    assert s["theta"]["mean"] == pytest.approx(0.251, abs=0.02)
+    assert s["e_d"]["mean"] == pytest.approx(11.7, abs=1.5)
+    assert s["e_d"]["max"] == pytest.approx(23.1, abs=2.0)
+    q = v["residuals_setpose_eq32"]  # geometry
+    assert q["theta"]["mean"] == pytest.approx(0.2383, abs=1e-3)
+    assert q["e_d"]["mean"] == pytest.approx(21.05, abs=0.02)
+    assert q["e_d"]["max"] == pytest.approx(34.18, abs=0.02)
+    g = v["residuals_graphcal"]  # the body poses absorb the rest
+    assert g["theta"]["max"] < 0.05 and g["e_d"]["max"] < 0.5
+
+
+def test_table3_heights_reproduce_eq32(out):
+    v = out["variants"]["table3_heights"]
+    e = v["vs_eq32"]
+    assert e["rotation_deg"] < 0.35  # measured 0.236
+    dx, dy, dz = e["translation_body_xyz_mm"]
+    assert dx == pytest.approx(-9.5, abs=5.0)
+    assert dy == pytest.approx(14.6, abs=8.0)
+    assert dz == pytest.approx(-0.3, abs=3.0)
+    s = v["residuals_setpose"]  # Chai: 0.2104 / 0.5219 deg, 1.1 / 3.236 mm over 52 poses
+    assert s["theta"]["mean"] == pytest.approx(0.247, abs=0.02)
+    assert s["e_d"]["mean"] == pytest.approx(1.60, abs=0.3)
+    assert s["e_d"]["max"] == pytest.approx(2.21, abs=0.3)
+
+
+# ----------------------------------------------------------------------------- diagnose
+def test_diagnose_clean_rows_finds_nothing_significant(out):
+    d = out["variants"]["table3_without_row10"]["diagnose"]
+    assert d["ok"], d.get("traceback")
+    assert d["findings"] == []
+    assert d["nominal"]["chi2_per_dof"] == pytest.approx(0.667, abs=0.2)
+    top = d["screening_first_round"][0]
+    assert top["candidate"] == "session_offset(session=poses01-20)"
+    assert -3.6 < top["log10_p_family"] < -1.5  # a hint (p 0.006), not significant at 2.5e-4
+
+
+def test_diagnose_names_the_sign_error_station(out):
+    d = out["variants"]["table3"]["diagnose"]
+    assert d["ok"], d.get("traceback")
+    first = d["findings"][0]
+    assert first["cause"] == "outlier_stations"
+    assert 15 in first["where"]["stations"]
+    assert first["evidence"]["p_value"] < 1e-20
+
+
+def test_diagnose_printed_labels(out):
+    d = out["variants"]["printed"]["diagnose"]
+    if not d["ok"] and "nothing to calibrate" in d["error"]:
+        pytest.xfail("known graphcal.diagnosis bug: every station is significant, the outlier group "
+                     "excludes all planes and the extended graph cannot be built (README.md)")
+    assert d["ok"], d.get("traceback")
+    assert d["findings"] and d["findings"][0]["cause"] == "outlier_stations"
+
+
+def test_runtime(out):
+    # CPU time, not wall time: the wall time depends on the other jobs on the machine
+    assert out["_cpu_s"] < 20.0
