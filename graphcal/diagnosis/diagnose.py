@@ -83,6 +83,8 @@ class Diagnosis:
     problem: object
     residuals_before: tuple = ()
     residuals_after: tuple = ()
+    stance_before: tuple = ()
+    stance_after: tuple = ()
     notes: tuple = field(default=())
     nuisance: tuple = field(default=())
 
@@ -447,12 +449,13 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     findings = [dataclasses.replace(f, parameters=p, sigma=s) for f in findings
                 for p, s in [_parameters(f.candidate, model, problem, values)]]
     nuisance = [c.label() for c in model.findings if c not in {f.candidate for f in findings}]
-    from .residuals import residual_records
+    from .residuals import residual_records, stance_records
 
     findings.sort(key=lambda f: f.evidence.log10_p_family)
     return Diagnosis(nominal, final, tuple(findings), unexplained, st, tuple(screening), model, values, problem,
                      residual_records(nominal_model, nominal_problem, nominal_values),
-                     residual_records(model, problem, values), tuple(notes), tuple(nuisance))
+                     residual_records(model, problem, values), stance_records(nominal_model, nominal_problem, nominal_values),
+                     stance_records(model, problem, values), tuple(notes), tuple(nuisance))
 
 
 def _outlier_group(significant, n_stations: int, already: int) -> Candidate | None:

@@ -27,7 +27,16 @@ N_FOLDS = 2
 
 
 def _predict(A_train, b_train, A_held, b_held) -> np.ndarray:
-    delta, *_ = np.linalg.lstsq(A_train, b_train, rcond=None)
+    """Held-out residuals after the least-squares step on the training rows (normal equations with
+    Jacobi column scaling and Cholesky; an SVD least squares where that is singular: ~50x slower)."""
+    N = A_train.T @ A_train
+    dg = np.sqrt(np.clip(np.diag(N), 1e-300, None))
+    try:
+        Lc = np.linalg.cholesky(N / dg[:, None] / dg[None, :])
+        y = np.linalg.solve(Lc, (A_train.T @ b_train) / dg)
+        delta = np.linalg.solve(Lc.T, y) / dg
+    except np.linalg.LinAlgError:
+        delta, *_ = np.linalg.lstsq(A_train, b_train, rcond=None)
     return b_held - A_held @ delta
 
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..geometry import from_gtsam_pose
 
-__all__ = ["ResidualRecord", "residual_records"]
+__all__ = ["ResidualRecord", "StanceRecord", "residual_records", "stance_records"]
 
 
 @dataclass(frozen=True)
@@ -55,4 +55,40 @@ def residual_records(model, problem, values) -> tuple[ResidualRecord, ...]:
             ang, dist, rng = float("nan"), float(1e3 * np.sqrt(np.mean(e**2))), float(np.median(np.linalg.norm(pts, axis=1)))
         j, session = order[st]
         out.append(ResidualRecord(int(st), j, session, s, ang, dist, rng, tilt, float(np.sqrt(c / problem.graph.at(i).dim()))))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class StanceRecord:
+    """Whitened RMS of one stance-foot factor (a leg's kinematics against its planted foot)."""
+
+    station: int
+    index: int
+    leg: str
+    whitened: float
+
+
+def stance_records(model, problem, values) -> tuple[StanceRecord, ...]:
+    from ..solvers.batch import whitened_errors
+
+    order = {st.station: j for j, st in enumerate(model.data.stations)}
+    x_station = {int(k): st for st, k in problem.station_keys.items()}
+    from factors.keys import F
+
+    foot_of = {}
+    sessions = list(dict.fromkeys(st.session for st in model.data.stations))
+    j = 0
+    for s in sessions:
+        for f in model.robot.feet:
+            foot_of[int(F(j))] = f
+            j += 1
+    idx = [i for i, g in problem.factor_groups.items() if g == "stance_foot"]
+    chi = whitened_errors(problem.graph, values, idx)
+    out = []
+    for i, c in zip(idx, chi):
+        keys = [int(k) for k in problem.graph.at(i).keys()]
+        st = next((x_station[k] for k in keys if k in x_station), None)
+        leg = next((foot_of[k] for k in keys if k in foot_of), "?")
+        if st is not None:
+            out.append(StanceRecord(int(st), order[st], leg, float(np.sqrt(c / 3.0))))
     return tuple(out)

@@ -1,0 +1,117 @@
+"""Figures of a diagnosis: the residuals against the covariate that reveals each finding's cause,
+before (nominal model) and after (extended model). matplotlib without pyplot, as report/plots.py.
+
+=====================  =========================================================================
+cause                  what is drawn
+=====================  =========================================================================
+sensor_range_scale     distance error e_d (mm) against the measured range d (m)
+session_offset         e_d against the station index, coloured by session
+ground_tilt            angle error theta (deg) against the station index, coloured by session
+                       (the heading changes between sessions)
+imu_misalignment       theta against the body tilt (deg)
+joint_offset,          whitened stance-foot residual of the named leg against the station index,
+link_length            the other legs in grey
+extrinsic_change       theta and e_d against the station index, the change marked
+outlier_stations       whitened measurement residual against the station index, the stations marked
+=====================  =========================================================================
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from matplotlib.figure import Figure
+
+__all__ = ["diagnosis_figures"]
+
+_BEFORE = "#999999"
+_AFTER = "#1f77b4"
+_MARK = "#d62728"
+
+
+def _xy(records, x: str, y: str, sensor=None):
+    r = [q for q in records if sensor is None or q.sensor == sensor]
+    return np.array([getattr(q, x) for q in r], dtype=float), np.array([getattr(q, y) for q in r], dtype=float)
+
+
+def _pair(fig, records_before, records_after, x, y, xlabel, ylabel, title, sensor=None, color_by=None):
+    axes = fig.subplots(1, 2, sharey=True)
+    for ax, recs, name, col in ((axes[0], records_before, "nominal model", _BEFORE),
+                                (axes[1], records_after, "extended model", _AFTER)):
+        xs, ys = _xy(recs, x, y, sensor)
+        if color_by is not None:
+            groups = [getattr(q, color_by) for q in recs if sensor is None or q.sensor == sensor]
+            for k, g in enumerate(dict.fromkeys(groups)):
+                m = np.array([gg == g for gg in groups])
+                ax.plot(xs[m], ys[m], "o", ms=3.5, label=str(g), color=f"C{k}")
+            ax.legend(fontsize=7, title=color_by, title_fontsize=7)
+        else:
+            ax.plot(xs, ys, "o", ms=3.5, color=col)
+        ax.axhline(0.0, color="k", lw=0.6)
+        ax.set_xlabel(xlabel)
+        ax.set_title(f"{name}", fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel(ylabel)
+    fig.suptitle(title, fontsize=10)
+    return axes
+
+
+def _finding_figure(diag, f) -> tuple[str, Figure]:
+    c = f.candidate
+    fig = Figure(figsize=(9.0, 3.4), layout="constrained")
+    b, a = diag.residuals_before, diag.residuals_after
+    label = c.label()
+    if c.cause == "sensor_range_scale":
+        _pair(fig, b, a, "range_m", "distance_mm", "measured plane distance d [m]", "e_d [mm]", label, sensor=c.get("sensor"))
+        cap = "distance error against the measured range: a range scale makes it grow with the range"
+    elif c.cause == "session_offset":
+        _pair(fig, b, a, "index", "distance_mm", "station (dataset order)", "e_d [mm]", label, color_by="session")
+        cap = "distance error per station, by session: one session's body height differs"
+    elif c.cause == "ground_tilt":
+        _pair(fig, b, a, "index", "angle_deg", "station (dataset order)", "theta [deg]", label, color_by="session")
+        cap = "angle error per station, by session: a tilted floor shows as the robot turns between sessions"
+    elif c.cause == "imu_misalignment":
+        _pair(fig, b, a, "tilt_deg", "angle_deg", "body tilt [deg]", "theta [deg]", label)
+        cap = "angle error against the body tilt"
+    elif c.cause in ("joint_offset", "link_length"):
+        axes = fig.subplots(1, 2, sharey=True)
+        for ax, recs, name in ((axes[0], diag.stance_before, "nominal model"), (axes[1], diag.stance_after, "extended model")):
+            for leg in dict.fromkeys(r.leg for r in recs):
+                xs = [r.index for r in recs if r.leg == leg]
+                ys = [r.whitened for r in recs if r.leg == leg]
+                named = leg == c.get("leg")
+                ax.plot(xs, ys, "o-" if named else ".", ms=3.5 if named else 2.5, lw=0.8,
+                        color=_MARK if named else _BEFORE, label=leg if named else None, zorder=3 if named else 1)
+            ax.set_xlabel("station (dataset order)")
+            ax.set_title(name, fontsize=9)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+        axes[0].set_ylabel("stance-foot residual (whitened RMS)")
+        fig.suptitle(label, fontsize=10)
+        cap = "stance-foot residuals per station: the named leg against the others"
+    elif c.cause == "extrinsic_change":
+        axes = _pair(fig, b, a, "index", "angle_deg", "station (dataset order)", "theta [deg]", label, sensor=c.get("sensor"))
+        k = next((r.index for r in b if r.station == int(c.get("station"))), None)
+        if k is not None:
+            for ax in axes:
+                ax.axvline(k - 0.5, color=_MARK, ls="--", lw=1.0)
+        cap = "angle error per station: the sensor moved at the dashed line"
+    else:  # outlier stations
+        axes = _pair(fig, b, a, "index", "whitened", "station (dataset order)", "measurement residual (whitened RMS)", label)
+        bad = {int(s) for s in c.get("stations")}
+        for ax, recs in zip(axes, (b, a)):
+            xs = [r.index for r in recs if r.station in bad]
+            ys = [r.whitened for r in recs if r.station in bad]
+            ax.plot(xs, ys, "o", mfc="none", mec=_MARK, ms=9)
+        cap = "measurement residual per station: the outlier stations circled"
+    return f"{label}: {cap} (left: nominal model, right: with the findings)", fig
+
+
+def diagnosis_figures(diag) -> list[tuple[str, Figure]]:
+    """(caption, figure) per finding; with no finding, the residuals per station."""
+    out = [_finding_figure(diag, f) for f in diag.findings]
+    if not out:
+        fig = Figure(figsize=(9.0, 3.4), layout="constrained")
+        _pair(fig, diag.residuals_before, diag.residuals_after, "index", "whitened", "station (dataset order)",
+              "measurement residual (whitened RMS)", "no finding")
+        out.append(("measurement residual per station (left: nominal model, right: final model)", fig))
+    return out

@@ -1,0 +1,114 @@
+"""graphcal diagnose: the hidden-effect battery (examples/diagnosis_battery.py), the command and its files.
+
+The battery simulates 40 datasets, each hiding one catalogued effect drawn from its seed at a
+realistic magnitude and location on two robots, plus 6 clean datasets; ``diagnose`` reads only the
+dataset folder, never truth.yaml. Each case asserts the named cause, its location and that its
+parameters lie within 3 sigma of the truth; the battery asserts >= 95 % top-1 and <= 5 % false alarms.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "examples"))
+
+import diagnosis_battery  # noqa: E402
+
+PER_CAUSE = 5
+CLEAN = 6
+CASES = diagnosis_battery.cases(PER_CAUSE, CLEAN)
+
+
+@pytest.fixture(scope="module")
+def battery():
+    out = diagnosis_battery.main(per_cause=PER_CAUSE, clean=CLEAN, jobs=2, verbose=True)
+    return out
+
+
+def test_battery_covers_the_catalogue_on_two_robots():
+    effect = [c for c in CASES if c[2] != "clean"]
+    assert len(effect) >= 40
+    assert {c[2] for c in effect} == set(diagnosis_battery.CAUSES)
+    assert len({c[1] for c in CASES}) >= 2
+    assert sum(c[2] == "clean" for c in CASES) >= 5
+
+
+@pytest.mark.parametrize("k", range(len(CASES)), ids=[f"{s}-{r}-{c}" for s, r, c in CASES])
+def test_battery_case(battery, k):
+    r = battery["results"][k]
+    assert (r.seed, r.robot, r.hidden) == CASES[k]
+    assert r.passed, f"{r.hidden} on {r.robot} (seed {r.seed}): named {r.named or 'nothing'}; {r.detail}"
+
+
+def test_battery_targets(battery):
+    print(f"\nbattery: top-1 {battery['top1']:.1%}, all checks {battery['passed']:.1%}, "
+          f"false alarms {battery['false_alarm']:.1%}")
+    assert battery["top1"] >= 0.95
+    assert battery["false_alarm"] <= 0.05
+
+
+def test_clean_data_leave_no_unexplained_structure(battery):
+    clean = [r for r in battery["results"] if r.hidden == "clean"]
+    assert clean and not any(r.unexplained for r in clean)
+
+
+# ----------------------------------------------------------------------------- command and files
+@pytest.fixture(scope="module")
+def knocked(tmp_path_factory):
+    from graphcal.simulation.run import simulate_to_folder
+
+    out = tmp_path_factory.mktemp("diag") / "knocked"
+    simulate_to_folder(robot="octopus", program="random", ground="level", out_dir=out, seed=7, n_stations=30,
+                       n_sessions=2, output="planes", cloud_stride=8, progress=False,
+                       effects=[("extrinsic_change", {"sensor": "depth", "station": "16", "angle_rad": "0.035"})])
+    return out
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "graphcal.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=ROOT)
+
+
+def test_cli_writes_the_diagnosis(knocked, tmp_path):
+    out = tmp_path / "dg"
+    p = _cli("diagnose", knocked, "--out", out, "--quiet")
+    assert p.returncode == 0, p.stderr
+    assert "found extrinsic_change" in p.stdout
+    doc = json.loads((out / "diagnosis.json").read_text())
+    assert doc["format"] == "graphcal-diagnosis/1"
+    assert set(doc["nominal"]) >= {"normal_rms_deg", "distance_rms_mm", "chi2_per_dof"}
+    f = doc["findings"][0]
+    assert f["cause"] == "extrinsic_change" and f["where"] == {"sensor": "depth", "station": 16}
+    assert abs(f["parameters"]["angle_rad"] - 0.035) < 3 * f["sigma"]["angle_rad"] + 1e-9
+    assert set(f["evidence"]) >= {"test", "statistic", "dof", "p_value", "delta_bic"}
+    assert f["evidence"]["dof"] == 6 and f["evidence"]["p_value"] < 1e-6
+    assert f["gain"]["heldout_rms_after"] < f["gain"]["heldout_rms_before"]
+    assert f["gain"]["relative"] == pytest.approx(f["gain"]["heldout_rms_after"] / f["gain"]["heldout_rms_before"])
+    assert doc["unexplained_structure"] is False
+    assert "depth" in doc["extended_calibration"]["sensors"]
+    page = (out / "report.html").read_text()
+    assert "extrinsic_change" in page and page.count("data:image/png;base64,") >= 1
+    # a previous diagnosis is replaced; anything else is refused and left alone
+    assert _cli("diagnose", knocked, "--out", out, "--quiet").returncode == 0
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("keep me")
+    p = _cli("diagnose", knocked, "--out", foreign, "--quiet")
+    assert p.returncode == 2 and "not a previous graphcal diagnosis" in p.stderr
+    assert (foreign / "notes.txt").read_text() == "keep me" and len(list(foreign.iterdir())) == 1
+
+
+def test_cli_bad_dataset_is_one_line(tmp_path):
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "dataset.yaml").write_text("format: graphcal-dataset/1\nrobot: {model: octopus}\n")
+    p = _cli("diagnose", bad, "--out", tmp_path / "o")
+    assert p.returncode == 2
+    assert p.stderr.startswith("graphcal diagnose: error:") and "Traceback" not in p.stderr
+    assert not (tmp_path / "o").exists()
