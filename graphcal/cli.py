@@ -34,7 +34,9 @@ def _build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", help="simulate a calibration session and write it as a dataset")
     s.add_argument("--robot", default="octopus", help="built-in robot model (octopus, qingzhui, messor, a1)")
-    s.add_argument("--program", default="chai2015", help="station program (chai2015, labecki2012, random)")
+    s.add_argument("--program", default="chai2015",
+                   help="station program (chai2015, labecki2012, random) or walk (tripod-walk, tripod-stairs: "
+                        "the qingzhui's tripod gait, 1 kHz timeseries; see docs/state_estimation.md)")
     s.add_argument("--ground", default="level", help="level, bumpy-little, bumpy-big, stairs, boxes")
     s.add_argument("--out", required=True, type=Path, help="output dataset folder (must not exist or be empty)")
     s.add_argument("--seed", type=int, default=0)
@@ -43,8 +45,15 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sensor", action="append", default=None, help="simulate only this sensor (repeatable)")
     s.add_argument("--output", choices=("clouds", "planes", "both"), default="both",
                    help="write raw clouds, fitted planes (planes.csv), or both (default)")
-    s.add_argument("--cloud-stride", type=int, default=4,
-                   help="keep every k-th camera pixel row/column (1 = full 640x480 frames)")
+    s.add_argument("--cloud-stride", type=int, default=None,
+                   help="keep every k-th camera pixel row/column (1 = full 640x480 frames; default 4; "
+                        "tripod-walk 16, tripod-stairs 8)")
+    s.add_argument("--distance", type=float, default=None,
+                   help="walking programs: body path length, m (tripod-walk default 20)")
+    s.add_argument("--duration", type=float, default=None,
+                   help="tripod-walk: walk about this long, s (instead of --distance)")
+    s.add_argument("--cloud-rate", type=float, default=None,
+                   help="walking programs: depth clouds per second (default 30; 0 = none)")
     s.add_argument("--leg-errors", action="store_true",
                    help="draw random joint-offset (0.5 deg) and link-length (3 mm) errors on every leg")
     s.add_argument("--effect", action="append", type=_effect_arg, default=[],
@@ -76,6 +85,13 @@ def _build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-planes", type=int, default=1)
     e.add_argument("--quiet", action="store_true")
 
+    dg = sub.add_parser("diagnose", help="what the model gets wrong on these data: named causes, evidence, "
+                                         "held-out gain (diagnosis.json, report.html)")
+    dg.add_argument("dataset", type=Path)
+    dg.add_argument("--out", required=True, type=Path,
+                    help="output folder (new, empty, or a previous diagnosis, replaced only at the end)")
+    dg.add_argument("--quiet", action="store_true")
+
     il = sub.add_parser("identify-legs", help="identify leg kinematic parameters from motion capture (mocap.csv): "
                                               "legs.yaml, calibrated URDF, report")
     il.add_argument("dataset", type=Path)
@@ -87,6 +103,16 @@ def _build_parser() -> argparse.ArgumentParser:
     il.add_argument("--sigma-marker-mm", type=float, default=1.0, help="a-priori marker noise (mm)")
     il.add_argument("--sigma-joint-deg", type=float, default=0.0, help="a-priori joint encoder noise (deg)")
     il.add_argument("--quiet", action="store_true")
+
+    tr = sub.add_parser("track", help="estimate the body trajectory of a timeseries dataset (EKF: IMU, leg "
+                                      "kinematics, ICP): trajectory.tum, metrics.json, plots, report")
+    tr.add_argument("dataset", type=Path)
+    tr.add_argument("--out", required=True, type=Path,
+                    help="output folder (replaces only an empty folder or a previous track output)")
+    tr.add_argument("--tum-rate", type=float, default=100.0,
+                    help="poses per second in trajectory.tum (default 100; 0 = every sample)")
+    tr.add_argument("--no-icp", action="store_true", help="proprioception only (no ICP between clouds)")
+    tr.add_argument("--quiet", action="store_true")
     return p
 
 
@@ -104,6 +130,9 @@ def _cmd_simulate(args) -> int:
         sensors=tuple(args.sensor) if args.sensor else None,
         output=args.output,
         cloud_stride=args.cloud_stride,
+        distance_m=args.distance,
+        duration_s=args.duration,
+        cloud_rate_hz=args.cloud_rate,
         leg_errors=args.leg_errors,
         effects=args.effect,
         overwrite=args.overwrite,
@@ -144,6 +173,13 @@ def _cmd_extract_planes(args) -> int:
     return 0
 
 
+def _cmd_diagnose(args) -> int:
+    from .diagnosis.command import run_diagnose
+
+    print(run_diagnose(args.dataset, args.out, progress=not args.quiet))
+    return 0
+
+
 def _cmd_identify_legs(args) -> int:
     from .legs.command import run_identify_legs
 
@@ -153,17 +189,28 @@ def _cmd_identify_legs(args) -> int:
     return 0
 
 
+def _cmd_track(args) -> int:
+    from .filter.estimator import TrackerConfig
+    from .filter.track import run_track
+
+    print(run_track(args.dataset, args.out, progress=not args.quiet, tum_rate_hz=args.tum_rate,
+                    config=TrackerConfig(icp=not args.no_icp)))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     from .errors import GraphcalError
 
     args = _build_parser().parse_args(argv)
     handlers = {
         "simulate": _cmd_simulate,
+        "track": _cmd_track,
         "validate": _cmd_validate,
         "calibrate": _cmd_calibrate,
         "suggest-poses": _cmd_suggest,
         "extract-planes": _cmd_extract_planes,
         "identify-legs": _cmd_identify_legs,
+        "diagnose": _cmd_diagnose,
     }
     try:
         return handlers[args.command](args)

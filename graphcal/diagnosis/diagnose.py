@@ -351,6 +351,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     screening = []
     notes: list[str] = []
     rejected: set = set()
+    too_many_outliers = False
     order = [st.station for st in data.stations]
     for _round in range(max_findings + MAX_NUISANCE):
         if len(findings) >= max_findings:
@@ -372,10 +373,12 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         cand = sc.candidate
         if cand.cause == "outlier_stations":
             n_already = sum(len(c.get("stations")) for c in model.found("outlier_stations"))
-            cand = _outlier_group(significant, len(order), n_already)
+            n_measured = len({st for (st, _) in system.measurement_rows}) + n_already
+            cand = _outlier_group(significant, n_measured, n_already)
             if cand is None:
-                notes.append(f"more than {MAX_OUTLIER_SHARE:.0%} of the stations fail their test: the model does not "
-                             "fit these data, and no more stations are called outliers")
+                too_many_outliers = True
+                notes.append(f"more than {MAX_OUTLIER_SHARE:.0%} of the stations with sensor data fail their test: the "
+                             "model does not fit these data, and no more stations are called outliers")
                 rejected.update(s.candidate for s in significant if s.candidate.cause == "outlier_stations")
                 continue
         if cand.cause == "outlier_stations" and model.found("outlier_stations"):
@@ -444,7 +447,9 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         findings = [f for f in findings if f not in demoted]
     final = _summary(model, problem, values)
     st = _structure_test(model, problem, values)
-    unexplained = st is not None and st[2] < 1e-3
+    # structure remains when the planes fail their absolute test, or when more stations fail than
+    # outliers can explain
+    unexplained = (st is not None and st[2] < 1e-3) or too_many_outliers
     # re-read every finding's parameters in the final model (later findings can move earlier ones)
     findings = [dataclasses.replace(f, parameters=p, sigma=s) for f in findings
                 for p, s in [_parameters(f.candidate, model, problem, values)]]
@@ -464,7 +469,7 @@ def _outlier_group(significant, n_stations: int, already: int) -> Candidate | No
     again in the next round), never more than MAX_OUTLIER_SHARE of the stations in all."""
     outl = [s for s in significant if s.candidate.cause == "outlier_stations"]
     worst = max(s.evidence.statistic for s in outl)
-    room = int(MAX_OUTLIER_SHARE * n_stations) - already
+    room = max(int(MAX_OUTLIER_SHARE * n_stations), 1 if already == 0 else 0) - already
     if room <= 0:
         return None
     picked = [s for s in outl if s.evidence.statistic >= 0.5 * worst][:room]

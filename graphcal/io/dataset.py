@@ -1444,6 +1444,7 @@ def write_dataset(
     overwrite: bool = False,
     extra_files: Mapping[str, str | bytes] | None = None,
     robot_urdf: str | None = None,
+    timeseries_clouds: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write ``ds`` as a ``graphcal-dataset/1`` folder ``out_dir``, atomically.
 
@@ -1460,6 +1461,8 @@ def write_dataset(
             new one is in place).
         extra_files: more files to put in the folder (relative name -> text or bytes), e.g.
             ``{"truth.yaml": ...}``; they must not collide with the contract's files.
+        timeseries_clouds: relative PLY path (as named in a ``cloud_<sensor>`` column of the
+            timeseries) -> (N, 3) points in that sensor's frame (m), written as binary PLY.
 
     ``dataset.yaml`` is written with ``xyz`` in metres and ``rpy_deg``, ``sigma_mm``,
     ``sigma_rpy_deg``, as the contract says; each such number is the shortest decimal that
@@ -1526,6 +1529,25 @@ def write_dataset(
             raise DatasetError(f"{target} (not written)", "points", "finite coordinates", "nan or inf")
         new_clouds[(sensor, int(station))] = a
 
+    new_ts_clouds: dict[str, np.ndarray] = {}
+    if timeseries_clouds:
+        named = set()
+        if ds.timeseries is not None:
+            for s in ds.timeseries.suffixes("cloud_"):
+                named |= {r.replace("\\", "/") for r in ds.timeseries[f"cloud_{s}"].tolist()} - {""}
+        for rel, pts in timeseries_clouds.items():
+            rel = str(rel).replace("\\", "/")
+            target = f"{out / rel} (not written)"
+            if rel not in named:
+                raise DatasetError(target, "timeseries_clouds", "a cloud named in a cloud_<sensor> column of the "
+                                   "timeseries", rel)  # fmt: skip
+            a = np.asarray(pts, dtype=np.float64)
+            if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0:
+                raise DatasetError(target, "points", "a non-empty (N, 3) array", f"shape {a.shape}")
+            if not np.isfinite(a).all():
+                raise DatasetError(target, "points", "finite coordinates", "nan or inf")
+            new_ts_clouds[rel] = a
+
     copies: dict[str, Path] = {}  # relative destination -> source file
     if ds.root is not None:
         for (sensor, station), src in cloud_paths(ds).items():
@@ -1535,7 +1557,8 @@ def write_dataset(
             for s in ds.timeseries.suffixes("cloud_"):
                 for rel in set(ds.timeseries[f"cloud_{s}"].tolist()) - {""}:
                     rel = rel.replace("\\", "/")
-                    copies[rel] = ds.root / rel
+                    if rel not in new_ts_clouds:
+                        copies[rel] = ds.root / rel
 
     reserved = {"dataset.yaml", "stations.csv", "timeseries.csv", "planes.csv", "mocap.csv", "clouds"}
     for name in extra_files or {}:
@@ -1560,6 +1583,8 @@ def write_dataset(
             atomic_write_bytes(dest(urdf_rel), urdf_bytes)
         for (sensor, station), a in new_clouds.items():
             write_ply(dest(f"clouds/{sensor}/{station}.ply"), a, binary=True)
+        for rel, a in new_ts_clouds.items():
+            write_ply(dest(rel), a, binary=True)
         for rel, src in copies.items():
             target = dest(rel)
             if not target.exists():

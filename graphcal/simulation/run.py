@@ -183,11 +183,15 @@ def simulate_to_folder(
     n_sessions: int = 1,
     sensors: tuple[str, ...] | None = None,
     output: str = "both",
-    cloud_stride: int = 4,
+    cloud_stride: int | None = 4,
     leg_errors: bool = False,
     effects: Sequence[tuple[str, dict]] = (),
     overwrite: bool = False,
     progress: bool = True,
+    session_heading_step_deg: float = 8.0,
+    distance_m: float | None = None,
+    duration_s: float | None = None,
+    cloud_rate_hz: float | None = None,
 ) -> str:
     """Simulate and write the dataset folder ``out_dir`` (contract files and ``truth.yaml``).
 
@@ -196,9 +200,25 @@ def simulate_to_folder(
         effects: (cause, parameters as text) pairs, e.g. ``("link_length", {"joint": "rm_foot_joint",
             "delta_m": "0.015"})``; no parameters: drawn from the seed.
         leg_errors: random joint-offset (0.5 deg) and link-length (3 mm) errors on every leg joint.
+        cloud_stride: None = 4 (walking programs: 16 level, 8 stairs).
+        distance_m, duration_s, cloud_rate_hz: the walking programs (``tripod-walk``,
+            ``tripod-stairs``: :mod:`graphcal.simulation.walking`) only.
     Returns:
         A one-paragraph summary of what was written.
     """
+    from .walking import WALKING_PROGRAMS
+
+    if program in WALKING_PROGRAMS:
+        return _walk_to_folder(program=program, robot=robot, out_dir=out_dir, seed=seed, output=output,
+                               cloud_stride=cloud_stride, leg_errors=leg_errors, effects=effects,
+                               n_stations=n_stations, n_sessions=n_sessions, sensors=sensors,
+                               overwrite=overwrite, progress=progress, distance_m=distance_m,
+                               duration_s=duration_s, cloud_rate_hz=cloud_rate_hz)
+    if distance_m is not None or duration_s is not None or cloud_rate_hz is not None:
+        raise GraphcalError("--distance, --duration and --cloud-rate belong to the walking programs "
+                            "(tripod-walk, tripod-stairs)")
+    if cloud_stride is None:
+        cloud_stride = 4
     if output not in ("clouds", "planes", "both"):
         raise GraphcalError(f"output must be clouds, planes or both, got {output!r}")
     if cloud_stride < 1:
@@ -213,6 +233,7 @@ def simulate_to_folder(
         sensors=sensors, cloud_stride=cloud_stride,
         leg_error_sigma_rad=float(np.radians(0.5)) if leg_errors else 0.0,
         leg_error_sigma_m=0.003 if leg_errors else 0.0,
+        session_heading_step_deg=session_heading_step_deg,
     )
     combined = Effects()
     for cause, params in effects:
@@ -231,3 +252,22 @@ def simulate_to_folder(
         f"({program} program, {ground} ground); sensors: {', '.join(result.sensor_cad) or 'none'}; "
         f"{len(clouds)} clouds, {n_planes} planes; hidden effects: {hidden}; truth in {out_dir / 'truth.yaml'}"
     )
+
+
+def _walk_to_folder(*, program, robot, out_dir, seed, output, cloud_stride, leg_errors, effects, n_stations,
+                    n_sessions, sensors, overwrite, progress, distance_m, duration_s, cloud_rate_hz) -> str:
+    """The walking programs: refuse the station-program options, then simulate the walk."""
+    from .walking import simulate_walking_to_folder
+
+    unsupported = [name for name, given in (
+        ("--effect", bool(effects)), ("--leg-errors", leg_errors), ("--stations", n_stations is not None),
+        ("--sessions", n_sessions != 1), ("--sensor", bool(sensors)), ("--output planes", output == "planes"),
+    ) if given]
+    if unsupported:
+        raise GraphcalError(f"program {program}: {', '.join(unsupported)} not supported by the walking programs")
+    if robot != "qingzhui":
+        raise GraphcalError(f"program {program} walks the qingzhui (Zhao 2020's tripod gait), not {robot!r}: "
+                            f"pass --robot qingzhui")
+    return simulate_walking_to_folder(program=program, out_dir=out_dir, robot=robot, seed=seed,
+                                      distance_m=distance_m, duration_s=duration_s, cloud_rate_hz=cloud_rate_hz,
+                                      cloud_stride=cloud_stride, overwrite=overwrite, progress=progress)

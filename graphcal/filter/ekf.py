@@ -1,0 +1,484 @@
+"""Error-state extended Kalman filter of a legged robot: IMU propagation, stance-foot kinematics,
+relative-pose (ICP) updates, on filterpy's ``ExtendedKalmanFilter``.
+
+Nominal state (kept here, on the manifold):
+    ``p`` = p_world_body (m), ``v`` = v_world_body (m/s), ``R`` = R_world_body, ``b_g`` gyro bias
+    (rad/s, IMU frame), ``b_a`` accelerometer bias (m/s^2, IMU frame), the world positions of the
+    stance feet ``p_world_foot`` (one slot per foot of a tripod, m) and a clone of the body pose at
+    the last keyframe (``p_c``, ``R_c``) for relative-pose measurements (stochastic cloning).
+
+Error state (filterpy's ``x``, zero between updates; its covariance is filterpy's ``P``), in order:
+    ``dp`` (3, world), ``dv`` (3, world), ``dtheta`` (3, body; R = R_hat Exp(dtheta), the right
+    perturbation of docs/conventions.md), ``db_g`` (3), ``db_a`` (3), one ``dp_foot`` (3, world) per
+    stance slot, ``dp_c`` (3), ``dtheta_c`` (3). Dimension ``15 + 3 n_slots + 6``.
+
+Models:
+    IMU (``propagate``): omega = R_body_imu (gyro - b_g), a = R_body_imu (accel - b_a) (the IMU
+    at the body origin: no lever arm), integrated between updates as a preintegrated chunk
+    (:mod:`graphcal.filter.imu`): R <- R dR Exp(-b_g T), v <- v + g T + R dv(b),
+    p <- p + v T + g T^2 / 2 + R dp(b); biases and feet random walks. The covariance takes one
+    step per chunk: filterpy's ``predict`` with F (the chunk's error transition) and Q = Qc T.
+    Stance kinematics (``update_stance``, Zhao Eqs. 6-9 as a filter measurement): each stance
+    foot measured in the body frame by forward kinematics, h = R^T (p_world_foot - p).
+    Foot slots (``reset_feet``): when the other tripod takes over, its feet are placed at
+    p + R p_body_foot with the covariance that implies (cross-covariances included).
+    Relative pose (``update_relative_pose``): T_c^-1 T measured (e.g. by ICP between keyframe
+    clouds) in the directions it constrains: z = A xi with covariance C (xi = [omega, v], the
+    right perturbation of the relative pose); optionally gated by its NIS.
+
+Updates: by default a lean Kalman update (gain, P - K S K^T symmetrised) that leaves gain,
+innovation and its covariance in the filterpy object; ``use_filterpy_update = True`` calls
+filterpy's ``update`` (Joseph form) instead: the two agree to rounding (tests/test_ekf.py), the
+lean one is faster. The manifold parts (error injection into the nominal state, resets, clones)
+are done here. NIS of every update: :attr:`last_nis`, :attr:`last_innovation`, :attr:`last_S`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import GraphcalError
+
+__all__ = ["GRAVITY_WORLD", "EkfNoise", "NominalState", "LeggedEKF", "state_dim", "check_covariance"]
+
+GRAVITY_WORLD = np.array([0.0, 0.0, -9.80665])
+
+
+def state_dim(n_slots: int) -> int:
+    """Error-state dimension for ``n_slots`` stance-foot slots."""
+    return 15 + 3 * n_slots + 6
+
+
+@dataclass(frozen=True)
+class EkfNoise:
+    """Noise parameters of the filter (continuous-time densities; our defaults match the
+    simulator's, see docs/state_estimation.md).
+
+    Attributes:
+        gyro_noise_density: rad/s/sqrt(Hz). accel_noise_density: m/s^2/sqrt(Hz).
+        gyro_bias_rw: rad/s^2/sqrt(Hz). accel_bias_rw: m/s^3/sqrt(Hz).
+        foot_rw: random walk of a planted foot (slip), m/sqrt(s).
+        encoder_sigma_rad: joint encoder noise (per sample), rad.
+        kinematic_sigma_m: extra foot-position noise for model errors, per axis, m.
+        icp_cov_scale: the ICP covariance (from its point-to-plane information) is multiplied by
+            this (unmodelled errors: sampling, local planes; measured ~2.5-3 on simulated data).
+    """
+
+    gyro_noise_density: float = 2.5e-4
+    accel_noise_density: float = 1.5e-3
+    gyro_bias_rw: float = 1e-5
+    accel_bias_rw: float = 1e-4
+    foot_rw: float = 1e-5
+    encoder_sigma_rad: float = float(np.radians(0.02))
+    kinematic_sigma_m: float = 0.0
+    icp_cov_scale: float = 4.0
+
+    def __post_init__(self):
+        for name, v in self.__dict__.items():
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise GraphcalError(f"EkfNoise.{name} must be a finite number >= 0, got {v!r}")
+        if self.icp_cov_scale <= 0:
+            raise GraphcalError("EkfNoise.icp_cov_scale must be > 0")
+
+    def process_density(self, n_slots: int) -> np.ndarray:
+        """Qc: the error state's process-noise spectral density (diagonal), per second."""
+        q = np.zeros(state_dim(n_slots))
+        q[3:6] = self.accel_noise_density**2
+        q[6:9] = self.gyro_noise_density**2
+        q[9:12] = self.gyro_bias_rw**2
+        q[12:15] = self.accel_bias_rw**2
+        q[15 : 15 + 3 * n_slots] = self.foot_rw**2
+        return np.diag(q)
+
+
+@dataclass(frozen=True)
+class NominalState:
+    """A full state: p_world_body (3,) m, v_world_body (3,) m/s, R_world_body (3, 3), gyro_bias
+    (3,) rad/s and accel_bias (3,) m/s^2 (IMU frame)."""
+
+    p_world_body: np.ndarray
+    v_world_body: np.ndarray
+    R_world_body: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+
+
+def _as_matrix(name: str, M, shape: tuple[int, int]) -> np.ndarray:
+    try:
+        A = np.array(M, dtype=float)
+    except (TypeError, ValueError):
+        raise GraphcalError(f"{name} must be a numeric matrix of shape {shape}") from None
+    if A.shape != shape:
+        raise GraphcalError(f"{name} must have shape {shape}, got {A.shape}")
+    if not np.isfinite(A).all():
+        raise GraphcalError(f"{name} must be finite (no nan or inf)")
+    return A
+
+
+def _as_vector(name: str, v, n: int = 3) -> np.ndarray:
+    try:
+        a = np.array(v, dtype=float)
+    except (TypeError, ValueError):
+        raise GraphcalError(f"{name} must be {n} numbers") from None
+    if a.shape != (n,) or not np.isfinite(a).all():
+        raise GraphcalError(f"{name} must be {n} finite numbers, got shape {a.shape}")
+    return a
+
+
+def check_covariance(name: str, M, n: int, *, definite: bool = False) -> np.ndarray:
+    """``M`` as an (n, n) float matrix; GraphcalError unless symmetric and positive semi-definite
+    (positive definite with ``definite``)."""
+    A = _as_matrix(name, M, (n, n))
+    scale = max(1.0, float(np.abs(A).max()))
+    if not np.allclose(A, A.T, rtol=1e-9, atol=1e-12 * scale):
+        raise GraphcalError(f"{name} must be symmetric")
+    w = np.linalg.eigvalsh(0.5 * (A + A.T))
+    tol = 1e-12 * scale
+    if definite and w.min() <= 0:
+        raise GraphcalError(f"{name} must be positive definite (smallest eigenvalue {w.min():.3g})")
+    if w.min() < -tol:
+        raise GraphcalError(f"{name} must be positive semi-definite (smallest eigenvalue {w.min():.3g})")
+    return 0.5 * (A + A.T)
+
+
+def _skew(v) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _exp(w) -> np.ndarray:
+    """Rodrigues: Exp of a rotation vector (3,), rad."""
+    x, y, z = float(w[0]), float(w[1]), float(w[2])
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-16:
+        a, b = 1.0, 0.5
+    else:
+        th = math.sqrt(th2)
+        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+    return np.array([
+        [1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
+        [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
+        [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)],
+    ])
+
+
+def _log(R) -> np.ndarray:
+    """Rotation vector (3,) of a rotation matrix (angle < pi)."""
+    c = max(-1.0, min(1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
+    th = math.acos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if th < 1e-7:
+        return 0.5 * v
+    return v * (th / (2.0 * math.sin(th)))
+
+
+class LeggedEKF:
+    """The error-state EKF (see the module docstring).
+
+    Args:
+        x0: the initial :class:`NominalState`.
+        P0: (D, D) initial error-state covariance, D = :func:`state_dim` (``n_slots``); symmetric
+            positive definite. Foot and clone blocks are overwritten when those are first set.
+        Qc: (D, D) process-noise spectral density of the error state (per second), symmetric PSD;
+            the discrete noise of a step of length dt is ``Qc * dt``.
+        encoder_cov: (n, n) covariance of one leg's joint encoders (rad^2), symmetric PSD.
+        kinematic_cov: (3, 3) extra covariance of a foot position from kinematics (m^2), PSD.
+        n_slots: number of stance feet tracked (3 for a tripod).
+        T_body_imu: (4, 4) IMU pose in the body frame (its rotation is used; no lever arm).
+
+    Raises:
+        GraphcalError: a matrix of the wrong shape, not finite, not symmetric, not PSD (P0 not PD).
+    """
+
+    def __init__(self, x0: NominalState, P0, Qc, encoder_cov, kinematic_cov, *, n_slots: int = 3,
+                 T_body_imu=None):
+        from filterpy.kalman import ExtendedKalmanFilter
+
+        if not isinstance(n_slots, int) or n_slots < 1:
+            raise GraphcalError(f"n_slots must be a positive integer, got {n_slots!r}")
+        D = state_dim(n_slots)
+        self.n_slots = n_slots
+        self.dim = D
+        # p, v, b_g, b_a are views into one array (updated in place: one add injects an error)
+        self._xn = np.zeros(12)
+        self.p, self.v, self.bg, self.ba = self._xn[0:3], self._xn[3:6], self._xn[6:9], self._xn[9:12]
+        self.p[:] = _as_vector("x0.p_world_body", x0.p_world_body)
+        self.v[:] = _as_vector("x0.v_world_body", x0.v_world_body)
+        R0 = _as_matrix("x0.R_world_body", x0.R_world_body, (3, 3))
+        if not np.allclose(R0.T @ R0, np.eye(3), atol=1e-6) or np.linalg.det(R0) < 0:
+            raise GraphcalError("x0.R_world_body must be a rotation matrix")
+        self.R = R0.copy()
+        self.bg[:] = _as_vector("x0.gyro_bias", x0.gyro_bias)
+        self.ba[:] = _as_vector("x0.accel_bias", x0.accel_bias)
+        P0 = check_covariance("P0", P0, D, definite=True)
+        self.Qc = check_covariance("Qc", Qc, D)
+        enc = np.asarray(encoder_cov, dtype=float)
+        self.encoder_cov = check_covariance("encoder_cov", enc, enc.shape[0] if enc.ndim == 2 else -1)
+        self.kinematic_cov = check_covariance("kinematic_cov", kinematic_cov, 3)
+        T = np.eye(4) if T_body_imu is None else _as_matrix("T_body_imu", T_body_imu, (4, 4))
+        Rbi = T[:3, :3]
+        if not np.allclose(Rbi.T @ Rbi, np.eye(3), atol=1e-6) or np.linalg.det(Rbi) < 0:
+            raise GraphcalError("T_body_imu must hold a rotation matrix")
+        self.R_body_imu = Rbi.copy()
+        self._imu_identity = bool(np.allclose(Rbi, np.eye(3), atol=1e-12))
+        self._Rbi6 = np.kron(np.eye(2), Rbi)
+        self._xn_idx = np.r_[0:6, 9:15]
+        self._Sk2 = np.zeros((2, 3, 3))
+
+        self.kf = ExtendedKalmanFilter(dim_x=D, dim_z=3 * n_slots)
+        self.kf.x = np.zeros(D)
+        self.kf.P = P0.copy()
+        self.kf.Q = np.zeros((D, D))
+        self.kf.F = np.eye(D)
+        self.p_feet = np.zeros((n_slots, 3))
+        self.feet: tuple = ()
+        self.p_c = self.p.copy()
+        self.R_c = self.R.copy()
+        self.has_clone = False
+        self.last_nis = float("nan")
+        self.last_innovation = np.zeros(0)
+        self.last_S = np.zeros((0, 0))
+        self._F = np.eye(D)
+        self._Qdiag = np.diag(self.Qc).copy() if np.count_nonzero(self.Qc - np.diag(np.diag(self.Qc))) == 0 else None
+        self._fs = slice(15, 15 + 3 * n_slots)
+        self._c = 15 + 3 * n_slots
+        self._H = np.zeros((3 * n_slots, D))
+        self._H3 = self._H.reshape(n_slots, 3, D)
+        self._Sk = np.zeros((n_slots, 3, 3))
+        # skew(h): entries (0,1)=-h2, (0,2)=h1, (1,0)=h2, (1,2)=-h0, (2,0)=-h1, (2,1)=h0
+        self._sk_i = np.array([0, 0, 1, 1, 2, 2])
+        self._sk_j = np.array([1, 2, 0, 2, 0, 1])
+        self._sk_k = np.array([2, 1, 2, 0, 1, 0])
+        self._sk_sign = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
+        rows, cols = [], []
+        for i in range(n_slots):
+            for a in range(3):
+                for b in range(3):
+                    rows.append(3 * i + a)
+                    cols.append(15 + 3 * i + b)
+        self._foot_rows = np.array(rows)
+        self._foot_cols = np.array(cols)
+        self._foot_src = np.tile(np.arange(9), n_slots)
+        self.use_filterpy_update = False
+
+    # ------------------------------------------------------------------ accessors
+    @property
+    def P(self) -> np.ndarray:
+        """The error-state covariance (filterpy's ``P``)."""
+        return self.kf.P
+
+    @property
+    def T_world_body(self) -> np.ndarray:
+        """(4, 4) current pose estimate."""
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        T[:3, 3] = self.p
+        return T
+
+    def pose_covariance(self) -> np.ndarray:
+        """(6, 6) covariance of (dp (world), dtheta (body))."""
+        idx = np.r_[0:3, 6:9]
+        return self.kf.P[np.ix_(idx, idx)].copy()
+
+    # ------------------------------------------------------------------ IMU
+    def body_biases(self) -> tuple[np.ndarray, np.ndarray]:
+        """(gyro bias, accel bias) rotated into the body frame (what the preintegration uses)."""
+        if self._imu_identity:
+            return self.bg.copy(), self.ba.copy()
+        return self.R_body_imu @ self.bg, self.R_body_imu @ self.ba
+
+    def propagate(self, dR, dpv, J, T: float) -> None:
+        """Propagate over a chunk of preintegrated IMU (see :mod:`graphcal.filter.imu`).
+
+        Args:
+            dR: (3, 3) zero-bias preintegrated rotation of the chunk.
+            dpv: (6,) zero-bias preintegrated position (m) and velocity (m/s) changes [dp, dv],
+                body frame at the chunk start.
+            J: (6, 6) Jacobian of [dp, dv] w.r.t. the body-frame biases [b_g, b_a]
+                (``[[Jpg, Jpa], [Jvg, Jva]]``).
+            T: chunk length, s.
+
+        The nominal state takes the chunk with the current biases (dR Exp(-b_g T), dpv + J b);
+        the covariance takes one step over it through filterpy's ``predict`` with
+        F = d(error after)/d(error before) below and Q = Qc T.
+        """
+        xn = self._xn
+        b = xn[6:12] if self._imu_identity else self._Rbi6 @ xn[6:12]
+        RD = self.R @ (dpv + J @ b).reshape(2, 3).T  # columns: R dp_c, R dv_c
+        g = GRAVITY_WORLD
+        xn[0:3] += self.v * T + (0.5 * T * T) * g + RD[:, 0]
+        xn[3:6] += g * T + RD[:, 1]
+        dRc = dR @ _exp(-T * b[:3])
+        R = self.R
+        self.R = R @ dRc
+        F = self._F
+        F[0, 3] = F[1, 4] = F[2, 5] = T
+        Sk = self._Sk2  # skew(-R dp_c), skew(-R dv_c): -R [d]x = -[R d]x R
+        Sk[:, self._sk_i, self._sk_j] = -RD.T[:, self._sk_k] * self._sk_sign
+        F[0:6, 6:9] = (Sk @ R).reshape(6, 3)
+        F[6:9, 6:9] = dRc.T
+        if self._imu_identity:
+            F[0:6, 9:15] = (R @ J.reshape(2, 3, 6)).reshape(6, 6)
+            F[6, 9] = F[7, 10] = F[8, 11] = -T
+        else:
+            F[0:6, 9:15] = (R @ (J @ self._Rbi6).reshape(2, 3, 6)).reshape(6, 6)
+            F[6:9, 9:12] = -T * self.R_body_imu
+        kf = self.kf
+        kf.F = F
+        if self._Qdiag is not None:
+            np.fill_diagonal(kf.Q, self._Qdiag * T)
+        else:
+            kf.Q = self.Qc * T
+        kf.predict()
+
+    # ------------------------------------------------------------------ kinematics
+    def foot_covariance(self, J: np.ndarray) -> np.ndarray:
+        """(3, 3) covariance of a foot position from kinematics with leg Jacobian J (3, n)."""
+        return J @ self.encoder_cov @ J.T + self.kinematic_cov
+
+    def reset_feet(self, feet: tuple, p_body_foot: np.ndarray, R_meas: np.ndarray) -> None:
+        """Start tracking ``feet`` (names) at the measured p_body_foot (n_slots, 3) m with
+        measurement covariance R_meas (3 n_slots, 3 n_slots): p_world_foot = p + R p_body_foot."""
+        n = self.n_slots
+        P = self.kf.P
+        fs = self._fs
+        P[fs, :] = 0.0
+        P[:, fs] = 0.0
+        G = np.zeros((3 * n, self.dim))
+        for i in range(n):
+            z = p_body_foot[i]
+            self.p_feet[i] = self.p + self.R @ z
+            G[3 * i : 3 * i + 3, 0:3] = np.eye(3)
+            G[3 * i : 3 * i + 3, 6:9] = -self.R @ _skew(z)
+        GP = G @ P
+        Gz = np.kron(np.eye(n), self.R)
+        Rz = Gz @ R_meas @ Gz.T
+        P[fs, :] = GP
+        P[:, fs] = GP.T
+        P[fs, fs] = GP @ G.T + Rz
+        self.feet = tuple(feet)
+
+    def update_stance(self, p_body_foot: np.ndarray, R_meas: np.ndarray) -> float:
+        """Stance update with the measured p_body_foot (n_slots, 3) of the tracked feet (same
+        order as :meth:`reset_feet`), covariance R_meas (3 n_slots, 3 n_slots). Returns the NIS."""
+        RT = self.R.T
+        h = (self.p_feet - self.p) @ self.R  # rows: R^T (p_world_foot - p)
+        H = self._H
+        H3 = self._H3
+        H3[:, :, 0:3] = -RT
+        Sk = self._Sk
+        Sk[:, self._sk_i, self._sk_j] = h[:, self._sk_k] * self._sk_sign
+        H3[:, :, 6:9] = Sk
+        H[self._foot_rows, self._foot_cols] = RT.ravel()[self._foot_src]
+        return self._update(p_body_foot.ravel(), h.ravel(), H, R_meas)[0]
+
+    # ------------------------------------------------------------------ relative pose (ICP)
+    def clone_pose(self) -> None:
+        """Make the current body pose the keyframe clone (with its covariance)."""
+        P = self.kf.P
+        c = self._c
+        src = np.r_[0:3, 6:9]
+        dst = np.arange(c, c + 6)
+        P[dst, :] = P[src, :]
+        P[:, dst] = P[:, src]
+        P[np.ix_(dst, dst)] = P[np.ix_(src, src)]
+        self.p_c = self.p.copy()
+        self.R_c = self.R.copy()
+        self.has_clone = True
+
+    def predicted_relative_pose(self) -> np.ndarray:
+        """(4, 4) T_keyframebody_body = T_c^-1 T from the current estimate."""
+        T = np.eye(4)
+        T[:3, :3] = self.R_c.T @ self.R
+        T[:3, 3] = self.R_c.T @ (self.p - self.p_c)
+        return T
+
+    def update_relative_pose(self, T_meas: np.ndarray, A: np.ndarray, cov: np.ndarray, *,
+                             gate_chi2: float | None = None) -> tuple[float, bool]:
+        """Fuse a measured T_keyframebody_body (4, 4) in the directions it constrains.
+
+        Args:
+            T_meas: measured relative pose T_c^-1 T (body frames).
+            A: (k, 6) measured combinations of the right perturbation xi = [omega, v] of the
+                relative pose: z = A xi with T_true = T_meas Exp(-xi).
+            cov: (k, k) covariance of z.
+            gate_chi2: reject the measurement (no update) when its NIS exceeds this.
+
+        Returns:
+            (NIS, fused).
+        """
+        if not self.has_clone:
+            raise GraphcalError("update_relative_pose: no keyframe clone (call clone_pose first)")
+        A = np.atleast_2d(np.asarray(A, dtype=float))
+        k = A.shape[0]
+        if A.shape[1] != 6 or k == 0:
+            raise GraphcalError(f"update_relative_pose: A must have shape (k, 6), k >= 1, got {A.shape}")
+        cov = check_covariance("relative-pose covariance", cov, k, definite=True)
+        dR_hat = self.R_c.T @ self.R
+        dt_hat = self.R_c.T @ (self.p - self.p_c)
+        xi = np.r_[_log(dR_hat.T @ T_meas[:3, :3]), dR_hat.T @ (T_meas[:3, 3] - dt_hat)]
+        c = self._c
+        Hx = np.zeros((6, self.dim))
+        Hx[0:3, 6:9] = np.eye(3)
+        Hx[0:3, c + 3 : c + 6] = -dR_hat.T
+        Hx[3:6, 0:3] = dR_hat.T @ self.R_c.T
+        Hx[3:6, c : c + 3] = -dR_hat.T @ self.R_c.T
+        Hx[3:6, c + 3 : c + 6] = dR_hat.T @ _skew(dt_hat)
+        return self._update(A @ xi, np.zeros(k), A @ Hx, cov, gate_chi2=gate_chi2)
+
+    # ------------------------------------------------------------------ common
+    def _update(self, z, hx, H, R, *, gate_chi2: float | None = None) -> tuple[float, bool]:
+        """Kalman update of the error state with the linearised measurement z ~ hx + H dx.
+
+        By default a lean update (one 30x30-sized product per step; P - K S K^T, symmetrised);
+        with ``use_filterpy_update`` filterpy's ``ExtendedKalmanFilter.update`` (Joseph form) —
+        the two agree to rounding (tests). Gain, innovation and its covariance are left in the
+        filterpy object (``K``, ``y``, ``S``, ``SI``) either way; the error is injected into the
+        nominal state and reset to zero. With ``gate_chi2`` a measurement whose NIS exceeds it is
+        not fused. Returns (NIS, fused)."""
+        kf = self.kf
+        if gate_chi2 is not None:
+            y0 = z - hx
+            S0 = H @ kf.P @ H.T + R
+            nis0 = float(y0 @ np.linalg.solve(S0, y0))
+            if nis0 > gate_chi2:
+                self.last_nis = nis0
+                return nis0, False
+        if self.use_filterpy_update:
+            kf.update(z, HJacobian=lambda _x: H, Hx=lambda _x: hx, R=R)
+            y, SI = kf.y, kf.SI
+            dx = kf.x
+        else:
+            P = kf.P
+            PHT = P @ H.T
+            S = H @ PHT + R
+            SI = np.linalg.inv(S)
+            K = PHT @ SI
+            y = z - hx
+            dx = K @ y
+            P -= K @ PHT.T
+            kf.P = 0.5 * (P + P.T)
+            kf.K, kf.y, kf.S, kf.SI = K, y, S, SI
+        self.last_innovation = y
+        self.last_S = kf.S
+        nis = float(y @ SI @ y)
+        self.last_nis = nis
+        self._inject(dx)
+        kf.x = np.zeros(self.dim)
+        return nis, True
+
+    def _inject(self, dx: np.ndarray) -> None:
+        self._xn += dx[self._xn_idx]
+        self.R = self.R @ _exp(dx[6:9])
+        self.p_feet += dx[self._fs].reshape(self.n_slots, 3)
+        if self.has_clone:
+            c = self._c
+            self.p_c = self.p_c + dx[c : c + 3]
+            self.R_c = self.R_c @ _exp(dx[c + 3 : c + 6])
+
+    def renormalize(self) -> None:
+        """Re-orthonormalise R (call now and then: rounding accumulates over many steps)."""
+        U, _, Vt = np.linalg.svd(self.R)
+        self.R = U @ Vt

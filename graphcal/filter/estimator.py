@@ -1,0 +1,578 @@
+"""Run the legged EKF over a timeseries: support detection, IMU propagation at every sample, stance
+kinematics, and (second stage) ICP between keyframe clouds as relative-pose measurements.
+
+``run_filter(inputs, config)`` is the loop; ``inputs_from_dataset`` builds its inputs from a
+contract dataset (``timeseries.csv``: time, q_*, tau_* (or contact_*), imu_*, cloud_<sensor>) and
+``inputs_from_walking`` from an in-memory simulation. ``estimate_trajectory(dataset)`` returns
+``(times (N,), T_world_body (N, 4, 4))`` for other modules (the stairs model).
+
+World frame of the estimate: z up (gravity), origin on the ground under the body at the first
+sample (the feet of the first stance tripod define the ground, z = 0), x along the body's
+initial heading (yaw = 0). Roll and pitch start from the mean accelerometer reading of the first
+``init_window_s``; the initial velocity is 0 (uncertain), the biases 0 (uncertain).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DatasetError, GraphcalError
+from .ekf import GRAVITY_WORLD as GRAVITY
+from .ekf import EkfNoise, LeggedEKF, NominalState, state_dim
+
+__all__ = ["TrackerConfig", "TrackInputs", "TrackResult", "run_filter", "inputs_from_dataset",
+           "inputs_from_walking", "estimate_trajectory"]
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Filter settings (SI units).
+
+    Attributes:
+        noise: :class:`~graphcal.filter.ekf.EkfNoise`.
+        stance_every: stance-kinematics update every k-th sample (1: every sample); the
+            covariance is propagated once between updates, the nominal state at every sample.
+        icp: fuse ICP between keyframe clouds (when the data have clouds).
+        keyframe_distance_m, keyframe_angle_rad, keyframe_max_s: a new keyframe (and an ICP
+            measurement against the previous one) once the body moved this far, turned this much,
+            or this long after the last one.
+        icp_max_correspondence_m: correspondence search radius (m).
+        icp_neighbours: neighbours of a keyframe point's local plane.
+        icp_degenerate_ratio: ICP directions whose Hessian eigenvalue (rotation scaled by 1 m) is
+            below this fraction of the largest are neither solved nor fused.
+        icp_min_fitness: an ICP result with a smaller inlier fraction is not fused.
+        icp_gate_prob: an ICP measurement whose NIS exceeds this chi-square quantile is not fused.
+        icp_max_points: clouds with more points are evenly thinned to this many for ICP.
+        hysteresis_n: support detection hysteresis (N).
+        init_window_s: accelerometer averaging window for the initial roll and pitch (s).
+        sigma_init_*: initial standard deviations (position m; roll/pitch, yaw rad; velocity m/s;
+            gyro bias rad/s; accel bias m/s^2). Position x, y and yaw define the world frame; the
+            roll/pitch error also carries the accelerometer bias (correlated, see
+            ``_initial_covariance``). Defaults match the simulator's IMU (graphcal.simulation.walking).
+        record_cov_every: keep the pose covariance every k-th sample.
+    """
+
+    noise: EkfNoise = field(default_factory=EkfNoise)
+    stance_every: int = 5
+    icp: bool = True
+    keyframe_distance_m: float = 0.3
+    keyframe_angle_rad: float = float(np.radians(10.0))
+    keyframe_max_s: float = 2.0
+    icp_max_correspondence_m: float = 0.1
+    icp_neighbours: int = 15
+    icp_degenerate_ratio: float = 1e-2
+    icp_min_fitness: float = 0.3
+    icp_gate_prob: float = 0.999
+    icp_max_points: int = 1500
+    hysteresis_n: float = 20.0
+    init_window_s: float = 0.1
+    sigma_init_xy_m: float = 1e-6
+    sigma_init_z_m: float = 0.0002
+    sigma_init_roll_pitch_rad: float = 0.0002
+    sigma_init_yaw_rad: float = 1e-6
+    sigma_init_velocity_m_s: float = 0.05
+    sigma_init_gyro_bias: float = 0.001
+    sigma_init_accel_bias: float = 0.02
+    record_cov_every: int = 10
+
+    def __post_init__(self):
+        if self.stance_every < 1 or self.record_cov_every < 1:
+            raise GraphcalError("stance_every and record_cov_every must be >= 1")
+
+
+@dataclass(frozen=True, eq=False)
+class TrackInputs:
+    """What the filter reads (arrays over N samples).
+
+    Attributes:
+        times: (N,) s, increasing. gyro: (N, 3) rad/s; accel: (N, 3) m/s^2 (IMU frame).
+        robot: :class:`~graphcal.models.robot.RobotModel`; groups: the two tripods (foot names).
+        q: joint name -> (N,) rad (every joint of the tripods' legs).
+        tau: joint name -> (N,) N m, or None (then ``contact`` must be given).
+        contact: (N, n_feet) bool in ``robot.feet`` order, or None.
+        T_body_imu: (4, 4).
+        clouds: sample index -> loader returning (M, 3) points in the sensor frame (m).
+        T_body_sensor: (4, 4) of the cloud sensor; sensor_type: its dataset type.
+        source: where the data came from (for messages).
+    """
+
+    times: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    robot: object
+    groups: tuple
+    q: dict
+    tau: dict | None = None
+    contact: np.ndarray | None = None
+    T_body_imu: np.ndarray = field(default_factory=lambda: np.eye(4))
+    clouds: dict = field(default_factory=dict)
+    T_body_sensor: np.ndarray | None = None
+    sensor_type: str = "depth_camera"
+    source: str = "data"
+
+
+@dataclass(frozen=True, eq=False)
+class TrackResult:
+    """The estimate and the filter's own diagnostics.
+
+    Attributes:
+        times: (N,) s. T_world_body: (N, 4, 4). v_world_body, gyro_bias, accel_bias: (N, 3).
+        cov_index: (M,) sample indices of ``cov_pose`` (M, 6, 6): covariance of (dp world, dtheta body).
+        stance_nis: (K,) NIS of the stance updates (dof ``stance_dof``); stance_times (K,);
+        stance_innovations: (K, stance_dof) innovations whitened by their covariance (Cholesky).
+        icp_nis, icp_dof, icp_times: NIS and number of fused directions of each ICP update.
+        n_icp_rejected: ICP results not fused (too few inliers or failed).
+        support_group: (N,) tripod in stance (index into ``groups``); groups.
+        processing_s: wall time of the filter (support detection, kinematics and loop included).
+        duration_s: span of the data (s).
+    """
+
+    times: np.ndarray
+    T_world_body: np.ndarray
+    v_world_body: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+    cov_index: np.ndarray
+    cov_pose: np.ndarray
+    stance_nis: np.ndarray
+    stance_times: np.ndarray
+    stance_innovations: np.ndarray
+    stance_dof: int
+    icp_nis: np.ndarray
+    icp_dof: np.ndarray
+    icp_times: np.ndarray
+    n_icp_rejected: int
+    support_group: np.ndarray
+    groups: tuple
+    processing_s: float
+    duration_s: float
+
+    @property
+    def real_time_factor(self) -> float:
+        """Data duration / processing time (> 1: faster than real time)."""
+        return self.duration_s / self.processing_s if self.processing_s > 0 else float("inf")
+
+
+# ----------------------------------------------------------------------------- inputs
+def _gait_groups(ds, robot) -> tuple:
+    spec = ds.extra.get("gait", {}) if isinstance(ds.extra, dict) else {}
+    groups = spec.get("groups") if isinstance(spec, dict) else None
+    yaml_file = ds.root / "dataset.yaml" if ds.root is not None else "dataset.yaml"
+    if groups is None and ds.robot is not None and ds.robot.model is not None:
+        from ..models.builtin import builtin_info
+
+        groups = builtin_info(ds.robot.model).gait_groups or None
+    if groups is None:
+        raise DatasetError(yaml_file, "gait.groups", "the two tripods of the gait (lists of foot frames) for a robot "
+                           "that is not a built-in hexapod", "missing")  # fmt: skip
+    if (not isinstance(groups, (list, tuple)) or len(groups) != 2
+            or any(not isinstance(g, (list, tuple)) or len(g) != len(groups[0]) or len(g) < 3 for g in groups)):
+        raise DatasetError(yaml_file, "gait.groups", "two lists of the same number (>= 3) of foot frames", groups)
+    for g in groups:
+        for f in g:
+            if f not in robot.feet:
+                raise DatasetError(yaml_file, "gait.groups", f"foot frames of robot.feet ({', '.join(robot.feet)})", f)
+    return tuple(tuple(g) for g in groups)
+
+
+def inputs_from_dataset(ds, *, sensor: str | None = None) -> TrackInputs:
+    """Filter inputs from a contract dataset (read with :func:`graphcal.io.dataset.read_dataset`).
+
+    Raises DatasetError naming ``timeseries.csv`` and the column when something the filter needs is
+    missing (the IMU columns; torques or contacts; at least two samples)."""
+    from ..io.dataset import load_dataset_robot
+
+    root = ds.root
+    ts_file = root / "timeseries.csv" if root is not None else "timeseries.csv"
+    yaml_file = root / "dataset.yaml" if root is not None else "dataset.yaml"
+    t = ds.timeseries
+    if t is None:
+        raise DatasetError(ts_file, "file", "a timeseries (state estimation reads timeseries.csv)", "none")
+    if ds.robot is None:
+        raise DatasetError(yaml_file, "robot", "a robot (legged state estimation needs its legs)", "none")
+    for c in ("imu_ax", "imu_ay", "imu_az", "imu_gx", "imu_gy", "imu_gz"):
+        if not t.has(c):
+            raise DatasetError(ts_file, f"header, column {c}", "the IMU columns imu_ax..imu_az, imu_gx..imu_gz",
+                               "missing")
+    if len(t) < 2:
+        raise DatasetError(ts_file, "rows", "at least two samples", len(t))
+    times = np.asarray(t["time"], dtype=float)
+    if np.any(np.diff(times) <= 0):
+        i = int(np.argmax(np.diff(times) <= 0)) + 1
+        raise DatasetError(ts_file, f"row {i + 1}, column time", "strictly increasing times (one sample per time)",
+                           float(times[i]))
+    robot = load_dataset_robot(ds)
+    groups = _gait_groups(ds, robot)
+    q = {}
+    tau: dict | None = {}
+    for f in robot.feet:
+        for j in robot.leg(f).joint_names:
+            q[j] = np.asarray(t[f"q_{j}"], dtype=float)
+            if tau is not None and t.has(f"tau_{j}"):
+                tau[j] = np.asarray(t[f"tau_{j}"], dtype=float)
+            else:
+                tau = None
+    contact = None
+    if tau is None:
+        missing = [f for f in robot.feet if not t.has(f"contact_{f}")]
+        if missing:
+            joint = next(j for f in robot.feet for j in robot.leg(f).joint_names if not t.has(f"tau_{j}"))
+            raise DatasetError(ts_file, f"header, column tau_{joint}", "joint torques tau_<joint> of every leg joint "
+                               "(support detection) or contact_<foot> of every foot", "missing")  # fmt: skip
+        contact = np.column_stack([t[f"contact_{f}"] > 0.5 for f in robot.feet])
+    T_body_imu = ds.imu.T_body_imu_prior.matrix if ds.imu is not None else np.eye(4)
+    clouds: dict = {}
+    T_body_sensor = None
+    sensor_type = "depth_camera"
+    cloud_sensors = [s for s in t.suffixes("cloud_") if s in ds.sensors]
+    if sensor is not None and sensor not in cloud_sensors:
+        raise DatasetError(ts_file, f"header, column cloud_{sensor}", "the clouds of the requested sensor", "missing")
+    name = sensor or (cloud_sensors[0] if cloud_sensors else None)
+    if name is not None:
+        from ..io.ply import read_ply
+
+        spec = ds.sensors[name]
+        T_body_sensor = spec.T_body_sensor_prior.matrix
+        sensor_type = spec.type
+        for i, rel in enumerate(t[f"cloud_{name}"].tolist()):
+            if rel:
+                path = Path(root) / rel.replace("\\", "/")
+                clouds[i] = (lambda p=path: read_ply(p))
+    return TrackInputs(
+        times=times,
+        gyro=np.column_stack([t["imu_gx"], t["imu_gy"], t["imu_gz"]]).astype(float),
+        accel=np.column_stack([t["imu_ax"], t["imu_ay"], t["imu_az"]]).astype(float),
+        robot=robot, groups=groups, q=q, tau=tau, contact=contact, T_body_imu=T_body_imu,
+        clouds=clouds, T_body_sensor=T_body_sensor, sensor_type=sensor_type, source=str(ts_file),
+    )
+
+
+def inputs_from_walking(result, *, clouds: bool = True) -> TrackInputs:
+    """Filter inputs from a :class:`graphcal.simulation.walking.WalkingResult` (in memory; only
+    what the dataset would hold: measured joints, torques, IMU, clouds, CAD extrinsics)."""
+    info = result.info
+    cl = {}
+    if clouds:
+        cl = {int(k): (lambda a=a: a) for k, a in zip(result.cloud_indices, result.clouds) if len(a)}
+    T_bs = np.asarray(info.sensors["depth"].T_body_sensor) if "depth" in info.sensors else None
+    return TrackInputs(
+        times=result.times, gyro=result.imu_gyro, accel=result.imu_accel, robot=result.robot,
+        groups=tuple(result.groups), q=result.q_measured, tau=result.tau_measured,
+        T_body_imu=np.asarray(info.T_body_imu), clouds=cl, T_body_sensor=T_bs, source="simulation",
+    )
+
+
+# ----------------------------------------------------------------------------- the loop
+def _initial_state(inp: TrackInputs, pbf: np.ndarray, feet_idx: list[int], cfg: TrackerConfig):
+    t = inp.times
+    n0 = max(1, int(np.searchsorted(t, t[0] + cfg.init_window_s)))
+    a = inp.T_body_imu[:3, :3] @ inp.accel[:n0].mean(axis=0)
+    roll = math.atan2(a[1], a[2])
+    pitch = math.atan2(-a[0], math.hypot(a[1], a[2]))
+    from ..geometry import matrix_from_rpy
+
+    R0 = matrix_from_rpy([roll, pitch, 0.0])
+    feet_world = pbf[feet_idx, 0] @ R0.T
+    z0 = -float(feet_world[:, 2].mean())
+    return NominalState(np.array([0.0, 0.0, z0]), np.zeros(3), R0, np.zeros(3), np.zeros(3))
+
+
+def _initial_covariance(cfg: TrackerConfig, n_slots: int, R_body_imu: np.ndarray) -> np.ndarray:
+    """P0. Roll and pitch come from the mean accelerometer reading, so their errors are the
+    accelerometer bias seen as a tilt: dtheta_x = -b_y / g, dtheta_y = b_x / g (plus
+    ``sigma_init_roll_pitch_rad`` for the motion and noise in the window): correlated with the bias."""
+    D = state_dim(n_slots)
+    s = np.ones(D) * 1e-3
+    s[0:2] = cfg.sigma_init_xy_m
+    s[2] = cfg.sigma_init_z_m
+    s[3:6] = cfg.sigma_init_velocity_m_s
+    s[6:8] = cfg.sigma_init_roll_pitch_rad
+    s[8] = cfg.sigma_init_yaw_rad
+    s[9:12] = cfg.sigma_init_gyro_bias
+    s[12:15] = 0.0
+    P = np.diag(s**2)
+    g = 9.80665
+    G = np.zeros((D, 3))  # how the accelerometer bias (IMU frame) enters the initial state error
+    G[6:8, :] = np.array([[0.0, -1.0 / g, 0.0], [1.0 / g, 0.0, 0.0]]) @ R_body_imu
+    G[12:15, :] = np.eye(3)
+    return P + cfg.sigma_init_accel_bias**2 * (G @ G.T)
+
+
+def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, progress: bool = False) -> TrackResult:
+    """Run the EKF over ``inp`` (see the module docstring); returns the estimate at every sample."""
+    from .support import SupportEstimate, support_from_torques
+
+    # imports first: the processing time measures the filter, not module loading
+    import filterpy.kalman  # noqa: F401
+
+    from . import imu  # noqa: F401
+    if config.icp and inp.clouds:
+        import open3d  # noqa: F401
+        import scipy.stats  # noqa: F401
+
+        from . import icp  # noqa: F401
+    t_start = time.perf_counter()
+    cfg = config
+    robot = inp.robot
+    times = np.asarray(inp.times, dtype=float)
+    N = len(times)
+    feet = tuple(robot.feet)
+    groups = tuple(tuple(g) for g in inp.groups)
+    n_slots = len(groups[0])
+
+    # -- kinematics of every foot at every sample (vectorised, one pass per leg): positions,
+    # Jacobians, and the covariance of the measured foot positions
+    from ..models.kinematics import joint_frames
+
+    enc_var = cfg.noise.encoder_sigma_rad**2
+    kin_cov = np.eye(3) * cfg.noise.kinematic_sigma_m**2
+    pbf = np.empty((len(feet), N, 3))
+    Rf = np.empty((len(feet), N, 3, 3))
+    jac = {}
+    for i, f in enumerate(feet):
+        leg = robot.leg(f)
+        q = np.column_stack([inp.q[j] for j in leg.joint_names])
+        axes, origins, _, p_foot = joint_frames(leg, q)
+        J = np.empty((N, 3, leg.n_joints))
+        for j, jtype in enumerate(leg.joint_types):
+            J[:, :, j] = np.cross(axes[:, j], p_foot - origins[:, j]) if jtype == "revolute" else axes[:, j]
+        pbf[i] = p_foot
+        jac[f] = J
+        Rf[i] = enc_var * (J @ np.swapaxes(J, 1, 2)) + kin_cov
+
+    # -- support: which tripod is in stance
+    if inp.tau is not None:
+        sup = support_from_torques(robot, inp.q, inp.tau, groups, hysteresis_n=cfg.hysteresis_n, jacobians=jac)
+        group = sup.group
+    else:
+        cont = np.asarray(inp.contact, dtype=bool)
+        load = np.stack([cont[:, [feet.index(f) for f in g]].sum(axis=1) for g in groups], axis=1).astype(float)
+        group = np.where(load[:, 1] > load[:, 0], 1, 0)
+        for k in range(1, N):  # ties (all feet down) keep the previous tripod
+            if load[k, 1] == load[k, 0]:
+                group[k] = group[k - 1]
+        sup = SupportEstimate(group, groups, np.zeros((N, 0)), ())
+    n_joints = robot.leg(feet[0]).n_joints
+    group_idx = [[feet.index(f) for f in g] for g in groups]
+
+    x0 = _initial_state(inp, pbf, group_idx[group[0]], cfg)
+    P0 = _initial_covariance(cfg, n_slots, np.asarray(inp.T_body_imu, dtype=float)[:3, :3])
+    ekf = LeggedEKF(x0, P0, cfg.noise.process_density(n_slots), np.eye(n_joints) * enc_var, kin_cov,
+                    n_slots=n_slots, T_body_imu=inp.T_body_imu)
+
+    def meas(gi: int, k: int):
+        idx = group_idx[gi]
+        Rm = np.zeros((3 * n_slots, 3 * n_slots))
+        for s, i in enumerate(idx):
+            Rm[3 * s : 3 * s + 3, 3 * s : 3 * s + 3] = Rf[i, k]
+        return pbf[idx, k], Rm
+
+    z, Rm = meas(group[0], 0)
+    ekf.reset_feet(groups[group[0]], z, Rm)
+
+    # -- ICP stage
+    use_icp = cfg.icp and bool(inp.clouds) and inp.T_body_sensor is not None
+    T_bs = inp.T_body_sensor if inp.T_body_sensor is not None else np.eye(4)
+    T_sb = np.linalg.inv(T_bs)
+    Ad_bs = None
+    sigma_fn = None
+    if use_icp:
+        from scipy.stats import chi2
+
+        from .icp import adjoint, icp_relative_pose, prepare_target, range_sigma_function
+
+        Ad_bs = adjoint(T_bs)
+        Ad_inv = np.linalg.inv(Ad_bs)
+        sigma_fn = range_sigma_function(inp.sensor_type)
+    kf_cloud = None
+    kf_time = -np.inf
+    icp_nis, icp_dof, icp_times = [], [], []
+    n_rejected = 0
+
+    # -- outputs
+    P_out = np.empty((N, 3))
+    R_out = np.empty((N, 3, 3))
+    V_out = np.empty((N, 3))
+    BG_out = np.empty((N, 3))
+    BA_out = np.empty((N, 3))
+    pose_idx = np.r_[0:3, 6:9]
+    st_dof = 3 * n_slots
+    every = cfg.stance_every
+    switches = np.flatnonzero(np.diff(group) != 0) + 1
+    cloud_samples = np.array(sorted(inp.clouds), dtype=np.int64) if use_icp else np.zeros(0, dtype=np.int64)
+    events = np.union1d(np.union1d(np.arange(every, N, every), switches), cloud_samples)
+    events = np.union1d(events[(events > 0) & (events < N)], [N - 1]).astype(np.int64)
+    is_switch = np.zeros(N, dtype=bool)
+    is_switch[switches] = True
+    is_cloud = np.zeros(N, dtype=bool)
+    is_cloud[cloud_samples] = True
+    max_st = len(events)
+    st_y = np.empty((max_st, st_dof))
+    st_S = np.empty((max_st, st_dof, st_dof))
+    st_nis = np.empty(max_st)
+    st_t = np.empty(max_st)
+    n_st = 0
+    cov_index: list[int] = [0]
+    cov_pose: list[np.ndarray] = [ekf.kf.P[np.ix_(pose_idx, pose_idx)].copy()]
+
+    # -- IMU: body-frame rates and specific forces held over each interval (mean of its two ends),
+    # preintegrated between events (vectorised; see graphcal.filter.imu)
+    from .imu import preintegrate, reconstruct
+
+    R_bi = np.asarray(inp.T_body_imu, dtype=float)[:3, :3]
+    gyro = np.asarray(inp.gyro, dtype=float) @ R_bi.T
+    accel = np.asarray(inp.accel, dtype=float) @ R_bi.T
+    w_mid = np.empty_like(gyro)
+    a_mid = np.empty_like(accel)
+    w_mid[0], a_mid[0] = gyro[0], accel[0]
+    w_mid[1:] = 0.5 * (gyro[1:] + gyro[:-1])
+    a_mid[1:] = 0.5 * (accel[1:] + accel[:-1])
+    dts = np.diff(times, prepend=times[0])
+    pre = preintegrate(w_mid, a_mid, dts, events)
+
+    # chunk-start states (for the per-sample reconstruction afterwards)
+    n_ev = len(events)
+    S_p = np.empty((n_ev + 1, 3))
+    S_v = np.empty((n_ev + 1, 3))
+    S_R = np.empty((n_ev + 1, 3, 3))
+    S_bg = np.empty((n_ev + 1, 3))
+    S_ba = np.empty((n_ev + 1, 3))
+
+    def keep_state(i):
+        S_p[i], S_v[i], S_R[i] = ekf.p, ekf.v, ekf.R
+        S_bg[i], S_ba[i] = ekf.body_biases()
+
+    keep_state(0)
+    it = range(n_ev)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc="track: EKF", unit="update", mininterval=0.5)
+    next_cov = cfg.record_cov_every
+    # per event: the chunk's preintegration, stacked as the filter takes it
+    ev_dR = pre.dR[events]
+    ev_dpv = np.concatenate([pre.dp[events], pre.dv[events]], axis=1)
+    ev_J = np.concatenate([np.concatenate([pre.Jpg[events], pre.Jpa[events]], axis=2),
+                           np.concatenate([pre.Jvg[events], pre.Jva[events]], axis=2)], axis=1)
+    ev_T = pre.tau[events]
+    # per event: the stance tripod's measured feet and their block-diagonal covariance (vectorised)
+    ev_group = np.asarray(group)[events]
+    ev_feet = np.asarray(group_idx)[ev_group]  # (n_ev, n_slots) foot indices
+    ev_z = pbf[ev_feet, events[:, None]]  # (n_ev, n_slots, 3)
+    ev_R = np.zeros((n_ev, 3 * n_slots, 3 * n_slots))
+    for s_ in range(n_slots):
+        ev_R[:, 3 * s_ : 3 * s_ + 3, 3 * s_ : 3 * s_ + 3] = Rf[ev_feet[:, s_], events]
+    pose_r, pose_c = np.meshgrid(pose_idx, pose_idx, indexing="ij")
+    for e in it:
+        k = int(events[e])
+        ekf.propagate(ev_dR[e], ev_dpv[e], ev_J[e], ev_T[e])
+        g = int(ev_group[e])
+        if is_switch[k]:
+            ekf.reset_feet(groups[g], ev_z[e], ev_R[e])
+        elif k % every == 0:
+            st_nis[n_st] = ekf.update_stance(ev_z[e], ev_R[e])
+            st_y[n_st] = ekf.last_innovation
+            st_S[n_st] = ekf.last_S
+            st_t[n_st] = times[k]
+            n_st += 1
+        if is_cloud[k]:
+            moved = ekf.has_clone and (
+                np.linalg.norm(ekf.p - ekf.p_c) >= cfg.keyframe_distance_m
+                or np.arccos(np.clip((np.trace(ekf.R_c.T @ ekf.R) - 1) / 2, -1, 1)) >= cfg.keyframe_angle_rad
+                or times[k] - kf_time >= cfg.keyframe_max_s
+            )
+            if not ekf.has_clone or moved:
+                pts = np.asarray(inp.clouds[k](), dtype=float)
+                if len(pts) > cfg.icp_max_points:  # evenly thinned (deterministic): ICP cost bounded
+                    pts = pts[np.linspace(0, len(pts) - 1, cfg.icp_max_points).astype(np.int64)]
+                if moved and kf_cloud is not None and len(pts) >= 10:
+                    T_pred = T_sb @ ekf.predicted_relative_pose() @ T_bs  # T_kfcam_cam
+                    try:
+                        res = icp_relative_pose(pts, kf_cloud, T_pred, sigma_fn,
+                                                max_correspondence_m=cfg.icp_max_correspondence_m,
+                                                degenerate_ratio=cfg.icp_degenerate_ratio)
+                    except GraphcalError:
+                        res = None
+                    if res is None or res.fitness < cfg.icp_min_fitness:
+                        n_rejected += 1
+                    else:
+                        T_meas = T_bs @ res.T_target_source @ T_sb
+                        A_body = res.A @ Ad_inv  # z = A xi_cam, xi_cam = Ad(T_bs)^-1 xi_body
+                        dof = A_body.shape[0]
+                        nis, fused = ekf.update_relative_pose(T_meas, A_body, res.cov * cfg.noise.icp_cov_scale,
+                                                              gate_chi2=float(chi2.ppf(cfg.icp_gate_prob, dof)))
+                        if fused:
+                            icp_nis.append(nis)
+                            icp_dof.append(dof)
+                            icp_times.append(times[k])
+                        else:
+                            n_rejected += 1
+                if len(pts) >= 10:
+                    try:
+                        kf_cloud = prepare_target(pts, sigma_fn, k=cfg.icp_neighbours)
+                        ekf.clone_pose()
+                        kf_time = times[k]
+                    except GraphcalError:
+                        pass
+        if e % 200 == 199:
+            ekf.renormalize()
+        if k >= next_cov:
+            cov_index.append(k)
+            cov_pose.append(ekf.kf.P[pose_r, pose_c])
+            next_cov = k + cfg.record_cov_every
+        keep_state(e + 1)
+
+    # -- the state at every sample: chunk-start state + bias-corrected partial preintegration;
+    # event samples get their post-update state
+    chunk = np.searchsorted(events, np.arange(N), side="left")  # sample k in chunk (events[c-1], events[c]]
+    row = np.where(np.arange(N) == 0, 0, chunk)  # index into the kept states (0 = the initial state)
+    p_all, v_all, R_all = reconstruct(pre, S_p[row], S_v[row], S_R[row], S_bg[row], S_ba[row], GRAVITY)
+    P_out[:], V_out[:], R_out[:] = p_all, v_all, R_all
+    BG_out[:] = np.asarray(S_bg[row]) @ R_bi  # back to the IMU frame
+    BA_out[:] = np.asarray(S_ba[row]) @ R_bi
+    P_out[0], V_out[0], R_out[0] = S_p[0], S_v[0], S_R[0]
+    P_out[events], V_out[events], R_out[events] = S_p[1:], S_v[1:], S_R[1:]
+    BG_out[events], BA_out[events] = S_bg[1:] @ R_bi, S_ba[1:] @ R_bi
+
+    # innovations whitened by their covariance (after the loop, batched)
+    st_w = np.full((n_st, st_dof), np.nan)
+    if n_st:
+        try:
+            L = np.linalg.cholesky(st_S[:n_st])
+            st_w = np.linalg.solve(L, st_y[:n_st, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:  # pragma: no cover
+            pass
+    T = np.zeros((N, 4, 4))
+    T[:, :3, :3] = R_out
+    T[:, :3, 3] = P_out
+    T[:, 3, 3] = 1.0
+    elapsed = time.perf_counter() - t_start
+    return TrackResult(
+        times=times, T_world_body=T, v_world_body=V_out, gyro_bias=BG_out, accel_bias=BA_out,
+        cov_index=np.asarray(cov_index, dtype=np.int64), cov_pose=np.asarray(cov_pose),
+        stance_nis=st_nis[:n_st], stance_times=st_t[:n_st], stance_innovations=st_w, stance_dof=st_dof,
+        icp_nis=np.asarray(icp_nis),
+        icp_dof=np.asarray(icp_dof, dtype=np.int64), icp_times=np.asarray(icp_times), n_icp_rejected=n_rejected,
+        support_group=np.asarray(group), groups=groups, processing_s=elapsed,
+        duration_s=float(times[-1] - times[0]),
+    )
+
+
+def estimate_trajectory(dataset, config: TrackerConfig = TrackerConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """The estimated body trajectory of a dataset (folder path or a read Dataset).
+
+    Returns:
+        times (N,) s and T_world_body (N, 4, 4) at every timeseries sample (world frame: see the
+        module docstring).
+    """
+    from ..io.dataset import Dataset, read_dataset
+
+    ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+    res = run_filter(inputs_from_dataset(ds), config)
+    return res.times, res.T_world_body
+

@@ -1,0 +1,267 @@
+"""The legged EKF (graphcal.filter): the constructor's checks, the lean update against filterpy's,
+the IMU preintegration against a plain integration, the degeneracy-aware ICP, and the filter's
+consistency on simulated walks: Monte Carlo NEES inside its chi-square band and white innovations.
+
+(Timing lives in bench/ekf.py as a ratio; no timed asserts here.)"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graphcal.errors import GraphcalError
+from graphcal.filter.ekf import EkfNoise, LeggedEKF, NominalState, state_dim
+from graphcal.filter.estimator import TrackerConfig, inputs_from_walking, run_filter
+from graphcal.filter.metrics import chi2_band, pose_errors, whiteness
+from graphcal.simulation.walking import WalkingConfig, simulate_walking
+
+D = state_dim(3)
+
+
+def _x0():
+    return NominalState(np.zeros(3), np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3))
+
+
+def _ekf(**kw):
+    args = dict(x0=_x0(), P0=np.eye(D) * 1e-4, Qc=EkfNoise().process_density(3), encoder_cov=np.eye(3) * 1e-7,
+                kinematic_cov=np.eye(3) * 1e-8)
+    args.update(kw)
+    return LeggedEKF(args.pop("x0"), args.pop("P0"), args.pop("Qc"), args.pop("encoder_cov"), args.pop("kinematic_cov"))
+
+
+@pytest.mark.parametrize("kw,message", [
+    ({"P0": np.eye(D - 1)}, r"P0 must have shape \(30, 30\)"),
+    ({"P0": np.diag(np.r_[-1e-4, np.ones(D - 1)])}, "P0 must be positive definite"),
+    ({"P0": np.eye(D) + np.triu(np.ones((D, D)), 1) * 1e-3}, "P0 must be symmetric"),
+    ({"Qc": np.full((D, D), np.nan)}, "Qc must be finite"),
+    ({"Qc": -np.eye(D)}, "Qc must be positive semi-definite"),
+    ({"encoder_cov": np.ones((3, 2))}, "encoder_cov"),
+    ({"kinematic_cov": [[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]},
+     "kinematic_cov must be positive semi-definite"),
+    ({"x0": NominalState(np.zeros(3), np.zeros(3), 2 * np.eye(3), np.zeros(3), np.zeros(3))}, "rotation matrix"),
+    ({"x0": NominalState(np.zeros(2), np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3))}, "x0.p_world_body"),
+])
+def test_constructor_refuses_bad_matrices(kw, message):
+    with pytest.raises(GraphcalError, match=message):
+        _ekf(**kw)
+
+
+def test_noise_parameters_are_checked():
+    with pytest.raises(GraphcalError, match="gyro_noise_density"):
+        EkfNoise(gyro_noise_density=-1.0)
+    with pytest.raises(GraphcalError, match="icp_cov_scale"):
+        EkfNoise(icp_cov_scale=0.0)
+
+
+def test_lean_update_equals_filterpy_update():
+    """The filter's own update (P - K S K^T) and filterpy's (Joseph form) agree to rounding."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(D, D))
+    P0 = A @ A.T * 1e-4 + np.eye(D) * 1e-6
+    z0 = np.array([[0.4, 0.6, -0.45], [0.8, 0.0, -0.45], [-0.4, -0.6, -0.45]])
+    z1 = z0 + rng.normal(0, 1e-3, (3, 3))
+    out = []
+    for use_filterpy in (False, True):
+        ekf = _ekf(P0=P0)
+        ekf.use_filterpy_update = use_filterpy
+        ekf.reset_feet(("a", "b", "c"), z0, np.eye(9) * 1e-7)
+        ekf.propagate(np.eye(3), np.zeros(6), np.zeros((6, 6)), 0.005)
+        nis = ekf.update_stance(z1, np.eye(9) * 1e-7)
+        out.append((ekf.p.copy(), ekf.R.copy(), ekf.p_feet.copy(), ekf.P.copy(), nis))
+    (p1, R1, f1, P1, n1), (p2, R2, f2, P2, n2) = out
+    assert np.abs(p1 - p2).max() < 1e-12 and np.abs(R1 - R2).max() < 1e-12 and np.abs(f1 - f2).max() < 1e-12
+    assert np.abs(P1 - P2).max() < 1e-9 * np.abs(P1).max()
+    assert n1 == pytest.approx(n2, rel=1e-9)
+    assert n1 > 1.0  # the 1 mm disturbance is seen (noise 0.3 mm)
+
+
+def test_preintegration_matches_plain_integration():
+    """Chunks of preintegrated IMU with bias corrections = sample-by-sample integration."""
+    from graphcal.filter.imu import preintegrate, reconstruct
+    from graphcal.filter.ekf import GRAVITY_WORLD
+    from graphcal.simulation.walking import rpy_matrices
+
+    rng = np.random.default_rng(0)
+    N = 400
+    dt = np.full(N, 1e-3)
+    dt[0] = 0.0
+    w = rng.normal(0, 0.5, (N, 3))
+    a = rng.normal(0, 2.0, (N, 3)) + [0, 0, 9.8]
+    bg, ba = np.array([0.002, -0.001, 0.003]), np.array([0.05, -0.02, 0.03])
+    events = np.r_[np.arange(5, N, 5), N - 1]
+    pre = preintegrate(w, a, dt, events)
+    # plain integration with the biases, sample by sample
+    R0 = rpy_matrices(np.array([0.1]), np.array([-0.2]), np.array([0.3]))[0]
+    p, v, R = np.array([1.0, 2.0, 0.5]), np.array([0.3, -0.1, 0.0]), R0.copy()
+    P_ref, V_ref, R_ref = [p], [v], [R]
+    from graphcal.filter.imu import exp_batch
+
+    for k in range(1, N):
+        acc = R @ (a[k] - ba) + GRAVITY_WORLD
+        p = p + v * dt[k] + 0.5 * acc * dt[k] ** 2
+        v = v + acc * dt[k]
+        R = R @ exp_batch(((w[k] - bg) * dt[k])[None])[0]
+        P_ref.append(p), V_ref.append(v), R_ref.append(R)
+    # chunk-start states from the reference (what the filter would hold without updates)
+    chunk = np.searchsorted(events, np.arange(N), side="left")
+    start = np.r_[0, events][chunk]
+    start[0] = 0
+    P_ref, V_ref, R_ref = np.array(P_ref), np.array(V_ref), np.array(R_ref)
+    p_r, v_r, R_r = reconstruct(pre, P_ref[start], V_ref[start], R_ref[start], np.tile(bg, (N, 1)),
+                                np.tile(ba, (N, 1)), GRAVITY_WORLD)
+    assert np.abs(p_r - P_ref).max() < 1e-9
+    assert np.abs(v_r - V_ref).max() < 1e-7
+    # dR(b) ~ dR Exp(-b tau) neglects the commutator of rate and bias: ~|w||b| tau^2 / 2 ~ 1e-8 here
+    assert np.abs(R_r - R_ref).max() < 1e-7
+    # without the bias correction the error would be visible
+    p_0, _, _ = reconstruct(pre, P_ref[start], V_ref[start], R_ref[start], np.zeros((N, 3)), np.zeros((N, 3)),
+                            GRAVITY_WORLD)
+    assert np.abs(p_0 - P_ref).max() > 1e-7
+
+
+@pytest.fixture(scope="module")
+def clouds():
+    """Keyframe pairs (0.3 s apart) from a level walk and the stairs, with their true T_cam0_cam1."""
+    out = {}
+    for prog, kw in (("tripod-walk", {"distance_m": 2.0}), ("tripod-stairs", {})):
+        w = simulate_walking(WalkingConfig(program=prog, cloud_rate_hz=10.0 / 3.0, seed=4, **kw))
+        pairs = []
+        for j in range(3, len(w.cloud_indices) - 1, 2 if prog == "tripod-walk" else 3):
+            k0, k1 = w.cloud_indices[j], w.cloud_indices[j + 1]
+            T0, T1 = w.T_world_body[k0] @ w.T_body_sensor, w.T_world_body[k1] @ w.T_body_sensor
+            pairs.append((w.clouds[j + 1], w.clouds[j], np.linalg.inv(T0) @ T1, T0))  # source, target, T_target_source
+        out[prog] = pairs
+    return out
+
+
+def test_icp_measures_only_what_the_floor_constrains(clouds):
+    """On a flat floor point-to-plane ICP constrains 3 directions (height, roll, pitch of the
+    floor); the degeneracy-aware ICP keeps the others at the start and reports 3, whose errors are
+    consistent with its covariance times EkfNoise.icp_cov_scale. Open3D's own registration_icp
+    slides along the floor."""
+    import open3d as o3d
+
+    from graphcal.filter.ekf import _log
+    from graphcal.filter.icp import icp_relative_pose, prepare_target, range_sigma_function
+    from graphcal.geometry import se3_exp
+
+    sig = range_sigma_function("depth_camera")
+    rng = np.random.default_rng(0)
+    z2, slide_ours, slide_o3d = [], [], []
+    for src, tgt, T_true, _ in clouds["tripod-walk"]:
+        T_init = T_true @ se3_exp(np.r_[rng.normal(0, 0.002, 3), rng.normal(0, 0.005, 3)])
+        res = icp_relative_pose(src, prepare_target(tgt, sig), T_init, sig)
+        assert res.A.shape[0] == 3
+        E = np.linalg.inv(T_true) @ res.T_target_source
+        xi = np.r_[_log(E[:3, :3]), E[:3, 3]]
+        z2.extend(((res.A @ xi) ** 2 / np.diag(res.cov)).tolist())
+        Ei = np.linalg.inv(T_true) @ T_init
+        slide_ours.append(np.linalg.norm(E[:3, 3] - Ei[:3, 3]))
+        reg = o3d.pipelines.registration
+        pc = lambda p: o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))  # noqa: E731
+        t = pc(tgt)
+        t.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.15, max_nn=30))
+        r = reg.registration_icp(pc(src), t, 0.1, T_init, reg.TransformationEstimationPointToPlane())
+        slide_o3d.append(np.linalg.norm((np.linalg.inv(T_true) @ np.asarray(r.transformation))[:3, 3]))
+    assert np.mean(z2) < EkfNoise().icp_cov_scale  # normalised errors inside the inflated covariance
+    assert np.mean(z2) > 0.3  # and the covariance is not absurdly wide
+    assert np.median(slide_ours) < 0.01  # stays put along the floor (m)
+    assert np.median(slide_o3d) > 0.03  # Open3D's full 6-DOF solve slides
+
+
+def test_icp_on_stairs_also_measures_along_the_walk(clouds):
+    """Risers add the along-walk translation: more than 3 directions on some stairs pairs, and
+    the errors stay consistent."""
+    from graphcal.filter.ekf import _log
+    from graphcal.filter.icp import icp_relative_pose, prepare_target, range_sigma_function
+
+    sig = range_sigma_function("depth_camera")
+    dofs, z2 = [], []
+    for src, tgt, T_true, _ in clouds["tripod-stairs"]:
+        res = icp_relative_pose(src, prepare_target(tgt, sig), T_true, sig)
+        E = np.linalg.inv(T_true) @ res.T_target_source
+        xi = np.r_[_log(E[:3, :3]), E[:3, 3]]
+        z2.extend(((res.A @ xi) ** 2 / np.diag(res.cov)).tolist())
+        dofs.append(res.A.shape[0])
+    assert max(dofs) >= 4
+    assert np.mean(z2) < EkfNoise().icp_cov_scale
+
+
+@pytest.fixture(scope="module")
+def monte_carlo():
+    """Six independent short level walks (seeds 100-105, 8 s each), tracked without clouds."""
+    runs = []
+    for seed in range(100, 106):
+        walk = simulate_walking(WalkingConfig(distance_m=2.0, cloud_rate_hz=0.0, seed=seed))
+        runs.append((walk, run_filter(inputs_from_walking(walk), TrackerConfig(icp=False))))
+    return runs
+
+
+def test_nees_monte_carlo_inside_its_chi_square_band(monte_carlo):
+    """Pose NEES (6 dof) at 1 s intervals, averaged over 6 runs: each average is chi2(36)/6 for a
+    consistent filter; the mean over the time instants (correlated, so the band of one instant is
+    the honest one) must lie in that 95 % band."""
+    per_run = []
+    for walk, res in monte_carlo:
+        t = res.times[res.cov_index]
+        pick = [int(np.argmin(np.abs(t - s))) for s in np.arange(1.0, 8.0, 1.0)]
+        k = res.cov_index[pick]
+        e = pose_errors(res.T_world_body[k], walk.T_world_body[k])
+        P = res.cov_pose[pick]
+        per_run.append(np.einsum("ni,ni->n", e, np.linalg.solve(P, e[:, :, None])[:, :, 0]))
+    nees = np.array(per_run)  # (runs, times)
+    lo, hi = chi2_band(6, n=len(monte_carlo))
+    assert lo <= nees.mean() <= hi, (nees.mean(), lo, hi)
+    # and no single time is wildly off (each instant's run average inside the 99.9 % band)
+    lo3, hi3 = chi2_band(6, n=len(monte_carlo), prob=0.999)
+    assert (nees.mean(axis=0) > lo3).all() and (nees.mean(axis=0) < hi3).all()
+
+
+def test_stance_innovations_are_white_and_nis_matches_its_dof(monte_carlo):
+    """Whitened stance innovations: ~95 % of the autocorrelations (lags 1-20) inside +-1.96/sqrt(n),
+    Ljung-Box not rejected (p > 1e-3, every component); NIS mean = dof (9) within 5 %."""
+    for _, res in monte_carlo:
+        w = whiteness(res.stance_innovations, lags=20)
+        assert w["fraction_inside"] >= 0.90
+        assert w["ljung_box_p_min"] > 1e-3
+        assert res.stance_nis.mean() == pytest.approx(res.stance_dof, rel=0.05)
+
+
+def test_whiteness_detects_a_coloured_sequence():
+    rng = np.random.default_rng(1)
+    e = rng.normal(size=(3000, 3))
+    assert whiteness(e)["fraction_inside"] > 0.85
+    ar = e.copy()
+    for k in range(1, len(ar)):
+        ar[k] += 0.3 * ar[k - 1]
+    w = whiteness(ar)
+    assert w["fraction_inside"] < 0.9 and w["max_abs_autocorr"] > 0.25 and w["ljung_box_p_min"] < 1e-6
+
+
+def test_support_from_contacts_when_there_are_no_torques(monte_carlo):
+    """Without torque columns the contact flags choose the stance tripod: the same estimate to
+    within the noise."""
+    from dataclasses import replace
+
+    walk, res = monte_carlo[0]
+    inp = replace(inputs_from_walking(walk), tau=None, contact=walk.contact)
+    res2 = run_filter(inp, TrackerConfig(icp=False))
+    d = np.linalg.norm(res2.T_world_body[-1, :3, 3] - res.T_world_body[-1, :3, 3])
+    assert d < 3e-3
+    assert np.linalg.norm(res2.T_world_body[-1, :3, 3] - walk.T_world_body[-1, :3, 3]) < 0.01
+
+
+def test_a_rotated_imu_gives_the_same_estimate(monte_carlo):
+    """The IMU data expressed in a rotated IMU frame (T_body_imu with a 30 deg mounting) gives the
+    same trajectory: the mounting is honoured in the propagation, the biases and the initial tilt."""
+    from dataclasses import replace
+
+    from graphcal.geometry import matrix_from_rpy, pose_matrix
+
+    walk, res = monte_carlo[1]
+    R_bi = matrix_from_rpy([0.3, -0.5, 1.2])
+    inp = inputs_from_walking(walk)
+    rot = replace(inp, gyro=inp.gyro @ R_bi, accel=inp.accel @ R_bi, T_body_imu=pose_matrix(R_bi, [0, 0, 0]))
+    res2 = run_filter(rot, TrackerConfig(icp=False))
+    assert np.abs(res2.T_world_body[:, :3, 3] - res.T_world_body[:, :3, 3]).max() < 1e-6
+    assert np.abs(res2.gyro_bias[-1] - R_bi.T @ res.gyro_bias[-1]).max() < 1e-8
