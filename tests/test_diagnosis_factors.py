@@ -8,7 +8,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from factors.keys import F, G, S, X
+from factors.keys import G, S, X
 from factors.plane_observation import plane_observation_error
 from factors.plane_prior import plane_prior_factor
 from factors.range_scale import scaled_plane_error, scaled_plane_factor, scaled_range_error, scaled_range_factor

@@ -273,7 +273,9 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
     lines.append(f"  residuals after: normal {result.normal_rms_deg:.3f} deg RMS, distance {result.distance_rms_mm:.2f} mm RMS")
     if result.noise:
         n = result.noise
-        lines.append(f"  noise learned from the data: joints {np.degrees(n['sigma_joint_rad']):.3f} deg, "
+        how = ("noise (defaults; the incremental mode does not learn it)" if incremental
+               else "noise learned from the data")
+        lines.append(f"  {how}: joints {np.degrees(n['sigma_joint_rad']):.3f} deg, "
                      f"contact {1e3 * n['sigma_contact_m']:.2f} mm, IMU {np.degrees(n['sigma_imu_rad']):.3f} deg")
     if result.outliers:
         lines.append(f"  outlier stations: {', '.join(map(str, result.outliers))}")

@@ -32,7 +32,7 @@ import numpy as np
 from factors.keys import C, F, G, L, M, S, W, X
 from ..errors import GraphcalError
 from ..geometry import pose_matrix, to_gtsam_pose
-from .kinematic_pose import feet_in_body, ground_from_feet, initial_body_pose
+from .kinematic_pose import ground_from_feet, initial_body_pose
 from .measurements import CalibrationData
 
 

@@ -26,7 +26,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from ..errors import GraphcalError
 from ..geometry import from_gtsam_pose
-from .catalogue import Candidate, Evidence, Finding, relevant
+from .catalogue import Candidate, Finding, relevant
 from .model import DiagnosisModel, chi2_of, model_options
 from .scores import CandidateColumns, current_columns, evidence, linear_system, score_candidates
 

@@ -31,29 +31,62 @@ class ResidualRecord:
     whitened: float
 
 
+def _kinematic_body(model, problem, values, st) -> np.ndarray | None:
+    """T_world_body the model predicts from proprioception alone: the plane through the feet (forward
+    kinematics with the model's leg parameters) gives roll, pitch and height; x, y, yaw come from the
+    commanded pose. None without three legs."""
+    from ..calibration.graph import leg_kinematics
+    from ..calibration.kinematic_pose import ground_from_feet, initial_body_pose
+    from ..models.leg_params import fk_with_params
+
+    if len(st.q_by_foot) < 3:
+        return None
+    kin = leg_kinematics(model.data, model.robot)
+    feet = []
+    for f, q in st.q_by_foot.items():
+        if f in problem.leg_keys:
+            key, param = problem.leg_keys[f]
+            feet.append(fk_with_params(model.robot.leg(f), param, q, np.asarray(values.atVector(key))))
+        else:
+            feet.append(kin[(st.station, f)][0])
+    u, h = ground_from_feet(np.array(feet))
+    return initial_body_pose(u, h, st.T_world_body_cmd)
+
+
 def residual_records(model, problem, values) -> tuple[ResidualRecord, ...]:
+    """One record per sensor measurement. Planes: theta and e_d of the plane the model PREDICTS from
+    the legs alone (the kinematic body pose, the model's extrinsic, range scale and the ground that
+    station's session sees) against the measured one -- the fitted body poses would absorb most of a
+    discrepancy. Scans: the fitted range residual's RMS."""
     from factors.plane_observation import plane_angle_distance_error
 
     from ..solvers.batch import whitened_errors
 
     order = {st.station: (j, st.session) for j, st in enumerate(model.data.stations)}
+    by_station = {st.station: st for st in model.data.stations}
     idx = list(problem.plane_factors)
     chi = whitened_errors(problem.graph, values, idx)
+    ek = problem.extension_keys
     out = []
     for i, c in zip(idx, chi):
         st, s = problem.plane_factors[i]
-        T_wb = from_gtsam_pose(values.atPose3(problem.station_keys[st]))
+        j, session = order[st]
+        T_fit = from_gtsam_pose(values.atPose3(problem.station_keys[st]))
+        T_kin = _kinematic_body(model, problem, values, by_station[st])
+        T_wb = T_kin if T_kin is not None else T_fit
         T_bs = from_gtsam_pose(values.atPose3(problem.measurement_keys[(st, s)]))
-        tilt = float(np.degrees(np.arccos(np.clip(T_wb[2, 2], -1.0, 1.0))))
+        tilt = float(np.degrees(np.arccos(np.clip(T_fit[2, 2], -1.0, 1.0))))
         if (st, s) in model.data.planes:
             p = model.data.planes[(st, s)]
-            a, d = plane_angle_distance_error(T_wb @ T_bs, p.n, p.d)
-            ang, dist, rng = float(np.degrees(a)), float(1e3 * d), float(p.d)
+            g = ek.get(f"session_offset:{session}")
+            plane_w = np.asarray(values.atOrientedPlane3(g).planeCoefficients()) if g is not None else None
+            scale = float(values.atVector(ek[f"range_scale:{s}"])[0]) if f"range_scale:{s}" in ek else 1.0
+            a, d = plane_angle_distance_error(T_wb @ T_bs, p.n, p.d / scale, plane_w)
+            ang, dist, rng = float(np.degrees(a)), float(1e3 * d * scale), float(p.d)
         else:
             e = np.asarray(problem.graph.at(i).unwhitenedError(values))
             pts = model.data.scan_points[(st, s)]
             ang, dist, rng = float("nan"), float(1e3 * np.sqrt(np.mean(e**2))), float(np.median(np.linalg.norm(pts, axis=1)))
-        j, session = order[st]
         out.append(ResidualRecord(int(st), j, session, s, ang, dist, rng, tilt, float(np.sqrt(c / problem.graph.at(i).dim()))))
     return tuple(out)
 
