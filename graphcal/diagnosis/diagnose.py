@@ -113,12 +113,21 @@ class Diagnosis:
 
 
 def _extension_values(diag: Diagnosis) -> dict:
+    """The findings that are not leg parameters (those are in ``legs``), with their values; an
+    extrinsic change also gives the sensor's pose from the change on (``sensors`` holds the pose
+    before it)."""
+    from ..report.calibration_yaml import pose_to_dict
+
     out = {}
     for f in diag.findings:
         if f.candidate.cause in ("joint_offset", "link_length"):
             continue
-        out.setdefault("extensions", []).append({"cause": f.candidate.cause, "where": f.candidate.where_dict,
-                                                 "parameters": f.to_dict()["parameters"]})
+        entry = {"cause": f.candidate.cause, "where": f.candidate.where_dict, "parameters": f.to_dict()["parameters"]}
+        if f.candidate.cause == "extrinsic_change":
+            key = diag.problem.extension_keys.get(f"segment:{f.candidate.get('sensor')}:{f.candidate.get('station')}")
+            if key is not None:
+                entry["T_body_sensor_after"] = pose_to_dict(from_gtsam_pose(diag.values.atPose3(key)))
+        out.setdefault("extensions", []).append(entry)
     return out
 
 
