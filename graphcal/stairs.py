@@ -29,9 +29,15 @@ Method (:func:`model_stairs`)
    the direction along the nosings unconstrained, a view of one tread three directions, and
    point-to-plane ICP slides along them on the noise of the normals. (Open3D's unregularised
    ``registration_icp`` moved clouds 1-5 cm along the nosings and diverged on one-tread views in our
-   runs.) Correspondences from a k-d tree, gated at 10, 5, 2.5 and 1.5 cm in turn. A cloud whose
-   final inlier fraction is below ``icp_min_fitness`` keeps its estimated pose and stays out of the
-   map and the model. The stitched map is then moved as a whole by the rigid transform that moves
+   runs.) Source points are those with a reliable normal (``icp_reliable_source``); each is
+   matched to its nearest map point by a k-d tree, gated at 10, 5, 2.5 and 1.5 cm in turn, and
+   kept only if the two normals agree within ``icp_max_normal_angle_deg``. (Without these two, the
+   points of a tread seen at a grazing angle -- the landing, ~15 cm below the camera -- matched the
+   top of the riser in front of it, where the map ends, and pulled the cloud back and down: clouds
+   started at their true poses ended up to 1.2 deg of pitch and 1.8 cm off, and the landing's
+   height was +3 to +7 mm off in the ``tripod-stairs`` walk.) A cloud whose final inlier fraction
+   is below ``icp_min_fitness`` keeps its estimated pose and stays out of the map and the model.
+   The stitched map is then moved as a whole by the rigid transform that moves
    the stitched sensor poses least onto the estimated ones (rotation: chordal mean; translation:
    mean): the map keeps the estimate's world frame with the *average* of the clouds' independent
    errors (a joint fit over the points instead turned 1 cm translation errors into 0.5-0.9 deg of
@@ -66,7 +72,9 @@ pairwise (earlier = source, later = target) -- pairwise errors add up along the 
 is regularised and degeneracy-aware (above).
 
 Measured (docs/stairs_gait.md): ten simulated approaches, pose errors ~1.7 cm / ~0.5 deg: tread
-heights within 0.9 mm, depths within 0.2 mm of the truth; 2-4 s for ten clouds on 2 busy cores.
+heights within 0.5 mm, depths within 0.2 mm of the truth; ~2 s for ten clouds on 2 busy cores.
+Through ``graphcal track`` (its keyframes and EKF poses, docs/state_estimation.md): within 1.3 mm
+and 0.3 mm on the ``tripod-stairs`` walk.
 """
 
 from __future__ import annotations
@@ -297,6 +305,8 @@ def _icp_to_map(
     prior_sigma_rad: float,
     max_iterations: int,
     degeneracy_ratio: float,
+    src_normals: np.ndarray | None = None,
+    normal_cos_min: float = 0.0,
 ) -> tuple[np.ndarray, float, int]:
     """Regularised point-to-plane ICP of one cloud against the map (module docstring, step 2).
 
@@ -325,6 +335,10 @@ def _icp_to_map(
             r = np.einsum("ij,ij->i", n, p_world[ok] - map_points[idx[ok]])
             sig = sigma_src[ok]
             keep = np.abs(r) < gate
+            if src_normals is not None and normal_cos_min > 0:
+                # a source point on one surface matched to a map point on another (the map's
+                # edge: a tread point to the top of the riser below it) pulls the cloud sideways
+                keep &= np.abs(np.einsum("ij,ij->i", src_normals[ok] @ R.T, n)) >= normal_cos_min
             ps, n, r, sig = ps[keep], n[keep], r[keep], sig[keep]
             fitness = float(keep.sum()) / len(src_sensor)
             n_s = n @ R  # normals in the sensor frame: R^T n
@@ -377,6 +391,8 @@ def _stitch(
     passes: int,
     neighbours: int,
     rng: np.random.Generator,
+    normal_cos_min: float = 0.0,
+    reliable_source: bool = False,
 ) -> tuple[list[np.ndarray], list[float], list[bool]]:
     """Corrected T_world_sensor per cloud: ICP of each cloud to the map of the accepted clouds
     before it (pass 1), then (passes > 1) of each cloud to all the other accepted clouds, then the
@@ -385,9 +401,11 @@ def _stitch(
     from scipy.spatial import cKDTree
 
     K = len(poses)
+    # source points: those with a reliable normal (reliable_source), else all
+    pools = [np.flatnonzero(r) if reliable_source else np.arange(len(r)) for r in rel]
     src_idx = [
-        rng.choice(len(d), size=max_source_points, replace=False) if len(d) > max_source_points else np.arange(len(d))
-        for d in down
+        np.sort(rng.choice(pool, size=max_source_points, replace=False)) if len(pool) > max_source_points else pool
+        for pool in pools
     ]
 
     def world_part(j: int, T: np.ndarray):
@@ -416,7 +434,7 @@ def _stitch(
             if p > 0 and len(members) > neighbours:  # the nearest sensor positions only
                 dist = np.linalg.norm(centres[members] - centres[k], axis=1)
                 members = [members[i] for i in np.argsort(dist)[:neighbours]]
-            tgt = target_of([parts[j] for j in members]) if len(down[k]) >= 20 else None
+            tgt = target_of([parts[j] for j in members]) if len(src_idx[k]) >= 20 else None
             if tgt is None:
                 continue
             tree, target, normals = tgt
@@ -427,6 +445,7 @@ def _stitch(
                 src, sigma, T_start, tree, target, normals,
                 gates_m=gates_m if p == 0 else gates_m[-2:], prior_sigma_m=prior_sigma_m,
                 prior_sigma_rad=prior_sigma_rad, max_iterations=max_iterations, degeneracy_ratio=degeneracy_ratio,
+                src_normals=nrm[k][src_idx[k]], normal_cos_min=normal_cos_min,
             )
             if fit >= min_fitness:
                 corrected[k] = T_new
@@ -527,6 +546,8 @@ def model_stairs(
     icp_max_source_points: int = 3000,
     icp_passes: int = 2,
     icp_neighbours: int = 8,
+    icp_max_normal_angle_deg: float = 30.0,
+    icp_reliable_source: bool = True,
     max_points_per_cloud: int = 40_000,
     ransac_distance_m: float = 0.02,
     max_planes: int = 12,
@@ -555,7 +576,10 @@ def model_stairs(
             icp_max_iterations, icp_degeneracy_ratio, icp_max_source_points, icp_passes,
             icp_neighbours: the stitching (module docstring, step 2); in pass 2 each cloud is
             registered to the ``icp_neighbours`` clouds with the nearest sensor positions. Cost
-            grows linearly with the number of clouds (~0.3 s per cloud here): pass keyframes.
+            grows linearly with the number of clouds (~0.2 s per cloud here): pass keyframes.
+        icp_max_normal_angle_deg: a correspondence is used only if the source point's normal and
+            the map point's agree within this angle (90: no test).
+        icp_reliable_source: register only the source points with a reliable normal (step 1).
         max_points_per_cloud: larger clouds are randomly thinned to this many points first
             (a full 640 x 480 Kinect frame has ~300k).
         ransac_distance_m, max_planes, min_plane_points: plane extraction
@@ -617,6 +641,8 @@ def model_stairs(
             min_fitness=icp_min_fitness, max_iterations=icp_max_iterations,
             degeneracy_ratio=icp_degeneracy_ratio, max_source_points=icp_max_source_points,
             passes=icp_passes, neighbours=icp_neighbours, rng=gen,
+            normal_cos_min=float(np.cos(np.radians(icp_max_normal_angle_deg))) if icp_max_normal_angle_deg < 90 else 0.0,
+            reliable_source=icp_reliable_source,
         )
         used = [k for k in range(len(clouds)) if accepted[k]]
     else:

@@ -7,7 +7,8 @@
 * ``trajectory.png``, ``errors.png``, ``nis.png`` -- plots;
 * ``report.md``       -- a short report;
 * ``stairs.json``     -- on a stairs dataset, the stairs model of :mod:`graphcal.stairs` from the
-  clouds placed with the estimated poses (when that module is available).
+  keyframe clouds (:func:`stairs_keyframes`) placed with the estimated poses, with per-tread errors
+  against the truth's ascending flight (:func:`ascending_flight`) when there is a truth.
 
 The outputs are written as one atomic set (:func:`graphcal.io.atomic.atomic_directory`); an
 existing ``DIR`` is replaced only if it is empty or holds a previous ``graphcal track`` output
@@ -26,7 +27,7 @@ import numpy as np
 from ..errors import GraphcalError
 from ..io.atomic import OutputExistsError, atomic_directory, atomic_write_bytes
 
-__all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run_track", "track", "tum_text"]
+__all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run_track", "track", "tum_text", "stairs_keyframes", "ascending_flight"]
 
 TRACK_FORMAT = "graphcal-track/1"
 OUTPUT_FILES = ("trajectory.tum", "metrics.json", "trajectory.png", "errors.png", "nis.png", "report.md",
@@ -169,36 +170,138 @@ def _figures(result, truth, series, nees_t, nees, nees_dof):
 
 
 # ----------------------------------------------------------------------------- stairs hook
-def _stairs_model(ds, inp, result, truth, *, max_clouds: int = 40):
-    """The stairs model (graphcal.stairs) from the clouds placed with the estimate; None when that
-    module (or its ``model_stairs``) is not available. Errors of the model become {"error": ...}."""
-    try:
-        from .. import stairs as stairs_mod
-    except ImportError:
+def stairs_keyframes(
+    clouds_sensor,
+    T_world_sensor: list,
+    *,
+    max_depth_m: float = 2.5,
+    min_rise_m: float = 0.05,
+    min_slope_corr: float = 0.3,
+    min_move_m: float = 0.02,
+    min_turn_rad: float = float(np.radians(1.0)),
+    max_clouds: int = 20,
+) -> tuple[list[int], list[dict | None]]:
+    """The clouds for :func:`graphcal.stairs.model_stairs`: the views of a flight rising ahead.
+    ``clouds_sensor``: an iterable of (N_k, 3) sensor-frame clouds (m; a generator is fine);
+    ``T_world_sensor``: the list of their estimated 4x4 poses.
+
+    A cloud (points within ``max_depth_m`` along the optical axis, put in the world with its
+    estimated pose) is a view of a rising flight when the heights of its points span at least
+    ``min_rise_m`` (5-95 % quantiles: a step, not a floor's noise) and grow with the horizontal
+    distance along the viewing direction (correlation >= ``min_slope_corr``). That keeps the
+    approach and the climb (the floor, the steps and the landing in view) and leaves out the views of
+    one level (the landing alone, the floor) -- they add nothing to the heights and slide along
+    their plane in the ICP -- and those of a flight going down (its risers face away; its treads
+    are coplanar with the ascending flight's, seen with other pose errors). Of those, a cloud is
+    dropped when the sensor moved less than ``min_move_m`` and turned less than ``min_turn_rad``
+    since the last kept one (standing still), and at most ``max_clouds`` are kept, evenly spread.
+
+    Returns:
+        (indices into the inputs, per input cloud ``{"rise_m", "slope_corr"}`` or None when it has
+        fewer than 100 points in range).
+    """
+    stats: list[dict | None] = []
+    cand: list[int] = []
+    for k, (c, T) in enumerate(zip(clouds_sensor, T_world_sensor)):
+        c = np.asarray(c, dtype=float)
+        c = c[np.all(np.isfinite(c), axis=1)]
+        c = c[(c[:, 2] > 0) & (c[:, 2] <= max_depth_m)]
+        fwd = np.array([T[0, 2], T[1, 2]])  # the optical axis, horizontal part
+        if len(c) < 100 or np.linalg.norm(fwd) < 1e-6:
+            stats.append(None)
+            continue
+        P = c @ T[:3, :3].T + T[:3, 3]
+        s = (P[:, :2] - T[:2, 3]) @ (fwd / np.linalg.norm(fwd))
+        h = P[:, 2]
+        lo, hi = np.quantile(h, [0.05, 0.95])
+        corr = float(np.corrcoef(s, h)[0, 1]) if hi - lo > 1e-9 and np.ptp(s) > 1e-9 else 0.0
+        stats.append({"rise_m": float(hi - lo), "slope_corr": corr})
+        if hi - lo >= min_rise_m and corr >= min_slope_corr:
+            cand.append(k)
+    kept: list[int] = []
+    for k in cand:
+        if kept:
+            A, B = T_world_sensor[kept[-1]], T_world_sensor[k]
+            turn = np.arccos(np.clip((np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
+            if np.linalg.norm(B[:3, 3] - A[:3, 3]) < min_move_m and turn < min_turn_rad:
+                continue
+        kept.append(k)
+    if len(kept) > max_clouds:
+        kept = [kept[i] for i in np.unique(np.round(np.linspace(0, len(kept) - 1, max_clouds)).astype(np.int64))]
+    return kept, stats
+
+
+def ascending_flight(steps) -> tuple[list, list]:
+    """The true steps (records with ``x_start_m``, ``height_m``, ...) split into the first flight
+    going up -- the leading run of rising heights along x, its last step the landing -- and the
+    rest (the flight down of the ``tripod-stairs`` walk)."""
+    steps = sorted(steps, key=lambda s: s.x_start_m)
+    n = 0
+    while n < len(steps) and (n == 0 or steps[n].height_m > steps[n - 1].height_m):
+        n += 1
+    return steps[:n], steps[n:]
+
+
+def _stairs_model(ds, inp, result, truth, *, max_clouds: int = 20):
+    """The stairs model (graphcal.stairs) from the keyframe clouds (:func:`stairs_keyframes`)
+    placed with the estimate, compared with the truth's ascending flight when there is a truth.
+    Errors of the model become {"error": ...}."""
+    from .. import stairs as stairs_mod
+
+    if inp.T_body_sensor is None or not inp.clouds:
         return None
-    model_stairs = getattr(stairs_mod, "model_stairs", None)
-    to_json = getattr(stairs_mod, "stairs_to_json", None)
-    if model_stairs is None or to_json is None or inp.T_body_sensor is None or not inp.clouds:
-        return None
-    idx = np.array(sorted(inp.clouds), dtype=np.int64)
-    if len(idx) > max_clouds:
-        idx = idx[np.round(np.linspace(0, len(idx) - 1, max_clouds)).astype(np.int64)]
-    clouds = [np.asarray(inp.clouds[int(k)](), dtype=float) for k in idx]
-    poses = [result.T_world_body[int(k)] @ inp.T_body_sensor for k in idx]
+    idx_all = np.array(sorted(inp.clouds), dtype=np.int64)
+    poses_all = [result.T_world_body[int(k)] @ inp.T_body_sensor for k in idx_all]
+    # one cloud in memory at a time for the choice (a 30 Hz walk has hundreds); the chosen are re-read
+    pick, _ = stairs_keyframes((inp.clouds[int(k)]() for k in idx_all), poses_all, max_clouds=max_clouds)
+    method = "views of a rising flight"
+    if len(pick) < 2:  # no such views: every cloud is a candidate
+        method = "evenly spread (no view of a rising flight)"
+        pick = sorted(set(np.round(np.linspace(0, len(idx_all) - 1, min(max_clouds, len(idx_all)))).astype(int).tolist()))
+    idx = idx_all[pick]
+    meta = {
+        "n_clouds_used": int(len(idx)),
+        "n_clouds_available": int(len(idx_all)),
+        "keyframes": {"method": method, "samples": [int(k) for k in idx],
+                      "times_s": [float(result.times[int(k)]) for k in idx]},
+    }
     try:
-        model = model_stairs(clouds, poses)
+        clouds = [np.asarray(inp.clouds[int(idx_all[i])](), dtype=float) for i in pick]
+        model = stairs_mod.model_stairs(clouds, [poses_all[i] for i in pick])
         errors = None
-        if truth is not None and hasattr(stairs_mod, "tread_errors"):
+        compared = None
+        if truth is not None:
             from ..simulation.terrain import Stair
 
-            steps = [Stair(**s) for s in truth.doc.get("ground", {}).get("stairs", [])]
-            if steps:
-                errors = stairs_mod.tread_errors(model, steps)
-        doc = to_json(model, errors)
+            steps = [Stair(**s) for s in (truth.doc.get("ground", {}) or {}).get("stairs", []) or []]
+            up, rest = ascending_flight(steps)
+            if up:
+                errors = stairs_mod.tread_errors(model, up)
+                compared = {
+                    "flight": "ascending",
+                    "selection": "the true steps sorted by x, the leading run of rising heights; the last one "
+                                 "is the landing",
+                    "true_treads": [
+                        {"true_index": j, "x_start_m": s.x_start_m, "height_m": s.height_m, "depth_m": s.depth_m,
+                         "width_m": s.width_m, "landing": j == len(up) - 1}
+                        for j, s in enumerate(up)
+                    ],
+                    "not_compared": [
+                        {"x_start_m": s.x_start_m, "height_m": s.height_m, "depth_m": s.depth_m} for s in rest
+                    ],
+                    "note": "depth errors only for treads with depth_complete: the landing has no riser "
+                            "behind it (it ends where the flight down begins, at the depth limit of the "
+                            "views of the approach), so its depth is its visible extent; the flight down is "
+                            "not modelled (its risers face away; the keyframes are views of the flight up)",
+                }
+        doc = dict(stairs_mod.stairs_to_json(model, errors))
+        if compared is not None:
+            found = {e.true_index for e in errors if e.true_index >= 0}
+            compared["all_true_treads_found"] = found == set(range(len(compared["true_treads"])))
+            doc["truth_compared"] = compared
     except GraphcalError as exc:
         doc = {"error": str(exc)}
-    doc = dict(doc)
-    doc["n_clouds_used"] = int(len(idx))
+    doc.update(meta)
     return doc
 
 
@@ -321,8 +424,15 @@ def run_track(dataset: str | Path, out: str | Path, progress: bool = True, *, co
     else:
         lines.append("  no truth.yaml beside the dataset: accuracy metrics are null")
     if stairs_doc is not None:
-        lines.append(f"  stairs: {len(stairs_doc.get('treads', []))} treads" if "error" not in stairs_doc
-                     else f"  stairs: {stairs_doc['error']}")
+        if "error" in stairs_doc:
+            lines.append(f"  stairs: {stairs_doc['error']}")
+        else:
+            line = f"  stairs: {len(stairs_doc.get('treads', []))} treads from {stairs_doc['n_clouds_used']} clouds"
+            if stairs_doc.get("max_abs_height_error_m") is not None:
+                dep = stairs_doc.get("max_abs_depth_error_m")
+                line += (f"; max |error| height {1e3 * stairs_doc['max_abs_height_error_m']:.1f} mm, depth "
+                         f"{'n/a' if dep is None else format(1e3 * dep, '.1f') + ' mm'}")
+            lines.append(line)
     return "\n".join(lines)
 
 
@@ -365,7 +475,25 @@ def _report(m: dict, stairs_doc) -> str:
         if "error" in stairs_doc:
             lines.append(f"stairs model failed: {stairs_doc['error']}")
         else:
+            kf = stairs_doc.get("keyframes", {})
+            lines.append(f"{stairs_doc.get('n_clouds_used')} of {stairs_doc.get('n_clouds_available')} clouds "
+                         f"({kf.get('method', '')}), placed with the estimate, stitched by ICP (graphcal.stairs).")
+            lines.append("")
             for t in stairs_doc.get("treads", []):
-                lines.append(f"- tread {t.get('index')}: height {1e3 * t['height_m']:.1f} mm, depth "
-                             f"{1e3 * t['depth_m']:.1f} mm, width {1e3 * t['width_m']:.1f} mm")
+                line = (f"- tread {t.get('index')}: height {1e3 * t['height_m']:.1f} mm, depth "
+                        f"{1e3 * t['depth_m']:.1f} mm{'' if t.get('depth_complete') else ' (visible extent)'}, "
+                        f"width {1e3 * t['width_m']:.1f} mm (visible)")
+                e = t.get("errors")
+                if e and e.get("true_index", -1) >= 0:
+                    dep = e.get("depth_error_m")
+                    line += (f"; against true tread {e['true_index']}: height {1e3 * e['height_error_m']:+.1f} mm, "
+                             f"depth {'n/a' if dep is None else format(1e3 * dep, '+.1f') + ' mm'}")
+                elif e:
+                    line += "; no true tread within 5 cm of its height"
+                lines.append(line)
+            tc = stairs_doc.get("truth_compared")
+            if tc:
+                lines.append("")
+                lines.append(f"Compared with the truth's {tc['flight']} flight ({tc['selection']}); all its treads found: "
+                             f"{'yes' if tc.get('all_true_treads_found') else 'NO'}. {tc['note']}.")
     return "\n".join(lines) + "\n"
