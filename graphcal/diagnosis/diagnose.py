@@ -276,8 +276,8 @@ def _parameters(cand: Candidate, model: DiagnosisModel, problem, values) -> tupl
         s, st = cand.get("sensor"), int(cand.get("station"))
         k_new = ek[f"segment:{s}:{st}"]
         order = [x.station for x in model.data.stations]
-        before = order[order.index(st) - 1]
-        k_old = problem.measurement_keys[(before, s)]
+        earlier = [t for t in order[:order.index(st)] if (t, s) in problem.measurement_keys]
+        k_old = problem.measurement_keys[(earlier[-1], s)]  # the sensor's extrinsic just before the change
 
         def fn(v):
             T_old = from_gtsam_pose(v.atPose3(k_old))
