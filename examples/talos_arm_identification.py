@@ -1,6 +1,6 @@
 """Real data: kinematic identification of a TALOS arm from motion capture (61 static postures).
 
-Data: ``../shared/data/real/talos_left_arm_mocap/measurements.csv`` (from figaroh-plus, Apache-2.0;
+Data: ``examples/data/talos_left_arm_mocap/measurements.csv`` (from figaroh-plus, Apache-2.0;
 README there): per posture the joint angles of ``torso_1_joint``, ``torso_2_joint``,
 ``arm_left_1_joint`` ... ``arm_left_7_joint`` and one marker on the left hand, expressed in a
 motion-capture rigid body fixed to the waist. Robot: ``talos_data/robots/talos_reduced.urdf`` of
@@ -36,7 +36,8 @@ from graphcal.legs.identify import IdentifyOptions, identify_legs
 from graphcal.legs.mocap_data import MarkerTrack
 from graphcal.models.robot import load_robot
 
-DEFAULT_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "talos_left_arm_mocap" / "measurements.csv"
+#: the measurements, copied unchanged into the repository (examples/data/talos_left_arm_mocap/README.md)
+DEFAULT_DATA = Path(__file__).resolve().parent / "data" / "talos_left_arm_mocap" / "measurements.csv"
 URDF_IN_PACKAGE = "cmeel.prefix/share/example-robot-data/robots/talos_data/robots/talos_reduced.urdf"
 BASE = "base_link"
 HAND = "gripper_left_base_link"

@@ -75,8 +75,7 @@ def test_yuan2023_table_reproduction():
                                                   "(pip install 'graphcal[talos]'); it ships talos_reduced.urdf")
 def test_talos_arm_identification_real_data():
     mod = _load("talos_arm_identification")
-    if not Path(mod.DEFAULT_DATA).is_file():
-        pytest.skip(f"TALOS measurements not found at {mod.DEFAULT_DATA}")
+    assert Path(mod.DEFAULT_DATA).is_file(), f"the TALOS measurements belong in the repository: {mod.DEFAULT_DATA}"
     out = mod.main()
     mod._print(out)
     assert (out["postures"], out["train"], out["validation"]) == (61, 41, 20)
