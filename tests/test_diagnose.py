@@ -100,7 +100,7 @@ def test_cli_writes_the_diagnosis(knocked, tmp_path):
     foreign.mkdir()
     (foreign / "notes.txt").write_text("keep me")
     p = _cli("diagnose", knocked, "--out", foreign, "--quiet")
-    assert p.returncode == 2 and "not a previous graphcal diagnosis" in p.stderr
+    assert p.returncode == 2 and "holds no graphcal diagnosis" in p.stderr
     assert (foreign / "notes.txt").read_text() == "keep me" and len(list(foreign.iterdir())) == 1
 
 

@@ -11,10 +11,9 @@ from __future__ import annotations
 import base64
 import html
 import json
-import os
 from pathlib import Path
 
-from ..io.atomic import OutputExistsError, atomic_directory, atomic_write_text
+from ..io.atomic import atomic_directory, atomic_write_text, check_output_folder, previous_output_files
 from .diagnose import Diagnosis, diagnose
 
 __all__ = ["run_diagnose", "write_diagnosis", "summary_text", "DIAGNOSIS_FILES"]
@@ -23,20 +22,9 @@ DIAGNOSIS_FILES = ("diagnosis.json", "report.html")
 
 
 def _check_out(out: Path) -> None:
-    if out.is_symlink() or (out.exists() and not out.is_dir()):
-        raise OutputExistsError(f"{out}: exists and is not a folder; refusing to write the diagnosis there")
-    if not out.exists() or not os.listdir(out):
-        return
-    entries = set(os.listdir(out))
-    ours = False
-    try:
-        ours = json.loads((out / "diagnosis.json").read_text()).get("format") == "graphcal-diagnosis/1"
-    except (OSError, ValueError, AttributeError):
-        ours = False
-    if not ours or entries - set(DIAGNOSIS_FILES):
-        shown = ", ".join(sorted(entries)[:5])
-        raise OutputExistsError(f"{out}: folder is not empty and is not a previous graphcal diagnosis ({shown}); "
-                                "choose an empty or new output folder")
+    """The output-folder policy of graphcal.io.atomic.check_output_folder, for a diagnosis."""
+    check_output_folder(out, lambda f: previous_output_files(f, "diagnosis.json", DIAGNOSIS_FILES, "graphcal-diagnosis/"),
+                        what="graphcal diagnosis")
 
 
 def _fmt(v) -> str:

@@ -19,13 +19,12 @@ Truth is read from ``truth.yaml`` beside the dataset (simulated data) by the eva
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import GraphcalError
-from ..io.atomic import OutputExistsError, atomic_directory, atomic_write_bytes
+from ..io.atomic import atomic_directory, atomic_write_bytes, check_output_folder, previous_output_files
 
 __all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run_track", "track", "tum_text", "stairs_keyframes", "ascending_flight"]
 
@@ -47,28 +46,9 @@ def tum_text(times: np.ndarray, T_world_body: np.ndarray) -> str:
 
 
 def _check_out(out: Path, overwrite: bool) -> None:
-    if out.is_symlink():
-        raise OutputExistsError(f"{out}: is a symbolic link; refusing to write tracking results there")
-    if not out.exists():
-        return
-    if not out.is_dir():
-        raise OutputExistsError(f"{out}: exists and is not a folder; refusing to write tracking results there")
-    entries = sorted(os.listdir(out))
-    if not entries:
-        return
-    ours = False
-    try:
-        doc = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
-        ours = isinstance(doc, dict) and doc.get("format") == TRACK_FORMAT
-    except (OSError, ValueError, UnicodeDecodeError):
-        ours = False
-    foreign = [e for e in entries if e not in OUTPUT_FILES]
-    if not ours or foreign or not overwrite:
-        shown = ", ".join((foreign or entries)[:5])
-        raise OutputExistsError(
-            f"{out}: folder is not empty and is not a previous graphcal track output ({shown}); refusing to "
-            f"replace it: choose an empty or new output folder"
-        )
+    """The output-folder policy of graphcal.io.atomic.check_output_folder, for a track output."""
+    check_output_folder(out, lambda f: previous_output_files(f, "metrics.json", OUTPUT_FILES, TRACK_FORMAT),
+                        what="graphcal track output", overwrite=overwrite)
 
 
 # ----------------------------------------------------------------------------- plots

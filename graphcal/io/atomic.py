@@ -21,11 +21,12 @@ import shutil
 import tempfile
 import threading
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterable, Iterator
 
 from graphcal.errors import GraphcalError
 
-__all__ = ["OutputExistsError", "atomic_file", "atomic_write_text", "atomic_write_bytes", "atomic_directory", "fsync_directory"]
+__all__ = ["OutputExistsError", "atomic_file", "atomic_write_text", "atomic_write_bytes", "atomic_directory",
+           "fsync_directory", "check_output_folder", "previous_output_files"]
 
 
 class OutputExistsError(GraphcalError, FileExistsError):
@@ -208,3 +209,68 @@ def _commit_directory(tmp: Path, final: Path, overwrite: bool) -> None:
             os.rename(backup, final)
         raise
     shutil.rmtree(backup, ignore_errors=True)
+
+
+def _shown(names: list[str]) -> str:
+    return ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
+
+
+def check_output_folder(out_dir: str | Path, previous_files: Callable[[Path], Iterable[str] | None], *, what: str,
+                        overwrite: bool = True) -> None:
+    """The one policy of every graphcal command that writes an output folder: refuse
+    (:class:`OutputExistsError`) unless ``out_dir`` is absent, an empty folder, or -- with
+    ``overwrite`` -- a folder that holds a previous output of the same kind and nothing else.
+
+    Args:
+        out_dir: the output folder.
+        previous_files: ``previous_files(folder)`` -> the names a previous output of this kind wrote
+            there (e.g. :func:`previous_output_files`), or None when the folder holds no such output.
+        what: the kind of output in messages, e.g. ``"graphcal calibration"``.
+        overwrite: allow replacing a previous output of this kind.
+    """
+    out = Path(out_dir)
+    if out.is_symlink():
+        raise OutputExistsError(f"{out}: is a symbolic link; refusing to write a {what} there")
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise OutputExistsError(f"{out}: exists and is not a folder; refusing to write a {what} there")
+    entries = sorted(os.listdir(out))
+    if not entries:
+        return
+    if not overwrite:
+        raise OutputExistsError(f"{out}: folder exists and is not empty; refusing to replace it (overwrite=False)")
+    ours = previous_files(out)
+    if ours is None:
+        raise OutputExistsError(f"{out}: folder is not empty and holds no {what} ({_shown(entries)}); refusing to "
+                                "replace it: choose an empty or new output folder")
+    foreign = [e for e in entries if e not in set(ours)]
+    if foreign:
+        raise OutputExistsError(f"{out}: folder holds a previous {what} but also files graphcal did not write "
+                                f"({_shown(foreign)}); refusing to replace it: move those files or choose another "
+                                "output folder")
+
+
+def previous_output_files(folder: Path, manifest: str, names: Iterable[str], format_prefix: str) -> set[str] | None:
+    """The files a previous graphcal output wrote in ``folder``, from its manifest file (YAML or
+    JSON, with ``format`` starting with ``format_prefix`` and optionally an ``output_files`` list):
+    ``names`` plus the listed plain file names; None when there is no such manifest."""
+    import json
+
+    import yaml
+
+    path = Path(folder) / manifest
+    if not path.is_file() or path.is_symlink():
+        return None
+    try:
+        text = path.read_text(encoding="utf-8")
+        doc = json.loads(text) if manifest.endswith(".json") else yaml.safe_load(text)
+    except (OSError, UnicodeDecodeError, ValueError, TypeError, RecursionError, yaml.YAMLError):
+        return None
+    if not isinstance(doc, dict) or not str(doc.get("format", "")).startswith(format_prefix):
+        return None
+    out = set(names)
+    listed = doc.get("output_files")
+    if isinstance(listed, list):
+        out |= {n for n in listed if isinstance(n, str) and n and "/" not in n and "\\" not in n and n not in (".", "..")}
+    return out

@@ -21,13 +21,14 @@ from __future__ import annotations
 import base64
 import html
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from graphcal.io.atomic import OutputExistsError, atomic_directory, atomic_write_bytes, atomic_write_text
+from graphcal.io.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
+from graphcal.io.atomic import check_output_folder as check_folder
+from graphcal.io.atomic import previous_output_files
 from graphcal.report.calibration_yaml import FORMAT, pose_to_dict
 
 __all__ = ["LEGS_FILES", "legs_yaml_dict", "legs_yaml_text", "foot_error_figure", "identification_html",
@@ -251,40 +252,11 @@ def _png_name(foot: str) -> str:
     return f"foot_errors_{safe}.png"
 
 
-def _previous_files(folder: Path) -> set[str] | None:
-    path = folder / LEGS_FILES["legs"]
-    if not path.is_file() or path.is_symlink():
-        return None
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, ValueError, TypeError, RecursionError):
-        return None
-    if not isinstance(doc, dict) or not str(doc.get("format", "")).startswith("graphcal-calibration/"):
-        return None
-    names = set(LEGS_FILES.values())
-    listed = doc.get("output_files")
-    if isinstance(listed, list):
-        names |= {n for n in listed if isinstance(n, str) and n and "/" not in n and "\\" not in n and n not in (".", "..")}
-    return names
-
-
 def check_output_folder(out: Path) -> None:
-    """OutputExistsError unless ``out`` is absent, empty, or holds only a previous identify-legs output."""
-    if out.is_symlink():
-        raise OutputExistsError(f"{out}: is a symbolic link; refusing to write identification results there")
-    if not out.exists():
-        return
-    if not out.is_dir():
-        raise OutputExistsError(f"{out}: exists and is not a folder; refusing to write identification results there")
-    entries = sorted(os.listdir(out))
-    if not entries:
-        return
-    ours = _previous_files(out)
-    foreign = entries if ours is None else [e for e in entries if e not in ours]
-    if foreign:
-        shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
-        raise OutputExistsError(f"{out}: folder is not empty and holds files graphcal identify-legs did not write ({shown}); "
-                                f"refusing to replace it: choose an empty or new output folder")
+    """OutputExistsError unless ``out`` is absent, empty, or holds only a previous identify-legs output
+    (graphcal.io.atomic.check_output_folder)."""
+    check_folder(out, lambda f: previous_output_files(f, LEGS_FILES["legs"], LEGS_FILES.values(), "graphcal-calibration/"),
+                 what="graphcal leg identification")
 
 
 def write_identification_outputs(result, out_dir, *, dataset: str | None = None) -> dict[str, Path]:

@@ -21,9 +21,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import yaml
-
-from graphcal.io.atomic import OutputExistsError, atomic_directory, atomic_write_text
+from graphcal.io.atomic import atomic_directory, atomic_write_text
+from graphcal.io.atomic import check_output_folder as check_output_folder_of
+from graphcal.io.atomic import previous_output_files
 from graphcal.report.calibration_yaml import calibration_yaml_text
 from graphcal.report.ros import static_transforms_script
 from graphcal.report.urdf import calibrated_urdf
@@ -40,55 +40,13 @@ OUTPUT_FILES: dict[str, str] = {
 _FORMAT_PREFIX = "graphcal-calibration/"
 
 
-def _previous_calibration_files(folder: Path) -> set[str] | None:
-    """The file names a previous graphcal calibration in ``folder`` wrote, or None when ``folder``
-    holds no graphcal calibration.yaml."""
-    path = folder / OUTPUT_FILES["calibration"]
-    if not path.is_file() or path.is_symlink():
-        return None
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, ValueError, TypeError, RecursionError):
-        return None
-    if not isinstance(doc, dict) or not str(doc.get("format", "")).startswith(_FORMAT_PREFIX):
-        return None
-    names = set(OUTPUT_FILES.values())
-    listed = doc.get("output_files")
-    if isinstance(listed, list):
-        names |= {n for n in listed if isinstance(n, str) and n and "/" not in n and "\\" not in n and n not in (".", "..")}
-    return names
-
-
 def check_output_folder(out_dir: str | Path, *, overwrite: bool = True) -> None:
     """Raise :class:`~graphcal.io.atomic.OutputExistsError` (a GraphcalError) unless ``out_dir`` is
     absent, an empty folder, or (with ``overwrite``) a folder holding only a previous graphcal
-    calibration's files."""
-    out = Path(out_dir)
-    if out.is_symlink():
-        raise OutputExistsError(f"{out}: is a symbolic link; refusing to write calibration results there")
-    if not out.exists():
-        return
-    if not out.is_dir():
-        raise OutputExistsError(f"{out}: exists and is not a folder; refusing to write calibration results there")
-    entries = sorted(os.listdir(out))
-    if not entries:
-        return
-    if not overwrite:
-        raise OutputExistsError(f"{out}: folder exists and is not empty; refusing to replace it (overwrite=False)")
-    ours = _previous_calibration_files(out)
-    if ours is None:
-        shown = ", ".join(entries[:5]) + (", ..." if len(entries) > 5 else "")
-        raise OutputExistsError(
-            f"{out}: folder is not empty and holds no graphcal calibration ({shown}); refusing to replace "
-            f"it: choose an empty or new output folder"
-        )
-    foreign = [e for e in entries if e not in ours]
-    if foreign:
-        shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
-        raise OutputExistsError(
-            f"{out}: folder holds a previous graphcal calibration but also files graphcal did not write "
-            f"({shown}); refusing to replace it: move those files or choose another output folder"
-        )
+    calibration's files (graphcal.io.atomic.check_output_folder)."""
+    check_output_folder_of(out_dir, lambda f: previous_output_files(f, OUTPUT_FILES["calibration"], OUTPUT_FILES.values(),
+                                                                    _FORMAT_PREFIX),
+                           what="graphcal calibration", overwrite=overwrite)
 
 
 # ----------------------------------------------------------------------------- the writers
