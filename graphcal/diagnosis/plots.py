@@ -89,12 +89,15 @@ def _finding_figure(diag, f) -> tuple[str, Figure]:
         fig.suptitle(label, fontsize=10)
         cap = "stance-foot residuals per station: the named leg against the others"
     elif c.cause == "extrinsic_change":
-        axes = _pair(fig, b, a, "index", "angle_deg", "station (dataset order)", "theta [deg]", label, sensor=c.get("sensor"))
+        # cameras: the plane's angle error; laser scans (no plane angle): the RMS range residual
+        has_angle = any(np.isfinite(r.angle_deg) for r in b if r.sensor == c.get("sensor"))
+        y, ylabel = ("angle_deg", "theta [deg]") if has_angle else ("distance_mm", "range residual RMS [mm]")
+        axes = _pair(fig, b, a, "index", y, "station (dataset order)", ylabel, label, sensor=c.get("sensor"))
         k = next((r.index for r in b if r.station == int(c.get("station"))), None)
         if k is not None:
             for ax in axes:
                 ax.axvline(k - 0.5, color=_MARK, ls="--", lw=1.0)
-        cap = "angle error per station: the sensor moved at the dashed line"
+        cap = "residual per station: the sensor moved at the dashed line"
     else:  # outlier stations
         axes = _pair(fig, b, a, "index", "whitened", "station (dataset order)", "measurement residual (whitened RMS)", label)
         bad = {int(s) for s in c.get("stations")}

@@ -84,8 +84,11 @@ def residual_records(model, problem, values) -> tuple[ResidualRecord, ...]:
             a, d = plane_angle_distance_error(T_wb @ T_bs, p.n, p.d / scale, plane_w)
             ang, dist, rng = float(np.degrees(a)), float(1e3 * d * scale), float(p.d)
         else:
-            e = np.asarray(problem.graph.at(i).unwhitenedError(values))
+            from factors.range_scale import scaled_range_error
+
             pts = model.data.scan_points[(st, s)]
+            scale = float(values.atVector(ek[f"range_scale:{s}"])[0]) if f"range_scale:{s}" in ek else 1.0
+            e, _ = scaled_range_error(T_wb, T_bs, scale, pts, want_jacobians=False)
             ang, dist, rng = float("nan"), float(1e3 * np.sqrt(np.mean(e**2))), float(np.median(np.linalg.norm(pts, axis=1)))
         out.append(ResidualRecord(int(st), j, session, s, ang, dist, rng, tilt, float(np.sqrt(c / problem.graph.at(i).dim()))))
     return tuple(out)
