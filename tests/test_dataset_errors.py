@@ -399,6 +399,18 @@ def test_lenient_csv_details(dataset_copy):
     assert ds.planes["d"].tolist() == [0.9, 0.91, 0.92, 0.93]
 
 
+def test_number_with_a_non_ascii_space_is_read(dataset_copy):
+    """A no-break space around a number (a spreadsheet export) is whitespace: the number is read.
+    Found by the fuzz test: such a column used to end in an internal AssertionError. A Unicode digit
+    is still refused with the file, row and column named."""
+    set_cell(P, 2, "d", "\u00a00.91\u00a0")(dataset_copy)
+    ds = read_dataset(dataset_copy)
+    assert ds.planes["d"].tolist() == [0.9, 0.91, 0.92, 0.93]
+    set_cell(P, 2, "d", "\u0660.91")(dataset_copy)  # ARABIC-INDIC DIGIT ZERO
+    with pytest.raises(DatasetError, match=r"planes.csv.*row 2.*column d"):
+        read_dataset(dataset_copy)
+
+
 def test_warnings_of_a_valid_dataset(dataset_copy):
     drop_column(S, "session")(dataset_copy)
     set_cell(S, 2, "q_lf_tibia_joint", "143.2")(dataset_copy)  # degrees, by mistake
