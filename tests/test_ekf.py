@@ -79,7 +79,7 @@ def test_preintegration_matches_plain_integration():
     """Chunks of preintegrated IMU with bias corrections = sample-by-sample integration."""
     from graphcal.filter.imu import preintegrate, reconstruct
     from graphcal.filter.ekf import GRAVITY_WORLD
-    from graphcal.simulation.walking import rpy_matrices
+    from graphcal.geometry import matrix_from_rpy
 
     rng = np.random.default_rng(0)
     N = 400
@@ -91,7 +91,7 @@ def test_preintegration_matches_plain_integration():
     events = np.r_[np.arange(5, N, 5), N - 1]
     pre = preintegrate(w, a, dt, events)
     # plain integration with the biases, sample by sample
-    R0 = rpy_matrices(np.array([0.1]), np.array([-0.2]), np.array([0.3]))[0]
+    R0 = matrix_from_rpy([0.1, -0.2, 0.3])
     p, v, R = np.array([1.0, 2.0, 0.5]), np.array([0.3, -0.1, 0.0]), R0.copy()
     P_ref, V_ref, R_ref = [p], [v], [R]
     from graphcal.filter.imu import exp_batch

@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GraphcalError
+from ..geometry import matrix_from_rpy
 from .terrain import LABEL_STAIRS, Stair, Terrain, box_mesh, make_terrain
 
 __all__ = [
@@ -61,7 +62,6 @@ __all__ = [
     "walking_dataset",
     "write_walking",
     "simulate_walking_to_folder",
-    "rpy_matrices",
     "stair_profile",
 ]
 
@@ -257,24 +257,6 @@ def _smoothstep(u: np.ndarray) -> np.ndarray:
     return u * u * u * (10.0 + u * (-15.0 + 6.0 * u))
 
 
-def rpy_matrices(roll, pitch, yaw) -> np.ndarray:
-    """(N, 3, 3) rotations R = Rz(yaw) Ry(pitch) Rx(roll) (ROS convention), angles (N,) rad."""
-    cr, sr = np.cos(roll), np.sin(roll)
-    cp, sp = np.cos(pitch), np.sin(pitch)
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    R = np.empty((len(np.atleast_1d(roll)), 3, 3))
-    R[:, 0, 0] = cy * cp
-    R[:, 0, 1] = cy * sp * sr - sy * cr
-    R[:, 0, 2] = cy * sp * cr + sy * sr
-    R[:, 1, 0] = sy * cp
-    R[:, 1, 1] = sy * sp * sr + cy * cr
-    R[:, 1, 2] = sy * sp * cr - cy * sr
-    R[:, 2, 0] = -sp
-    R[:, 2, 1] = cp * sr
-    R[:, 2, 2] = cp * cr
-    return R
-
-
 def _cumtrapz(y: np.ndarray, x: np.ndarray) -> np.ndarray:
     out = np.zeros_like(y, dtype=float)
     out[1:] = np.cumsum(0.5 * (y[1:] + y[:-1]) * np.diff(x))
@@ -429,7 +411,7 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
         z = h0 + bob
         pitch = nod
         ground = lambda xy: np.zeros(xy.shape[:-1])  # noqa: E731
-    R = rpy_matrices(roll, pitch, yaw)
+    R = matrix_from_rpy(np.column_stack(np.broadcast_arrays(roll, pitch, yaw)))
     p = np.c_[x, y, z]
     T_world_body = np.zeros((N, 4, 4))
     T_world_body[:, :3, :3] = R
