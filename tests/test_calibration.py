@@ -75,9 +75,14 @@ def test_converges_from_any_cad_prior(octopus):
         prior = dataclasses.replace(spec.T_body_sensor_prior).from_matrix(
             T_bad, spec.T_body_sensor_prior.sigma_m, spec.T_body_sensor_prior.sigma_rad)
         ds_bad = dataclasses.replace(ds, sensors={"depth": dataclasses.replace(spec, T_body_sensor_prior=prior)})
-        T = calibrate(ds_bad).sensors["depth"].T_body_sensor
+        res = calibrate(ds_bad)
+        T = res.sensors["depth"].T_body_sensor
         assert np.degrees(rotation_angle_between(T[:3, :3], T_ref[:3, :3])) < 1e-3, k
         assert 1e3 * np.linalg.norm(T[:3, 3] - T_ref[:3, 3]) < 0.05, k
+        # a prior this far off its own stated sigma is reported as wrong, naming the sensor
+        assert any(w.startswith("depth: the CAD prior in dataset.yaml is") for w in res.warnings), (k, res.warnings)
+    # the dataset's own prior (about 1 deg / 10 mm off, sigma as stated) is not
+    assert not any("CAD prior" in w for w in reference.warnings), reference.warnings
 
 
 def test_outlier_stations_are_found_and_do_not_hurt(tmp_path):

@@ -272,3 +272,53 @@ def test_other_ply_flavours(tmp_path, fmt):
         (root / "clouds/front_cam/3.ply").write_text(text)
     validate_dataset(root)
     assert np.array_equal(load_cloud(read_dataset(root), "front_cam", 3), pts)
+
+
+@pytest.mark.parametrize("layout", ["f8_le", "f4_le_rgb", "f4_be_normals_intensity", "camera_element_first", "face_list_after"])
+def test_binary_ply_decoded_like_open3d(tmp_path, layout):
+    """The binary fast path of read_ply (a structured view of the bytes) gives exactly what Open3D's
+    reader gives, for layouts other tools write: float32 with colours, big-endian with extra
+    properties, a fixed-size element before the vertices, and a face list after them."""
+    import open3d as o3d
+
+    from graphcal.io.ply import read_ply
+
+    rng = np.random.default_rng(7)
+    n = 257
+    pts = rng.normal(0.0, 2.0, (n, 3))
+    if layout == "f8_le":
+        head, props = b"format binary_little_endian 1.0\n", [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    elif layout == "f4_le_rgb":
+        head = b"format binary_little_endian 1.0\n"
+        props = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    else:
+        head = b"format binary_big_endian 1.0\n" if layout.startswith("f4_be") else b"format binary_little_endian 1.0\n"
+        e = ">" if layout.startswith("f4_be") else "<"
+        props = [("nx", e + "f4"), ("x", e + "f4"), ("y", e + "f4"), ("intensity", e + "u2"), ("z", e + "f4"),
+                 ("ny", e + "f4"), ("nz", e + "f4")]
+    names = {"<f8": "double", "<f4": "float", ">f4": "float", "u1": "uchar", "<u2": "ushort", ">u2": "ushort"}
+    rec = np.zeros(n, dtype=props)
+    for j, a in enumerate("xyz"):
+        rec[a] = pts[:, j]
+    for name, dt in props:
+        if name not in "xyz":
+            rec[name] = rng.integers(0, 200, n) if dt.endswith(("u1", "u2")) else rng.normal(size=n)
+    header = b"ply\n" + head
+    pre = post = b""
+    if layout == "camera_element_first":
+        header += b"element camera 1\nproperty float view_px\nproperty float view_py\n"
+        pre = np.array([1.5, -2.5], dtype="<f4").tobytes()
+    header += b"element vertex %d\n" % n + b"".join(b"property %s %s\n" % (names[dt].encode(), nm.encode()) for nm, dt in props)
+    if layout == "face_list_after":
+        header += b"element face 1\nproperty list uchar int vertex_indices\n"
+        post = np.array([3], dtype="u1").tobytes() + np.array([0, 1, 2], dtype="<i4").tobytes()
+    path = tmp_path / "cloud.ply"
+    path.write_bytes(header + b"end_header\n" + pre + rec.tobytes() + post)
+
+    got = read_ply(path)
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        ref = np.asarray(o3d.io.read_point_cloud(str(path), format="ply").points)
+    expected = np.column_stack([rec[a].astype(np.float64) for a in "xyz"])
+    assert got.dtype == np.float64 and got.shape == (n, 3)
+    assert np.array_equal(got, expected)
+    assert np.array_equal(got, ref)

@@ -189,6 +189,9 @@ def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set,
         s_rot, s_xyz, corr, _ = body_axis_sigmas(T, cov)
         unobs = tuple(unobservable_directions(T, cov, cov_prior))
         warnings += [f"{name}: {u}" for u in unobs]
+        conflict = prior_conflict(T, T_cad, sig_m, sig_rad)
+        if conflict:
+            warnings.append(f"{name}: {conflict}")
         ids = [st.station for st in data.stations]
         sensors[name] = SensorEstimate(
             name=name, type=ds.sensors[name].type, T_body_sensor=T, covariance=cov, T_body_sensor_prior=T_cad,
@@ -220,6 +223,29 @@ def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set,
         warnings=tuple(warnings),
         noise=noise_summary(options, problem),
     )
+
+
+#: A CAD prior further from the estimate than this many of its own sigmas is reported as wrong.
+PRIOR_CONFLICT_SIGMAS = 5.0
+
+
+def prior_conflict(T_body_sensor: np.ndarray, T_prior: np.ndarray, sigma_m: float, sigma_rad: float) -> str:
+    """A sentence when the CAD prior (4x4, with its sigma in m and rad from dataset.yaml) is further
+    from the calibrated extrinsic than :data:`PRIOR_CONFLICT_SIGMAS` of its own sigma, in rotation
+    angle or in translation distance; empty otherwise. The data then outweighed a prior that said
+    otherwise: either the prior is wrong or its sigma is too small (and it pulled the estimate)."""
+    from ..geometry import rotation_angle_between
+
+    angle = float(rotation_angle_between(T_body_sensor[:3, :3], T_prior[:3, :3]))
+    dist = float(np.linalg.norm(T_body_sensor[:3, 3] - T_prior[:3, 3]))
+    k_rot = angle / max(sigma_rad, 1e-12)
+    k_xyz = dist / max(sigma_m, 1e-12)
+    if max(k_rot, k_xyz) <= PRIOR_CONFLICT_SIGMAS:
+        return ""
+    return (f"the CAD prior in dataset.yaml is {np.degrees(angle):.1f} deg and {1e3 * dist:.0f} mm from the "
+            f"calibrated pose, {max(k_rot, k_xyz):.0f} times its stated sigma ({np.degrees(sigma_rad):.3g} deg, "
+            f"{1e3 * sigma_m:.3g} mm): the prior is wrong or its sigma too small (a tight wrong prior pulls "
+            "the estimate; widen sigma_rpy_deg / sigma_mm or correct the prior)")
 
 
 def noise_summary(options: CalibrationOptions, problem: CalibrationProblem) -> dict:
@@ -268,8 +294,6 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
             f"  {name}: xyz {np.round(s.T_body_sensor[:3, 3], 4).tolist()} m, "
             f"sigma rot {np.round(s.sigma_rot_deg, 3).tolist()} deg, xyz {np.round(s.sigma_xyz_mm, 2).tolist()} mm"
         )
-        for u in s.unobservable:
-            lines.append(f"  warning: {name}: {u}")
     lines.append(f"  residuals after: normal {result.normal_rms_deg:.3f} deg RMS, distance {result.distance_rms_mm:.2f} mm RMS")
     if result.noise:
         n = result.noise
@@ -279,5 +303,6 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
                      f"contact {1e3 * n['sigma_contact_m']:.2f} mm, IMU {np.degrees(n['sigma_imu_rad']):.3f} deg")
     if result.outliers:
         lines.append(f"  outlier stations: {', '.join(map(str, result.outliers))}")
+    lines += [f"  warning: {w}" for w in result.warnings]
     lines.append("  files: " + ", ".join(sorted(p.name for p in written.values())))
     return "\n".join(lines)

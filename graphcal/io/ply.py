@@ -4,8 +4,11 @@ Open3D's reader is forgiving to a fault: for a file it cannot parse it prints a 
 an empty cloud; for a truncated binary file it returns as many points as the header announced,
 filled with garbage; for a header announcing a billion points it allocates them. So
 :func:`read_ply` first checks the header itself (magic, format, a ``vertex`` element with ``x, y,
-z``, and a body size that matches the header), then lets Open3D read the points, then checks that
-it got every point and that all are finite. Any problem is a :class:`~graphcal.errors.DatasetError`
+z``, and a body size that matches the header), then reads the points: a binary file with fixed-size
+records is decoded straight from the bytes already in memory (a structured numpy view, ~20x faster
+than Open3D's reader, which would read the file a second time); anything else (ASCII, list
+properties) is read by Open3D, and graphcal checks that it got every point. All points must be
+finite. Any problem is a :class:`~graphcal.errors.DatasetError`
 naming the file.
 
 Points are metres, ``(N, 3)`` float64, in the frame the file says (for a dataset cloud: the sensor
@@ -157,8 +160,51 @@ def read_ply(path: str | Path) -> np.ndarray:
     header = read_ply_header(path, data)
     if header.format == "ascii":
         _check_ascii_numbers(path, data[header.header_bytes :])
+    points = _binary_vertex_xyz(header, data)
     del data
+    if points is None:
+        points = _read_with_open3d(path, header)
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        i = int(np.argmin(finite))
+        raise _bad(path, f"point {i + 1} (1-based)", "finite coordinates", f"{points[i].tolist()}")
+    return points
 
+
+_NUMPY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+
+
+def _binary_vertex_xyz(header: PlyHeader, data: bytes) -> np.ndarray | None:
+    """x, y, z of a binary PLY whose elements up to ``vertex`` have fixed-size records, decoded from
+    the bytes already read (the header has checked the body size); None for anything else (ASCII,
+    list properties before or in ``vertex``, repeated property names), which Open3D reads.
+
+    Open3D's reader on the same 6 MB file takes ~20 ms and reads it from disk a second time; this
+    takes ~1 ms (bench/calibration.py reads 52 clouds per run)."""
+    if header.format == "ascii":
+        return None
+    order = "<" if header.format == "binary_little_endian" else ">"
+    offset = header.header_bytes
+    for name, count, props in header.elements:
+        if any(p[2] for p in props) or len({p[0] for p in props}) != len(props):
+            return None
+        dtype = np.dtype([(p[0], order + _NUMPY_TYPES[p[1]]) for p in props])
+        if name == "vertex":
+            rec = np.frombuffer(data, dtype=dtype, count=count, offset=offset)
+            points = np.empty((count, 3), dtype=np.float64)
+            for j, axis in enumerate("xyz"):
+                points[:, j] = rec[axis]
+            return points
+        offset += count * dtype.itemsize
+    return None
+
+
+def _read_with_open3d(path: Path, header: PlyHeader) -> np.ndarray:
     import open3d as o3d
 
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
@@ -167,10 +213,6 @@ def read_ply(path: str | Path) -> np.ndarray:
     if points.ndim != 2 or points.shape[1:] != (3,) or len(points) != header.n_vertices:
         raise _bad(path, "points", f"{header.n_vertices} points as the header announces; unreadable or empty PLY",
                    f"{len(points)} points read by Open3D")
-    finite = np.isfinite(points).all(axis=1)
-    if not finite.all():
-        i = int(np.argmin(finite))
-        raise _bad(path, f"point {i + 1} (1-based)", "finite coordinates", f"{points[i].tolist()}")
     return points
 
 

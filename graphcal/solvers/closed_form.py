@@ -252,33 +252,67 @@ def _plane_per_station(P: np.ndarray):
     return (-n, -d) if d < 0 else (n, d)
 
 
-def _gauss_newton_points(U, z, P, R, t, scale, rcond, iterations):
+def _gauss_newton_points(U, z, P, R, t, scale, rcond, iterations, robust=False):
     """Gauss–Newton on the point heights over the right perturbation of (R, t); undetermined
-    directions (relative singular value below rcond) are not moved. Returns (R, t, cost, rank)."""
+    directions (relative singular value below rcond) are not moved. With ``robust``, each step is
+    reweighted (IRLS, Cauchy weights at 2.385 robust standard deviations of the current residuals) so that
+    points off the floor (boxes, legs) do not bias the answer. Returns (R, t, cost, rank), cost the
+    (weighted) sum of squares."""
 
-    def svd_scaled(J):
-        _, S, Vt = np.linalg.svd(J * scale, full_matrices=False)
+    def weights(r):
+        if not robust:
+            return np.ones_like(r)
+        c = 2.385 * max(1.4826 * float(np.median(np.abs(r))), 1e-9)
+        return 1.0 / (1.0 + (r / c) ** 2)
+
+    def svd_scaled(J, w):
+        _, S, Vt = np.linalg.svd(J * scale * np.sqrt(w)[:, None], full_matrices=False)
         keep = S > rcond * S[0] if S[0] > 0 else np.zeros_like(S, dtype=bool)
         return S, Vt, keep
 
     r, J = _point_residuals_and_jacobian(U, z, P, R, t)
+    w = weights(r)
     for _ in range(max(0, int(iterations))):
-        S, Vt, keep = svd_scaled(J)
+        S, Vt, keep = svd_scaled(J, w)
         if not keep.any():
             break
-        g = (J * scale).T @ r
+        g = (J * scale).T @ (w * r)
         step_s = -(Vt[keep].T @ ((Vt[keep] @ g) / S[keep] ** 2))
         xi = step_s * scale
-        R_new = R @ so3_exp(xi[:3])
-        t_new = t + R @ xi[3:]
-        r_new, J_new = _point_residuals_and_jacobian(U, z, P, R_new, t_new)
-        if r_new @ r_new > r @ r:
+        for _halving in range(8):  # backtracking: far from the answer a full step can overshoot
+            R_new = R @ so3_exp(xi[:3])
+            t_new = t + R @ xi[3:]
+            r_new, J_new = _point_residuals_and_jacobian(U, z, P, R_new, t_new)
+            if r_new @ (w * r_new) <= r @ (w * r):
+                break
+            xi = 0.5 * xi
+        else:
             break
         R, t, r, J = R_new, t_new, r_new, J_new
+        w = weights(r)
         if np.linalg.norm(step_s) < 1e-14 * float(np.max(scale)):
             break
-    S, _, keep = svd_scaled(J)
-    return R, t, float(r @ r), int(keep.sum())
+    S, _, keep = svd_scaled(J, w)
+    return R, t, float(r @ (w * r)), int(keep.sum())
+
+
+def _ground_symmetric_starts(R: np.ndarray, t: np.ndarray, U_st: np.ndarray, z_st: np.ndarray, n_yaw: int):
+    """Starting points related to (R, t) by the symmetries of a level floor, which only the body tilts
+    (and anything off the floor) break: turns of the sensor about the vertical through the point
+    of the ground under the body origin (``n_yaw`` evenly spaced angles, 0 included), each also
+    reflected through the ground with its scan mirrored (under the floor, looking up; the rotation
+    stays proper). A 2D scan fits a level floor equally well from all of them."""
+    u0 = U_st.mean(axis=0)
+    u0 /= np.linalg.norm(u0)
+    c = -float(np.mean(z_st)) * u0  # the ground under the body origin, body frame
+    H = np.eye(3) - 2.0 * np.outer(u0, u0)
+    starts = []
+    for k in range(n_yaw):
+        Ry = so3_exp(u0 * (2.0 * np.pi * k / n_yaw))
+        Rk, tk = Ry @ R, Ry @ (t - c) + c
+        starts.append((Rk, tk))
+        starts.append((H @ Rk @ np.diag([1.0, 1.0, -1.0]), H @ (tk - c) + c))
+    return starts
 
 
 def extrinsic_from_scan_points(
@@ -302,7 +336,14 @@ def extrinsic_from_scan_points(
       :func:`translation_from_distances`); the one with the lower point residual wins.
     * with ``T_prior`` given, the prior is one more starting point for the Gauss–Newton polish: with
       little tilt variation the linear system has a degenerate near-solution (the scan plane lying
-      on the ground) that only a start near the truth avoids; the lowest point residual wins.
+      on the ground) that only a start near the truth avoids.
+    * a 2D scan fits a level floor exactly as well from the scanner turned about the vertical or
+      reflected through the ground (under the floor, looking up, its scan mirrored); every
+      candidate's copies (8 turns, each also reflected) are refined too, and candidates whose origin
+      lies below the ground (median over the stations) lose.
+
+    Among the rest the lowest median absolute point height wins (robust to points off the floor:
+    boxes, legs), and its Gauss–Newton polish is reweighted (Cauchy).
 
     The linear least-squares solution is projected to SO(3) (polar decomposition), then t is
     solved again by linear least squares given R, then (``gauss_newton_iterations`` > 0) a few
@@ -392,7 +433,7 @@ def extrinsic_from_scan_points(
     if T_prior is not None:
         candidates.append(Rp)
     scale = np.array([L, L, L, 1.0, 1.0, 1.0])  # rotation columns in metres at the point range
-    best = None
+    solutions = []
     for M in candidates:
         if not np.all(np.isfinite(M)) or np.linalg.norm(M) < 1e-12:
             M = Rp
@@ -400,8 +441,31 @@ def extrinsic_from_scan_points(
         # t given R: u . t = -z - u . R p  (translation_from_distances with d = -u . R p)
         d_eff = -np.einsum("ij,ij->i", U, P @ R.T)
         t, _ = translation_from_distances(U, d_eff, z, t_prior=tp, min_spread_deg=min_spread_deg)
-        R, t, cost, rank = _gauss_newton_points(U, z, P, R, t, scale, spread_rcond, gauss_newton_iterations)
-        if best is None or cost < best[2] * (1.0 - 1e-12) - 1e-300:
-            best = (R, t, cost, rank)
+        solutions.append(_gauss_newton_points(U, z, P, R, t, scale, spread_rcond, gauss_newton_iterations))
+    if planar:
+        # A 2D scan fits a level floor as well turned about the vertical or reflected through the
+        # ground (under it, looking up); only the tilts and points off the floor tell these apart,
+        # and least squares can settle in the wrong one (the linear solution is often the point
+        # reflection). Every solution's symmetric copies are refined too (on a subsample of at most
+        # 2000 points), the physical rule "the scanner is above the ground" removes the reflections,
+        # and the lowest median absolute point height picks among the rest.
+        # The search also moves directions that small tilts determine only weakly (relative singular
+        # value down to 1e-3, not sin(min_spread_deg)): stopping short along them leaves the start's
+        # (wrong) value there. Directions with no information at all (level body) stay truncated.
+        search_rcond = min(spread_rcond, 1e-3)
+        sub = np.linspace(0, len(P) - 1, min(len(P), 2000)).astype(int)
+        for R0, t0, _, _ in list(solutions):
+            for R, t in _ground_symmetric_starts(R0, t0, U_st, z_st, n_yaw=8):
+                solutions.append(_gauss_newton_points(U[sub], z[sub], P[sub], R, t, scale, search_rcond,
+                                                      gauss_newton_iterations, robust=True))
+    best = None
+    for R, t, _, rank in solutions:
+        above = bool(np.median(U_st @ t + z_st) > 0.0)  # the sensor origin's height above the ground
+        r, _ = _point_residuals_and_jacobian(U, z, P, R, t)
+        key = (not above, float(np.median(np.abs(r))))
+        if best is None or key < best[2]:
+            best = (R, t, key, rank)
+    R, t, _, _ = best
+    best = _gauss_newton_points(U, z, P, R, t, scale, spread_rcond, gauss_newton_iterations, robust=True)
     R, t, _, rank = best
     return pose_matrix(R, t), rank
