@@ -5,6 +5,7 @@ bug and keeps its traceback."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -71,6 +72,10 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="output folder (created; a previous graphcal calibration there is replaced only at the end)")
     c.add_argument("--incremental", action="store_true", help="iSAM2, one station at a time, with change detection")
     c.add_argument("--legs", action="store_true", help="also estimate leg joint offsets and link lengths")
+    c.add_argument("--ground-roughness-mm", type=float, default=0.0, metavar="MM",
+                   help="RMS height of bumps in the ground (default 0: a flat floor). On uneven ground the "
+                        "feet stand on bumps and within one stance that cannot be told from the extrinsic; "
+                        "this puts it into the sigma (docs/calibration.md)")
     c.add_argument("--quiet", action="store_true")
 
     g = sub.add_parser("suggest-poses", help="propose the k body poses that most shrink the extrinsic covariance")
@@ -144,9 +149,13 @@ def _cmd_simulate(args) -> int:
 
 def _cmd_calibrate(args) -> int:
     from .calibration.calibrate import run_calibrate
+    from .errors import GraphcalError
+
+    if not (math.isfinite(args.ground_roughness_mm) and args.ground_roughness_mm >= 0):
+        raise GraphcalError(f"--ground-roughness-mm must be a number >= 0 (mm), got {args.ground_roughness_mm}")
 
     print(run_calibrate(args.dataset, args.out, legs=args.legs, incremental=args.incremental,
-                        progress=not args.quiet))
+                        progress=not args.quiet, ground_roughness_m=1e-3 * args.ground_roughness_mm))
     return 0
 
 

@@ -134,3 +134,14 @@ def test_suggest_poses_prints_and_writes_reachable_poses(small_dataset, tmp_path
     table = [line.split() for line in proc.stdout.splitlines() if line.strip()[:1].isdigit()]
     sig_rot_x = [float(r[7]) for r in table]
     assert all(b <= a + 1e-9 for a, b in zip(sig_rot_x, sig_rot_x[1:]))
+
+
+@pytest.mark.parametrize("extra, words", [(["--ground-roughness-mm", "-3"], "must be a number >= 0 (mm), got -3"),
+                                          (["--ground-roughness-mm", "nan"], "must be a number >= 0"),
+                                          (["--ground-roughness-mm", "2", "--incremental"], "not supported with --incremental")])
+def test_calibrate_ground_roughness_bad_use_is_one_line_exit_2(small_dataset, tmp_path, extra, words):
+    proc = run("calibrate", small_dataset, "--out", tmp_path / "out", "--quiet", *extra)
+    assert proc.returncode == 2, proc.stderr
+    assert words in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import GraphcalError
 from ..geometry import from_gtsam_pose
 from .graph import CalibrationOptions, CalibrationProblem, build_problem, predicted_plane_errors
 from .measurements import CalibrationData, calibration_data
@@ -276,11 +277,17 @@ def _residuals(data, problem, values, T_world_body, sensors, outliers) -> list[S
 
 
 def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,
-                  progress: bool = True) -> str:
-    """The ``graphcal calibrate`` command: calibrate and write the outputs; returns a summary."""
+                  progress: bool = True, ground_roughness_m: float = 0.0) -> str:
+    """The ``graphcal calibrate`` command: calibrate and write the outputs; returns a summary.
+    ``ground_roughness_m``: RMS bump height of the ground (m), see
+    :func:`graphcal.calibration.graph.options_for_ground_roughness`."""
     from ..report.write import write_calibration_outputs
+    from .graph import options_for_ground_roughness
 
-    options = CalibrationOptions(legs=legs)
+    if incremental and ground_roughness_m > 0:
+        raise GraphcalError("--ground-roughness-mm is not supported with --incremental (its per-session ground "
+                            "planes are not in the iSAM2 station split yet); calibrate in batch")
+    options = options_for_ground_roughness(CalibrationOptions(legs=legs), ground_roughness_m)
     if incremental:
         from .incremental import calibrate_incremental
 

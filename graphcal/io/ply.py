@@ -164,9 +164,8 @@ def read_ply(path: str | Path) -> np.ndarray:
     del data
     if points is None:
         points = _read_with_open3d(path, header)
-    finite = np.isfinite(points).all(axis=1)
-    if not finite.all():
-        i = int(np.argmin(finite))
+    if not np.isfinite(points).all():  # (flat: ~10x faster than a per-row test on 300k points)
+        i = int(np.argmin(np.isfinite(points).all(axis=1)))
         raise _bad(path, f"point {i + 1} (1-based)", "finite coordinates", f"{points[i].tolist()}")
     return points
 
@@ -195,6 +194,10 @@ def _binary_vertex_xyz(header: PlyHeader, data: bytes) -> np.ndarray | None:
             return None
         dtype = np.dtype([(p[0], order + _NUMPY_TYPES[p[1]]) for p in props])
         if name == "vertex":
+            if [(p[0], p[1]) for p in props] in ([("x", "double"), ("y", "double"), ("z", "double")],
+                                                 [("x", "float64"), ("y", "float64"), ("z", "float64")]):
+                flat = np.frombuffer(data, dtype=order + "f8", count=3 * count, offset=offset)
+                return flat.reshape(count, 3).astype(np.float64)  # native byte order, a copy
             rec = np.frombuffer(data, dtype=dtype, count=count, offset=offset)
             points = np.empty((count, 3), dtype=np.float64)
             for j, axis in enumerate("xyz"):
