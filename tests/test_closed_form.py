@@ -298,6 +298,9 @@ def test_scanner_level_body_is_rank_deficient():
     # the determined part matches the data: every point lies on the ground
     for ui, zi, P in zip(u, z, pts):
         np.testing.assert_allclose(ui @ (P @ T[:3, :3].T + T[:3, 3]).T + zi, 0.0, atol=1e-9)
+    # the rest is the prior's: its yaw (not one of the floor's equally good turned copies) and x, y
+    assert np.degrees(rotation_angle_between(T[:3, :3], T_prior[:3, :3])) < 1e-6
+    np.testing.assert_allclose(T[:2, 3], T_prior[:2, 3], atol=1e-9)
 
 
 # ----------------------------------------------------------------------------- misc

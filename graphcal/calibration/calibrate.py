@@ -239,8 +239,8 @@ def prior_conflict(T_body_sensor: np.ndarray, T_prior: np.ndarray, sigma_m: floa
 
     angle = float(rotation_angle_between(T_body_sensor[:3, :3], T_prior[:3, :3]))
     dist = float(np.linalg.norm(T_body_sensor[:3, 3] - T_prior[:3, 3]))
-    k_rot = angle / max(sigma_rad, 1e-12)
-    k_xyz = dist / max(sigma_m, 1e-12)
+    k_rot = angle / max(sigma_rad, 1e-9)  # the floors the graph puts on a zero sigma
+    k_xyz = dist / max(sigma_m, 1e-6)
     if max(k_rot, k_xyz) <= PRIOR_CONFLICT_SIGMAS:
         return ""
     return (f"the CAD prior in dataset.yaml is {np.degrees(angle):.1f} deg and {1e3 * dist:.0f} mm from the "

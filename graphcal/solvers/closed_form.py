@@ -463,7 +463,9 @@ def extrinsic_from_scan_points(
         above = bool(np.median(U_st @ t + z_st) > 0.0)  # the sensor origin's height above the ground
         r, _ = _point_residuals_and_jacobian(U, z, P, R, t)
         key = (not above, float(np.median(np.abs(r))))
-        if best is None or key < best[2]:
+        # earlier candidates win ties: a level floor's turned copies fit exactly as well, and the
+        # first solutions keep the prior's value along the directions the data do not determine
+        if best is None or key[0] < best[2][0] or (key[0] == best[2][0] and key[1] < best[2][1] * (1 - 1e-9)):
             best = (R, t, key, rank)
     R, t, _, _ = best
     best = _gauss_newton_points(U, z, P, R, t, scale, spread_rcond, gauss_newton_iterations, robust=True)
