@@ -28,7 +28,7 @@ import numpy as np
 
 from factors._checked import checked_custom_factor, with_robust, world_plane
 from factors.plane_observation import _check_measurement, plane_noise_model, plane_observation_error
-from factors.range_to_plane import MIN_GRAZING_COS, range_to_plane_error
+from factors.range_to_plane import MIN_GRAZING_COS, checked_scan_points, range_to_plane_error
 
 __all__ = ["scaled_plane_error", "scaled_plane_factor", "scaled_range_error", "scaled_range_factor"]
 
@@ -132,14 +132,7 @@ def scaled_range_error(T_world_body, T_body_sensor, scale, points_sensor, plane_
 def scaled_range_factor(x_key: int, s_key: int, c_key: int, points_sensor, sigma_range_m: float, *,
                         robust=None) -> gtsam.NonlinearFactor:
     """One factor on (X, S, C) for every ground point of one scan of a sensor with a range scale."""
-    P = np.array(points_sensor, dtype=float)
-    if P.ndim != 2 or P.shape[1] != 3 or len(P) == 0 or not np.all(np.isfinite(P)):
-        raise ValueError(f"points_sensor must be a non-empty finite (N, 3) array, got shape {P.shape}")
-    if np.any(np.linalg.norm(P, axis=1) <= 0):
-        raise ValueError("points_sensor: a point at the sensor origin has no beam direction")
-    if not np.isfinite(sigma_range_m) or sigma_range_m <= 0:
-        raise ValueError(f"sigma_range_m must be > 0, got {sigma_range_m}")
-    P.setflags(write=False)
+    P = checked_scan_points(points_sensor, sigma_range_m)
     noise = with_robust(gtsam.noiseModel.Isotropic.Sigma(len(P), float(sigma_range_m)), robust)
 
     def error_fn(Xm, Sm, C, want):

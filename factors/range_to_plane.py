@@ -26,7 +26,7 @@ import numpy as np
 
 from factors._checked import checked_custom_factor, pose_adjoint, with_robust, world_plane
 
-__all__ = ["range_to_plane_error", "range_to_plane_factor", "MIN_GRAZING_COS"]
+__all__ = ["range_to_plane_error", "range_to_plane_factor", "checked_scan_points", "MIN_GRAZING_COS"]
 
 #: beams whose direction is within this cosine of parallel to the ground are not used (their
 #: predicted range is unbounded)
@@ -76,9 +76,9 @@ def range_to_plane_error(T_world_body, T_body_sensor, points_sensor, plane_world
     return e, [H_T @ pose_adjoint(S_inv), H_T]
 
 
-def range_to_plane_factor(x_key: int, s_key: int, points_sensor, sigma_range_m: float, *, plane_world=None,
-                          robust=None) -> gtsam.NonlinearFactor:
-    """One factor on (X, S) for every ground point of one scan (noise ``sigma_range_m`` per beam)."""
+def checked_scan_points(points_sensor, sigma_range_m: float) -> np.ndarray:
+    """A scan's points (N, 3) (sensor frame, m) as a read-only float array, after checking them and
+    the range sigma (m); ValueError naming what is wrong."""
     P = np.array(points_sensor, dtype=float)
     if P.ndim != 2 or P.shape[1] != 3 or len(P) == 0 or not np.all(np.isfinite(P)):
         raise ValueError(f"points_sensor must be a non-empty finite (N, 3) array, got shape {P.shape}")
@@ -87,6 +87,13 @@ def range_to_plane_factor(x_key: int, s_key: int, points_sensor, sigma_range_m: 
     if not np.isfinite(sigma_range_m) or sigma_range_m <= 0:
         raise ValueError(f"sigma_range_m must be > 0, got {sigma_range_m}")
     P.setflags(write=False)
+    return P
+
+
+def range_to_plane_factor(x_key: int, s_key: int, points_sensor, sigma_range_m: float, *, plane_world=None,
+                          robust=None) -> gtsam.NonlinearFactor:
+    """One factor on (X, S) for every ground point of one scan (noise ``sigma_range_m`` per beam)."""
+    P = checked_scan_points(points_sensor, sigma_range_m)
     plane = None if plane_world is None else np.array(plane_world, dtype=float)
     noise = with_robust(gtsam.noiseModel.Isotropic.Sigma(len(P), float(sigma_range_m)), robust)
 

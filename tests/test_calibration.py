@@ -155,5 +155,7 @@ def test_bumpy_ground_roughness_puts_the_bumps_into_sigma(tmp_path):
     ang, dist, z = errors(est, T_true)
     assert np.all(np.abs(z) < 4.0), z
     assert ang < 0.3 and dist < 6.0  # the estimate itself is as before: the bumps are not removed
-    with pytest.raises(Exception, match="roughness"):
+    from graphcal.errors import GraphcalError
+
+    with pytest.raises(GraphcalError, match="roughness"):
         options_for_ground_roughness(CalibrationOptions(), -0.001)
