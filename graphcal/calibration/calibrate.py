@@ -80,7 +80,8 @@ def calibrate(
 
     def resolve(opts, excluded, stage):
         nonlocal problem, values, iterations
-        problem = build_problem(ds, robot, data, opts, exclude=frozenset(excluded))
+        # warm start from the last solution: the graph differs only in noise or left-out measurements
+        problem = build_problem(ds, robot, data, opts, exclude=frozenset(excluded), initial=values)
         lm = solve_problem(problem, progress=progress, stage=stage)
         values = lm.values
         iterations += lm.iterations
@@ -129,8 +130,9 @@ def calibrate(
 
 
 VCE_ROUNDS = 8
-#: exponent of the update (s <- s * ratio**omega); 1 is Förstner's (2 oscillated: measured)
-VCE_RELAXATION = 1.0
+#: iterations of the variance components on one linearisation, and their stopping tolerance
+VCE_INNER_ITERATIONS = 60
+VCE_INNER_TOLERANCE = 1e-3
 #: stop once every scale is within this of 1
 VCE_TOLERANCE = 0.02
 MAX_OUTLIER_ROUNDS = 10
@@ -148,21 +150,34 @@ VCE_FLOOR = {"sigma_joint_rad": 1e-6, "sigma_contact_m": 1e-6, "sigma_ground_m":
              "sigma_commanded_rad": 1e-5, "sigma_commanded_m": 5e-5}
 
 
-def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, values) -> tuple[CalibrationOptions, bool]:
+#: option fields scaled by each noise group's variance component
+_GROUP_FIELDS = {"stance_foot/joint": ("sigma_joint_rad",), "stance_foot/contact": ("sigma_contact_m",),
+                 "foot_on_ground": ("sigma_ground_m",), "imu": ("sigma_imu_rad",),
+                 "commanded": ("sigma_commanded_rad", "sigma_commanded_m")}
+
+
+def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, values, *,
+                     converge: bool = True) -> tuple[CalibrationOptions, bool]:
     """Options with every noise group's sigma multiplied by its variance-component scale
-    (noise_estimation.py); ``changed`` is False once every scale is within 5 % of 1."""
+    (noise_estimation.py); ``changed`` is False once every scale at ``values`` is within
+    ``VCE_TOLERANCE`` of 1. ``converge``: iterate the scales to their fixed point on the graph
+    linearised at ``values`` (:func:`~graphcal.calibration.noise_estimation.converged_scales`);
+    False: one update."""
     import dataclasses
 
-    from .noise_estimation import group_variances
+    from .noise_estimation import converged_scales
 
-    stats = group_variances(problem.graph, values, problem.factor_groups, problem.factor_components)
-    scale = {g: float(np.clip(v.scale**VCE_RELAXATION, *VCE_SCALE_BOUNDS)) for g, v in stats.items()
-             if v.redundancy >= max(VCE_MIN_REDUNDANCY, VCE_MIN_REDUNDANCY_SHARE * v.rows)}
-    changed = any(abs(s - 1.0) > VCE_TOLERANCE for s in scale.values())
-    fields = {"stance_foot/joint": ("sigma_joint_rad",), "stance_foot/contact": ("sigma_contact_m",), "foot_on_ground": ("sigma_ground_m",), "imu": ("sigma_imu_rad",),
-              "commanded": ("sigma_commanded_rad", "sigma_commanded_m")}
+    def eligible(v) -> bool:
+        return v.redundancy >= max(VCE_MIN_REDUNDANCY, VCE_MIN_REDUNDANCY_SHARE * v.rows)
+
+    bounds = {g: (max(VCE_SCALE_BOUNDS[0], *(VCE_FLOOR[n] / getattr(options, n) for n in names)), VCE_SCALE_BOUNDS[1])
+              for g, names in _GROUP_FIELDS.items()}
+    first, scale = converged_scales(problem.graph, values, problem.factor_groups, problem.factor_components,
+                                    eligible=eligible, bounds=bounds, tolerance=VCE_INNER_TOLERANCE,
+                                    max_iterations=VCE_INNER_ITERATIONS if converge else 1)
+    changed = any(abs(v.scale - 1.0) > VCE_TOLERANCE for g, v in first.items() if eligible(v))
     update = {}
-    for group, names in fields.items():
+    for group, names in _GROUP_FIELDS.items():
         if group in scale:
             for name in names:
                 update[name] = max(getattr(options, name) * scale[group], VCE_FLOOR[name])

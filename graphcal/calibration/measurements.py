@@ -101,7 +101,7 @@ def ground_planes(ds, *, progress: bool = False) -> dict:
 
         cams = {k: v for k, v in cloud_paths(ds).items() if types.get(k[0]) in ("depth_camera", "stereo_camera")}
         pairs = ((key, load_cloud(ds, *key)) for key in sorted(cams))
-        rows = planes_rows(pairs, types, progress=progress)
+        rows = planes_rows(pairs, types, progress=progress, total=len(cams))
         count = len(rows["station"])
     best: dict = {}
     for k in range(count):
