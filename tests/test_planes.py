@@ -385,3 +385,28 @@ def test_watch_set_shortcut_matches_the_plain_loop(clutter_frame, weighted):
     keep, iterations = _reference_chai(C, n_true, 100, inv_sigma)
     assert ref.converged and ref.iterations == iterations > 5
     np.testing.assert_array_equal(ref.keep, keep)
+
+
+# ----------------------------------------------------------------------------- a dataset's clouds
+def test_planes_rows_same_on_one_or_two_threads_and_per_cloud(floor_frame):
+    """planes_rows fits clouds on threads: the rows come back in input order, the same as on one
+    thread, and a cloud's plane does not depend on the other clouds (its seed is its own)."""
+    from graphcal.plane_table import planes_rows
+
+    P, n_true, _ = floor_frame
+    clouds = {("depth", s): P[s % 3 :: 3] for s in range(1, 7)}
+    clouds[("scanner", 3)] = P[:100]  # a laser scanner's cloud: skipped
+    types = {"depth": "depth_camera", "scanner": "laser_scanner"}
+    one = planes_rows(clouds, types, workers=1)
+    two = planes_rows(iter(clouds.items()), types, workers=2)
+    assert one["station"] == two["station"] == [1, 2, 3, 4, 5, 6]
+    normals = np.column_stack([one["nx"], one["ny"], one["nz"]])
+    assert np.all(normals @ n_true > np.cos(np.radians(0.05)))
+    np.testing.assert_allclose(np.column_stack([two["nx"], two["ny"], two["nz"]]), normals, atol=1e-9)
+    np.testing.assert_allclose(two["d"], one["d"], atol=1e-9)
+    alone = planes_rows({("depth", 4): clouds[("depth", 4)]}, types, workers=1)
+    assert alone["nx"][0] == pytest.approx(one["nx"][3], abs=1e-9) and alone["d"][0] == pytest.approx(one["d"][3], abs=1e-9)
+    # the clouds of different stations do get different seeds (the subsamples differ)
+    from graphcal.plane_table import cloud_rng
+
+    assert cloud_rng(0, "depth", 1).integers(1 << 30) != cloud_rng(0, "depth", 2).integers(1 << 30)
