@@ -175,7 +175,10 @@ def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, v
     first, scale = converged_scales(problem.graph, values, problem.factor_groups, problem.factor_components,
                                     eligible=eligible, bounds=bounds, tolerance=VCE_INNER_TOLERANCE,
                                     max_iterations=VCE_INNER_ITERATIONS if converge else 1)
-    changed = any(abs(v.scale - 1.0) > VCE_TOLERANCE for g, v in first.items() if eligible(v))
+    # a scale held at its bound (a sigma at its floor) is no change
+    lo_hi = VCE_SCALE_BOUNDS
+    changed = any(abs(float(np.clip(v.scale, *bounds.get(g, lo_hi))) - 1.0) > VCE_TOLERANCE
+                  for g, v in first.items() if eligible(v))
     update = {}
     for group, names in _GROUP_FIELDS.items():
         if group in scale:
