@@ -83,32 +83,25 @@ class GroupVariance:
 DENSE_MAX_DIM = 3000
 
 
-def _joint_covariance_reader(graph, values, lin):
-    """A function keys -> joint marginal covariance (blocks in the order of ``keys``)."""
-    keys = sorted(int(k) for k in graph.keyVector())
+def _is_dense(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> bool:
+    """Whether the graph's unknowns are few enough for the dense algebra (``DENSE_MAX_DIM``)."""
     dims = {int(k): int(d) for k, d in values.dims().items()}
-    if sum(dims[k] for k in keys) <= DENSE_MAX_DIM:
-        from ..solvers.covariance import dense_covariance
+    return sum(dims[int(k)] for k in graph.keyVector()) <= DENSE_MAX_DIM
 
-        cov, null, offsets = dense_covariance(lin, keys, dims)
-        if null.shape[1]:
-            raise GraphcalError("noise estimation: the graph has an undetermined variable")
 
-        def dense(ks):
-            idx = np.concatenate([np.arange(offsets[int(k)], offsets[int(k)] + dims[int(k)]) for k in ks])
-            return cov[np.ix_(idx, idx)]
-
-        return dense
+def _marginals_reader(graph, values):
+    """A function keys -> joint marginal covariance (blocks in the order of ``keys``), factor by
+    factor from ``gtsam.Marginals`` (large graphs)."""
     try:
         marginals = gtsam.Marginals(graph, values)
     except RuntimeError as exc:
         raise GraphcalError(f"noise estimation: the graph has an undetermined variable ({exc})") from None
 
-    def sparse(ks):
+    def joint(ks):
         jm = marginals.jointMarginalCovariance(gtsam.KeyVector(ks))
         return np.block([[np.asarray(jm.at(a, c)) for c in ks] for a in ks])
 
-    return sparse
+    return joint
 
 
 def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, groups: dict,
@@ -122,8 +115,10 @@ def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gro
             keyed ``group/component``.
     """
     components = components or {}
+    if _is_dense(graph, values):  # one dense update: the first iteration of converged_scales
+        return converged_scales(graph, values, groups, components, eligible=lambda v: True, max_iterations=1)[0]
     lin = graph.linearize(values)
-    joint = _joint_covariance_reader(graph, values, lin)
+    joint = _marginals_reader(graph, values)
     acc: dict[str, list[float]] = {}
     cache: dict[tuple, np.ndarray] = {}
     helmert: dict[str, tuple[list, dict, dict]] = {}  # group -> (component names, N, q)
@@ -212,14 +207,12 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
 
     components = components or {}
     bounds = bounds or {}
-    keys = sorted(int(k) for k in graph.keyVector())
-    dims = {int(k): int(d) for k, d in values.dims().items()}
-    if sum(dims[k] for k in keys) > DENSE_MAX_DIM:  # large graphs: one update (factor-wise marginals)
+    if not _is_dense(graph, values):  # large graphs: one update (factor-wise marginals)
         first = group_variances(graph, values, groups, components)
         return first, {g: _clip(v.scale, bounds.get(g)) for g, v in first.items() if eligible(v)}
     lin = graph.linearize(values)
     ordering = gtsam.Ordering()
-    for k in keys:
+    for k in sorted(int(k) for k in graph.keyVector()):
         ordering.push_back(k)
     A0, b0 = lin.jacobian(ordering)
     A0, b0 = np.asarray(A0, dtype=float), np.asarray(b0, dtype=float).reshape(-1)
