@@ -95,7 +95,7 @@ def _matrix_problem(M, shape: tuple[int, int]) -> str | None:
         return f"expected a 2-D array of shape {shape}, got {M.ndim}-D shape {M.shape}"
     if M.shape != shape:
         return f"expected shape {shape} (rows = error dim, cols = variable dim), got {M.shape}"
-    if not np.all(np.isfinite(M)):
+    if not np.isfinite(M).all():  # the method: np.all's dispatch costs ~4 us per call, per factor evaluation
         return "contains NaN or inf"
     return None
 
@@ -171,7 +171,7 @@ def checked_custom_factor(
         if not isinstance(e, np.ndarray) or e.dtype != np.float64 or e.shape != (error_dim,):
             got = f"{e.dtype} {e.shape}" if isinstance(e, np.ndarray) else type(e).__name__
             raise FactorShapeError(f"{name}: error must be a float64 array of shape ({error_dim},), got {got}")
-        if not np.all(np.isfinite(e)):
+        if not np.isfinite(e).all():
             raise FactorShapeError(f"{name}: error contains NaN or inf: {e}")
         if want:
             if Hs is None or len(Hs) != n_keys:

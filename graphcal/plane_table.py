@@ -4,6 +4,7 @@ covariance of (nx, ny, nz, d) stacked row-major)."""
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Iterable, Mapping
 
@@ -52,7 +53,9 @@ def planes_rows(
 
     Args:
         clouds: (sensor, station) -> (N, 3) points in the sensor frame (m), or an iterable of such
-            pairs (consumed lazily: at most ``2 * workers`` clouds are held at once).
+            pairs (consumed lazily: at most ``2 * workers`` clouds are held at once). A value may
+            also be a function of no arguments returning the points (e.g. a file reader): it is
+            called in the fitting thread, so reading overlaps fitting on every thread.
         sensor_types: sensor name -> type.
         max_planes: planes per cloud (stairs: one per tread).
         seed: random seed of the RANSAC subsamples (each cloud's: :func:`cloud_rng`).
@@ -66,8 +69,11 @@ def planes_rows(
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
 
-    from .planes import extract_planes
+    import threading
 
+    from .planes import PlaneWorkspace, extract_planes
+
+    local = threading.local()  # one PlaneWorkspace per thread, freed with this call
     items = clouds.items() if isinstance(clouds, Mapping) else clouds
     rows: dict[str, list] = {c: [] for c in PLANE_COLUMNS}
     bar = None
@@ -83,9 +89,13 @@ def planes_rows(
         kind = sensor_types[sensor]
         if kind == "laser_scanner":
             return key, []
+        if callable(points):
+            points = points()  # its errors (an unreadable file) are the caller's, not "no plane"
+        if not hasattr(local, "workspace"):
+            local.workspace = PlaneWorkspace()
         try:
             return key, extract_planes(points, max_planes=max_planes, range_noise=range_noise_for(kind),
-                                       rng=cloud_rng(seed, sensor, station))
+                                       rng=cloud_rng(seed, sensor, station), workspace=local.workspace)
         except GraphcalError:
             return key, []  # too few or degenerate points: no plane from this station
 
@@ -144,7 +154,7 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
     if not paths:
         raise DatasetError(Path(dataset) / "clouds", "clouds/<sensor>/<station>.ply", "at least one station cloud")
     types = {name: spec.type for name, spec in ds.sensors.items()}
-    pairs = ((key, load_cloud(ds, *key)) for key in sorted(paths))
+    pairs = ((key, functools.partial(load_cloud, ds, *key)) for key in sorted(paths))  # read on the fitting threads
     rows = planes_rows(pairs, types, max_planes=max_planes, progress=progress)
     atomic_write_text(out_path, table_csv_text(Table.from_columns(rows)), overwrite=False)
     return out_path

@@ -104,6 +104,7 @@ Randomness: the subsample and Open3D's RANSAC are driven by ``rng`` (an ``int`` 
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 from typing import Callable
@@ -115,6 +116,7 @@ from .geometry import canonical_plane
 
 __all__ = [
     "PlaneFit",
+    "PlaneWorkspace",
     "extract_planes",
     "fit_ground_plane",
     "plane_tangent_basis",
@@ -320,40 +322,80 @@ def _ransac(P_sample: np.ndarray, distance_m: float, iterations: int, seed: int)
     return n, d, np.asarray(inliers, dtype=np.int64)
 
 
-# Thin products (N x 3) are done without multi-threaded BLAS: on a loaded 2-core machine OpenBLAS's
-# threaded gemv of a 300k x 3 matrix waits for a busy core (measured 8 ms instead of 0.2 ms).
-_MATVEC_CHUNK_ROWS = 2048  # rows per gemv call: below OpenBLAS's threading threshold (m * n < 9216)
+# Thin products (N x 3) are done elementwise, never by BLAS: on a loaded 2-core machine OpenBLAS's
+# threaded gemv of a 300k x 3 matrix or ddot of 200k elements waits for a busy core (measured 8 ms
+# instead of 0.2 ms). And as few numpy calls as possible per pass: each call over a large array
+# releases the GIL and must take it back, which waits for the other fitting thread (Python's
+# switch interval), so chunked loops of small calls stall two threads (measured 50-300x slower
+# beside a busy Python thread); ``np.einsum`` does a dot product or a 3x3 Gram matrix in one call.
 
 
-def _matvec_rows(A: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """A (N, 3) C-contiguous @ v (3,), in single-threaded chunks."""
-    out = np.empty(len(A))
-    for s in range(0, len(A), _MATVEC_CHUNK_ROWS):
-        np.matmul(A[s : s + _MATVEC_CHUNK_ROWS], v, out=out[s : s + _MATVEC_CHUNK_ROWS])
+def _matvec_rows(A: np.ndarray, v: np.ndarray, out: np.ndarray | None = None,
+                 tmp: np.ndarray | None = None) -> np.ndarray:
+    """A (N, 3) @ v (3,) column by column (into ``out`` (N,) if given; ``tmp`` (N,) scratch)."""
+    out = np.empty(len(A)) if out is None else out
+    tmp = np.empty(len(A)) if tmp is None else tmp
+    np.multiply(A[:, 0], v[0], out=out)
+    np.multiply(A[:, 1], v[1], out=tmp)
+    out += tmp
+    np.multiply(A[:, 2], v[2], out=tmp)
+    out += tmp
     return out
 
 
-def _dist_soa(XT: np.ndarray, n: np.ndarray, d: float, out: np.ndarray, tmp: np.ndarray) -> np.ndarray:
-    """Signed distances n . x + d of the columns of XT (3, M) (rows contiguous), into ``out``."""
+def _dist_soa(XT: np.ndarray, n: np.ndarray, d: float, out: np.ndarray, tmp: np.ndarray,
+              s: np.ndarray | None = None) -> np.ndarray:
+    """``n . x + d`` of the columns of XT (3, M) (rows contiguous), into ``out``; with ``s`` (M,),
+    the columns are whitened points ``y = s x`` and the result is ``s (n . x + d) = n . y + d s``."""
     np.multiply(XT[0], n[0], out=out)
     np.multiply(XT[1], n[1], out=tmp)
     out += tmp
     np.multiply(XT[2], n[2], out=tmp)
     out += tmp
-    out += d
+    if s is None:
+        out += d
+    else:
+        np.multiply(s, d, out=tmp)
+        out += tmp
     return out
 
 
-def _gram_soa(XT: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
-    """sum_i w_i x_i x_i^T (3, 3) for the columns of XT (3, M), elementwise (no threaded BLAS)."""
+def _sdot(a: np.ndarray, b: np.ndarray) -> float:
+    """a . b of two 1-D arrays (one single-threaded call)."""
+    return float(np.einsum("i,i->", a, b))
+
+
+def _gram_soa(XT: np.ndarray) -> np.ndarray:
+    """sum_i x_i x_i^T (3, 3) of the columns of XT (3, M) (rows contiguous): six dot products
+    (``einsum("ik,jk->ij")`` in one call takes 1.7x as long)."""
     S = np.empty((3, 3))
-    tmp = np.empty(XT.shape[1])
     for i in range(3):
-        xi = XT[i] if w is None else XT[i] * w
         for j in range(i, 3):
-            np.multiply(xi, XT[j], out=tmp)
-            S[i, j] = S[j, i] = tmp.sum()
+            S[i, j] = S[j, i] = _sdot(XT[i], XT[j])
     return S
+
+
+class PlaneWorkspace:
+    """Scratch arrays reused by the :func:`extract_planes` calls of one thread.
+
+    Fitting a 300k-point frame needs a dozen frame-sized temporaries; fresh ones cost a page fault
+    per 4 kB on every frame (measured: ~20 % of the time of 52 Kinect frames, most of it system
+    time). Pass one workspace to the calls of one thread (it is not thread-safe); the arrays grow
+    to the largest frame and are freed with the workspace. Nothing a caller receives lives in it.
+    """
+
+    def __init__(self) -> None:
+        self._arrays: dict = {}
+
+    def array(self, name: str, shape: tuple, dtype=np.float64) -> np.ndarray:
+        """An uninitialised C-contiguous array of ``shape`` (the same memory on every call of ``name``)."""
+        size = math.prod(shape)
+        key = (name, np.dtype(dtype).str)
+        buf = self._arrays.get(key)
+        if buf is None or buf.size < size:
+            buf = np.empty(max(size + size // 4, 1), dtype=dtype)  # headroom for the next, larger frame
+            self._arrays[key] = buf
+        return buf[:size].reshape(shape)
 
 
 @dataclass(frozen=True)
@@ -362,7 +404,7 @@ class _Refined:
 
     n: np.ndarray  # (3,) normal (same directions as the sensor frame)
     d_shift: float  # offset in the shifted frame
-    keep: np.ndarray  # (M,) bool over the candidates
+    keep: np.ndarray  # (M,) bool over the candidates (may live in the workspace)
     count: int  # kept points
     W: float  # sum of the kept points' weights (= count when unweighted)
     mean_shift: np.ndarray  # (3,) weighted centroid of the kept points
@@ -393,39 +435,51 @@ def _check_not_collinear(w: np.ndarray, what: str) -> None:
         )
 
 
-def _moments(X: np.ndarray, w: np.ndarray | None) -> tuple[float, np.ndarray, np.ndarray]:
-    """(sum of weights, weighted sum, weighted sum of outer products) of the columns of X (3, k)."""
-    if w is None:
-        W, s1 = float(X.shape[1]), X.sum(axis=1)
-    else:
-        W, s1 = float(w.sum()), (X * w).sum(axis=1)
-    if X.shape[1] <= 16384:  # small: one single-threaded BLAS call
-        return W, s1, (X @ X.T if w is None else (X * w) @ X.T)
-    return W, s1, _gram_soa(X, w)
+def _moments(YT: np.ndarray, s: np.ndarray | None) -> tuple[float, np.ndarray, np.ndarray]:
+    """Weighted moments of points ``x_j`` with weights ``s_j^2`` from the whitened columns
+    ``YT = s x`` (3, k) and ``s`` (k,) (None: unit weights, ``YT = x``):
+    ``(sum s^2, sum s^2 x = sum s y, sum s^2 x x^T = sum y y^T)``."""
+    k = YT.shape[1]
+    if k <= 3072:  # small: single-threaded BLAS calls (gemv threads above m * n = 9216)
+        S2 = YT @ YT.T
+        if s is None:
+            return float(k), YT.sum(axis=1), S2
+        return float(s @ s), YT @ s, S2
+    S2 = _gram_soa(YT)
+    if s is None:
+        return float(k), YT.sum(axis=1), S2
+    return _sdot(s, s), np.einsum("ik,k->i", YT, s), S2
 
 
-def _chai_refine(CT: np.ndarray, n0: np.ndarray, max_iterations: int, inv_sigma: np.ndarray | None) -> _Refined:
-    """Chai's iterative 2-sigma PCA on the candidates CT (3, M) (shifted frame, float64, rows
-    contiguous). ``inv_sigma`` (M,): 1 / the model's noise std per point (whitened loop, weights
-    ``inv_sigma^2``), or None (Chai's metric loop).
+def _chai_refine(YT: np.ndarray, n0: np.ndarray, max_iterations: int, inv_sigma: np.ndarray | None,
+                 ws: PlaneWorkspace | None = None) -> _Refined:
+    """Chai's iterative 2-sigma PCA on the candidates (shifted frame, float64, rows contiguous).
+
+    ``inv_sigma`` None: Chai's metric loop, ``YT`` (3, M) the shifted candidates ``x``.
+    ``inv_sigma`` (M,), 1 / the model's noise std per point: the whitened loop (weights
+    ``inv_sigma^2``), ``YT`` the whitened candidates ``inv_sigma * x`` (whitened distances are then
+    ``n . y + d inv_sigma`` and the weighted moments plain sums of ``y``; no weighted copy is made).
 
     Exact shortcut ("watch set"): every kept point outside the watch set is known to satisfy
-    ``|n_ref . x + d_ref| * inv_sigma <= inner_bound`` for a reference plane; with ``|x_j| <= A_j``
-    its (whitened) distance to the current plane is at most
-    ``inner_bound + (sum_j |n_j - n_ref_j| A_j + |d - d_ref|) * max(inv_sigma)``. While that is
-    below the current threshold only the watch set can lose points and only it is tested; otherwise
-    a full pass rebuilds it. As the threshold settles the watch set is shrunk to the points near it.
+    ``|n_ref . y + d_ref s| <= inner_bound`` for a reference plane; with ``|y_j| <= A_j`` and
+    ``s <= s_max`` its (whitened) distance to the current plane is at most
+    ``inner_bound + sum_j |n_j - n_ref_j| A_j + |d - d_ref| s_max``. While that is below the current
+    threshold only the watch set can lose points and only it is tested; otherwise a full pass
+    rebuilds it. As the threshold settles the watch set is shrunk to the points near it.
     """
-    M = CT.shape[1]
+    ws = ws if ws is not None else PlaneWorkspace()
+    s = inv_sigma
+    M = YT.shape[1]
     count = M
-    wts = None if inv_sigma is None else inv_sigma * inv_sigma
-    W, s1, S2 = _moments(CT, wts)
-    keep = np.ones(M, dtype=bool)
-    A = np.maximum(CT.max(axis=1), -CT.min(axis=1))  # (3,) per-axis bound on |x_j|
-    u_max = 1.0 if inv_sigma is None else float(inv_sigma.max())
-    dist = np.empty(M)
-    tmp = np.empty(M)
-    watch_idx = watch_pts = watch_is = watch_keep = dw = tw = None
+    W, s1, S2 = _moments(YT, s)
+    keep = ws.array("keep", (M,), bool)
+    keep[:] = True
+    A = np.maximum(YT.max(axis=1), -YT.min(axis=1))  # (3,) per-axis bound on |y_j|
+    s_max = 1.0 if s is None else float(s.max())
+    dist = ws.array("dist_c", (M,))
+    tmp = ws.array("tmp_c", (M,))
+    mask = ws.array("mask_c", (M,), bool)
+    watch_idx = watch_pts = watch_s = watch_keep = dw = tw = None
     inner_bound = ref_d = 0.0
     ref_n = n_ref = n0
     converged = False
@@ -444,13 +498,11 @@ def _chai_refine(CT: np.ndarray, n0: np.ndarray, max_iterations: int, inv_sigma:
         safe = False
         if watch_idx is not None:
             dn = np.abs(n - ref_n)
-            shift = (float(dn[0] * A[0] + dn[1] * A[1] + dn[2] * A[2]) + abs(d - ref_d)) * u_max
+            shift = float(dn[0] * A[0] + dn[1] * A[1] + dn[2] * A[2]) + abs(d - ref_d) * s_max
             safe = inner_bound + shift < thr
         if safe:
-            _dist_soa(watch_pts, n, d, dw, tw)
+            _dist_soa(watch_pts, n, d, dw, tw, watch_s)
             np.abs(dw, out=dw)
-            if watch_is is not None:
-                dw *= watch_is
             drop_local = dw > thr
             drop_local &= watch_keep
             drop_idx = watch_idx[drop_local]
@@ -465,24 +517,22 @@ def _chai_refine(CT: np.ndarray, n0: np.ndarray, max_iterations: int, inv_sigma:
                 if len(sel_idx) < 0.7 * len(watch_idx):
                     watch_idx = watch_idx[sel_idx]
                     watch_pts = np.take(watch_pts, sel_idx, axis=1)
-                    watch_is = None if watch_is is None else watch_is[sel_idx]
+                    watch_s = None if watch_s is None else watch_s[sel_idx]
                     watch_keep = np.ones(len(sel_idx), dtype=bool)
                     dw, tw = np.empty(len(sel_idx)), np.empty(len(sel_idx))
                     inner_bound, ref_n, ref_d = gamma * thr, n, d
         else:
-            _dist_soa(CT, n, d, dist, tmp)
+            _dist_soa(YT, n, d, dist, tmp, s)
             np.abs(dist, out=dist)
-            if inv_sigma is not None:
-                dist *= inv_sigma
-            mask = dist > thr
+            np.greater(dist, thr, out=mask)
             mask &= keep
             drop_idx = np.flatnonzero(mask)
             keep[drop_idx] = False
             np.greater(dist, _WATCH_FRACTION * thr, out=mask)
             mask &= keep
             watch_idx = np.flatnonzero(mask)
-            watch_pts = np.take(CT, watch_idx, axis=1)
-            watch_is = None if inv_sigma is None else inv_sigma[watch_idx]
+            watch_pts = np.take(YT, watch_idx, axis=1)
+            watch_s = None if s is None else s[watch_idx]
             watch_keep = np.ones(len(watch_idx), dtype=bool)
             dw, tw = np.empty(len(watch_idx)), np.empty(len(watch_idx))
             inner_bound, ref_n, ref_d = _WATCH_FRACTION * thr, n, d
@@ -490,7 +540,7 @@ def _chai_refine(CT: np.ndarray, n0: np.ndarray, max_iterations: int, inv_sigma:
             converged = True
             break
         keep[drop_idx] = False
-        dW, ds1, dS2 = _moments(np.take(CT, drop_idx, axis=1), None if wts is None else wts[drop_idx])
+        dW, ds1, dS2 = _moments(np.take(YT, drop_idx, axis=1), None if s is None else s[drop_idx])
         W -= dW
         s1 -= ds1
         S2 -= dS2
@@ -524,15 +574,17 @@ def _covariance(n: np.ndarray, mean: np.ndarray, scatter_w: np.ndarray, W: float
     return 0.5 * (cov + cov.T)
 
 
-def _project_on_plane_along_rays(CT: np.ndarray, q: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
+def _project_on_plane_along_rays(CT: np.ndarray, q: np.ndarray, nx: np.ndarray, d: float,
+                                 out: np.ndarray | None = None) -> np.ndarray:
     """Candidates (shifted, (3, M)) moved along their rays from the sensor origin onto the plane
-    (n, d): (M, 3) sensor-frame points (F-ordered): where the noise model and the errors-in-variables
-    scatter are evaluated (module docstring)."""
-    X = CT + q[:, None]
-    nx = _dist_soa(X, n, 0.0, np.empty(X.shape[1]), np.empty(X.shape[1]))  # n . x (= -d on the plane)
+    ``(n, d)``, given ``nx`` (M,) = ``n . x`` of each (unshifted) candidate (overwritten): (M, 3)
+    sensor-frame points (F-ordered; the transpose of ``out`` (3, M) if given): where the noise model
+    and the errors-in-variables scatter are evaluated (module docstring)."""
     ok = np.abs(nx) > 1e-3 * max(d, 1e-9)  # grazing or through the origin: keep the point
-    scale = np.ones_like(nx)
+    scale = nx
     np.divide(-d, nx, out=scale, where=ok)
+    scale[~ok] = 1.0
+    X = np.add(CT, q[:, None], out=out)
     X *= scale
     return X.T
 
@@ -551,6 +603,7 @@ def _fit_one(
     max_iterations: int,
     range_noise: RangeNoise | None,
     first: bool,
+    workspace: PlaneWorkspace | None = None,
 ):
     """One plane from the points P[pool] (pool None: all of P).
 
@@ -577,49 +630,61 @@ def _fit_one(
     n0, d0, sample_inliers = found
     q = P_sample[sample_inliers].mean(axis=0)  # shift: coordinates become small and centred
 
-    dist = _matvec_rows(P, n0)
-    dist += d0
+    ws = workspace if workspace is not None else PlaneWorkspace()
+    N_all = len(P)
+    dist = ws.array("dist", (N_all,))
+    nx = _matvec_rows(P, n0, out=ws.array("nx", (N_all,)), tmp=dist)  # n0 . x (signed; -d0 on the plane)
+    np.add(nx, d0, out=dist)
     np.abs(dist, out=dist)
-    cand_mask = dist <= candidate_distance_m
+    cand_mask = np.less_equal(dist, candidate_distance_m, out=ws.array("cand", (N_all,), bool))
     if available is not None:
         cand_mask &= available
     cand = np.flatnonzero(cand_mask)
-    if len(cand) < max(min_inliers, 3):
+    M = len(cand)
+    if M < max(min_inliers, 3):
         return None
-    CT = np.empty((3, len(cand)))
-    np.subtract(np.take(P, cand, axis=0).T, q[:, None], out=CT)  # (3, M) shifted candidates
+    rows = np.take(P, cand, axis=0, out=ws.array("rows", (M, 3)), mode="clip")  # cand is in range
+    CT = np.subtract(rows.T, q[:, None], out=ws.array("CT", (3, M)))  # (3, M) shifted candidates
 
     inv_sigma = None
     if range_noise is not None:
-        X_ray = _project_on_plane_along_rays(CT, q, n0, d0)  # (M, 3) sensor frame, F-ordered
+        nx_c = np.take(nx, cand, out=ws.array("nx_c", (M,)), mode="clip")
+        X_ray = _project_on_plane_along_rays(CT, q, nx_c, d0, out=ws.array("X_ray", (3, M)))  # (M, 3)
         sig = np.asarray(range_noise(X_ray, n0), dtype=float).reshape(-1)
-        if sig.shape != (len(cand),) or not np.all(np.isfinite(sig)) or np.any(sig <= 0):
+        if sig.shape != (M,) or not np.isfinite(sig).all() or (sig <= 0).any():
             raise GraphcalError(
-                "extract_planes: range_noise must return a positive finite std (m) for every point, "
-                f"shape ({len(cand)},)"
+                f"extract_planes: range_noise must return a positive finite std (m) for every point, shape ({M},)"
             )
-        inv_sigma = 1.0 / sig
-    ref = _chai_refine(CT, n0, max_iterations, inv_sigma)
+        inv_sigma = np.divide(1.0, sig, out=ws.array("inv_sigma", (M,)))
+        CT *= inv_sigma  # whitened candidates (what the weighted loop works on)
+    ref = _chai_refine(CT, n0, max_iterations, inv_sigma, ws)
     if ref.count < min_inliers:
         return cand, None, "small"
 
-    keep_idx = np.flatnonzero(ref.keep)
     n_fit, d_shift = ref.n, ref.d_shift
     if inv_sigma is None:
         rms = float(np.sqrt(ref.sum_sq / ref.count))
         trim_m = ref.threshold
     else:
+        keep_f = ws.array("keep_f", (M,))
+        np.copyto(keep_f, ref.keep)
         if d0 > 0.0:
             # errors in variables: the noise is along the rays, not along the normal; subtract
-            # its expected weighted scatter N = sum x* x*^T / d^2 (module docstring)
-            N = _gram_soa(np.take(X_ray.T, keep_idx, axis=1)) / (d0 * d0)
+            # its expected weighted scatter N = sum x* x*^T / d^2 over the kept points (module
+            # docstring)
+            XkT = X_ray.T  # (3, M) rows contiguous; not needed afterwards: zero the dropped points
+            XkT *= keep_f
+            N = _gram_soa(XkT) / (d0 * d0)
             _, V = np.linalg.eigh(ref.scatter - N)
             n_fit = V[:, 0] if V[:, 0] @ ref.n >= 0 else -V[:, 0]
             d_shift = float(-(n_fit @ ref.mean_shift))
-        k = len(keep_idx)
-        r = _dist_soa(np.take(CT, keep_idx, axis=1), n_fit, d_shift, np.empty(k), np.empty(k))
-        rms = float(np.sqrt(np.mean(r * r)))
-        trim_m = float(np.max(np.abs(r)))
+        r = _dist_soa(CT, n_fit, 0.0, ws.array("r", (M,)), ws.array("tmp_c", (M,)))  # n . (inv_sigma x)
+        r /= inv_sigma
+        r += d_shift
+        r *= keep_f  # dropped points: 0
+        rms = float(np.sqrt(_sdot(r, r) / ref.count))
+        np.abs(r, out=r)
+        trim_m = float(r.max())
     if rms > _MAX_RMS_OF_BAND * candidate_distance_m:
         return cand, None, "spread"
     if inv_sigma is None:
@@ -636,7 +701,7 @@ def _fit_one(
     cov = _covariance(n, ref.mean_shift + q, ref.scatter * info_scale, ref.W * info_scale)
     cov.flags.writeable = False
     mask = np.zeros(len(P), dtype=bool)
-    mask[cand[keep_idx]] = True
+    mask[cand] = ref.keep
     mask.flags.writeable = False
     fit = PlaneFit(
         n=n,
@@ -668,6 +733,7 @@ def extract_planes(
     range_noise: RangeNoise | None = None,
     rng: np.random.Generator | int | None = None,
     drop_nonfinite: bool = False,
+    workspace: PlaneWorkspace | None = None,
 ) -> list[PlaneFit]:
     """Extract up to ``max_planes`` planes from a point cloud, largest first.
 
@@ -692,6 +758,8 @@ def extract_planes(
             None: Chai's metric loop, covariance from the inliers' rms (equal noise assumed).
         rng: seed or generator for the subsample and the RANSAC.
         drop_nonfinite: ignore rows with NaN/inf instead of raising.
+        workspace: scratch arrays to reuse across the calls of one thread (:class:`PlaneWorkspace`;
+            default: a new one per call). The results never share memory with it.
 
     Returns:
         A list of :class:`PlaneFit` (possibly empty), in extraction order.
@@ -714,6 +782,8 @@ def extract_planes(
     if min_inliers is None:
         min_inliers = max(50, int(np.ceil(0.02 * n_valid)))
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    if workspace is None:
+        workspace = PlaneWorkspace()
 
     available: np.ndarray | None = None
     pool = finite_idx
@@ -741,6 +811,7 @@ def extract_planes(
             max_iterations=max_iterations,
             range_noise=range_noise,
             first=first,
+            workspace=workspace,
         )
         first = False
         if out is None:

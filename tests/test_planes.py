@@ -381,7 +381,9 @@ def test_watch_set_shortcut_matches_the_plain_loop(clutter_frame, weighted):
     inv_sigma = None
     if weighted:
         inv_sigma = 1.0 / kinect_distance_sigma(C + P.mean(axis=0), n_true)
-    ref = _chai_refine(np.ascontiguousarray(C.T), n_true, 100, inv_sigma)
+    # the whitened loop works on the whitened candidates inv_sigma * x
+    YT = C.T if inv_sigma is None else C.T * inv_sigma
+    ref = _chai_refine(np.ascontiguousarray(YT), n_true, 100, inv_sigma)
     keep, iterations = _reference_chai(C, n_true, 100, inv_sigma)
     assert ref.converged and ref.iterations == iterations > 5
     np.testing.assert_array_equal(ref.keep, keep)

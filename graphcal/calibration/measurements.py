@@ -7,6 +7,7 @@ joint angles per leg, commanded body poses, IMU specific force, the ground plane
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -100,7 +101,7 @@ def ground_planes(ds, *, progress: bool = False) -> dict:
         from ..io.dataset import cloud_paths, load_cloud
 
         cams = {k: v for k, v in cloud_paths(ds).items() if types.get(k[0]) in ("depth_camera", "stereo_camera")}
-        pairs = ((key, load_cloud(ds, *key)) for key in sorted(cams))
+        pairs = ((key, functools.partial(load_cloud, ds, *key)) for key in sorted(cams))  # read on the fitting threads
         rows = planes_rows(pairs, types, progress=progress, total=len(cams))
         count = len(rows["station"])
     best: dict = {}
