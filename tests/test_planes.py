@@ -412,3 +412,65 @@ def test_planes_rows_same_on_one_or_two_threads_and_per_cloud(floor_frame):
     from graphcal.plane_table import cloud_rng
 
     assert cloud_rng(0, "depth", 1).integers(1 << 30) != cloud_rng(0, "depth", 2).integers(1 << 30)
+
+
+def test_workspace_reuse_changes_nothing_and_results_do_not_share_its_memory(floor_frame, clutter_frame):
+    """One PlaneWorkspace reused over frames of different sizes gives exactly the planes of fresh
+    calls, and a fit returned earlier is not altered by the later fits that reuse the scratch."""
+    from graphcal.planes import PlaneWorkspace
+
+    frames = [floor_frame[0], clutter_frame[0], floor_frame[0][::2]]
+    kw = dict(range_noise=kinect_distance_sigma, max_planes=2)
+    fresh = [extract_planes(P, rng=7, **kw) for P in frames]
+    ws = PlaneWorkspace()
+    reused = [extract_planes(P, rng=7, workspace=ws, **kw) for P in frames]
+    first_mask = reused[0][0].inlier_mask.copy()
+    extract_planes(clutter_frame[0], rng=8, workspace=ws, **kw)  # overwrites the scratch again
+    for a_list, b_list in zip(fresh, reused):
+        assert len(a_list) == len(b_list) >= 1
+        for a, b in zip(a_list, b_list):
+            np.testing.assert_array_equal(a.n, b.n)
+            assert a.d == b.d and a.n_points == b.n_points and a.rms == b.rms
+            np.testing.assert_array_equal(a.cov, b.cov)
+            np.testing.assert_array_equal(a.inlier_mask, b.inlier_mask)
+    np.testing.assert_array_equal(reused[0][0].inlier_mask, first_mask)
+    assert not any(np.shares_memory(reused[0][0].inlier_mask, buf) for buf in ws._arrays.values())
+
+
+def test_planes_rows_reads_clouds_on_its_threads_and_passes_on_read_errors(floor_frame):
+    """A cloud given as a reader is read on a fitting thread (same rows as the array itself); a
+    reader's DatasetError reaches the caller instead of being taken for "no plane here"."""
+    import threading
+
+    from graphcal.errors import DatasetError
+    from graphcal.plane_table import planes_rows
+
+    P = floor_frame[0]
+    types = {"depth": "depth_camera"}
+    readers_threads = []
+    # four distinct clouds: the floor turned by s degrees about the optical axis
+    clouds = {}
+    for s in range(4):
+        c, sn = np.cos(np.radians(s)), np.sin(np.radians(s))
+        clouds[("depth", s)] = P[s::4] @ np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]).T
+
+    def reader(points):
+        def read():
+            readers_threads.append(threading.get_ident())
+            return points
+        return read
+
+    arrays = planes_rows(clouds, types, workers=2)
+    read = planes_rows({k: reader(v) for k, v in clouds.items()}, types, workers=2)
+    assert read["station"] == arrays["station"] == [0, 1, 2, 3]
+    # equal up to Open3D's RANSAC, which is not repeatable (planes._ransac): the clouds' normals
+    # are a degree apart, so a cloud read in place of another would differ by ~0.017
+    for col in ("nx", "ny", "nz", "d"):
+        np.testing.assert_allclose(read[col], arrays[col], rtol=0, atol=1e-6)
+    assert len(readers_threads) == 4 and threading.get_ident() not in readers_threads
+
+    def broken():
+        raise DatasetError("clouds/depth/2.ply", "header", "a PLY file")
+
+    with pytest.raises(DatasetError, match="2.ply"):
+        planes_rows({("depth", 1): P[::4], ("depth", 2): broken}, types, workers=2)
