@@ -122,7 +122,7 @@ def stance_foot_factor(
             ``l_key`` the forward kinematics is a constant and computed once, here.
     """
     q = np.array(q, dtype=float)
-    if q.shape != (leg.n_joints,) or not np.all(np.isfinite(q)):
+    if q.shape != (leg.n_joints,) or not np.isfinite(q).all():
         raise ValueError(f"q must be {leg.n_joints} finite joint values of the leg of {leg.foot!r}, got shape {q.shape}")
     q.setflags(write=False)
     if l_key is not None and param is None:
@@ -137,7 +137,7 @@ def stance_foot_factor(
         theta = param._check_theta(theta).copy()
     if cov_m2 is not None:
         cov = np.asarray(cov_m2, dtype=float)
-        if cov.shape != (3, 3) or not np.all(np.isfinite(cov)) or np.any(np.linalg.eigvalsh((cov + cov.T) / 2) <= 0):
+        if cov.shape != (3, 3) or not np.isfinite(cov).all() or np.linalg.eigvalsh((cov + cov.T) / 2)[0] <= 0:
             raise ValueError("cov_m2 must be a finite symmetric positive-definite 3x3 matrix")
         noise = with_robust(gtsam.noiseModel.Gaussian.Covariance((cov + cov.T) / 2), robust)
     else:

@@ -23,6 +23,7 @@ least squares), laser scanners from their points (linear) — see graphcal/solve
 
 from __future__ import annotations
 
+import functools
 import weakref
 from dataclasses import dataclass, field
 
@@ -288,9 +289,15 @@ def huber_loss(dim: int, options: CalibrationOptions):
     whole factor's whitened norm, so its threshold grows with the dimension: k is the chi-square
     quantile ``huber_p`` of ``dim`` dof (a whole station's plane or scan that no noise explains is
     down-weighted; ordinary noise never is)."""
+    return gtsam.noiseModel.mEstimator.Huber.Create(_huber_threshold(float(options.huber_p), int(dim)))
+
+
+@functools.lru_cache(maxsize=64)
+def _huber_threshold(p: float, dim: int) -> float:
+    """sqrt of the chi-square quantile p of dim dof (scipy's ppf costs ~0.2 ms; one per factor)."""
     from scipy.stats import chi2
 
-    return gtsam.noiseModel.mEstimator.Huber.Create(float(np.sqrt(chi2.ppf(options.huber_p, dim))))
+    return float(np.sqrt(chi2.ppf(p, dim)))
 
 
 def measurement_factor(x_key: int, s_key: int, sensor: str, options: CalibrationOptions, *, plane=None,
