@@ -73,18 +73,6 @@ def _key_text(key: int) -> str:
         return str(key)
 
 
-class _LazyLabels:
-    """Key names for messages, formatted only when an error is raised."""
-
-    __slots__ = ("_keys",)
-
-    def __init__(self, keys):
-        self._keys = keys
-
-    def __getitem__(self, i: int) -> str:
-        return _key_text(self._keys[i])
-
-
 def _matrix_problem(M, shape: tuple[int, int]) -> str | None:
     """What is wrong with Jacobian ``M`` (None if it is a finite float64 array of ``shape``)."""
     if not isinstance(M, np.ndarray):
@@ -153,15 +141,17 @@ def checked_custom_factor(
     readers = [_READERS[kind] for kind in kinds]
     vector_slots = [i for i, kind in enumerate(kinds) if kind == "Vector"]
     n_keys = len(keys)
+    shapes = [(error_dim, d) for d in dims]
 
     def _callback(this: gtsam.CustomFactor, values: gtsam.Values, H) -> np.ndarray:
+        # runs at every factor evaluation (tens of thousands per calibration): the common path is
+        # kept to a few cheap checks; key names are only formatted for an error
         fkeys = this.keys()
-        labels = _LazyLabels(fkeys)
         args = [read(values, k) for read, k in zip(readers, fkeys)]
         for i in vector_slots:
             if args[i].shape != (dims[i],):
                 raise FactorShapeError(
-                    f"{name}: variable {labels[i]} has length {args[i].shape[0]}, the factor expects {dims[i]}"
+                    f"{name}: variable {_key_text(fkeys[i])} has length {args[i].shape[0]}, the factor expects {dims[i]}"
                 )
         want = H is not None
         out = error_fn(*args, want)
@@ -178,9 +168,9 @@ def checked_custom_factor(
                 got = "None" if Hs is None else f"{len(Hs)}"
                 raise FactorShapeError(f"{name}: expected {n_keys} Jacobians (one per key), got {got}")
             for i in range(n_keys):
-                problem = _matrix_problem(Hs[i], (error_dim, dims[i]))
+                problem = _matrix_problem(Hs[i], shapes[i])
                 if problem is not None:
-                    raise FactorShapeError(f"{name}: Jacobian w.r.t. {labels[i]} ({kinds[i]}): {problem}")
+                    raise FactorShapeError(f"{name}: Jacobian w.r.t. {_key_text(fkeys[i])} ({kinds[i]}): {problem}")
             for i in range(n_keys):
                 H[i] = Hs[i]
         return e

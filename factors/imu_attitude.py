@@ -129,16 +129,19 @@ def imu_attitude_misaligned_error(T_world_body, R_body_imu, f_imu, want_jacobian
     Returns:
         e (2,) = ``B_m^T (R_x R_bi)^T e_z`` (rad, first order), and ``[H_X (2,6), H_M (2,3)]`` or None.
     """
-    X = np.asarray(T_world_body, dtype=float)
-    R_bi = np.asarray(R_body_imu, dtype=float)
-    m = imu_up_direction(f_imu)
-    B = tangent_basis(m)
+    return _misaligned_error(np.asarray(T_world_body, dtype=float), np.asarray(R_body_imu, dtype=float),
+                             tangent_basis(imu_up_direction(f_imu)).T, want_jacobians)
+
+
+def _misaligned_error(X: np.ndarray, R_bi: np.ndarray, BT: np.ndarray, want_jacobians: bool):
+    """:func:`imu_attitude_misaligned_error` given ``BT`` (2, 3), the transposed tangent basis of the
+    measured up direction (a constant of the factor, computed once)."""
     R_wi = X[:3, :3] @ R_bi
     u = R_wi.T @ _UP_W
-    e = B.T @ u
+    e = BT @ u
     if not want_jacobians:
         return e, None
-    H_M = B.T @ skew3(u)
+    H_M = BT @ skew3(u)
     H_X = np.zeros((2, 6))
     H_X[:, :3] = H_M @ R_bi.T
     return e, [H_X, H_M]
@@ -161,11 +164,11 @@ def imu_attitude_misaligned_factor(
         sigma_rad: sigma of each of the 2 error components (default 0.5 deg).
         robust: optional gtsam mEstimator.
     """
-    m = imu_up_direction(f_imu)
-    m.setflags(write=False)
+    BT = np.ascontiguousarray(tangent_basis(imu_up_direction(f_imu)).T)
+    BT.setflags(write=False)
 
     def error_fn(X, M, want):
-        return imu_attitude_misaligned_error(X, M, m, want)
+        return _misaligned_error(X, M, BT, want)
 
     return checked_custom_factor(
         _noise(sigma_rad, robust), [x_key, m_key], error_fn, [6, 3], 2, kinds=["Pose3", "Rot3"], name="imu_attitude_misaligned"

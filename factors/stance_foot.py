@@ -27,7 +27,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors._checked import checked_custom_factor, skew3, with_robust
+from factors._checked import checked_custom_factor, with_robust
 from graphcal.models.kinematics import foot_positions
 from graphcal.models.leg_params import LegParameterization, fk_and_param_jacobian, fk_with_params
 from graphcal.models.robot import Leg
@@ -36,6 +36,13 @@ __all__ = ["DEFAULT_SIGMA_M", "stance_foot_error", "stance_foot_factor"]
 
 #: default isotropic sigma of the stance-foot error (m): encoder noise through the leg + foot compliance
 DEFAULT_SIGMA_M = 0.003
+
+
+def _pose_jacobian(p_b) -> np.ndarray:
+    """d e / d xi of ``e = p_fk - X^-1 F`` for the right perturbation ``xi = [omega, v]`` of X:
+    ``[-[p_b]x, I]`` (3, 6), built from scalars (called at every evaluation)."""
+    x, y, z = float(p_b[0]), float(p_b[1]), float(p_b[2])
+    return np.array([[0.0, z, -y, 1.0, 0.0, 0.0], [-z, 0.0, x, 0.0, 1.0, 0.0], [y, -x, 0.0, 0.0, 0.0, 1.0]])
 
 
 def stance_foot_error(
@@ -79,9 +86,7 @@ def stance_foot_error(
     e = p_fk - p_b
     if not want_jacobians:
         return e, None
-    H_X = np.empty((3, 6))
-    H_X[:, :3] = -skew3(p_b)
-    H_X[:, 3:] = np.eye(3)
+    H_X = _pose_jacobian(p_b)
     H_F = -R_x.T
     Hs = [H_X, np.ascontiguousarray(H_F)]
     if J_L is not None:
@@ -160,10 +165,7 @@ def stance_foot_factor(
             e = p_fixed - p_b
             if not want:
                 return e, None
-            H_X = np.empty((3, 6))
-            H_X[:, :3] = -skew3(p_b)
-            H_X[:, 3:] = np.eye(3)
-            return e, [H_X, np.ascontiguousarray(-R_x.T)]
+            return e, [_pose_jacobian(p_b), np.ascontiguousarray(-R_x.T)]
 
         return checked_custom_factor(noise, [x_key, f_key], error_fn, [6, 3], 3, kinds=["Pose3", "Point3"], name="stance_foot")
 
