@@ -73,6 +73,9 @@ def _key_text(key: int) -> str:
         return str(key)
 
 
+_add_reduce = np.add.reduce  # the ufunc method itself: no Python-level wrapper per call
+
+
 def _matrix_problem(M, shape: tuple[int, int]) -> str | None:
     """What is wrong with Jacobian ``M`` (None if it is a finite float64 array of ``shape``)."""
     if not isinstance(M, np.ndarray):
@@ -161,16 +164,28 @@ def checked_custom_factor(
         if not isinstance(e, np.ndarray) or e.dtype != np.float64 or e.shape != (error_dim,):
             got = f"{e.dtype} {e.shape}" if isinstance(e, np.ndarray) else type(e).__name__
             raise FactorShapeError(f"{name}: error must be a float64 array of shape ({error_dim},), got {got}")
-        if not np.isfinite(e).all():
-            raise FactorShapeError(f"{name}: error contains NaN or inf: {e}")
+        # finiteness of everything at once: a sum of finite float64 numbers is finite (short of
+        # overflow past 1e308, which the detailed checks below then clear)
+        total = _add_reduce(e, axis=None)
         if want:
             if Hs is None or len(Hs) != n_keys:
                 got = "None" if Hs is None else f"{len(Hs)}"
                 raise FactorShapeError(f"{name}: expected {n_keys} Jacobians (one per key), got {got}")
             for i in range(n_keys):
+                Hi = Hs[i]
+                if type(Hi) is not np.ndarray or Hi.dtype != np.float64 or Hi.shape != shapes[i]:
+                    problem = _matrix_problem(Hi, shapes[i])
+                    if problem is not None:
+                        raise FactorShapeError(f"{name}: Jacobian w.r.t. {_key_text(fkeys[i])} ({kinds[i]}): {problem}")
+                total += _add_reduce(Hi, axis=None)
+        if not math.isfinite(total):
+            if not np.isfinite(e).all():
+                raise FactorShapeError(f"{name}: error contains NaN or inf: {e}")
+            for i in range(n_keys if want else 0):
                 problem = _matrix_problem(Hs[i], shapes[i])
                 if problem is not None:
                     raise FactorShapeError(f"{name}: Jacobian w.r.t. {_key_text(fkeys[i])} ({kinds[i]}): {problem}")
+        if want:
             for i in range(n_keys):
                 H[i] = Hs[i]
         return e

@@ -38,6 +38,15 @@ __all__ = ["DEFAULT_SIGMA_M", "stance_foot_error", "stance_foot_factor"]
 DEFAULT_SIGMA_M = 0.003
 
 
+def _positive_definite_3x3(C: np.ndarray) -> bool:
+    """Sylvester's criterion for a symmetric 3x3 matrix (its leading minors are positive), in
+    scalars: one per stance factor built, where eigvalsh cost ~25 us."""
+    a, b, c = float(C[0, 0]), float(C[0, 1]), float(C[0, 2])
+    d, e, f = float(C[1, 1]), float(C[1, 2]), float(C[2, 2])
+    m2 = a * d - b * b
+    return a > 0.0 and m2 > 0.0 and a * (d * f - e * e) - b * (b * f - e * c) + c * (b * e - d * c) > 0.0
+
+
 def _pose_jacobian(p_b) -> np.ndarray:
     """d e / d xi of ``e = p_fk - X^-1 F`` for the right perturbation ``xi = [omega, v]`` of X:
     ``[-[p_b]x, I]`` (3, 6), built from scalars (called at every evaluation)."""
@@ -142,7 +151,7 @@ def stance_foot_factor(
         theta = param._check_theta(theta).copy()
     if cov_m2 is not None:
         cov = np.asarray(cov_m2, dtype=float)
-        if cov.shape != (3, 3) or not np.isfinite(cov).all() or np.linalg.eigvalsh((cov + cov.T) / 2)[0] <= 0:
+        if cov.shape != (3, 3) or not np.isfinite(cov).all() or not _positive_definite_3x3((cov + cov.T) / 2):
             raise ValueError("cov_m2 must be a finite symmetric positive-definite 3x3 matrix")
         noise = with_robust(gtsam.noiseModel.Gaussian.Covariance((cov + cov.T) / 2), robust)
     else:

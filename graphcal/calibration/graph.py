@@ -225,11 +225,17 @@ def leg_kinematics(data: CalibrationData, robot) -> dict:
     per_data = _LEG_CACHE.setdefault(data, {})
     out = per_data.get(id(robot))
     if out is None or out[0] is not robot:
-        table = {}
+        by_foot: dict = {}
         for st in data.stations:
             for f, q in st.q_by_foot.items():
-                leg = robot.leg(f)
-                table[(st.station, f)] = (foot_positions(leg, q), leg_jacobian(leg, np.asarray(q, dtype=float)))
+                by_foot.setdefault(f, []).append((st.station, q))
+        table = {}
+        for f, items in by_foot.items():  # one batch per leg (the kinematics is vectorised)
+            leg = robot.leg(f)
+            Q = np.array([np.asarray(q, dtype=float) for _, q in items])
+            P, J = foot_positions(leg, Q), leg_jacobian(leg, Q)
+            for k, (station, _) in enumerate(items):
+                table[(station, f)] = (P[k], J[k])
         out = (robot, table)
         per_data[id(robot)] = out
     return out[1]

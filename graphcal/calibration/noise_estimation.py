@@ -173,6 +173,42 @@ def _factor_rows(lin: gtsam.GaussianFactorGraph) -> list[np.ndarray]:
     return out
 
 
+def _factor_blocks(A0: np.ndarray, rows: list[np.ndarray]):
+    """The sparsity of the whitened Jacobian by factor: each factor's rows and the columns any of
+    them touches (its support, fixed while rows are only re-weighted or mixed within a factor).
+
+    Returns (blocks, where, pattern): ``blocks`` (r, k) -> (factor ids (F,), row indices (F, r),
+    column indices (F, k)) for the factors of r rows and k support columns; ``where[i]`` =
+    ((r, k), position) of factor i; ``pattern`` (row indices, column indices, indptr) of the CSR
+    matrix holding every factor's rows over its support.
+    """
+    m = A0.shape[0]
+    row_factor = np.empty(m, dtype=np.int64)
+    for i, r in enumerate(rows):
+        row_factor[r] = i
+    nz_r, nz_c = np.nonzero(A0)
+    touches = np.zeros((len(rows), A0.shape[1]), dtype=bool)  # factor x column incidence
+    touches[row_factor[nz_r], nz_c] = True
+    fac, col = np.nonzero(touches)  # sorted by factor, then column
+    cuts = np.searchsorted(fac, np.arange(len(rows) + 1))
+    groups: dict = {}
+    for i, r in enumerate(rows):
+        groups.setdefault((len(r), int(cuts[i + 1] - cuts[i])), []).append(i)
+    blocks, where, pr, pc = {}, [None] * len(rows), [], []
+    for (r, k), ids in groups.items():
+        R = np.stack([rows[i] for i in ids]).reshape(len(ids), r)
+        Cc = np.stack([col[cuts[i]:cuts[i + 1]] for i in ids]).reshape(len(ids), k)
+        blocks[(r, k)] = (np.asarray(ids), R, Cc)
+        for pos, i in enumerate(ids):
+            where[i] = ((r, k), pos)
+        pr.append(np.broadcast_to(R[:, :, None], (len(ids), r, k)).ravel())
+        pc.append(np.broadcast_to(Cc[:, None, :], (len(ids), r, k)).ravel())
+    pr, pc = np.concatenate(pr), np.concatenate(pc)
+    order = np.lexsort((pc, pr))
+    pr, pc = pr[order], pc[order]
+    return blocks, where, (pr, pc, np.searchsorted(pr, np.arange(m + 1)))
+
+
 def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, groups: dict,
                      components: dict | None = None, *, eligible, bounds: dict | None = None,
                      tolerance: float = 1e-3, max_iterations: int = 60) -> tuple[dict, dict]:
@@ -219,6 +255,7 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
     rows = _factor_rows(lin)
     if sum(len(r) for r in rows) != len(b0):
         raise GraphcalError("noise estimation: the linearised graph's rows do not match its factors")
+    blocks, where, (pat_r, pat_c, indptr) = _factor_blocks(A0, rows)
     single: dict[str, np.ndarray] = {}
     multi: dict[str, dict] = {}
     for i, g in groups.items():
@@ -230,6 +267,7 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
         if list(comps) != m["names"]:
             raise GraphcalError(f"noise estimation: factors of group {g} have different components")
         m["rows"].append(rows[i])
+        m.setdefault("where", []).append(where[i])
         m["W"].append(whitening_matrix(graph.at(i)))
         for k, Sk in comps.items():
             m["S"][k].append(np.asarray(Sk, dtype=float))
@@ -256,21 +294,32 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
             Linv[g] = np.linalg.inv(np.linalg.cholesky(Sig))
             A[m["rows"]] = Linv[g] @ m["A_raw"]
             b[m["rows"]] = np.einsum("fij,fj->fi", Linv[g], m["b_raw"])
-        As = scipy.sparse.csr_matrix(A)  # a factor touches a few variables: sparse products
+        # a factor touches a few variables: sparse products, on the fixed pattern of the factors' rows
+        As = scipy.sparse.csr_matrix((A[pat_r, pat_c], pat_c, indptr), shape=A.shape)
         try:
             chol = scipy.linalg.cho_factor((As.T @ As).toarray(), lower=True)
+            inv, info = scipy.linalg.lapack.dpotri(chol[0], lower=1)
         except np.linalg.LinAlgError:
             raise GraphcalError("noise estimation: the graph has an undetermined variable") from None
+        if info != 0:
+            raise GraphcalError("noise estimation: the graph has an undetermined variable")
+        Sigma_x = np.tril(inv) + np.tril(inv, -1).T
         delta = scipy.linalg.cho_solve(chol, As.T @ b)
         e = b - As @ delta  # whitened residuals at the re-weighted linear solution
-        Q = As @ scipy.linalg.cho_solve(chol, np.eye(A.shape[1]))  # A Sigma_x, rows (m, n)
+        # the hat matrix A Sigma_x A^T, its diagonal block of each factor (rows x its support)
+        hat = {}
+        hdiag = np.empty(len(b))
+        for key, (_, R_f, C_f) in blocks.items():
+            A_f = A[R_f[:, :, None], C_f[:, None, :]]  # (F, r, k)
+            hat[key] = A_f @ Sigma_x[C_f[:, :, None], C_f[:, None, :]] @ np.swapaxes(A_f, 1, 2)
+            hdiag[R_f] = np.einsum("fii->fi", hat[key])
         stats: dict[str, GroupVariance] = {}
         for g, r in single.items():
-            h = np.einsum("ij,ij->i", Q[r], A[r])  # diagonal of the hat matrix A Sigma_x A^T
+            h = hdiag[r]
             stats[g] = GroupVariance(g, float(e[r] @ e[r]), float(np.clip(1.0 - h, 0.0, 1.0).sum()), len(r))
         for g, m in multi.items():
             names, R_idx = m["names"], m["rows"]
-            R = np.eye(R_idx.shape[1]) - np.einsum("fin,fjn->fij", Q[R_idx], A[R_idx])
+            R = np.eye(R_idx.shape[1]) - np.stack([hat[key][pos] for key, pos in m["where"]])
             ef = e[R_idx]
             C = {k: Linv[g] @ (scale[f"{g}/{k}"] ** 2 * m["S"][k]) @ np.swapaxes(Linv[g], 1, 2) for k in names}
             RC = {k: R @ C[k] for k in names}
