@@ -414,10 +414,23 @@ def test_planes_rows_same_on_one_or_two_threads_and_per_cloud(floor_frame):
     assert cloud_rng(0, "depth", 1).integers(1 << 30) != cloud_rng(0, "depth", 2).integers(1 << 30)
 
 
-def test_workspace_reuse_changes_nothing_and_results_do_not_share_its_memory(floor_frame, clutter_frame):
+def test_workspace_reuse_changes_nothing_and_results_do_not_share_its_memory(floor_frame, clutter_frame, monkeypatch):
     """One PlaneWorkspace reused over frames of different sizes gives exactly the planes of fresh
     calls, and a fit returned earlier is not altered by the later fits that reuse the scratch."""
+    import graphcal.planes as planes_module
     from graphcal.planes import PlaneWorkspace
+
+    # Open3D's RANSAC is not repeatable (planes._ransac): the same sample and seed give the same
+    # starting plane here, so that only the workspace can make a difference
+    ransac, memo = planes_module._ransac, {}
+
+    def repeatable(P_sample, distance_m, iterations, seed):
+        key = (P_sample.tobytes(), distance_m, iterations, seed)
+        if key not in memo:
+            memo[key] = ransac(P_sample, distance_m, iterations, seed)
+        return memo[key]
+
+    monkeypatch.setattr(planes_module, "_ransac", repeatable)
 
     frames = [floor_frame[0], clutter_frame[0], floor_frame[0][::2]]
     kw = dict(range_noise=kinect_distance_sigma, max_planes=2)
