@@ -31,7 +31,9 @@ Method (one plane)
    Implementation: the scatter matrix is kept as running sums (dropped points are subtracted), and
    after a full pass only a "watch set" (points near the threshold) is re-tested while a bound on
    the plane's motion proves that no other point can cross the threshold; otherwise a full pass.
-   The result is exactly that of the plain loop.
+   The result is exactly that of the plain loop. The whitened loop keeps the candidates whitened,
+   ``y_i = x_i / sigma_i`` (its distances are ``n . y_i + d / sigma_i`` and its weighted moments
+   plain sums of ``y``), so no weighted copy of the frame is made.
 4. **Plane check.** Chai's rule only trims a peaked distribution: if the candidates spread over
    the whole band (inlier rms > 0.42 band; a plane with noise std band/2 gives 0.36, a uniform
    spread 0.58) RANSAC's plane is no plane (on stairs seen from above, a slanted plane through
@@ -43,8 +45,12 @@ Method (one plane)
 
 Speed (300k-point frame, 2 cores, see ``bench/plane_extraction.py``): Open3D's RANSAC costs
 ~0.9 ms per 1000 subsampled points (100 iterations), hence the default ``subsample=5000``; the
-rest is a few passes over the frame. Thin products (N x 3) avoid multi-threaded BLAS, which
-stalls on a busy core.
+rest is a few passes over the frame (~20 ms per 250k-point Kinect frame on one thread). Thin
+products (N x 3) avoid multi-threaded BLAS, which stalls on a busy core, and each pass is one or a
+few numpy calls (each large call releases the GIL and waits to take it back: fitting threads side
+by side lose most of their gain to chunked loops of small calls). The frame-sized scratch arrays
+live in a :class:`PlaneWorkspace`, reused by the calls of one thread (fresh multi-megabyte arrays
+per frame cost ~20 % in page faults, on this machine's VM more).
 
 Covariance
 ----------
