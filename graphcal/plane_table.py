@@ -61,7 +61,7 @@ def planes_rows(
         seed: random seed of the RANSAC subsamples (each cloud's: :func:`cloud_rng`).
         workers: threads fitting clouds side by side (default: up to 2 of the machine's cores;
             numpy releases the GIL in the per-point passes, but the Python steps between them
-            hold it, ~30 % of a frame's time: 2 threads take ~0.7x the time of one).
+            hold it, ~25 % of a frame's time: 2 threads take ~0.7x the time of one).
         total: number of clouds, for the progress bar when ``clouds`` is an iterator.
     Returns:
         column -> list of values, columns :data:`PLANE_COLUMNS`, clouds in input order.
