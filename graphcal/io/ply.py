@@ -184,8 +184,8 @@ def read_ply(path: str | Path) -> np.ndarray:
     except OSError as exc:
         raise _bad(path, "file", "a readable PLY file", exc.strerror or str(exc)) from None
     if points is None:
-        header = read_ply_header(path, data)
         if header.format == "ascii":
+            header = read_ply_header(path, data)  # now with the body: its values are checked
             _check_ascii_numbers(path, data[header.header_bytes :])
         points = _binary_vertex_xyz(header, data)
         del data
