@@ -45,7 +45,7 @@ Method (one plane)
 
 Speed (300k-point frame, 2 cores, see ``bench/plane_extraction.py``): Open3D's RANSAC costs
 ~0.9 ms per 1000 subsampled points (100 iterations), hence the default ``subsample=5000``; the
-rest is a few passes over the frame (~20 ms per 250k-point Kinect frame on one thread). Thin
+rest is a few passes over the frame (22-28 ms per 250k-point Kinect frame on one thread). Thin
 products (N x 3) avoid multi-threaded BLAS, which stalls on a busy core, and each pass is one or a
 few numpy calls (each large call releases the GIL and waits to take it back: fitting threads side
 by side lose most of their gain to chunked loops of small calls). The frame-sized scratch arrays
@@ -333,7 +333,7 @@ def _ransac(P_sample: np.ndarray, distance_m: float, iterations: int, seed: int)
 # instead of 0.2 ms). And as few numpy calls as possible per pass: each call over a large array
 # releases the GIL and must take it back, which waits for the other fitting thread (Python's
 # switch interval), so chunked loops of small calls stall two threads (measured 50-300x slower
-# beside a busy Python thread); ``np.einsum`` does a dot product or a 3x3 Gram matrix in one call.
+# beside a busy Python thread); ``np.einsum`` does a dot product in one single-threaded call.
 
 
 def _matvec_rows(A: np.ndarray, v: np.ndarray, out: np.ndarray | None = None,
