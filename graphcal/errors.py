@@ -33,6 +33,11 @@ class DatasetError(GraphcalError):
             msg += f", got {text}"
         super().__init__(msg)
 
+    def __reduce__(self):
+        # pickled with its fields (the default passes only the message, which __init__ does not
+        # take): a DatasetError raised in a worker process reaches the caller as itself
+        return type(self), (self.file, self.where, self.expected, self.got)
+
 
 class ModelError(GraphcalError):
     """A robot model (URDF, built-in model name, frame or joint) cannot be used as asked."""

@@ -5,6 +5,7 @@ covariance of (nx, ny, nz, d) stacked row-major)."""
 from __future__ import annotations
 
 import functools
+import itertools
 from pathlib import Path
 from typing import Iterable, Mapping
 
@@ -38,6 +39,69 @@ def cloud_rng(seed: int, sensor: str, station: int) -> np.random.Generator:
     return np.random.default_rng([int(seed) % 2**32, zlib.crc32(str(sensor).encode()), int(station) % 2**32])
 
 
+def _fit_cloud(key: tuple[str, int], points, kind: str, max_planes: int, seed: int, workspace) -> list[tuple]:
+    """The planes of one cloud as ``(n (3,), d, n_points, rms, cov (4, 4))``, sensor frame (m).
+
+    ``points``: (N, 3) array, or a function of no arguments returning it (read here; its errors,
+    e.g. an unreadable file, are the caller's). Too few or degenerate points: no plane (``[]``).
+    """
+    from .planes import extract_planes
+
+    if kind == "laser_scanner":
+        return []
+    if callable(points):
+        points = points()
+    try:
+        fits = extract_planes(points, max_planes=max_planes, range_noise=range_noise_for(kind),
+                              rng=cloud_rng(seed, *key), workspace=workspace)
+    except GraphcalError:
+        return []
+    return [(f.n, f.d, f.n_points, f.rms, f.cov) for f in fits]
+
+
+#: the clouds of the planes_rows calls running on worker processes, by call: set before the workers
+#: fork (they inherit it, so no cloud or reader is ever pickled) and removed when the call ends
+_FORK_JOBS: dict = {}
+_TOKENS = itertools.count()
+_CHILD_WORKSPACE = None
+
+
+def _fit_in_worker(task: tuple[int, int]):
+    """Worker process: fit cloud ``i`` of call ``token``; returns (i, rows, None) or (i, None,
+    (exception, traceback text)) so that any error reaches the parent, which raises it."""
+    global _CHILD_WORKSPACE
+    from .planes import PlaneWorkspace
+
+    token, i = task
+    items, types, max_planes, seed = _FORK_JOBS[token]
+    key, points = items[i]
+    try:
+        if _CHILD_WORKSPACE is None:
+            _CHILD_WORKSPACE = PlaneWorkspace()
+        return i, _fit_cloud(key, points, types[key[0]], max_planes, seed, _CHILD_WORKSPACE), None
+    except Exception as exc:  # noqa: BLE001 - handed to the parent, which raises it
+        import pickle
+        import traceback
+
+        text = traceback.format_exc()
+        try:
+            pickle.loads(pickle.dumps(exc))
+        except Exception:  # noqa: BLE001 - an exception that does not survive pickling: its text
+            exc = GraphcalError(f"plane extraction of {key[0]} station {key[1]}: {type(exc).__name__}: {exc}")
+        return i, None, (exc, text)
+
+
+def _can_fork_workers() -> bool:
+    """Whether worker processes may be forked here: Linux-style fork, this process no daemon (those
+    cannot have children), and no other Python thread running (a lock another thread holds at the
+    fork would stay held in the child)."""
+    import multiprocessing
+    import threading
+
+    return ("fork" in multiprocessing.get_all_start_methods() and not multiprocessing.current_process().daemon
+            and threading.active_count() == 1)
+
+
 def planes_rows(
     clouds: Mapping[tuple[str, int], np.ndarray] | Iterable[tuple[tuple[str, int], np.ndarray]],
     sensor_types: Mapping[str, str],
@@ -47,93 +111,138 @@ def planes_rows(
     progress: bool = False,
     workers: int | None = None,
     total: int | None = None,
+    processes: bool | None = None,
 ) -> dict[str, list]:
     """Fit planes to every cloud of a plane-capable sensor (cameras; a laser scanner's single scan
     line has no plane and is skipped).
 
     Args:
         clouds: (sensor, station) -> (N, 3) points in the sensor frame (m), or an iterable of such
-            pairs (consumed lazily: at most ``2 * workers`` clouds are held at once). A value may
-            also be a function of no arguments returning the points (e.g. a file reader): it is
-            called in the fitting thread, so reading overlaps fitting on every thread.
+            pairs (an iterator is consumed lazily: at most ``2 * workers`` clouds are held at once).
+            A value may also be a function of no arguments returning the points (e.g. a file
+            reader): it is called by the worker, so reading overlaps fitting on every worker.
         sensor_types: sensor name -> type.
         max_planes: planes per cloud (stairs: one per tread).
         seed: random seed of the RANSAC subsamples (each cloud's: :func:`cloud_rng`).
-        workers: threads fitting clouds side by side (default: up to 2 of the machine's cores;
-            numpy releases the GIL in the per-point passes, but the Python steps between them
-            hold it, ~25 % of a frame's time: 2 threads take ~0.7x the time of one).
+        workers: clouds fitted side by side (default: up to 2 of the machine's cores).
         total: number of clouds, for the progress bar when ``clouds`` is an iterator.
+        processes: run the workers as forked processes (True) or threads (False). Default: processes
+            when ``clouds`` is a mapping or a list (already in memory or cheap readers: the workers
+            inherit it, nothing is pickled but the planes), there are at least ``2 * workers``
+            clouds, and fork is safe here (:func:`_can_fork_workers`); otherwise threads. Threads
+            share the GIL with the Python steps of a fit (~25 % of its time): on Chai's 52 Kinect
+            clouds two threads took ~0.8x the time of one, two processes ~0.65x.
     Returns:
         column -> list of values, columns :data:`PLANE_COLUMNS`, clouds in input order.
+    Raises:
+        Whatever a reader raises (e.g. :class:`~graphcal.errors.DatasetError`), also from a worker
+        process; ``processes=True`` where fork is unavailable: GraphcalError.
     """
     import os
+    import threading
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
 
-    import threading
+    from .planes import PlaneWorkspace
 
-    from .planes import PlaneWorkspace, extract_planes
-
-    local = threading.local()  # one PlaneWorkspace per thread, freed with this call
     items = clouds.items() if isinstance(clouds, Mapping) else clouds
     rows: dict[str, list] = {c: [] for c in PLANE_COLUMNS}
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    n_workers = max(1, workers if workers is not None else min(2, os.cpu_count() or 1))
+    in_memory = isinstance(clouds, (Mapping, list, tuple))
+    if processes is None:
+        processes = (n_workers > 1 and in_memory and len(clouds) >= 2 * n_workers and _can_fork_workers())
+    elif processes:
+        if not in_memory:
+            raise GraphcalError("planes_rows: processes=True needs the clouds as a mapping or a list")
+        if not _can_fork_workers():
+            raise GraphcalError("planes_rows: processes=True, but worker processes cannot be forked here "
+                                "(no fork start method, a daemon process, or other threads running)")
+    pool = futures = token = None
+    if processes:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
 
-        if total is None and hasattr(items, "__len__"):
-            total = len(items)
-        bar = tqdm(total=total, desc="planes: clouds", unit="cloud")
+        items = list(items)
+        token = next(_TOKENS)
+        _FORK_JOBS[token] = (items, dict(sensor_types), max_planes, seed)
+        from .planes import import_fit_modules
+
+        import_fit_modules()  # here, once, not in every worker at every call
+        for kind in set(sensor_types.values()):
+            range_noise_for(kind)
+        try:
+            pool = ProcessPoolExecutor(n_workers, mp_context=multiprocessing.get_context("fork"))
+            # the workers fork at the first submit, before the progress bar's thread starts
+            futures = [pool.submit(_fit_in_worker, (token, i)) for i in range(len(items))]
+        except BaseException:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
+            del _FORK_JOBS[token]
+            raise
+    bar = None
+    local = threading.local()  # one PlaneWorkspace per thread, freed with this call
 
     def fit(key, points):
-        sensor, station = key
-        kind = sensor_types[sensor]
-        if kind == "laser_scanner":
-            return key, []
-        if callable(points):
-            points = points()  # its errors (an unreadable file) are the caller's, not "no plane"
         if not hasattr(local, "workspace"):
             local.workspace = PlaneWorkspace()
-        try:
-            return key, extract_planes(points, max_planes=max_planes, range_noise=range_noise_for(kind),
-                                       rng=cloud_rng(seed, sensor, station), workspace=local.workspace)
-        except GraphcalError:
-            return key, []  # too few or degenerate points: no plane from this station
+        return key, _fit_cloud(key, points, sensor_types[key[0]], max_planes, seed, local.workspace)
 
     def collect(key, fits):
-        for fit_ in fits:
+        for n, d, n_points, rms, cov in fits:
             rows["station"].append(int(key[1]))
             rows["sensor"].append(key[0])
-            rows["nx"].append(float(fit_.n[0]))
-            rows["ny"].append(float(fit_.n[1]))
-            rows["nz"].append(float(fit_.n[2]))
-            rows["d"].append(float(fit_.d))
-            rows["n_points"].append(float(fit_.n_points))
-            rows["rms"].append(float(fit_.rms))
+            rows["nx"].append(float(n[0]))
+            rows["ny"].append(float(n[1]))
+            rows["nz"].append(float(n[2]))
+            rows["d"].append(float(d))
+            rows["n_points"].append(float(n_points))
+            rows["rms"].append(float(rms))
             for i in range(4):
                 for j in range(4):
-                    rows[f"cov_{i}{j}"].append(float(fit_.cov[i, j]))
+                    rows[f"cov_{i}{j}"].append(float(cov[i, j]))
         if bar is not None:
             bar.update(1)
 
-    n_workers = max(1, workers if workers is not None else min(2, os.cpu_count() or 1))
     try:
-        if n_workers == 1:
+        if progress:
+            from tqdm import tqdm
+
+            if total is None and hasattr(items, "__len__"):
+                total = len(items)
+            bar = tqdm(total=total, desc="planes: clouds", unit="cloud")
+        if futures is not None:
+            for future in futures:  # in input order; a worker that dies raises BrokenProcessPool
+                i, fits, error = future.result()
+                if error is not None:
+                    exc, text = error
+                    raise exc from _WorkerTraceback(text)
+                collect(items[i][0], fits)
+        elif n_workers == 1:
             for key, points in items:
                 collect(*fit(key, points))
         else:
-            with ThreadPoolExecutor(n_workers) as pool:
+            with ThreadPoolExecutor(n_workers) as executor:
                 pending: deque = deque()
                 for key, points in items:
-                    pending.append(pool.submit(fit, key, points))
+                    pending.append(executor.submit(fit, key, points))
                     if len(pending) >= 2 * n_workers:
                         collect(*pending.popleft().result())
                 while pending:
                     collect(*pending.popleft().result())
     finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)  # after an error: the clouds not yet started are dropped
+            del _FORK_JOBS[token]
         if bar is not None:
             bar.close()
     return rows
+
+
+class _WorkerTraceback(Exception):
+    """The traceback of an error raised in a plane-extraction worker process (shown as its cause)."""
+
+    def __str__(self) -> str:
+        return "in the plane-extraction worker process:\n" + str(self.args[0])
 
 
 def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *, max_planes: int = 1,
@@ -155,7 +264,7 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
     if not paths:
         raise DatasetError(Path(dataset) / "clouds", "clouds/<sensor>/<station>.ply", "at least one station cloud")
     types = {name: spec.type for name, spec in ds.sensors.items()}
-    pairs = ((key, functools.partial(load_cloud, ds, *key)) for key in sorted(paths))  # read on the fitting threads
+    pairs = [(key, functools.partial(load_cloud, ds, *key)) for key in sorted(paths)]  # read by the workers
     rows = planes_rows(pairs, types, max_planes=max_planes, progress=progress)
     atomic_write_text(out_path, table_csv_text(Table.from_columns(rows)), overwrite=False)
     return out_path

@@ -473,8 +473,8 @@ def test_planes_rows_reads_clouds_on_its_threads_and_passes_on_read_errors(floor
             return points
         return read
 
-    arrays = planes_rows(clouds, types, workers=2)
-    read = planes_rows({k: reader(v) for k, v in clouds.items()}, types, workers=2)
+    arrays = planes_rows(clouds, types, workers=2, processes=False)
+    read = planes_rows({k: reader(v) for k, v in clouds.items()}, types, workers=2, processes=False)
     assert read["station"] == arrays["station"] == [0, 1, 2, 3]
     # equal up to Open3D's RANSAC, which is not repeatable (planes._ransac): the clouds' normals
     # are a degree apart, so a cloud read in place of another would differ by ~0.017
@@ -486,4 +486,62 @@ def test_planes_rows_reads_clouds_on_its_threads_and_passes_on_read_errors(floor
         raise DatasetError("clouds/depth/2.ply", "header", "a PLY file")
 
     with pytest.raises(DatasetError, match="2.ply"):
-        planes_rows({("depth", 1): P[::4], ("depth", 2): broken}, types, workers=2)
+        planes_rows({("depth", 1): P[::4], ("depth", 2): broken}, types, workers=2, processes=False)
+
+
+def test_planes_rows_on_worker_processes_same_rows_and_errors_reach_the_caller(floor_frame):
+    """Worker processes (the default for clouds in memory where fork is safe) read and fit the
+    clouds in the children, return the rows of the threads in input order, and hand every error back:
+    a reader's DatasetError as itself (it survives pickling), an exception that cannot be pickled as a
+    GraphcalError naming the cloud, both with the worker's traceback as the cause."""
+    import os
+
+    from graphcal.errors import DatasetError, GraphcalError
+    from graphcal.plane_table import _can_fork_workers, planes_rows
+
+    if not _can_fork_workers():
+        pytest.skip("fork is not available or other threads are running")
+    P = floor_frame[0]
+    types = {"depth": "depth_camera", "scanner": "laser_scanner"}
+    clouds = {}
+    for s in range(5):
+        c, sn = np.cos(np.radians(s)), np.sin(np.radians(s))
+        clouds[("depth", s)] = P[s::5] @ np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]).T
+    clouds[("scanner", 9)] = P[:100]
+    parent = os.getpid()
+    pids = []
+
+    def reader(points):
+        def read():
+            pids.append(os.getpid())  # appended in the child: the parent's list stays empty
+            if os.getpid() == parent:
+                raise AssertionError("read in the parent")
+            return points
+        return read
+
+    threads = planes_rows(clouds, types, workers=2, processes=False)
+    procs = planes_rows({k: reader(v) for k, v in clouds.items()}, types, workers=2)  # default: processes
+    assert pids == []
+    assert procs["station"] == threads["station"] == [0, 1, 2, 3, 4]
+    for col in ("nx", "ny", "nz", "d", "cov_33"):  # up to Open3D's RANSAC (not repeatable)
+        np.testing.assert_allclose(procs[col], threads[col], rtol=1e-5, atol=1e-7)
+
+    def broken():
+        raise DatasetError("clouds/depth/2.ply", "header", "a PLY file", "garbage")
+
+    with pytest.raises(DatasetError, match="2.ply: header: expected a PLY file, got garbage") as info:
+        planes_rows({**clouds, ("depth", 2): broken}, types, workers=2, processes=True)
+    assert info.value.file == "clouds/depth/2.ply" and "broken" in str(info.value.__cause__)
+
+    class Unpicklable(Exception):
+        def __init__(self, a, b):
+            super().__init__(f"{a} {b}")
+
+    def buggy():
+        raise Unpicklable("bad", "reader")
+
+    with pytest.raises(GraphcalError, match="depth station 3: Unpicklable: bad reader") as info:
+        planes_rows({**clouds, ("depth", 3): buggy}, types, workers=2, processes=True)
+    assert "buggy" in str(info.value.__cause__)
+    with pytest.raises(GraphcalError, match="mapping or a list"):
+        planes_rows(iter(clouds.items()), types, workers=2, processes=True)

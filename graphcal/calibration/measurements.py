@@ -101,7 +101,7 @@ def ground_planes(ds, *, progress: bool = False) -> dict:
         from ..io.dataset import cloud_paths, load_cloud
 
         cams = {k: v for k, v in cloud_paths(ds).items() if types.get(k[0]) in ("depth_camera", "stereo_camera")}
-        pairs = ((key, functools.partial(load_cloud, ds, *key)) for key in sorted(cams))  # read on the fitting threads
+        pairs = [(key, functools.partial(load_cloud, ds, *key)) for key in sorted(cams)]  # read by the workers
         rows = planes_rows(pairs, types, progress=progress, total=len(cams))
         count = len(rows["station"])
     best: dict = {}
