@@ -164,14 +164,14 @@ def planes_rows(
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        items = list(items)
-        token = next(_TOKENS)
-        _FORK_JOBS[token] = (items, dict(sensor_types), max_planes, seed)
         from .planes import import_fit_modules
 
         import_fit_modules()  # here, once, not in every worker at every call
         for kind in set(sensor_types.values()):
             range_noise_for(kind)
+        items = list(items)
+        token = next(_TOKENS)
+        _FORK_JOBS[token] = (items, dict(sensor_types), max_planes, seed)
         try:
             pool = ProcessPoolExecutor(n_workers, mp_context=multiprocessing.get_context("fork"))
             # the workers fork at the first submit, before the progress bar's thread starts
@@ -213,8 +213,15 @@ def planes_rows(
                 total = len(items)
             bar = tqdm(total=total, desc="planes: clouds", unit="cloud")
         if futures is not None:
-            for future in futures:  # in input order; a worker that dies raises BrokenProcessPool
-                i, fits, error = future.result()
+            from concurrent.futures.process import BrokenProcessPool
+
+            for future in futures:  # in input order
+                try:
+                    i, fits, error = future.result()
+                except BrokenProcessPool as exc:
+                    raise GraphcalError(
+                        "plane extraction: a worker process died (killed, or out of memory?); "
+                        "planes_rows(..., processes=False) fits the clouds in this process") from exc
                 if error is not None:
                     exc, text = error
                     raise exc from _WorkerTraceback(text)

@@ -545,3 +545,10 @@ def test_planes_rows_on_worker_processes_same_rows_and_errors_reach_the_caller(f
     assert "buggy" in str(info.value.__cause__)
     with pytest.raises(GraphcalError, match="mapping or a list"):
         planes_rows(iter(clouds.items()), types, workers=2, processes=True)
+
+    def killed():
+        os._exit(3)  # a worker killed mid-fit (e.g. by the out-of-memory killer): an error, not a hang
+
+    with pytest.raises(GraphcalError, match="worker process died"):
+        planes_rows({**clouds, ("depth", 1): killed}, types, workers=2, processes=True)
+    assert planes_rows(clouds, types, workers=2)["station"] == [0, 1, 2, 3, 4]  # and the next call works
