@@ -92,14 +92,15 @@ def _fit_in_worker(task: tuple[int, int]):
 
 
 def _can_fork_workers() -> bool:
-    """Whether worker processes may be forked here: Linux-style fork, this process no daemon (those
-    cannot have children), and no other Python thread running (a lock another thread holds at the
-    fork would stay held in the child)."""
+    """Whether worker processes may be forked here: Linux (macOS offers fork, but its system
+    libraries are not fork-safe), this process no daemon (those cannot have children), and no other
+    Python thread running (a lock another thread holds at the fork would stay held in the child)."""
     import multiprocessing
+    import sys
     import threading
 
-    return ("fork" in multiprocessing.get_all_start_methods() and not multiprocessing.current_process().daemon
-            and threading.active_count() == 1)
+    return (sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+            and not multiprocessing.current_process().daemon and threading.active_count() == 1)
 
 
 def planes_rows(
@@ -129,7 +130,7 @@ def planes_rows(
         processes: run the workers as forked processes (True) or threads (False). Default: processes
             when ``clouds`` is a mapping or a list (already in memory or cheap readers: the workers
             inherit it, nothing is pickled but the planes), there are at least ``2 * workers``
-            clouds, and fork is safe here (:func:`_can_fork_workers`); otherwise threads. Threads
+            clouds, and fork is safe here (Linux, see :func:`_can_fork_workers`); otherwise threads. Threads
             share the GIL with the Python steps of a fit (~25 % of its time): on Chai's 52 Kinect
             clouds read from a dataset, two threads took 0.74x the time of one, two processes
             0.56x (medians of 5 passes: 1.66 s on one, 1.23 s on two threads, 0.93 s on two
