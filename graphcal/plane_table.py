@@ -139,7 +139,8 @@ def planes_rows(
         column -> list of values, columns :data:`PLANE_COLUMNS`, clouds in input order.
     Raises:
         Whatever a reader raises (e.g. :class:`~graphcal.errors.DatasetError`), also from a worker
-        process; ``processes=True`` where fork is unavailable: GraphcalError.
+        process; ``processes=True`` where workers cannot be forked (:func:`_can_fork_workers`):
+        GraphcalError.
     """
     import os
     import threading
@@ -159,7 +160,7 @@ def planes_rows(
             raise GraphcalError("planes_rows: processes=True needs the clouds as a mapping or a list")
         if not _can_fork_workers():
             raise GraphcalError("planes_rows: processes=True, but worker processes cannot be forked here "
-                                "(no fork start method, a daemon process, or other threads running)")
+                                "(not Linux, a daemon process, or other Python threads running)")
     pool = futures = token = None
     if processes:
         import multiprocessing
