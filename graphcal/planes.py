@@ -322,9 +322,9 @@ _RANSAC_LOCK = threading.Lock()
 def _ransac(P_sample: np.ndarray, distance_m: float, iterations: int, seed: int):
     """Open3D RANSAC on (S, 3) points -> canonical (n, d), inlier indices; None if no plane.
 
-    Not exactly repeatable: Open3D 0.20 draws the samples of its OpenMP threads from one engine in
-    the order the threads ask (measured: run to run, the RANSAC plane of 2-5 of 52 Kinect clouds
-    differs, and the refined normals by up to 4e-7)."""
+    Not exactly repeatable: Open3D 0.20 draws the samples of its parallel workers (TBB) from one
+    engine in the order the workers ask (measured: run to run, the RANSAC plane of 2-5 of 52 Kinect
+    clouds differs, and the refined normals by up to 4e-7)."""
     o3d = _o3d()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P_sample))
     try:
