@@ -18,6 +18,8 @@ module                        variables            error
 :mod:`.plane_observation`     X, S [, G]           plane seen by a sensor vs. world plane (3)
 :mod:`.point_to_plane`        X, S [, G]           ground points' distances to the plane (N)
 :mod:`.stance_foot`           X, F [, L]           leg FK vs. planted foot in the body frame (3)
+:mod:`.stance_foot_builtin`   X, F                 the same with the legs fixed, GTSAM's bearing-range
+                                                   factor in C++ (3, first-order equivalent)
 :mod:`.imu_attitude`          X [, M]              accelerometer "up" vs. predicted up (2)
 :mod:`.foot_on_ground`        F [, G]              foot's distance to the ground plane (1)
 :mod:`.priors`                X / S / L            CAD extrinsic, commanded pose, leg parameters
@@ -44,6 +46,7 @@ from factors.plane_observation import (
 from factors.point_to_plane import point_to_plane_error, point_to_plane_factor, point_to_plane_noise_model
 from factors.priors import commanded_pose_prior, extrinsic_prior, leg_offset_prior, pose_prior_sigmas
 from factors.stance_foot import stance_foot_error, stance_foot_factor
+from factors.stance_foot_builtin import stance_foot_builtin_factor, stance_foot_builtin_factors, stance_foot_error_map
 from factors.mocap_marker import mocap_marker_error, mocap_marker_factor
 
 __all__ = [
@@ -60,6 +63,9 @@ __all__ = [
     "point_to_plane_noise_model",
     "stance_foot_error",
     "stance_foot_factor",
+    "stance_foot_builtin_factor",
+    "stance_foot_builtin_factors",
+    "stance_foot_error_map",
     "mocap_marker_error",
     "mocap_marker_factor",
     "imu_up_direction",

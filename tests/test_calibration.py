@@ -85,6 +85,41 @@ def test_converges_from_any_cad_prior(octopus):
     assert not any("CAD prior" in w for w in reference.warnings), reference.warnings
 
 
+def test_fixed_legs_use_the_builtin_stance_factor_and_agree_with_the_python_one(octopus, monkeypatch):
+    """With the legs held fixed the stance feet are GTSAM's C++ bearing-range factors (the Python
+    factor with --legs); the whole calibration, noise learned, equals the one with the Python factor
+    everywhere to a small share of the reported sigma (the two agree to first order)."""
+    import factors.stance_foot_builtin as sfb
+    from graphcal.calibration.graph import CalibrationOptions, build_problem
+    from graphcal.calibration.measurements import calibration_data
+    from graphcal.io.dataset import load_dataset_robot
+
+    path, truth, builtin = octopus
+    ds = read_dataset(path)
+    robot = load_dataset_robot(ds)
+    data = calibration_data(ds, robot)
+
+    def stance_types(options):
+        pb = build_problem(ds, robot, data, options)
+        return {type(pb.graph.at(i)).__name__ for i, g in pb.factor_groups.items() if g == "stance_foot"}
+
+    assert stance_types(CalibrationOptions()) == {"BearingRangeFactor3D"}
+    assert stance_types(CalibrationOptions(legs=True)) == {"CustomFactor"}
+    monkeypatch.setattr(sfb, "MIN_RANGE_M", 1e9)  # every foot "too close": the Python factor throughout
+    assert stance_types(CalibrationOptions()) == {"CustomFactor"}
+    python = calibrate(ds, data=data)
+    a, b = builtin.sensors["depth"], python.sensors["depth"]
+    D = a.T_body_sensor[:3, :3] @ b.T_body_sensor[:3, :3].T
+    dphi = np.degrees(0.5 * np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]))
+    dt = 1e3 * (a.T_body_sensor[:3, 3] - b.T_body_sensor[:3, 3])
+    assert np.all(np.abs(dphi) < 0.01 * b.sigma_rot_deg), (dphi, b.sigma_rot_deg)
+    assert np.all(np.abs(dt) < 0.01 * b.sigma_xyz_mm), (dt, b.sigma_xyz_mm)
+    np.testing.assert_allclose(a.sigma_rot_deg, b.sigma_rot_deg, rtol=0.01)
+    np.testing.assert_allclose(a.sigma_xyz_mm, b.sigma_xyz_mm, rtol=0.01)
+    for name, value in python.noise.items():  # the learned noise model
+        assert builtin.noise[name] == pytest.approx(value, rel=0.01), name
+
+
 def test_outlier_stations_are_found_and_do_not_hurt(tmp_path):
     path, truth = sim_dataset(tmp_path, "outliers", robot="octopus", program="chai2015", seed=22,
                               effects=Effects(outlier_stations=(5, 30, 44)))

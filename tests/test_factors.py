@@ -26,7 +26,10 @@ from factors import (
     plane_observation_factor,
     point_to_plane_error,
     point_to_plane_factor,
+    stance_foot_builtin_factor,
+    stance_foot_builtin_factors,
     stance_foot_error,
+    stance_foot_error_map,
     stance_foot_factor,
     tangent_basis,
 )
@@ -643,6 +646,107 @@ def test_stance_foot_recovers_leg_parameters(robots):
     result = _optimize(graph, values)
     np.testing.assert_allclose(result.atVector(L(0)), theta_true, atol=1e-6)
     np.testing.assert_allclose(result.atPoint3(F(0)), F_true, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- stance_foot_builtin
+def _builtin_case(robot, foot, q, Xm, cov):
+    """The built-in factor and the Python factor of one foot at a body pose, with values that put
+    the foot exactly where the leg says (zero error)."""
+    leg = robot.leg(foot)
+    p_b = foot_positions(leg, q)
+    p_w = Xm[:3, :3] @ p_b + Xm[:3, 3]
+    fb = stance_foot_builtin_factor(X(0), F(0), p_b, cov)
+    fp = stance_foot_factor(X(0), F(0), q, leg, cov_m2=cov)
+    v = _values(x=(X(0), Xm), f=(F(0), ("point3", p_w)))
+    return fb, fp, v, p_b
+
+
+def _random_cov(rng, scale=0.003):
+    A = rng.normal(scale=scale, size=(3, 3))
+    return A @ A.T + (0.3 * scale) ** 2 * np.eye(3)
+
+
+def test_stance_foot_builtin_error_map_is_the_factor_derivative(robots):
+    """At zero error GTSAM's bearing-range Jacobians are exactly J times the Cartesian factor's:
+    d e_br / d(X, F) = -J [H_X, H_F] (J = stance_foot_error_map), checked numerically through GTSAM's
+    retract, at random legs and poses and at the special rotations."""
+    rng = np.random.default_rng(SEED + 31)
+    cases = []
+    for name in ("a1", "octopus"):
+        r = robots[name]
+        for i in range(N_RANDOM):
+            foot = r.feet[i % len(r.feet)]
+            cases.append((r, foot, _random_leg_q(r.leg(foot), rng), _random_pose(rng)))
+    for R_x in SPECIAL_ROTATIONS:
+        Xm = np.eye(4)
+        Xm[:3, :3] = R_x
+        Xm[:3, 3] = [0.3, -0.1, 0.4]
+        cases.append((robots["octopus"], "lf_foot", np.array([0.0, 1.0, -2.0]), Xm))
+    for r, foot, q, Xm in cases:
+        fb, _, v, p_b = _builtin_case(r, foot, q, Xm, _random_cov(rng))
+        np.testing.assert_allclose(fb.unwhitenedError(v), 0.0, atol=1e-12)
+        J = stance_foot_error_map(p_b)
+        _, H = stance_foot_error(Xm, Xm[:3, :3] @ p_b + Xm[:3, 3], q, r.leg(foot))
+        assert_jacobians(fb, v, [6, 3], [-J @ H[0], -J @ H[1]], what=f"{foot} q={q}")
+
+
+def test_stance_foot_builtin_is_the_python_factor_to_first_order(robots):
+    """Same noise after the map (the factor's covariance is J Sigma J^T), the same whitened normal
+    equations at zero error, and chi-square values that differ only at order |e| / r."""
+    rng = np.random.default_rng(SEED + 32)
+    r = robots["octopus"]
+    for i in range(N_RANDOM):
+        foot = r.feet[i % len(r.feet)]
+        q = _random_leg_q(r.leg(foot), rng)
+        Xm, cov = _random_pose(rng), _random_cov(rng)
+        fb, fp, v, p_b = _builtin_case(r, foot, q, Xm, cov)
+        J = stance_foot_error_map(p_b)
+        np.testing.assert_allclose(fb.noiseModel().covariance(), J @ cov @ J.T, rtol=1e-10, atol=1e-18)
+        (Ab, bb), (Ap, bp) = fb.linearize(v).jacobian(), fp.linearize(v).jacobian()
+        np.testing.assert_allclose(Ab.T @ Ab, Ap.T @ Ap, rtol=1e-8, atol=1e-8 * np.abs(Ap.T @ Ap).max())
+        np.testing.assert_allclose(bb, 0.0, atol=1e-9)
+        np.testing.assert_allclose(bp, 0.0, atol=1e-9)
+        # move the foot by ~3 mm: chi-square agrees to a few |e| / r (r >= 0.1 m here)
+        dv = gtsam.VectorValues()
+        dv.insert(F(0), rng.normal(scale=0.003, size=3))
+        moved = v.retract(dv)
+        chi_b, chi_p = 2 * fb.error(moved), 2 * fp.error(moved)
+        e_over_r = np.linalg.norm(dv.at(F(0))) / np.linalg.norm(p_b)
+        assert chi_p > 0.01
+        assert abs(chi_b - chi_p) <= 4 * e_over_r * chi_p, (chi_b, chi_p, e_over_r)
+
+
+def test_stance_foot_builtin_batch_maps_each_component(robots):
+    """The batch builder: one factor per foot, each noise component mapped by its own foot's J; the
+    components sum to the factor's covariance (what the variance-component estimation needs)."""
+    rng = np.random.default_rng(SEED + 33)
+    r = robots["octopus"]
+    qs = [_random_leg_q(r.leg(f), rng) for f in r.feet]
+    P = np.array([foot_positions(r.leg(f), q) for f, q in zip(r.feet, qs)])
+    C1 = np.stack([_random_cov(rng) for _ in r.feet])
+    C2 = np.broadcast_to(1e-6 * np.eye(3), C1.shape)
+    factors, mapped = stance_foot_builtin_factors(X(0), [F(j) for j in range(len(P))], P, {"joint": C1, "contact": C2})
+    assert len(factors) == len(P) and set(mapped) == {"joint", "contact"}
+    for j, f in enumerate(factors):
+        J = stance_foot_error_map(P[j])
+        np.testing.assert_allclose(mapped["joint"][j], J @ C1[j] @ J.T, rtol=1e-10, atol=1e-12 * np.abs(mapped["joint"][j]).max())
+        np.testing.assert_allclose(mapped["contact"][j], J @ C2[j] @ J.T, rtol=1e-10, atol=1e-12 * np.abs(mapped["contact"][j]).max())
+        np.testing.assert_allclose(f.noiseModel().covariance(), mapped["joint"][j] + mapped["contact"][j], rtol=1e-9)
+        assert [int(k) for k in f.keys()] == [X(0), F(j)]
+
+
+def test_stance_foot_builtin_input_errors():
+    cov = 1e-5 * np.eye(3)
+    with pytest.raises(ValueError, match="from the body origin"):
+        stance_foot_builtin_factor(X(0), F(0), [0.005, 0.0, 0.0], cov)
+    with pytest.raises(ValueError, match="finite 3-vectors"):
+        stance_foot_builtin_factor(X(0), F(0), [np.nan, 0.0, 0.2], cov)
+    with pytest.raises(ValueError, match="positive definite"):
+        stance_foot_builtin_factor(X(0), F(0), [0.1, 0.0, -0.2], -cov)
+    with pytest.raises(ValueError, match="3x3"):
+        stance_foot_builtin_factor(X(0), F(0), [0.1, 0.0, -0.2], np.eye(2))
+    with pytest.raises(ValueError, match="2 foot keys for 1 feet"):
+        stance_foot_builtin_factors(X(0), [F(0), F(1)], [[0.1, 0.0, -0.2]], {"c": cov[None]})
 
 
 # ----------------------------------------------------------------------------- imu_attitude

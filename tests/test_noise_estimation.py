@@ -16,13 +16,18 @@ from graphcal.simulation.session import SimulationConfig, simulate
 
 
 @pytest.fixture(scope="module")
-def problem(tmp_path_factory):
+def dataset(tmp_path_factory):
     res = simulate(SimulationConfig(robot="octopus", program="random", n_stations=15, seed=71, cloud_stride=8))
     folder = tmp_path_factory.mktemp("vce") / "ds"
     write_simulation(res, folder, output="planes")
     ds = read_dataset(folder)
     robot = load_dataset_robot(ds)
-    pb = build_problem(ds, robot, calibration_data(ds, robot), CalibrationOptions())
+    return ds, robot, calibration_data(ds, robot)
+
+
+@pytest.fixture(scope="module")
+def problem(dataset):
+    pb = build_problem(*dataset, CalibrationOptions())
     return pb, solve_problem(pb).values
 
 
@@ -35,6 +40,32 @@ def test_dense_and_marginals_paths_agree(problem, monkeypatch):
     for g in dense:
         assert dense[g].scale == pytest.approx(sparse[g].scale, rel=1e-6)
         assert dense[g].redundancy == pytest.approx(sparse[g].redundancy, rel=1e-6)
+
+
+def test_a_group_over_factors_of_different_variables(dataset, monkeypatch):
+    """One leg's parameters estimated, the others fixed: the stance-foot group holds Python factors
+    on (X, F, L) and built-in ones on (X, F). The per-block algebra of converged_scales gives the
+    factor-by-factor (gtsam.Marginals) path's statistics, and its iterated scales are finite."""
+    from graphcal.calibration.graph import ModelExtensions
+
+    ds, robot, data = dataset
+    ext = ModelExtensions(leg_sigmas=((robot.feet[0], (0.01,) * 6),))
+    mixed = build_problem(ds, robot, data, CalibrationOptions(), extensions=ext)
+    kinds = {type(mixed.graph.at(i)).__name__ for i, g in mixed.factor_groups.items() if g == "stance_foot"}
+    assert kinds == {"CustomFactor", "BearingRangeFactor3D"}
+    v = solve_problem(mixed).values
+    dense = ne.converged_scales(mixed.graph, v, mixed.factor_groups, mixed.factor_components,
+                                eligible=lambda s: True, max_iterations=1)[0]
+    monkeypatch.setattr(ne, "DENSE_MAX_DIM", 0)
+    sparse = ne.group_variances(mixed.graph, v, mixed.factor_groups, mixed.factor_components)
+    assert dense.keys() == sparse.keys() and "stance_foot/joint" in dense
+    for g in dense:
+        assert dense[g].scale == pytest.approx(sparse[g].scale, rel=1e-6), g
+        assert dense[g].redundancy == pytest.approx(sparse[g].redundancy, rel=1e-6), g
+    monkeypatch.undo()
+    _, scale = ne.converged_scales(mixed.graph, v, mixed.factor_groups, mixed.factor_components,
+                                   eligible=lambda s: s.redundancy > 3)
+    assert scale and all(np.isfinite(x) and x > 0 for x in scale.values())
 
 
 def test_default_noise_is_far_too_large_for_the_simulator(problem):

@@ -234,6 +234,7 @@ def leg_kinematics(data: CalibrationData, robot) -> dict:
             leg = robot.leg(f)
             Q = np.array([np.asarray(q, dtype=float) for _, q in items])
             P, J = foot_positions(leg, Q), leg_jacobian(leg, Q)
+            P.flags.writeable = J.flags.writeable = False  # shared by every graph built from the cache
             for k, (station, _) in enumerate(items):
                 table[(station, f)] = (P[k], J[k])
         out = (robot, table)
@@ -242,7 +243,17 @@ def leg_kinematics(data: CalibrationData, robot) -> dict:
 
 
 def _kinematic_bodies(data: CalibrationData, robot) -> tuple[dict, dict, dict]:
-    """station -> (u_body, height, T_world_body initial) from the stance feet (or the commanded pose)."""
+    """station -> (u_body, height, T_world_body initial) from the stance feet (or the commanded pose);
+    cached with :func:`leg_kinematics` (new dicts each call, the arrays read-only)."""
+    per_data = _LEG_CACHE.setdefault(data, {})
+    out = per_data.get(("bodies", id(robot)))
+    if out is None or out[0] is not robot:
+        out = (robot, _compute_kinematic_bodies(data, robot))
+        per_data[("bodies", id(robot))] = out
+    return tuple(dict(d) for d in out[1])
+
+
+def _compute_kinematic_bodies(data: CalibrationData, robot) -> tuple[dict, dict, dict]:
     out_u, out_h, out_T = {}, {}, {}
     kin = leg_kinematics(data, robot)
     for st in data.stations:
@@ -257,7 +268,9 @@ def _kinematic_bodies(data: CalibrationData, robot) -> tuple[dict, dict, dict]:
                 f"station {st.station}: fewer than 3 legs with joint angles and no commanded pose; "
                 "the body pose cannot be known"
             )
-        out_u[st.station], out_h[st.station], out_T[st.station] = u, h, T
+        u, T = np.array(u, dtype=float), np.array(T, dtype=float)
+        u.flags.writeable = T.flags.writeable = False
+        out_u[st.station], out_h[st.station], out_T[st.station] = u, float(h), T
     return out_u, out_h, out_T
 
 
@@ -370,21 +383,40 @@ def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, opti
     already computed."""
     from factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
     from factors.priors import commanded_pose_prior
-    from factors.stance_foot import joint_noise_covariance, stance_foot_factor
+    from factors.stance_foot import stance_foot_factor
+    from factors.stance_foot_builtin import MIN_RANGE_M, stance_foot_builtin_factors
+    from ..models.kinematics import foot_positions, leg_jacobian
 
-    out = []
+    var_joint, var_contact = options.sigma_joint_rad**2, options.sigma_contact_m**2
+    feet = []  # (foot, q, leg key, param, p_fk or None, leg position Jacobian)
     for f, q in st.q_by_foot.items():
         leg_key, param = leg_keys.get(f, (None, None))
         cached = kinematics.get((st.station, f)) if kinematics is not None else None
-        if cached is not None:
-            cov_joint = options.sigma_joint_rad**2 * (cached[1] @ cached[1].T)
-        else:
-            cov_joint = joint_noise_covariance(robot.leg(f), q, options.sigma_joint_rad, 0.0)
-        cov_contact = options.sigma_contact_m**2 * np.eye(3)
-        factor = stance_foot_factor(x_key, foot_keys[f], q, robot.leg(f), l_key=leg_key, param=param,
-                                    cov_m2=cov_joint + cov_contact,
-                                    p_fk=cached[0] if (cached is not None and leg_key is None) else None)
-        out.append((factor, "stance_foot", {"joint": cov_joint, "contact": cov_contact}))
+        if cached is None:
+            qa = np.asarray(q, dtype=float)
+            cached = (foot_positions(robot.leg(f), qa) if leg_key is None else None, leg_jacobian(robot.leg(f), qa))
+        feet.append((f, q, leg_key, param, cached[0] if leg_key is None else None, cached[1]))
+    # legs held fixed: GTSAM's bearing-range factor in C++, the noise components mapped to its error
+    # (first-order equivalent, factors/stance_foot_builtin.py); one batch per station
+    fixed = [j for j, e in enumerate(feet) if e[4] is not None and np.linalg.norm(e[4]) >= MIN_RANGE_M]
+    built = {}
+    if fixed:
+        P = np.array([feet[j][4] for j in fixed])
+        Jl = [feet[j][5] for j in fixed]
+        cov_joint = var_joint * np.stack([J @ J.T for J in Jl])
+        cov_contact = np.broadcast_to(var_contact * np.eye(3), cov_joint.shape)
+        factors, mapped = stance_foot_builtin_factors(x_key, [foot_keys[feet[j][0]] for j in fixed], P,
+                                                      {"joint": cov_joint, "contact": cov_contact})
+        for i, j in enumerate(fixed):
+            built[j] = (factors[i], {k: v[i] for k, v in mapped.items()})
+    out = []
+    for j, (f, q, leg_key, param, p_fk, J) in enumerate(feet):
+        if j not in built:
+            cov_joint, cov_contact = var_joint * (J @ J.T), var_contact * np.eye(3)
+            built[j] = (stance_foot_factor(x_key, foot_keys[f], q, robot.leg(f), l_key=leg_key, param=param,
+                                           cov_m2=cov_joint + cov_contact, p_fk=p_fk),
+                        {"joint": cov_joint, "contact": cov_contact})
+        out.append((built[j][0], "stance_foot", built[j][1]))
     if st.imu_accel is not None and R_body_imu is not None:
         if options.estimate_imu_mounting and w_key is not None:
             from factors.gravity_tilt import imu_attitude_tilted_factor

@@ -163,50 +163,39 @@ def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gro
     return out
 
 
-def _factor_rows(lin: gtsam.GaussianFactorGraph) -> list[np.ndarray]:
-    """Row indices of each factor of ``lin`` in ``lin.jacobian(ordering)`` (factors stacked in order)."""
-    out, start = [], 0
-    for i in range(lin.size()):
-        m = int(lin.at(i).rows())
-        out.append(np.arange(start, start + m))
-        start += m
-    return out
+def _factor_blocks(lin: gtsam.GaussianFactorGraph, values: gtsam.Values, n_factors: int) -> tuple[dict, list, int]:
+    """The whitened linear system by factor, gathered into blocks of equal shape.
 
+    Each factor's Jacobian comes over the columns of its own variables (``lin.at(i).jacobian()``,
+    keys in the factor's order); the unknowns are numbered in sorted key order.
 
-def _factor_blocks(A0: np.ndarray, rows: list[np.ndarray]):
-    """The sparsity of the whitened Jacobian by factor: each factor's rows and the columns any of
-    them touches (its support, fixed while rows are only re-weighted or mixed within a factor).
-
-    Returns (blocks, where, pattern): ``blocks`` (r, k) -> (factor ids (F,), row indices (F, r),
-    column indices (F, k)) for the factors of r rows and k support columns; ``where[i]`` =
-    ((r, k), position) of factor i; ``pattern`` (row indices, column indices, indptr) of the CSR
-    matrix holding every factor's rows over its support.
+    Returns (blocks, where, n): ``blocks`` (r, k) -> (factor ids (F,), A (F, r, k), b (F, r),
+    column indices (F, k)) for the factors of r rows over k unknowns, ``where[i]`` = ((r, k),
+    position) of factor i, and n the number of unknowns.
     """
-    m = A0.shape[0]
-    row_factor = np.empty(m, dtype=np.int64)
-    for i, r in enumerate(rows):
-        row_factor[r] = i
-    nz_r, nz_c = np.nonzero(A0)
-    touches = np.zeros((len(rows), A0.shape[1]), dtype=bool)  # factor x column incidence
-    touches[row_factor[nz_r], nz_c] = True
-    fac, col = np.nonzero(touches)  # sorted by factor, then column
-    cuts = np.searchsorted(fac, np.arange(len(rows) + 1))
-    groups: dict = {}
-    for i, r in enumerate(rows):
-        groups.setdefault((len(r), int(cuts[i + 1] - cuts[i])), []).append(i)
-    blocks, where, pr, pc = {}, [None] * len(rows), [], []
-    for (r, k), ids in groups.items():
-        R = np.stack([rows[i] for i in ids]).reshape(len(ids), r)
-        Cc = np.stack([col[cuts[i]:cuts[i + 1]] for i in ids]).reshape(len(ids), k)
-        blocks[(r, k)] = (np.asarray(ids), R, Cc)
-        for pos, i in enumerate(ids):
-            where[i] = ((r, k), pos)
-        pr.append(np.broadcast_to(R[:, :, None], (len(ids), r, k)).ravel())
-        pc.append(np.broadcast_to(Cc[:, None, :], (len(ids), r, k)).ravel())
-    pr, pc = np.concatenate(pr), np.concatenate(pc)
-    order = np.lexsort((pc, pr))
-    pr, pc = pr[order], pc[order]
-    return blocks, where, (pr, pc, np.searchsorted(pr, np.arange(m + 1)))
+    dims = {int(k): int(d) for k, d in values.dims().items()}
+    key_cols, n = {}, 0
+    for k in sorted(dims):
+        key_cols[k] = list(range(n, n + dims[k]))
+        n += dims[k]
+    parts: dict[tuple, tuple[list, list, list, list]] = {}
+    where: list = [None] * n_factors
+    for i in range(n_factors):
+        f = lin.at(i)
+        A, b = f.jacobian()
+        cols = [c for k in f.keys() for c in key_cols[k]]
+        A = np.asarray(A, dtype=float)
+        key = A.shape
+        if key[1] != len(cols):
+            raise GraphcalError(f"noise estimation: factor {i} has {key[1]} Jacobian columns for {len(cols)} unknowns")
+        ids, As, bs, cs = parts.setdefault(key, ([], [], [], []))
+        where[i] = (key, len(ids))
+        ids.append(i)
+        As.append(A)
+        bs.append(np.asarray(b, dtype=float).reshape(-1))
+        cs.append(cols)
+    blocks = {key: (np.asarray(ids), np.stack(As), np.stack(bs), np.stack(cs)) for key, (ids, As, bs, cs) in parts.items()}
+    return blocks, where, n
 
 
 def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, groups: dict,
@@ -222,6 +211,11 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
     checks it with one more call (the first iteration's statistics are exactly
     :func:`group_variances` at ``values``). Measured on Chai's 52 stations: 2 calls and 1 re-solve,
     where one update per re-solve took 3 calls and 2 re-solves to the same sigmas.
+
+    The algebra works on each factor's own block (its rows over its variables' columns, stacked
+    into arrays of equal shape), never on the whole Jacobian: the normal matrix is summed from
+    the blocks, inverted densely (at most ``DENSE_MAX_DIM`` unknowns) and the hat matrix is read
+    block by block.
 
     Args:
         graph, values, groups, components: as :func:`group_variances`.
@@ -239,7 +233,6 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
         GraphcalError: the graph has an undetermined variable.
     """
     import scipy.linalg
-    import scipy.sparse
 
     components = components or {}
     bounds = bounds or {}
@@ -247,80 +240,110 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
         first = group_variances(graph, values, groups, components)
         return first, {g: _clip(v.scale, bounds.get(g)) for g, v in first.items() if eligible(v)}
     lin = graph.linearize(values)
-    ordering = gtsam.Ordering()
-    for k in sorted(int(k) for k in graph.keyVector()):
-        ordering.push_back(k)
-    A0, b0 = lin.jacobian(ordering)
-    A0, b0 = np.asarray(A0, dtype=float), np.asarray(b0, dtype=float).reshape(-1)
-    rows = _factor_rows(lin)
-    if sum(len(r) for r in rows) != len(b0):
-        raise GraphcalError("noise estimation: the linearised graph's rows do not match its factors")
-    blocks, where, (pat_r, pat_c, indptr) = _factor_blocks(A0, rows)
-    single: dict[str, np.ndarray] = {}
+    blocks, where, n = _factor_blocks(lin, values, int(graph.size()))
+    # per block: the group of each factor's rows (single-component groups scale them by 1 / s)
+    single_of: dict[tuple, list] = {key: [None] * len(ids) for key, (ids, *_) in blocks.items()}
+    single: dict[str, list] = {}
     multi: dict[str, dict] = {}
     for i, g in groups.items():
+        key, pos = where[i]
         comps = components.get(i)
         if not comps:
-            single.setdefault(g, []).append(rows[i])
+            single_of[key][pos] = g
+            single.setdefault(g, []).append((key, pos))
             continue
-        m = multi.setdefault(g, {"names": list(comps), "rows": [], "W": [], "S": {k: [] for k in comps}})
+        m = multi.setdefault(g, {"names": list(comps), "where": [], "W": [], "S": {k: [] for k in comps}})
         if list(comps) != m["names"]:
             raise GraphcalError(f"noise estimation: factors of group {g} have different components")
-        m["rows"].append(rows[i])
-        m.setdefault("where", []).append(where[i])
+        m["where"].append((key, pos))
         m["W"].append(whitening_matrix(graph.at(i)))
         for k, Sk in comps.items():
             m["S"][k].append(np.asarray(Sk, dtype=float))
-    single = {g: np.concatenate(r) for g, r in single.items()}
     for g, m in multi.items():
-        m["rows"] = np.stack(m["rows"])  # (F, r)
         m["S"] = {k: np.stack(v) for k, v in m["S"].items()}  # (F, r, r)
-        W0_inv = np.linalg.inv(np.stack(m["W"]))  # the linearisation's whitening, undone
-        m["A_raw"] = W0_inv @ A0[m["rows"]]  # unwhitened rows (F, r, n)
-        m["b_raw"] = np.einsum("fij,fj->fi", W0_inv, b0[m["rows"]])
+        m["W0_inv"] = np.linalg.inv(np.stack(m["W"]))  # the linearisation's whitening, undone
+    # index of each single group's factors within their blocks
+    single_idx = {g: {} for g in single}
+    for g, locs in single.items():
+        for key, pos in locs:
+            single_idx[g].setdefault(key, []).append(pos)
+    single_idx = {g: {key: np.asarray(p) for key, p in d.items()} for g, d in single_idx.items()}
+    multi_idx = {}
+    for g, m in multi.items():
+        d: dict = {}
+        for j, (key, pos) in enumerate(m["where"]):
+            d.setdefault(key, ([], []))
+            d[key][0].append(pos)
+            d[key][1].append(j)
+        multi_idx[g] = {key: (np.asarray(p), np.asarray(j)) for key, (p, j) in d.items()}
+        # unwhitened rows, per block (a group's factors may span several unknowns, e.g. legs with and
+        # without estimated parameters): (F_b, r, k_b) and (F_b, r)
+        m["raw"] = {key: (m["W0_inv"][j] @ blocks[key][1][pos], np.einsum("fij,fj->fi", m["W0_inv"][j], blocks[key][2][pos]))
+                    for key, (pos, j) in multi_idx[g].items()}
+    # where each block's entries land: in the normal matrix (flat n * n), in the right-hand side,
+    # and in the lower triangle that dpotri fills (Sigma_x[i, j] read at max(i, j), min(i, j))
+    order = list(blocks)
+    h_idx = np.concatenate([(C[:, :, None] * n + C[:, None, :]).ravel() for _, _, _, C in blocks.values()])
+    g_idx = np.concatenate([C.ravel() for _, _, _, C in blocks.values()])
+    low_idx = {key: np.maximum(C[:, :, None], C[:, None, :]) * n + np.minimum(C[:, :, None], C[:, None, :])
+               for key, (_, _, _, C) in blocks.items()}
+
     scale = {g: 1.0 for g in single}
     for g, m in multi.items():
         scale.update({f"{g}/{k}": 1.0 for k in m["names"]})
-    A, b = A0.copy(), b0.copy()
+    A = {key: A0.copy() for key, (_, A0, _, _) in blocks.items()}
+    b = {key: b0.copy() for key, (_, _, b0, _) in blocks.items()}
     first: dict = {}
     updated: set = set()
     for it in range(max_iterations):
-        for g, r in single.items():
-            A[r] = A0[r] / scale[g]
-            b[r] = b0[r] / scale[g]
+        for g, d in single_idx.items():
+            for key, pos in d.items():
+                A[key][pos] = blocks[key][1][pos] / scale[g]
+                b[key][pos] = blocks[key][2][pos] / scale[g]
         Linv = {}
         for g, m in multi.items():
             Sig = sum(scale[f"{g}/{k}"] ** 2 * m["S"][k] for k in m["names"])
             Linv[g] = np.linalg.inv(np.linalg.cholesky(Sig))
-            A[m["rows"]] = Linv[g] @ m["A_raw"]
-            b[m["rows"]] = np.einsum("fij,fj->fi", Linv[g], m["b_raw"])
-        # a factor touches a few variables: sparse products, on the fixed pattern of the factors' rows
-        As = scipy.sparse.csr_matrix((A[pat_r, pat_c], pat_c, indptr), shape=A.shape)
+            for key, (pos, j) in multi_idx[g].items():
+                A_raw, b_raw = m["raw"][key]
+                A[key][pos] = Linv[g][j] @ A_raw
+                b[key][pos] = np.einsum("fij,fj->fi", Linv[g][j], b_raw)
+        # normal equations summed from the blocks (a factor touches a few unknowns)
+        AtA = np.concatenate([(np.swapaxes(A[key], 1, 2) @ A[key]).ravel() for key in order])
+        Atb = np.concatenate([np.einsum("frk,fr->fk", A[key], b[key]).ravel() for key in order])
+        H = np.bincount(h_idx, weights=AtA, minlength=n * n).reshape(n, n)
         try:
-            chol = scipy.linalg.cho_factor((As.T @ As).toarray(), lower=True)
+            chol = scipy.linalg.cho_factor(H, lower=True, overwrite_a=True)
             inv, info = scipy.linalg.lapack.dpotri(chol[0], lower=1)
         except np.linalg.LinAlgError:
             raise GraphcalError("noise estimation: the graph has an undetermined variable") from None
         if info != 0:
             raise GraphcalError("noise estimation: the graph has an undetermined variable")
-        Sigma_x = np.tril(inv) + np.tril(inv, -1).T
-        delta = scipy.linalg.cho_solve(chol, As.T @ b)
-        e = b - As @ delta  # whitened residuals at the re-weighted linear solution
-        # the hat matrix A Sigma_x A^T, its diagonal block of each factor (rows x its support)
-        hat = {}
-        hdiag = np.empty(len(b))
-        for key, (_, R_f, C_f) in blocks.items():
-            A_f = A[R_f[:, :, None], C_f[:, None, :]]  # (F, r, k)
-            hat[key] = A_f @ Sigma_x[C_f[:, :, None], C_f[:, None, :]] @ np.swapaxes(A_f, 1, 2)
-            hdiag[R_f] = np.einsum("fii->fi", hat[key])
+        inv = inv.ravel()  # Sigma_x, lower triangle
+        delta = scipy.linalg.cho_solve(chol, np.bincount(g_idx, weights=Atb, minlength=n))
+        # whitened residuals at the re-weighted linear solution, and the hat matrix A Sigma_x A^T
+        # of each factor (its diagonal block)
+        e, hat = {}, {}
+        for key, (_, _, _, C) in blocks.items():
+            A_f = A[key]
+            e[key] = b[key] - np.einsum("frk,fk->fr", A_f, delta[C])
+            hat[key] = A_f @ inv[low_idx[key]] @ np.swapaxes(A_f, 1, 2)
         stats: dict[str, GroupVariance] = {}
-        for g, r in single.items():
-            h = hdiag[r]
-            stats[g] = GroupVariance(g, float(e[r] @ e[r]), float(np.clip(1.0 - h, 0.0, 1.0).sum()), len(r))
+        for g, d in single_idx.items():
+            chi2 = red = 0.0
+            rows = 0
+            for key, pos in d.items():
+                ef = e[key][pos]
+                h = np.einsum("fii->fi", hat[key][pos])
+                chi2 += float(np.einsum("fr,fr->", ef, ef))
+                red += float(np.clip(1.0 - h, 0.0, 1.0).sum())
+                rows += ef.size
+            stats[g] = GroupVariance(g, chi2, red, rows)
         for g, m in multi.items():
-            names, R_idx = m["names"], m["rows"]
-            R = np.eye(R_idx.shape[1]) - np.stack([hat[key][pos] for key, pos in m["where"]])
-            ef = e[R_idx]
+            names, locs = m["names"], m["where"]
+            R = np.eye(locs[0][0][0]) - np.stack(  # r rows, equal within a group
+                [hat[key][pos] for key, pos in locs])
+            ef = np.stack([e[key][pos] for key, pos in locs])
             C = {k: Linv[g] @ (scale[f"{g}/{k}"] ** 2 * m["S"][k]) @ np.swapaxes(Linv[g], 1, 2) for k in names}
             RC = {k: R @ C[k] for k in names}
             q = np.array([float(np.einsum("fi,fij,fj->", ef, C[k], ef)) for k in names])
@@ -329,7 +352,7 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
             for k, th, qk in zip(names, theta, q):
                 red = float(np.maximum(np.trace(RC[k], axis1=1, axis2=2), 0.0).sum())
                 key = f"{g}/{k}"
-                stats[key] = GroupVariance(key, float(qk), red, R_idx.size, float(th))
+                stats[key] = GroupVariance(key, float(qk), red, ef.size, float(th))
         if it == 0:
             first = stats
         worst = 0.0
