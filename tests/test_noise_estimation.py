@@ -55,7 +55,7 @@ def test_a_group_over_factors_of_different_variables(dataset, monkeypatch):
     assert kinds == {"CustomFactor", "BearingRangeFactor3D"}
     v = solve_problem(mixed).values
     dense = ne.converged_scales(mixed.graph, v, mixed.factor_groups, mixed.factor_components,
-                                eligible=lambda s: True, max_iterations=1)[0]
+                                eligible=lambda s: True, max_iterations=1).first
     monkeypatch.setattr(ne, "DENSE_MAX_DIM", 0)
     sparse = ne.group_variances(mixed.graph, v, mixed.factor_groups, mixed.factor_components)
     assert dense.keys() == sparse.keys() and "stance_foot/joint" in dense
@@ -63,8 +63,8 @@ def test_a_group_over_factors_of_different_variables(dataset, monkeypatch):
         assert dense[g].scale == pytest.approx(sparse[g].scale, rel=1e-6), g
         assert dense[g].redundancy == pytest.approx(sparse[g].redundancy, rel=1e-6), g
     monkeypatch.undo()
-    _, scale = ne.converged_scales(mixed.graph, v, mixed.factor_groups, mixed.factor_components,
-                                   eligible=lambda s: s.redundancy > 3)
+    scale = ne.converged_scales(mixed.graph, v, mixed.factor_groups, mixed.factor_components,
+                                   eligible=lambda s: s.redundancy > 3).scales
     assert scale and all(np.isfinite(x) and x > 0 for x in scale.values())
 
 
@@ -121,7 +121,7 @@ def test_two_components_recovered_from_a_known_mixture():
     another square root of the information): with another root this fails."""
     data = _two_component_data(np.random.default_rng(3))
     graph, values, groups, comps = _build(data, (1.0, 1.0))
-    _, scale = ne.converged_scales(graph, values, groups, comps, eligible=_always)
+    scale = ne.converged_scales(graph, values, groups, comps, eligible=_always).scales
     assert scale["foot/joint"] == pytest.approx(0.5, rel=0.1)
     assert scale["foot/contact"] == pytest.approx(2.0, rel=0.1)
 
@@ -131,26 +131,95 @@ def test_converged_scales_are_the_fixed_point_of_repeated_solves():
     the graph reach (a linear problem: the two must agree)."""
     data = _two_component_data(np.random.default_rng(4))
     graph, values, groups, comps = _build(data, (1.0, 1.0))
-    _, scale = ne.converged_scales(graph, values, groups, comps, eligible=_always, tolerance=1e-6, max_iterations=200)
+    scale = ne.converged_scales(graph, values, groups, comps, eligible=_always, tolerance=1e-6, max_iterations=200).scales
     theta = np.array([1.0, 1.0])
     for _ in range(300):
         g, v, gr, co = _build(data, tuple(theta))
-        _, step = ne.converged_scales(g, v, gr, co, eligible=_always, max_iterations=1)
+        step = ne.converged_scales(g, v, gr, co, eligible=_always, max_iterations=1).scales
         theta *= np.array([step["foot/joint"], step["foot/contact"]]) ** 2
     assert np.sqrt(theta) == pytest.approx([scale["foot/joint"], scale["foot/contact"]], rel=1e-3)
     # and one step alone is not there yet (the iteration is needed)
-    _, one = ne.converged_scales(graph, values, groups, comps, eligible=_always, max_iterations=1)
+    one = ne.converged_scales(graph, values, groups, comps, eligible=_always, max_iterations=1).scales
     assert abs(one["foot/contact"] / scale["foot/contact"] - 1.0) > 0.01
+
+
+def test_the_step_is_the_optimum_with_the_new_weights():
+    """converged_scales' step from ``values`` lands on the optimum of the graph re-weighted with its
+    scales (this graph is linear in its variable, so exactly); calibrate starts its re-solve there."""
+    data = _two_component_data(np.random.default_rng(5))
+    graph, values, groups, comps = _build(data, (1.0, 1.0))
+    res = ne.converged_scales(graph, values, groups, comps, eligible=_always, tolerance=1e-9, max_iterations=500)
+    _, reweighted, _, _ = _build(data, (res.scales["foot/joint"] ** 2, res.scales["foot/contact"] ** 2))
+    moved = np.asarray(reweighted.atPoint3(0)) - np.asarray(values.atPoint3(0))
+    assert np.linalg.norm(moved) > 1e-5  # the weights do move the optimum
+    np.testing.assert_allclose(np.asarray(values.retract(res.step).atPoint3(0)), np.asarray(reweighted.atPoint3(0)),
+                               rtol=0, atol=1e-6 * np.linalg.norm(moved))
 
 
 def test_large_graphs_fall_back_to_one_update_from_the_marginals(problem, monkeypatch):
     """Above DENSE_MAX_DIM converged_scales makes the single update of the factor-by-factor
     marginals (gtsam.Marginals), and that update equals the dense first iteration."""
     pb, values = problem
-    _, dense_one = ne.converged_scales(pb.graph, values, pb.factor_groups, pb.factor_components,
-                                       eligible=_always, max_iterations=1)
+    dense_one = ne.converged_scales(pb.graph, values, pb.factor_groups, pb.factor_components,
+                                       eligible=_always, max_iterations=1).scales
     monkeypatch.setattr(ne, "DENSE_MAX_DIM", 0)
-    _, fallback = ne.converged_scales(pb.graph, values, pb.factor_groups, pb.factor_components,
-                                      eligible=_always, max_iterations=50)
+    fallback = ne.converged_scales(pb.graph, values, pb.factor_groups, pb.factor_components,
+                                      eligible=_always, max_iterations=50).scales
     assert fallback.keys() == dense_one.keys()
     assert fallback == pytest.approx(dense_one, rel=1e-6)
+
+
+# ----------------------------------------------------------------------------- the arrow-shaped inverse
+def _arrow_matrix(rng, m=7, d=6, g=5):
+    """A random positive-definite normal matrix of m local variables (d columns each, coupled only
+    through g global columns), its local column indices (shuffled among the globals) and globals."""
+    n = m * d + g
+    cols = rng.permutation(n)
+    local, glob = cols[: m * d].reshape(m, d), np.sort(cols[m * d:])
+    rows = []
+    for i in range(m):  # each local variable's factors: its own columns and the globals
+        A = np.zeros((d + 4, n))
+        A[:, local[i]] = rng.normal(size=(d + 4, d))
+        A[:, glob] = rng.normal(size=(d + 4, g))
+        rows.append(A)
+    prior = np.zeros((g, n))
+    prior[:, glob] = np.eye(g)
+    A = np.vstack(rows + [prior])
+    return A.T @ A, local, glob
+
+
+def test_arrow_inverse_equals_the_dense_inverse_where_factors_read_it():
+    rng = np.random.default_rng(11)
+    H, local, glob = _arrow_matrix(rng)
+    rhs = rng.normal(size=len(H))
+    Sigma, delta = ne._arrow_inverse(H, rhs, {local.shape[1]: local}, glob)
+    dense = np.linalg.inv(H)
+    np.testing.assert_allclose(delta, dense @ rhs, rtol=1e-9, atol=1e-12)
+    for i in range(len(local)):  # every block a factor can read: its local variable and the globals
+        cols = np.r_[local[i], glob]
+        np.testing.assert_allclose(Sigma[np.ix_(cols, cols)], dense[np.ix_(cols, cols)], rtol=1e-9, atol=1e-12)
+    # the split finds the locals of such a graph: no two share a factor, the shared ones are global
+    columns = {k: list(range(6 * k, 6 * k + 6)) for k in range(7)}
+    columns.update({7 + j: [42 + j] for j in range(5)})
+    factor_keys = [(i, 7 + j) for i in range(7) for j in range(5)]
+    by_dim, g = ne._arrow_split(columns, factor_keys)
+    assert sorted(map(tuple, by_dim[6].tolist())) == [tuple(c) for c in list(columns.values())[:7]]
+    assert g.tolist() == list(range(42, 47))
+    # no locals at all: the dense inverse
+    Sigma0, delta0 = ne._arrow_inverse(H, rhs, {}, np.arange(len(H)))
+    np.testing.assert_allclose(Sigma0, dense, rtol=1e-9, atol=1e-12)
+
+
+def test_arrow_inverse_refuses_an_undetermined_variable():
+    rng = np.random.default_rng(12)
+    H, local, glob = _arrow_matrix(rng)
+    H = H.copy()
+    c = local[2, 0]
+    H[c, :] = H[:, c] = 0.0  # a local variable's direction without information
+    with pytest.raises(ne.GraphcalError, match="undetermined"):
+        ne._arrow_inverse(H, np.ones(len(H)), {local.shape[1]: local}, glob)
+    H2, local2, glob2 = _arrow_matrix(rng)
+    H2 = H2.copy()
+    H2[np.ix_(glob2, glob2)] -= 1e3 * np.eye(len(glob2))  # the globals' Schur complement is not positive
+    with pytest.raises(ne.GraphcalError, match="undetermined"):
+        ne._arrow_inverse(H2, np.ones(len(H2)), {local2.shape[1]: local2}, glob2)

@@ -78,10 +78,12 @@ def calibrate(
     outliers: set = set()
     warnings: list[str] = []
 
-    def resolve(opts, excluded, stage):
+    def resolve(opts, excluded, stage, start=None):
         nonlocal problem, values, iterations
-        # warm start from the last solution: the graph differs only in noise or left-out measurements
-        problem = build_problem(ds, robot, data, opts, exclude=frozenset(excluded), initial=values)
+        # warm start from the last solution (or the caller's prediction of the new optimum): the
+        # graph differs only in noise or left-out measurements
+        problem = build_problem(ds, robot, data, opts, exclude=frozenset(excluded),
+                                initial=values if start is None else start)
         lm = solve_problem(problem, progress=progress, stage=stage)
         values = lm.values
         iterations += lm.iterations
@@ -89,11 +91,13 @@ def calibrate(
     def estimate_noise(opts):
         # variance-component estimation under the Huber loss (outliers are down-weighted)
         for _ in range(VCE_ROUNDS):
-            scaled, changed = rescaled_options(opts, problem, values)
+            scaled, changed, step = rescaled_options(opts, problem, values)
             if not changed:
                 break
             opts = scaled
-            resolve(opts, outliers, "noise re-estimated")
+            # start at the variance estimation's linear solution with the new weights: the
+            # re-weighted optimum to first order (fewer LM iterations)
+            resolve(opts, outliers, "noise re-estimated", start=None if step is None else values.retract(step))
         return opts
 
     if options.estimate_noise:
@@ -157,12 +161,13 @@ _GROUP_FIELDS = {"stance_foot/joint": ("sigma_joint_rad",), "stance_foot/contact
 
 
 def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, values, *,
-                     converge: bool = True) -> tuple[CalibrationOptions, bool]:
+                     converge: bool = True) -> tuple[CalibrationOptions, bool, "gtsam.VectorValues | None"]:
     """Options with every noise group's sigma multiplied by its variance-component scale
     (noise_estimation.py); ``changed`` is False once every scale at ``values`` is within
     ``VCE_TOLERANCE`` of 1. ``converge``: iterate the scales to their fixed point on the graph
     linearised at ``values`` (:func:`~graphcal.calibration.noise_estimation.converged_scales`);
-    False: one update."""
+    False: one update. Returns (options, changed, the linear step from ``values`` with the new
+    weights or None)."""
     import dataclasses
 
     from .noise_estimation import converged_scales
@@ -172,7 +177,7 @@ def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, v
 
     bounds = {g: (max(VCE_SCALE_BOUNDS[0], *(VCE_FLOOR[n] / getattr(options, n) for n in names)), VCE_SCALE_BOUNDS[1])
               for g, names in _GROUP_FIELDS.items()}
-    first, scale = converged_scales(problem.graph, values, problem.factor_groups, problem.factor_components,
+    first, scale, step = converged_scales(problem.graph, values, problem.factor_groups, problem.factor_components,
                                     eligible=eligible, bounds=bounds, tolerance=VCE_INNER_TOLERANCE,
                                     max_iterations=VCE_INNER_ITERATIONS if converge else 1)
     # a scale held at its bound (a sigma at its floor) is no change
@@ -190,7 +195,7 @@ def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, v
             sensor = group.split(":", 1)[1]
             planes[sensor] = planes.get(sensor, 1.0) * s
     update["plane_sigma_scales"] = tuple(sorted(planes.items()))
-    return dataclasses.replace(options, **update), changed
+    return dataclasses.replace(options, **update), changed, step
 
 
 def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set, iterations: int,

@@ -40,6 +40,7 @@ solved together with Helmert's equations instead, ``sum_l tr(R C_k R C_l) theta_
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import gtsam
 import numpy as np
@@ -116,7 +117,7 @@ def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gro
     """
     components = components or {}
     if _is_dense(graph, values):  # one dense update: the first iteration of converged_scales
-        return converged_scales(graph, values, groups, components, eligible=lambda v: True, max_iterations=1)[0]
+        return converged_scales(graph, values, groups, components, eligible=lambda v: True, max_iterations=1).first
     lin = graph.linearize(values)
     joint = _marginals_reader(graph, values)
     acc: dict[str, list[float]] = {}
@@ -163,27 +164,30 @@ def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gro
     return out
 
 
-def _factor_blocks(lin: gtsam.GaussianFactorGraph, values: gtsam.Values, n_factors: int) -> tuple[dict, list, int]:
+def _factor_blocks(lin: gtsam.GaussianFactorGraph, values: gtsam.Values, keys, n_factors: int) -> tuple[dict, list, dict]:
     """The whitened linear system by factor, gathered into blocks of equal shape.
 
     Each factor's Jacobian comes over the columns of its own variables (``lin.at(i).jacobian()``,
-    keys in the factor's order); the unknowns are numbered in sorted key order.
+    keys in the factor's order); the unknowns are those of ``keys`` (the graph's), numbered in sorted
+    key order.
 
-    Returns (blocks, where, n): ``blocks`` (r, k) -> (factor ids (F,), A (F, r, k), b (F, r),
+    Returns (blocks, where, columns): ``blocks`` (r, k) -> (factor ids (F,), A (F, r, k), b (F, r),
     column indices (F, k)) for the factors of r rows over k unknowns, ``where[i]`` = ((r, k),
-    position) of factor i, and n the number of unknowns.
+    position) of factor i, and ``columns`` key -> its unknowns' column indices.
     """
     dims = {int(k): int(d) for k, d in values.dims().items()}
     key_cols, n = {}, 0
-    for k in sorted(dims):
+    for k in sorted(int(k) for k in keys):
         key_cols[k] = list(range(n, n + dims[k]))
         n += dims[k]
     parts: dict[tuple, tuple[list, list, list, list]] = {}
     where: list = [None] * n_factors
+    factor_keys: list = [None] * n_factors
     for i in range(n_factors):
         f = lin.at(i)
         A, b = f.jacobian()
-        cols = [c for k in f.keys() for c in key_cols[k]]
+        factor_keys[i] = tuple(int(k) for k in f.keys())
+        cols = [c for k in factor_keys[i] for c in key_cols[k]]
         A = np.asarray(A, dtype=float)
         key = A.shape
         if key[1] != len(cols):
@@ -195,12 +199,97 @@ def _factor_blocks(lin: gtsam.GaussianFactorGraph, values: gtsam.Values, n_facto
         bs.append(np.asarray(b, dtype=float).reshape(-1))
         cs.append(cols)
     blocks = {key: (np.asarray(ids), np.stack(As), np.stack(bs), np.stack(cs)) for key, (ids, As, bs, cs) in parts.items()}
-    return blocks, where, n
+    return blocks, where, key_cols, factor_keys
+
+
+def _arrow_split(columns: dict, factor_keys: list) -> tuple[dict, np.ndarray]:
+    """Split the unknowns for :func:`_arrow_inverse`: "local" variables, no two of which share a
+    factor (a calibration graph's station poses: each station's factors touch its own pose and the
+    shared variables only), chosen greedily by fewest neighbours; the rest is "global".
+
+    Returns (dimension -> (m, d) column indices of the local variables of that dimension, the
+    global columns (g,))."""
+    neighbours: dict = {k: set() for k in columns}
+    for keys in factor_keys:
+        for k in keys:
+            neighbours[k].update(keys)
+    local, blocked = [], set()
+    for k in sorted(columns, key=lambda k: (len(neighbours[k]), k)):
+        if k not in blocked:
+            local.append(k)
+            blocked |= neighbours[k]
+    by_dim: dict = {}
+    for k in local:
+        by_dim.setdefault(len(columns[k]), []).append(columns[k])
+    in_local = {k for k in local}
+    global_cols = [c for k in sorted(columns) if k not in in_local for c in columns[k]]
+    return {d: np.asarray(c, dtype=np.int64) for d, c in by_dim.items()}, np.asarray(global_cols, dtype=np.int64)
+
+
+def _pd_inverse(M: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric positive-definite matrices (..., d, d); GraphcalError if one is not."""
+    try:
+        np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        raise GraphcalError("noise estimation: the graph has an undetermined variable") from None
+    return np.linalg.inv(M) if M.shape[-1] else M.copy()
+
+
+def _arrow_inverse(H: np.ndarray, rhs: np.ndarray, local: dict, global_cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(H^-1, H^-1 rhs)`` for a normal matrix whose local variables (:func:`_arrow_split`) are
+    coupled only through the global ones: ``H = [[D, B], [B^T, G]]`` with D block diagonal. The
+    Schur complement ``S = G - B^T D^-1 B`` (global x global, a few dozen unknowns) is inverted
+    densely, the local blocks one by one (batched):
+
+        Sigma_GG = S^-1,   Sigma_LG = -D^-1 B S^-1,   Sigma_LiLi = D_i^-1 + D_i^-1 B_i S^-1 B_i^T D_i^-1.
+
+    The blocks between two different local variables are left zero: no factor touches two of them,
+    so the hat matrix never reads them. Costs O(stations) instead of the O(n^3) of a dense inverse.
+    Raises GraphcalError when H is not positive definite (a local block or S is not)."""
+    n = len(H)
+    g = global_cols
+    S = H[np.ix_(g, g)]
+    r_g = rhs[g].copy()
+    parts = []
+    for idx in local.values():
+        D = H[idx[:, :, None], idx[:, None, :]]  # (m, d, d)
+        B = H[idx[:, :, None], g[None, None, :]]  # (m, d, g)
+        D_inv = _pd_inverse(D)
+        D_inv_B = D_inv @ B
+        D_inv_r = np.einsum("mij,mj->mi", D_inv, rhs[idx])
+        S = S - np.einsum("mdg,mdh->gh", B, D_inv_B)
+        r_g -= np.einsum("mdg,md->g", B, D_inv_r)
+        parts.append((idx, D_inv, D_inv_B, D_inv_r))
+    S_inv = _pd_inverse(0.5 * (S + S.T))
+    Sigma = np.zeros((n, n))
+    delta = np.empty(n)
+    d_g = S_inv @ r_g
+    Sigma[np.ix_(g, g)] = S_inv
+    delta[g] = d_g
+    for idx, D_inv, D_inv_B, D_inv_r in parts:
+        X = D_inv_B @ S_inv  # (m, d, g) = -Sigma_LG
+        Sigma[idx[:, :, None], g[None, None, :]] = -X
+        Sigma[g[None, :, None], idx[:, None, :]] = -np.swapaxes(X, 1, 2)
+        Sigma[idx[:, :, None], idx[:, None, :]] = D_inv + X @ np.swapaxes(D_inv_B, 1, 2)
+        delta[idx] = D_inv_r - np.einsum("mdg,g->md", D_inv_B, d_g)
+    return Sigma, delta
+
+
+class ConvergedScales(NamedTuple):
+    """What :func:`converged_scales` returns."""
+
+    #: statistics of the first iteration: key -> :class:`GroupVariance` (:func:`group_variances`)
+    first: dict
+    #: key -> cumulative sigma scale of every eligible key relative to the graph's current noise
+    scales: dict
+    #: the linear solution with the last iteration's weights (a step from ``values``, to start the
+    #: re-solve near its optimum); None on the large-graph path
+    step: gtsam.VectorValues | None
 
 
 def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, groups: dict,
                      components: dict | None = None, *, eligible, bounds: dict | None = None,
-                     tolerance: float = 1e-3, max_iterations: int = 60) -> tuple[dict, dict]:
+                     tolerance: float = 1e-3, max_iterations: int = 60) -> ConvergedScales:
     """Variance components iterated to their fixed point on the graph linearised at ``values``.
 
     The graph is linearised once; each iteration re-weights the whitened rows with the current
@@ -214,8 +303,9 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
 
     The algebra works on each factor's own block (its rows over its variables' columns, stacked
     into arrays of equal shape), never on the whole Jacobian: the normal matrix is summed from
-    the blocks, inverted densely (at most ``DENSE_MAX_DIM`` unknowns) and the hat matrix is read
-    block by block.
+    the blocks and inverted through the Schur complement of the station poses
+    (:func:`_arrow_inverse`, at most ``DENSE_MAX_DIM`` unknowns), and the hat matrix is read block
+    by block.
 
     Args:
         graph, values, groups, components: as :func:`group_variances`.
@@ -226,30 +316,30 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
         max_iterations: cap (1: one update, exactly :func:`group_variances` with ``eligible``).
 
     Returns:
-        (statistics of the first iteration: key -> :class:`GroupVariance`, key -> cumulative sigma
-        scale of every eligible key relative to the graph's current noise).
+        :class:`ConvergedScales`: the first iteration's statistics, the scales, and the linear
+        step of the last iteration (with the weights it used; at the fixed point, the optimum of the
+        re-weighted graph to first order: ``values.retract(step)`` starts the re-solve there).
 
     Raises:
         GraphcalError: the graph has an undetermined variable.
     """
-    import scipy.linalg
 
     components = components or {}
     bounds = bounds or {}
     if not _is_dense(graph, values):  # large graphs: one update (factor-wise marginals)
         first = group_variances(graph, values, groups, components)
-        return first, {g: _clip(v.scale, bounds.get(g)) for g, v in first.items() if eligible(v)}
+        return ConvergedScales(first, {g: _clip(v.scale, bounds.get(g)) for g, v in first.items() if eligible(v)},
+                               None)
     lin = graph.linearize(values)
-    blocks, where, n = _factor_blocks(lin, values, int(graph.size()))
-    # per block: the group of each factor's rows (single-component groups scale them by 1 / s)
-    single_of: dict[tuple, list] = {key: [None] * len(ids) for key, (ids, *_) in blocks.items()}
+    blocks, where, columns, factor_keys = _factor_blocks(lin, values, graph.keyVector(), int(graph.size()))
+    n = sum(len(c) for c in columns.values())
+    local, global_cols = _arrow_split(columns, factor_keys)
     single: dict[str, list] = {}
     multi: dict[str, dict] = {}
     for i, g in groups.items():
         key, pos = where[i]
         comps = components.get(i)
         if not comps:
-            single_of[key][pos] = g
             single.setdefault(g, []).append((key, pos))
             continue
         m = multi.setdefault(g, {"names": list(comps), "where": [], "W": [], "S": {k: [] for k in comps}})
@@ -280,13 +370,12 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
         # without estimated parameters): (F_b, r, k_b) and (F_b, r)
         m["raw"] = {key: (m["W0_inv"][j] @ blocks[key][1][pos], np.einsum("fij,fj->fi", m["W0_inv"][j], blocks[key][2][pos]))
                     for key, (pos, j) in multi_idx[g].items()}
-    # where each block's entries land: in the normal matrix (flat n * n), in the right-hand side,
-    # and in the lower triangle that dpotri fills (Sigma_x[i, j] read at max(i, j), min(i, j))
+    # where each block's entries land: in the normal matrix and Sigma_x (flat n * n), and in the
+    # right-hand side
     order = list(blocks)
-    h_idx = np.concatenate([(C[:, :, None] * n + C[:, None, :]).ravel() for _, _, _, C in blocks.values()])
-    g_idx = np.concatenate([C.ravel() for _, _, _, C in blocks.values()])
-    low_idx = {key: np.maximum(C[:, :, None], C[:, None, :]) * n + np.minimum(C[:, :, None], C[:, None, :])
-               for key, (_, _, _, C) in blocks.items()}
+    flat_idx = {key: C[:, :, None] * n + C[:, None, :] for key, (_, _, _, C) in blocks.items()}
+    h_idx = np.concatenate([flat_idx[key].ravel() for key in order])
+    g_idx = np.concatenate([blocks[key][3].ravel() for key in order])
 
     scale = {g: 1.0 for g in single}
     for g, m in multi.items():
@@ -312,22 +401,15 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
         AtA = np.concatenate([(np.swapaxes(A[key], 1, 2) @ A[key]).ravel() for key in order])
         Atb = np.concatenate([np.einsum("frk,fr->fk", A[key], b[key]).ravel() for key in order])
         H = np.bincount(h_idx, weights=AtA, minlength=n * n).reshape(n, n)
-        try:
-            chol = scipy.linalg.cho_factor(H, lower=True, overwrite_a=True)
-            inv, info = scipy.linalg.lapack.dpotri(chol[0], lower=1)
-        except np.linalg.LinAlgError:
-            raise GraphcalError("noise estimation: the graph has an undetermined variable") from None
-        if info != 0:
-            raise GraphcalError("noise estimation: the graph has an undetermined variable")
-        inv = inv.ravel()  # Sigma_x, lower triangle
-        delta = scipy.linalg.cho_solve(chol, np.bincount(g_idx, weights=Atb, minlength=n))
+        Sigma_x, delta = _arrow_inverse(H, np.bincount(g_idx, weights=Atb, minlength=n), local, global_cols)
+        Sigma_x = Sigma_x.ravel()
         # whitened residuals at the re-weighted linear solution, and the hat matrix A Sigma_x A^T
         # of each factor (its diagonal block)
         e, hat = {}, {}
         for key, (_, _, _, C) in blocks.items():
             A_f = A[key]
             e[key] = b[key] - np.einsum("frk,fk->fr", A_f, delta[C])
-            hat[key] = A_f @ inv[low_idx[key]] @ np.swapaxes(A_f, 1, 2)
+            hat[key] = A_f @ Sigma_x[flat_idx[key]] @ np.swapaxes(A_f, 1, 2)
         stats: dict[str, GroupVariance] = {}
         for g, d in single_idx.items():
             chi2 = red = 0.0
@@ -364,7 +446,10 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
                 updated.add(key)
         if worst <= tolerance:
             break
-    return first, {key: scale[key] for key in updated}
+    step = gtsam.VectorValues()
+    for k, cols in columns.items():
+        step.insert(k, delta[cols[0]:cols[-1] + 1])
+    return ConvergedScales(first, {key: scale[key] for key in updated}, step)
 
 
 def _clip(s: float, bound) -> float:

@@ -168,7 +168,7 @@ class DiagnosisModel:
         problem, values = model.solve(initial=values)
         keep_planes = {name for (st, name), p in self.data.planes.items() if p.cov is not None}
         for _ in range(rounds):
-            opts, changed = rescaled_options(model.options, problem, values, converge=False)
+            opts, changed, _ = rescaled_options(model.options, problem, values, converge=False)
             planes = tuple((s, v) for s, v in opts.plane_sigma_scales if s not in keep_planes)
             opts = dataclasses.replace(opts, plane_sigma_scales=planes,
                                        **{name: getattr(self.options, name) for name in FIXED_NOISE})
