@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,6 +18,9 @@ from ..geometry import from_gtsam_pose
 from .graph import CalibrationOptions, CalibrationProblem, build_problem, predicted_plane_errors
 from .measurements import CalibrationData, calibration_data
 from .result import CalibrationResult, ExtrinsicSegment, LegEstimate, SensorEstimate, StationResidual
+
+if TYPE_CHECKING:
+    import gtsam
 
 
 def _outlier_measurements(problem: CalibrationProblem, values, options: CalibrationOptions) -> tuple[set, dict]:
