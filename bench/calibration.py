@@ -14,7 +14,7 @@
 Timings are medians of repeats (6 for the Chai part, with their range); every number printed is
 measured in this run. The two graphcal variants swap places every repeat, so that each follows the
 baseline in half of the repeats: whichever runs right after the baseline is slower (its planes
-stage by 0.03-0.10 s on 2026-11-21; the cause was not found: it stays with OPENBLAS_NUM_THREADS=1).
+stage by 0.02-0.13 s in four comparisons on 2026-11-21; the cause was not found: it stays with OPENBLAS_NUM_THREADS=1).
 """
 
 from __future__ import annotations

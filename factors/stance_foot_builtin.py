@@ -37,6 +37,7 @@ import gtsam
 import numpy as np
 
 from factors._checked import with_robust
+from factors.stance_foot import _positive_definite_3x3
 
 __all__ = ["MIN_RANGE_M", "stance_foot_error_map", "stance_foot_builtin_factor", "stance_foot_builtin_factors"]
 
@@ -67,13 +68,6 @@ def stance_foot_error_map(p_body_foot) -> np.ndarray:
     and ``u^T`` (module docstring). Raises ValueError for a foot within ``MIN_RANGE_M`` of the body
     origin."""
     return _bearings(np.reshape(np.asarray(p_body_foot, dtype=float), (1, -1)))[3][0]
-
-
-def _positive_definite(C: np.ndarray) -> np.ndarray:
-    """Sylvester's criterion for symmetric 3x3 matrices (F, 3, 3): (F,) bool."""
-    m1 = C[:, 0, 0]
-    m2 = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] ** 2
-    return (m1 > 0) & (m2 > 0) & (np.linalg.det(C) > 0)
 
 
 def stance_foot_builtin_factors(x_key: int, f_keys, p_body_feet, cov_components: dict, *,
@@ -110,7 +104,7 @@ def stance_foot_builtin_factors(x_key: int, f_keys, p_body_feet, cov_components:
         M = J @ (0.5 * (C + np.swapaxes(C, 1, 2))) @ JT
         mapped[name] = 0.5 * (M + np.swapaxes(M, 1, 2))
     total = sum(mapped.values())
-    if not _positive_definite(total).all():
+    if not all(_positive_definite_3x3(C) for C in total):
         raise ValueError("the stance-foot noise must be symmetric positive definite")
     factors = [gtsam.BearingRangeFactor3D(x_key, f_key, u, float(ri),
                                           with_robust(gtsam.noiseModel.Gaussian.Covariance(cov), robust))

@@ -164,16 +164,17 @@ def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gro
     return out
 
 
-def _factor_blocks(lin: gtsam.GaussianFactorGraph, values: gtsam.Values, keys, n_factors: int) -> tuple[dict, list, dict]:
+def _factor_blocks(lin: gtsam.GaussianFactorGraph, values: gtsam.Values, keys, n_factors: int) -> tuple[dict, list, dict, list]:
     """The whitened linear system by factor, gathered into blocks of equal shape.
 
     Each factor's Jacobian comes over the columns of its own variables (``lin.at(i).jacobian()``,
     keys in the factor's order); the unknowns are those of ``keys`` (the graph's), numbered in sorted
     key order.
 
-    Returns (blocks, where, columns): ``blocks`` (r, k) -> (factor ids (F,), A (F, r, k), b (F, r),
-    column indices (F, k)) for the factors of r rows over k unknowns, ``where[i]`` = ((r, k),
-    position) of factor i, and ``columns`` key -> its unknowns' column indices.
+    Returns (blocks, where, columns, factor_keys): ``blocks`` (r, k) -> (factor ids (F,), A (F, r, k),
+    b (F, r), column indices (F, k)) for the factors of r rows over k unknowns, ``where[i]`` = ((r, k),
+    position) of factor i, ``columns`` key -> its unknowns' column indices, and ``factor_keys[i]``
+    the keys of factor i.
     """
     dims = {int(k): int(d) for k, d in values.dims().items()}
     key_cols, n = {}, 0
@@ -221,7 +222,7 @@ def _arrow_split(columns: dict, factor_keys: list) -> tuple[dict, np.ndarray]:
     by_dim: dict = {}
     for k in local:
         by_dim.setdefault(len(columns[k]), []).append(columns[k])
-    in_local = {k for k in local}
+    in_local = set(local)
     global_cols = [c for k in sorted(columns) if k not in in_local for c in columns[k]]
     return {d: np.asarray(c, dtype=np.int64) for d, c in by_dim.items()}, np.asarray(global_cols, dtype=np.int64)
 
@@ -323,7 +324,6 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
     Raises:
         GraphcalError: the graph has an undetermined variable.
     """
-
     components = components or {}
     bounds = bounds or {}
     if not _is_dense(graph, values):  # large graphs: one update (factor-wise marginals)
