@@ -271,10 +271,23 @@ def transform_plane(T_a_b, n_b, d_b) -> tuple[np.ndarray, float]:
 
 
 def plane_from_points_pca(points) -> tuple[np.ndarray, float, np.ndarray]:
-    """Least-squares plane through points (N, 3): (n, d) canonical, and the eigenvalues ascending."""
+    """Least-squares plane through points (N, 3) (any frame, m): (n, d) canonical, and the
+    eigenvalues (m^2) of the points' covariance, ascending.
+
+    One pass of BLAS over the points: the covariance is ``P^T P / N - c c^T`` (``c`` the
+    centroid), never a centred copy (measured on 52 Kinect clouds of 258k points: 3.5 ms a
+    cloud, against 14 ms for ``(P - c)^T (P - c)``). That formula cancels when the centroid is
+    far from the origin compared with the points' spread (its error is ~1e-16 |c|^2); beyond
+    ``|c|^2 > 1e4 trace(cov)`` (points 100 spreads from the origin, e.g. map coordinates) the
+    centred form is used instead.
+    """
     P = np.asarray(points, dtype=float)
-    c = P.mean(axis=0)
-    C = (P - c).T @ (P - c) / len(P)
+    n_points = len(P)
+    c = np.ones(n_points) @ P / n_points
+    C = P.T @ P / n_points - np.outer(c, c)
+    if c @ c > 1e4 * max(np.trace(C), 0.0):
+        Q = P - c
+        C = Q.T @ Q / n_points
     w, V = np.linalg.eigh(C)
     n = V[:, 0]
     n, d = canonical_plane(n, -n @ c)

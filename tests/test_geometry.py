@@ -120,3 +120,28 @@ def test_axis_angle_round_trip(rng):
         a, t = g.axis_angle_from_matrix(g.matrix_from_axis_angle(axis, angle))
         assert t == pytest.approx(angle, abs=1e-6)
         assert np.allclose(g.matrix_from_axis_angle(a, t), g.matrix_from_axis_angle(axis, angle), atol=1e-6)
+
+
+def _pca_centred(P):  # the textbook form
+    c = P.mean(axis=0)
+    w, V = np.linalg.eigh((P - c).T @ (P - c) / len(P))
+    return g.canonical_plane(V[:, 0], -V[:, 0] @ c), w
+
+
+@pytest.mark.parametrize("offset_m", [0.0, 2.0, 1e5])
+def test_plane_from_points_pca_equals_the_centred_pca(rng, offset_m):
+    """The one-pass moments give the centred PCA's plane; far from the origin (map coordinates)
+    the cancellation of P^T P / N - c c^T would not, and the centred form is used."""
+    n_true = np.array([0.1, -0.2, 1.0]) / np.linalg.norm([0.1, -0.2, 1.0])
+    t1 = np.cross(n_true, [1.0, 0.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(n_true, t1)
+    uv = rng.uniform(-1.0, 1.0, size=(20000, 2))
+    P = uv[:, :1] * t1 + uv[:, 1:] * t2 + 1e-3 * rng.standard_normal((20000, 1)) * n_true
+    P += offset_m * np.array([0.6, 0.8, 0.0]) + np.array([0.0, 0.0, -1.2])
+    n, d, w = g.plane_from_points_pca(P)
+    (n_ref, d_ref), w_ref = _pca_centred(P)
+    assert np.allclose(n, n_ref, atol=1e-9) and abs(d - d_ref) < 1e-9 * max(1.0, offset_m)
+    assert np.allclose(w, w_ref, rtol=1e-6, atol=1e-15)
+    # the plane found is the true one (noise 1 mm over 20k points)
+    assert np.degrees(np.arccos(min(1.0, abs(n @ n_true)))) < 0.01
