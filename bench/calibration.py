@@ -4,17 +4,23 @@
 
 * ``chai``: Chai scale, 52 stations x 300k-point Kinect clouds in a dataset folder. graphcal end to
   end (read clouds, extract planes, calibrate) against (a) reading the same clouds plus one numpy PCA
-  pass per cloud (target: <= 1.5x), and (b) Łabęcki's formulation, scipy ``least_squares`` on every
-  raw point's height above the floor with the body poses from the kinematics (target: graphcal >= 50x
-  faster at equal or better accuracy). Accuracy of each against the hidden truth.
+  pass per cloud, ``graphcal.geometry.plane_from_points_pca`` (target: <= 1.5x), and (b) Łabęcki's
+  formulation, scipy ``least_squares`` on every raw point's height above the floor with the body
+  poses from the kinematics (target: graphcal >= 50x faster at equal or better accuracy). Accuracy of each against the hidden truth. graphcal runs
+  three ways: noise learned (the default), the default noise model, and noise learned with the
+  clouds thinned to 50000 points (``--plane-points 50000``).
+  Until 2026-11-21 the PCA pass centred each cloud twice, ``(P - c)^T (P - c)`` (14 ms a cloud);
+  it is now one BLAS pass (3.5 ms), so ratios measured before then are against a baseline ~2.5x
+  slower and not comparable (bench/README.md).
 * ``isam``: a 500-station dataset (random program, planes); one iSAM2 update per station against a
   batch re-solve of the whole graph at 500 stations (target <= 10 %), and the update cost from 50 to
   500 stations (target: linear).
 
 Timings are medians of repeats (6 for the Chai part, with their range); every number printed is
-measured in this run. The two graphcal variants swap places every repeat, so that each follows the
-baseline in half of the repeats: whichever runs right after the baseline is slower (its planes
-stage by 0.02-0.13 s in four comparisons on 2026-11-21; the cause was not found: it stays with OPENBLAS_NUM_THREADS=1).
+measured in this run. The graphcal variants rotate every repeat, so that each follows the
+baseline in a third of the repeats: whichever runs right after the baseline is slower (its planes
+stage by 0.02-0.13 s in four comparisons on 2026-11-21; the cause was not found: it stays with
+OPENBLAS_NUM_THREADS=1).
 """
 
 from __future__ import annotations
@@ -67,8 +73,9 @@ def bench_chai(repeats: int = 6) -> dict:
             plane_from_points_pca(load_cloud(ds, sensor, station))
 
     out = {"stations": len(ds.stations), "points_per_cloud": n_points}
-    variants = {"graphcal (noise learned)": CalibrationOptions(),
-                "graphcal (default noise)": CalibrationOptions(estimate_noise=False)}
+    variants = {"graphcal (noise learned)": (CalibrationOptions(), None),
+                "graphcal (default noise)": (CalibrationOptions(estimate_noise=False), None),
+                "graphcal (noise learned, 50k points)": (CalibrationOptions(), 50_000)}
     times = {name: [] for name in ["read + PCA", *variants]}
     results = {}
     names = list(variants)
@@ -76,10 +83,11 @@ def bench_chai(repeats: int = 6) -> dict:
         t0 = time.perf_counter()
         baseline_read_pca()
         times["read + PCA"].append(time.perf_counter() - t0)
-        for name in names[rep % 2:] + names[: rep % 2]:  # each variant right after the baseline half the time
-            opt = variants[name]
+        k = rep % len(names)
+        for name in names[k:] + names[:k]:  # each variant right after the baseline in turn
+            opt, max_points = variants[name]
             t0 = time.perf_counter()
-            r = calibrate(folder, options=opt)
+            r = calibrate(folder, options=opt, plane_max_points=max_points)
             times[name].append(time.perf_counter() - t0)
             results[name] = r.sensors["depth"].T_body_sensor
     # Łabęcki's formulation: least squares on every raw point's height, body poses from the feet

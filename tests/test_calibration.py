@@ -125,6 +125,10 @@ def test_outlier_stations_are_found_and_do_not_hurt(tmp_path):
                               effects=Effects(outlier_stations=(5, 30, 44)))
     result = calibrate(path)
     assert set(result.outliers) == {5, 30, 44}
+    assert not any("plane_max_points" in w for w in result.warnings)
+    # planes.csv given: a cap on the cloud points cannot apply, and the result says so
+    assert any("plane_max_points=5000 had no effect" in w
+               for w in calibrate(path, plane_max_points=5000).warnings)
     ang, dist, _ = errors(result.sensors["depth"], truth_T(truth, "depth"))
     assert ang < 0.03 and dist < 1.5
 
@@ -145,6 +149,14 @@ def test_unseen_hexapod_three_sessions_from_clouds(tmp_path):
     ang, dist, z = errors(result.sensors["front_cam"], truth_T(truth, "front_cam"))
     assert ang < 0.1 and dist < 2.0
     assert np.all(np.abs(z) < 4.0), z
+    # the clouds thinned to every k-th point: the planes are fitted on fewer points (the sigma
+    # grows), the extrinsic still within the goal and covered
+    thin = calibrate(path, plane_max_points=1000)  # its clouds have 1.7k-3.3k points
+    ang, dist, z = errors(thin.sensors["front_cam"], truth_T(truth, "front_cam"))
+    assert ang < 0.1 and dist < 2.0
+    assert np.all(np.abs(z) < 4.0), z
+    assert not thin.warnings
+    assert np.all(np.diag(thin.sensors["front_cam"].covariance) > np.diag(result.sensors["front_cam"].covariance))
 
 
 def test_laser_scanner_and_stereo_camera_in_one_graph(tmp_path):

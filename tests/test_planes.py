@@ -599,3 +599,44 @@ def test_planes_rows_falls_back_to_threads_where_fork_is_unsafe(floor_frame, mon
     assert rows["station"] == [0, 1, 2, 3] and pids == [os.getpid()] * 4  # read here, on threads
     monkeypatch.setattr(sys, "platform", "darwin")
     assert not _can_fork_workers()
+
+
+def test_thin_cloud_keeps_every_kth_point_up_to_the_cap():
+    from graphcal.errors import GraphcalError
+    from graphcal.plane_table import check_max_points, thin_cloud
+
+    P = np.arange(3 * 1000, dtype=float).reshape(1000, 3)
+    assert thin_cloud(P, None) is P and thin_cloud(P, 1000) is P
+    for cap, k in [(999, 2), (500, 2), (334, 3), (333, 4), (100, 10)]:
+        T = thin_cloud(P, cap)
+        assert len(T) <= cap and T.flags.c_contiguous
+        np.testing.assert_array_equal(T, P[::k])
+    for bad in (99, 0, -5, 2.5e4, True, "1000"):
+        with pytest.raises(GraphcalError, match="whole number of points >= 100"):
+            check_max_points(bad)
+    assert check_max_points(np.int64(5000)) == 5000
+
+
+@pytest.mark.parametrize("processes", [False, True])
+def test_planes_rows_max_points_fits_the_thinned_cloud(floor_frame, processes):
+    """With max_points, each cloud's plane is the plane of its every-k-th points (on threads and on
+    worker processes), not that of the whole cloud."""
+    from graphcal.plane_table import _can_fork_workers, planes_rows, thin_cloud
+
+    if processes and not _can_fork_workers():
+        pytest.skip("worker processes cannot be forked here")
+    P = floor_frame[0]
+    types = {"depth": "depth_camera"}
+    clouds = {("depth", s): P[s:] for s in range(4)}
+    thinned = planes_rows({k: thin_cloud(v, 20000) for k, v in clouds.items()}, types, workers=1)
+    capped = planes_rows(clouds, types, workers=2, processes=processes, max_points=20000)
+    full = planes_rows(clouds, types, workers=1)
+    assert capped["station"] == [0, 1, 2, 3]
+    assert all(c == t < 20000 for c, t in zip(capped["n_points"], thinned["n_points"]))
+    assert all(f > 2 * c for f, c in zip(full["n_points"], capped["n_points"]))
+    for col in ("nx", "ny", "nz", "d"):  # Open3D's RANSAC is not exactly repeatable: 1e-5
+        np.testing.assert_allclose(capped[col], thinned[col], rtol=0, atol=1e-5)
+    # fewer points: a larger covariance, by about the ratio of the point counts
+    ratio = np.array(capped["cov_33"]) / np.array(full["cov_33"])
+    expected = np.array(full["n_points"]) / np.array(capped["n_points"])
+    assert np.all((ratio > 0.6 * expected) & (ratio < 1.6 * expected))

@@ -638,6 +638,7 @@ def calibrate_incremental(
     p_false_alarm: float = 1e-4,
     detect_changes: bool = True,
     data: CalibrationData | None = None,
+    plane_max_points: int | None = None,
 ) -> CalibrationResult:
     """Calibrate a dataset incrementally: iSAM2, one station per update in dataset order.
 
@@ -653,6 +654,7 @@ def calibrate_incremental(
             probability of any false alarm in the run per sensor (Bonferroni over the stations).
         detect_changes: run the change test.
         data: the dataset's measurements when already gathered.
+        plane_max_points: as in :func:`graphcal.calibration.calibrate.calibrate`.
 
     Returns:
         A :class:`CalibrationResult` with ``solver="incremental"``, ``iterations`` = stations
@@ -666,7 +668,7 @@ def calibrate_incremental(
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
     robot = load_dataset_robot(ds)
     if data is None:
-        data = calibration_data(ds, robot, progress=progress)
+        data = calibration_data(ds, robot, progress=progress, plane_max_points=plane_max_points)
     problem = build_problem(ds, robot, data, replace(options, robust=False))  # Gaussian planes, gated
     R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
     cal = IncrementalCalibrator(

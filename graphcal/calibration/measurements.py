@@ -86,10 +86,11 @@ def station_measurements(ds, robot) -> tuple[StationMeasurements, ...]:
     return tuple(out)
 
 
-def ground_planes(ds, *, progress: bool = False) -> dict:
+def ground_planes(ds, *, progress: bool = False, plane_max_points: int | None = None) -> dict:
     """(station, sensor) -> :class:`PlaneMeasurement` of every camera: from planes.csv when the
-    dataset has it, otherwise fitted from the clouds. Where a station has several planes (stairs,
-    walls) the one with most points is taken as the ground."""
+    dataset has it, otherwise fitted from the clouds (on at most ``plane_max_points`` points of each,
+    see :func:`graphcal.plane_table.planes_rows`; None: all). Where a station has several planes
+    (stairs, walls) the one with most points is taken as the ground."""
     from ..plane_table import planes_rows
 
     types = {name: spec.type for name, spec in ds.sensors.items()}
@@ -102,7 +103,7 @@ def ground_planes(ds, *, progress: bool = False) -> dict:
 
         cams = {k: v for k, v in cloud_paths(ds).items() if types.get(k[0]) in ("depth_camera", "stereo_camera")}
         pairs = [(key, functools.partial(load_cloud, ds, *key)) for key in sorted(cams)]  # read by the workers
-        rows = planes_rows(pairs, types, progress=progress, total=len(cams))
+        rows = planes_rows(pairs, types, progress=progress, total=len(cams), max_points=plane_max_points)
         count = len(rows["station"])
     best: dict = {}
     for k in range(count):
@@ -176,11 +177,15 @@ def scan_points(ds, *, max_points: int = 200, seed: int = 0, max_range_m: float 
     return out
 
 
-def calibration_data(ds, robot, *, progress: bool = False) -> CalibrationData:
-    """Everything the calibration graph reads from a dataset."""
+def calibration_data(ds, robot, *, progress: bool = False, plane_max_points: int | None = None) -> CalibrationData:
+    """Everything the calibration graph reads from a dataset (``plane_max_points``: see
+    :func:`ground_planes`)."""
+    from ..plane_table import check_max_points
+
+    plane_max_points = check_max_points(plane_max_points, "plane_max_points")
     return CalibrationData(
         stations=station_measurements(ds, robot),
-        planes=ground_planes(ds, progress=progress),
+        planes=ground_planes(ds, progress=progress, plane_max_points=plane_max_points),
         scan_points=scan_points(ds),
         sensor_types={name: spec.type for name, spec in ds.sensors.items()},
     )
