@@ -79,7 +79,7 @@ def _build_parser() -> argparse.ArgumentParser:
     c.add_argument("--plane-points", type=int, default=None, metavar="N",
                    help="fit each cloud's ground plane on at most N of its points, every k-th one (default: "
                         "all). Faster on large clouds, a little less accurate: on 258k-point Kinect clouds 50000 "
-                        "took 0.6x the time, with 35 %% more translation error (docs/calibration.md). No effect "
+                        "took 0.5-0.6x the time, with 35 %% more translation error (docs/calibration.md). No effect "
                         "when the dataset has planes.csv")
     c.add_argument("--quiet", action="store_true")
 
@@ -155,7 +155,6 @@ def _cmd_simulate(args) -> int:
 def _cmd_calibrate(args) -> int:
     from .calibration.calibrate import run_calibrate
     from .errors import GraphcalError
-
     from .plane_table import check_max_points
 
     if not (math.isfinite(args.ground_roughness_mm) and args.ground_roughness_mm >= 0):

@@ -41,7 +41,7 @@ def cloud_rng(seed: int, sensor: str, station: int) -> np.random.Generator:
 
 def thin_cloud(points: np.ndarray, max_points: int | None) -> np.ndarray:
     """Every k-th point of a cloud (N, 3), k = ceil(N / max_points): at most ``max_points`` points,
-    spread over the whole frame (a depth image's rows are kept in order, so it is a regular grid).
+    spread evenly over the frame (a depth image's pixels keep their row-major order).
     ``max_points`` None, or a cloud no larger: the cloud itself."""
     if max_points is None or len(points) <= max_points:
         return points
@@ -160,7 +160,7 @@ def planes_rows(
             processes).
         max_points: fit each cloud on at most this many of its points, every k-th one
             (:func:`thin_cloud`; None: all). ``n_points`` then counts the inliers among those. On
-            Chai's 52 Kinect clouds of 258k points, 50000 took 0.6x the calibration's time and the
+            Chai's 52 Kinect clouds of 258k points, 50000 took 0.5-0.6x the calibration's time and the
             extrinsic's translation error grew 35 % (RMS over 24 datasets, docs/calibration.md).
     Returns:
         column -> list of values, columns :data:`PLANE_COLUMNS`, clouds in input order.

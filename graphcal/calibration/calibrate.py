@@ -72,7 +72,7 @@ def calibrate(
         data: the dataset's measurements when already gathered (skips reading clouds again).
         plane_max_points: fit each cloud's planes on at most this many of its points (every k-th;
             None: all). Ignored when the dataset has planes.csv or ``data`` is given. Measured on
-            Chai-scale clouds (258k points): 50000 took 0.6x the time, the translation error grew
+            Chai-scale clouds (258k points): 50000 took 0.5-0.6x the time, the translation error grew
             35 % (RMS over 24 datasets, docs/calibration.md).
     """
     from ..io.dataset import Dataset, load_dataset_robot, read_dataset
