@@ -632,7 +632,8 @@ def test_planes_rows_max_points_fits_the_thinned_cloud(floor_frame, processes):
     capped = planes_rows(clouds, types, workers=2, processes=processes, max_points=20000)
     full = planes_rows(clouds, types, workers=1)
     assert capped["station"] == [0, 1, 2, 3]
-    assert all(c == t < 20000 for c, t in zip(capped["n_points"], thinned["n_points"]))
+    # the same inliers up to Open3D's RANSAC start (not exactly repeatable, planes._ransac)
+    assert all(abs(c - t) <= 1e-3 * t and t < 20000 for c, t in zip(capped["n_points"], thinned["n_points"]))
     assert all(f > 2 * c for f, c in zip(full["n_points"], capped["n_points"]))
     for col in ("nx", "ny", "nz", "d"):  # Open3D's RANSAC is not exactly repeatable: 1e-5
         np.testing.assert_allclose(capped[col], thinned[col], rtol=0, atol=1e-5)
