@@ -7,8 +7,9 @@
   pass per cloud, ``graphcal.geometry.plane_from_points_pca`` (target: <= 1.5x), and (b) Łabęcki's
   formulation, scipy ``least_squares`` on every raw point's height above the floor with the body
   poses from the kinematics (target: graphcal >= 50x faster at equal or better accuracy). Accuracy
-  of each against the hidden truth. graphcal runs three ways: noise learned (the default), the default noise model, and noise learned with the
-  clouds thinned to 50000 points (``--plane-points 50000``).
+  of each against the hidden truth. graphcal runs three ways: noise learned (the default), the
+  default noise model, and noise learned with the clouds thinned to 50000 points
+  (``--plane-points 50000``).
   Until 2026-11-21 the PCA pass centred each cloud twice, ``(P - c)^T (P - c)`` (14 ms a cloud);
   it is now one BLAS pass (3.5 ms), so ratios measured before then are against a baseline ~2.8x
   slower and not comparable (bench/README.md).
