@@ -11,7 +11,7 @@
   default noise model, and noise learned with the clouds thinned to 50000 points
   (``--plane-points 50000``).
   Until 2026-11-21 the PCA pass centred each cloud twice, ``(P - c)^T (P - c)`` (14 ms a cloud);
-  it is now one BLAS pass (3.5 ms), so ratios measured before then are against a baseline ~2.8x
+  it is now one BLAS pass (3.5 ms), so ratios measured before then are against a baseline 2.7-3.1x
   slower and not comparable (bench/README.md).
 * ``isam``: a 500-station dataset (random program, planes); one iSAM2 update per station against a
   batch re-solve of the whole graph at 500 stations (target <= 10 %), and the update cost from 50 to
