@@ -196,9 +196,14 @@ def test_bumpy_ground_roughness_puts_the_bumps_into_sigma(tmp_path):
     path, truth = sim_dataset(tmp_path, "bumpy", robot="octopus", program="chai2015", ground="bumpy-little",
                               seed=0, cloud_stride=4)
     T_true = truth_T(truth, "depth")
-    _, _, z_flat = errors(calibrate(path).sensors["depth"], T_true)
+    flat = calibrate(path)
+    _, _, z_flat = errors(flat.sensors["depth"], T_true)
     assert np.max(np.abs(z_flat)) > 6.0, z_flat  # overconfident without the roughness
-    est = calibrate(path, options=options_for_ground_roughness(CalibrationOptions(), 0.003)).sensors["depth"]
+    # ... and calibrate says so: the planes scatter more than their point noise predicts
+    assert [w for w in flat.warnings if "the planes scatter" in w and "--ground-roughness-mm" in w], flat.warnings
+    rough = calibrate(path, options=options_for_ground_roughness(CalibrationOptions(), 0.003))
+    assert not [w for w in rough.warnings if "the planes scatter" in w], rough.warnings
+    est = rough.sensors["depth"]
     ang, dist, z = errors(est, T_true)
     assert np.all(np.abs(z) < 4.0), z
     assert ang < 0.3 and dist < 6.0  # the estimate itself is as before: the bumps are not removed

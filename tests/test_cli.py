@@ -116,6 +116,16 @@ def test_calibrate_writes_the_outputs_and_never_into_the_dataset(small_dataset, 
     assert doc["format"] == "graphcal-calibration/1"
     assert set(doc["sensors"]["depth"]) >= {"T_body_sensor", "covariance", "sigma", "unobservable"}
     assert len(doc["sensors"]["depth"]["covariance"]) == 6
+    # how each noise group's sigma was set: the values are those of the noise model, every group of
+    # the graph is there, and the held ones are named on stdout
+    groups = doc["noise_estimation"]
+    assert {"stance_foot/joint", "stance_foot/contact", "imu", "plane:depth"} <= set(groups)
+    for g in groups.values():
+        assert g["status"] in {"learned", "too few dof", "at floor", "not converged"}
+        assert all(doc["noise_model"][k] == v for k, v in g["values"].items())
+    held = [k for k, g in groups.items() if g["status"] != "learned"]
+    assert ("noise not learned:" in proc.stdout) == bool(held)
+    assert all(k in proc.stdout for k in held)
     for name in ("robot_calibrated.urdf", "static_transforms.sh", "report.html"):
         assert (out / name).stat().st_size > 0
     before = sorted(p.name for p in small_dataset.iterdir())

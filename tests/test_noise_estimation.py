@@ -223,3 +223,38 @@ def test_arrow_inverse_refuses_an_undetermined_variable():
     H2[np.ix_(glob2, glob2)] -= 1e3 * np.eye(len(glob2))  # the globals' Schur complement is not positive
     with pytest.raises(ne.GraphcalError, match="undetermined"):
         ne._arrow_inverse(H2, np.ones(len(H2)), {local2.shape[1]: local2}, glob2)
+
+
+def test_noise_groups_report_names_how_each_sigma_was_set():
+    """The status of every group and the warning only where a held sigma is too small for its
+    residuals (the covariance could then be too small); a held sigma that is too large is not."""
+    import dataclasses
+
+    from graphcal.calibration.calibrate import VCE_FLOOR, noise_groups_report
+
+    opts = dataclasses.replace(CalibrationOptions(), sigma_contact_m=VCE_FLOOR["sigma_contact_m"])
+    stats = {
+        "imu": ne.GroupVariance("imu", chi2=100.0, redundancy=100.0, rows=104),  # fits
+        "foot_on_ground": ne.GroupVariance("foot_on_ground", chi2=0.2, redundancy=2.7, rows=6),  # few dof, small
+        "commanded": ne.GroupVariance("commanded", chi2=30.0, redundancy=2.5, rows=6),  # few dof, large
+        "stance_foot/contact": ne.GroupVariance("stance_foot/contact", 1.0, 100.0, 900, helmert_theta=0.25),
+        "stance_foot/joint": ne.GroupVariance("stance_foot/joint", 1.0, 400.0, 900, helmert_theta=2.25),
+        "plane:depth": ne.GroupVariance("plane:depth", chi2=80.0, redundancy=80.0, rows=156),
+    }
+    groups, warnings = noise_groups_report(stats, opts)
+    by = {g.group: g for g in groups}
+    assert {k: g.status for k, g in by.items()} == {
+        "imu": "learned", "foot_on_ground": "too few dof", "commanded": "too few dof",
+        "stance_foot/contact": "at floor", "stance_foot/joint": "not converged", "plane:depth": "learned"}
+    assert by["foot_on_ground"].data_scale == pytest.approx(np.sqrt(0.2 / 2.7))
+    assert by["stance_foot/joint"].data_scale == pytest.approx(1.5)
+    assert by["commanded"].fields == (("sigma_commanded_rad", opts.sigma_commanded_rad),
+                                      ("sigma_commanded_m", opts.sigma_commanded_m))
+    assert by["plane:depth"].fields == (("plane_scale:depth", 1.0),)
+    assert by["imu"].p_high == pytest.approx(0.48, abs=0.02)
+    # the held group with residuals 3.5x its sigma (p ~ 1e-6) and the joint component 1.5x its sigma
+    # over 400 dof are warned about; the held group below its sigma and the floored one are not
+    assert len(warnings) == 2
+    assert warnings[0].startswith("noise group commanded (too few dof, 2.5 dof)")
+    assert "stance_foot/joint (not converged" in warnings[1]
+    assert all("may be too small" in w for w in warnings)

@@ -19,6 +19,7 @@ from graphcal.calibration.result import (
     ExtrinsicSegment,
     IncrementalStep,
     LegEstimate,
+    NoiseGroupEstimate,
     SensorEstimate,
     StationResidual,
 )
@@ -150,6 +151,11 @@ def make_result(*, moved: bool = False, legs: bool = True, history: bool = False
         iterations=N_STATIONS if history else 7,
         history=hist,
         warnings=("lidar: one direction not determined",),
+        noise_groups=(
+            NoiseGroupEstimate("foot_on_ground", (("sigma_ground_m", 6e-5),), "too few dof", 2.7, 6, 0.27, 0.97),
+            NoiseGroupEstimate("imu", (("sigma_imu_rad", np.deg2rad(0.038)),), "learned", 100.2, 104, 1.0, 0.48),
+            NoiseGroupEstimate("plane:depth", (("plane_scale:depth", 1.006),), "learned", 80.1, 156, 1.0, 0.48),
+        ),
     )
 
 
@@ -610,6 +616,8 @@ def test_html_report_is_self_contained_and_complete(html_page):
     assert "lf_femur_joint.offset_rad" in text
     assert "static_transform_publisher --x" in text
     assert "17" in text  # the outlier
+    # the noise model: how each group's sigma was set, at the edge in mm / deg
+    assert "too few dof" in text and "0.06 mm" in text and "0.038 deg" in text and "×1.01" in text
 
 
 def test_plots_draw_into_given_axes():

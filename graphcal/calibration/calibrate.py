@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -17,7 +17,14 @@ from ..errors import GraphcalError
 from ..geometry import from_gtsam_pose
 from .graph import CalibrationOptions, CalibrationProblem, build_problem, predicted_plane_errors
 from .measurements import CalibrationData, calibration_data
-from .result import CalibrationResult, ExtrinsicSegment, LegEstimate, SensorEstimate, StationResidual
+from .result import (
+    CalibrationResult,
+    ExtrinsicSegment,
+    LegEstimate,
+    NoiseGroupEstimate,
+    SensorEstimate,
+    StationResidual,
+)
 
 if TYPE_CHECKING:
     import gtsam
@@ -100,14 +107,18 @@ def calibrate(
         lm = solve_problem(problem, progress=progress, stage=stage)
         values = lm.values
         iterations += lm.iterations
+        noise_stats.clear()  # read at the previous solution
+
+    noise_stats: dict = {}  # the variance components at the current solution and options
 
     def estimate_noise(opts):
         # variance-component estimation under the Huber loss (outliers are down-weighted)
         for _ in range(VCE_ROUNDS):
-            scaled, changed, step = rescaled_options(opts, problem, values)
-            if not changed:
+            u = noise_update(opts, problem, values)
+            noise_stats.update(u.stats)
+            if not u.changed:
                 break
-            opts = scaled
+            opts, step = u.options, u.step
             # start at the variance estimation's linear solution with the new weights: the
             # re-weighted optimum to first order (fewer LM iterations)
             resolve(opts, outliers, "noise re-estimated", start=None if step is None else values.retract(step))
@@ -141,6 +152,12 @@ def calibrate(
         if outliers and options.estimate_noise:
             options = estimate_noise(options)
     result = _result(ds, robot, data, problem, values, outliers, iterations, options)
+    if options.estimate_noise:
+        if not noise_stats:  # the rounds ran out (or outliers were left out) after the last update
+            noise_stats.update(noise_update(options, problem, values, converge=False).stats)
+        groups, noise_warnings = noise_groups_report(noise_stats, options)
+        warnings += noise_warnings
+        result = dataclasses.replace(result, noise_groups=groups)
     if warnings:
         result = dataclasses.replace(result, warnings=tuple(warnings) + result.warnings)
     return result
@@ -173,30 +190,45 @@ _GROUP_FIELDS = {"stance_foot/joint": ("sigma_joint_rad",), "stance_foot/contact
                  "commanded": ("sigma_commanded_rad", "sigma_commanded_m")}
 
 
-def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, values, *,
-                     converge: bool = True) -> tuple[CalibrationOptions, bool, "gtsam.VectorValues | None"]:
-    """Options with every noise group's sigma multiplied by its variance-component scale
-    (noise_estimation.py); ``changed`` is False once every scale at ``values`` is within
-    ``VCE_TOLERANCE`` of 1. ``converge``: iterate the scales to their fixed point on the graph
-    linearised at ``values`` (:func:`~graphcal.calibration.noise_estimation.converged_scales`);
-    False: one update. Returns (options, changed, the linear step from ``values`` with the new
-    weights or None)."""
+class NoiseUpdate(NamedTuple):
+    """One variance-component update at a solution (:func:`noise_update`)."""
+
+    #: options with every eligible group's sigma multiplied by its converged scale
+    options: CalibrationOptions
+    #: False once every eligible scale is within ``VCE_TOLERANCE`` of 1 (a scale held at its bound
+    #: is no change)
+    changed: bool
+    #: the linear step from the solution with the new weights (None on the large-graph path)
+    step: "gtsam.VectorValues | None"
+    #: group -> :class:`~graphcal.calibration.noise_estimation.GroupVariance` at the solution with
+    #: the options given (the statistics a report on the noise model reads)
+    stats: dict
+
+
+def _vce_eligible(v) -> bool:
+    """Whether a group's residuals carry enough redundancy for its sigma to be re-estimated."""
+    return v.redundancy >= max(VCE_MIN_REDUNDANCY, VCE_MIN_REDUNDANCY_SHARE * v.rows)
+
+
+def noise_update(options: CalibrationOptions, problem: CalibrationProblem, values, *,
+                 converge: bool = True) -> NoiseUpdate:
+    """Every noise group's sigma multiplied by its variance-component scale
+    (noise_estimation.py) at ``values``. ``converge``: iterate the scales to their fixed point on
+    the graph linearised at ``values``
+    (:func:`~graphcal.calibration.noise_estimation.converged_scales`); False: one update."""
     import dataclasses
 
     from .noise_estimation import converged_scales
 
-    def eligible(v) -> bool:
-        return v.redundancy >= max(VCE_MIN_REDUNDANCY, VCE_MIN_REDUNDANCY_SHARE * v.rows)
-
     bounds = {g: (max(VCE_SCALE_BOUNDS[0], *(VCE_FLOOR[n] / getattr(options, n) for n in names)), VCE_SCALE_BOUNDS[1])
               for g, names in _GROUP_FIELDS.items()}
     first, scale, step = converged_scales(problem.graph, values, problem.factor_groups, problem.factor_components,
-                                    eligible=eligible, bounds=bounds, tolerance=VCE_INNER_TOLERANCE,
+                                    eligible=_vce_eligible, bounds=bounds, tolerance=VCE_INNER_TOLERANCE,
                                     max_iterations=VCE_INNER_ITERATIONS if converge else 1)
     # a scale held at its bound (a sigma at its floor) is no change
     lo_hi = VCE_SCALE_BOUNDS
     changed = any(abs(float(np.clip(v.scale, *bounds.get(g, lo_hi))) - 1.0) > VCE_TOLERANCE
-                  for g, v in first.items() if eligible(v))
+                  for g, v in first.items() if _vce_eligible(v))
     update = {}
     for group, names in _GROUP_FIELDS.items():
         if group in scale:
@@ -208,7 +240,79 @@ def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, v
             sensor = group.split(":", 1)[1]
             planes[sensor] = planes.get(sensor, 1.0) * s
     update["plane_sigma_scales"] = tuple(sorted(planes.items()))
-    return dataclasses.replace(options, **update), changed, step
+    return NoiseUpdate(dataclasses.replace(options, **update), changed, step, first)
+
+
+def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, values, *,
+                     converge: bool = True) -> tuple[CalibrationOptions, bool, "gtsam.VectorValues | None"]:
+    """(options, changed, step) of :func:`noise_update`."""
+    u = noise_update(options, problem, values, converge=converge)
+    return u.options, u.changed, u.step
+
+
+#: a held group whose residuals are this improbable under its sigma (chi-square upper tail) makes
+#: calibrate warn that the covariance may be too small
+NOISE_TOO_SMALL_P = 0.01
+
+
+#: a learned plane noise scale above this makes calibrate warn (measured: 0.86-1.01 on flat simulated
+#: floors, 1.7-18 on Chai's little bumpiness, 3 mm RMS, docs/calibration.md)
+PLANE_SCALE_WARN = 1.5
+
+
+def noise_groups_report(stats: dict, options: CalibrationOptions) -> tuple[tuple[NoiseGroupEstimate, ...], list[str]]:
+    """How each noise group's sigma was set, from the variance-component statistics ``stats`` at
+    the final solution with the final ``options`` (:class:`NoiseUpdate` ``stats``), and a warning
+    for every group whose residuals say its sigma is too small (chi-square upper tail below
+    :data:`NOISE_TOO_SMALL_P`) but which the estimation could not correct (too few dof, or the
+    rounds ran out): then the reported covariance may be too small.
+
+    A group held with residuals *below* its sigma (``data_scale`` < 1, e.g. the feet's height
+    above a perfectly flat simulated floor: 6 rows, under 3 dof) only makes the covariance
+    conservative; it is reported, not warned about (docs/calibration.md measures its effect). A
+    learned plane noise scale above :data:`PLANE_SCALE_WARN` is warned about: it is what uneven
+    ground looks like to this model (and a sensor noisier than its noise model)."""
+    from scipy.stats import chi2 as chi2_dist
+
+    fields_of = dict(_GROUP_FIELDS)
+    out, warnings = [], []
+    for key, v in sorted(stats.items()):
+        if key in fields_of:
+            names = fields_of[key]
+            fields = tuple((n, float(getattr(options, n))) for n in names)
+        elif key.startswith("plane:"):
+            sensor = key.split(":", 1)[1]
+            names = ()
+            fields = ((f"plane_scale:{sensor}", float(options.plane_scale(sensor))),)
+        else:  # not a group whose sigma calibrate re-estimates
+            continue
+        dof = float(v.redundancy)
+        scale = float(v.scale)
+        # chi2 / dof = scale^2 for a single group; for one component of a sum, Helmert's theta = scale^2
+        # times its dof is the same test to first order
+        p_high = float(chi2_dist.sf(scale * scale * dof, dof)) if dof > 1e-9 else float("nan")
+        at_floor = bool(names) and all(getattr(options, n) <= VCE_FLOOR[n] * (1 + 1e-9) for n in names)
+        if not _vce_eligible(v):
+            status = "too few dof"
+        elif abs(scale - 1.0) <= VCE_TOLERANCE:
+            status = "learned"
+        elif at_floor and scale < 1.0:
+            status = "at floor"
+        else:
+            status = "not converged"
+        out.append(NoiseGroupEstimate(key, fields, status, dof, int(v.rows), scale, p_high))
+        if key.startswith("plane:") and fields[0][1] > PLANE_SCALE_WARN:
+            warnings.append(
+                f"{key.split(':', 1)[1]}: the planes scatter {fields[0][1]:.2g} times more than the point noise of "
+                "their fits predicts (learned plane noise scale): the sensor is noisier than its noise model, "
+                "or the ground is not one plane (bumps: give --ground-roughness-mm; an offset per session or a "
+                "tilted floor: graphcal diagnose). On uneven ground the reported covariance is too small: the "
+                "scale treats the unevenness as independent noise per station")
+        if status != "learned" and p_high < NOISE_TOO_SMALL_P:
+            warnings.append(
+                f"noise group {key} ({status}, {dof:.1f} dof): its residuals are {scale:.2g} times its sigma "
+                f"(chi-square p = {p_high:.2g}); the reported covariance may be too small")
+    return tuple(out), warnings
 
 
 def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set, iterations: int,
@@ -295,6 +399,15 @@ def noise_summary(options: CalibrationOptions, problem: CalibrationProblem) -> d
     return out
 
 
+def _field_text(name: str, value: float) -> str:
+    """A noise-model value at the edge: ``sigma_ground_m`` 6e-05 -> ``0.06 mm``, rad -> deg."""
+    if name.endswith("_rad"):
+        return f"{np.degrees(value):.3g} deg"
+    if name.endswith("_m"):
+        return f"{1e3 * value:.3g} mm"
+    return f"x{value:.3g}"
+
+
 def _residuals(data, problem, values, T_world_body, sensors, outliers) -> list[StationResidual]:
     from ..solvers.batch import whitened_errors
 
@@ -347,6 +460,11 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
                else "noise learned from the data")
         lines.append(f"  {how}: joints {np.degrees(n['sigma_joint_rad']):.3f} deg, "
                      f"contact {1e3 * n['sigma_contact_m']:.2f} mm, IMU {np.degrees(n['sigma_imu_rad']):.3f} deg")
+    held = [g for g in result.noise_groups if g.status != "learned"]
+    if held:
+        lines.append("  noise not learned: " + "; ".join(
+            f"{g.group} {', '.join(_field_text(k, v) for k, v in g.fields)} ({g.status}, {g.dof:.1f} dof; "
+            f"the residuals point to {g.data_scale:.2g}x)" for g in held))
     if result.outliers:
         lines.append(f"  outlier stations: {', '.join(map(str, result.outliers))}")
     lines += [f"  warning: {w}" for w in result.warnings]

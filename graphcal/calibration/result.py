@@ -96,6 +96,39 @@ class IncrementalStep:
     change_detected: bool = False
 
 
+@dataclass(frozen=True)
+class NoiseGroupEstimate:
+    """How variance-component estimation set one noise group's sigma, read at the final solution.
+
+    Attributes:
+        group: the factor group, e.g. ``foot_on_ground``, ``imu``, ``stance_foot/joint`` (one
+            component of a group whose covariance is a sum), ``plane:depth``.
+        fields: the :class:`~graphcal.calibration.graph.CalibrationOptions` fields (or
+            ``plane_scale:<sensor>``) the group's scale multiplies, with their final values (SI).
+        status: ``learned`` (the residuals fit the sigma); ``too few dof`` (the group's rows have
+            too little redundancy for its sigma to be estimated: it was held, the residuals only
+            hint at ``data_scale``); ``at floor`` (learned down to the smallest sigma allowed);
+            ``not converged`` (the re-estimation rounds ran out).
+        dof: redundancy of the group's rows at the final solution (degrees of freedom the
+            residuals carry about the sigma; a variance from r dof has a relative std of
+            ``sqrt(2 / r)``).
+        rows: residual rows of the group.
+        data_scale: ``sqrt(chi2 / dof)``, the factor the residuals point to for the sigma (1: the
+            sigma fits; below 1: the sigma is larger than the data need).
+        p_high: probability of a chi-square ``data_scale^2 dof`` at least this large with ``dof``
+            degrees of freedom, were the sigma right (small: the sigma is too small for these
+            residuals; for one component of a sum an approximation).
+    """
+
+    group: str
+    fields: tuple[tuple[str, float], ...]
+    status: str
+    dof: float
+    rows: int
+    data_scale: float
+    p_high: float
+
+
 @dataclass(frozen=True, eq=False)
 class CalibrationResult:
     """Everything ``graphcal calibrate`` found.
@@ -116,6 +149,8 @@ class CalibrationResult:
         warnings: human-readable warnings (e.g. a direction not determined).
         noise: the noise model the final solve used (SI; after variance-component estimation):
             name -> value, e.g. ``sigma_joint_rad``, ``plane_scale:depth``.
+        noise_groups: how each group's sigma was set (:class:`NoiseGroupEstimate`; empty when the
+            noise was not learned).
     """
 
     dataset: str
@@ -133,3 +168,4 @@ class CalibrationResult:
     history: tuple[IncrementalStep, ...] = ()
     warnings: tuple[str, ...] = ()
     noise: dict = field(default_factory=dict)
+    noise_groups: tuple[NoiseGroupEstimate, ...] = ()

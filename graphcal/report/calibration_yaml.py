@@ -208,6 +208,15 @@ def calibration_to_dict(result) -> dict:
     if noise:
         # the noise model of the final solve (SI units; learned by variance-component estimation)
         doc["noise_model"] = {str(k): float(v) for k, v in noise.items()}
+    groups = getattr(result, "noise_groups", ()) or ()
+    if groups:
+        # how each group's sigma was set: learned, or held (too few dof: the data hint at data_scale)
+        doc["noise_estimation"] = {
+            str(g.group): {"status": str(g.status), "dof": _f(g.dof), "rows": int(g.rows),
+                           "data_scale": _f(g.data_scale), "p_high": _f(g.p_high),
+                           "values": {str(k): float(v) for k, v in g.fields}}
+            for g in groups
+        }
     return doc
 
 

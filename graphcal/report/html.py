@@ -170,11 +170,37 @@ def _residual_section(result) -> str:
     )
 
 
+def _noise_section(result) -> str:
+    groups = getattr(result, "noise_groups", ()) or ()
+    if not groups:
+        return '<p class="small">The noise model was given, not learned from the data.</p>'
+    rows = [_row(["group", "σ", "status", "dof", "residuals point to", "χ² p (upper)"], header=True)]
+    for g in groups:
+        vals = []
+        for k, v in g.fields:
+            if k.endswith("_rad"):
+                vals.append(f"{_n(np.rad2deg(v), '.4g')} deg")
+            elif k.endswith("_m"):
+                vals.append(f"{_n(v * 1000.0, '.4g')} mm")
+            else:
+                vals.append(f"×{_n(v, '.3g')}")
+        rows.append(_row([f"<code>{_e(g.group)}</code>", _e(", ".join(vals)), _e(g.status), _n(g.dof, ".1f"),
+                          f"×{_n(g.data_scale, '.3g')}", _n(g.p_high, ".2g")]))  # fmt: skip
+    return (
+        "<table>" + "".join(rows) + "</table>"
+        '<p class="small">σ of each noise group learned from the residuals (variance-component estimation). '
+        "<em>too few dof</em>: the group's rows carry too little redundancy for its σ to be estimated; it was "
+        "held and the residuals only hint at the factor shown. Held above what the residuals point to, it makes "
+        "the covariance conservative; a small upper χ² p means its σ is too small (then a warning above).</p>"
+    )
+
+
 def report_html(result, *, title: str = "graphcal calibration report") -> str:
     """The HTML report of ``result`` (a CalibrationResult) as one self-contained page.
 
     Sections: summary per sensor (prior vs estimate, σ per body axis in mm/deg, undetermined
-    directions in a warning box, segments when the sensor moved), legs, outliers, residual RMS
+    directions in a warning box, segments when the sensor moved), legs, outliers, the noise model
+    (how each group's σ was set), residual RMS
     before/after, the figures of :func:`graphcal.report.plots.report_figures` (one ``<img>`` each,
     PNG data URI), warnings and the ROS 2 static_transform_publisher lines.
     """
@@ -211,6 +237,8 @@ def report_html(result, *, title: str = "graphcal calibration report") -> str:
         )
     else:
         out.append("<p>None: no station was down-weighted by the robust loss.</p>")
+    out.append("<h2>Noise model</h2>")
+    out.append(_noise_section(result))
     out.append("<h2>Plane residuals</h2>")
     out.append(_residual_section(result))
     out.append("<h2>Figures</h2>")
