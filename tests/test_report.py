@@ -617,7 +617,7 @@ def test_html_report_is_self_contained_and_complete(html_page):
     assert "static_transform_publisher --x" in text
     assert "17" in text  # the outlier
     # the noise model: how each group's sigma was set, at the edge in mm / deg
-    assert "too few dof" in text and "0.06 mm" in text and "0.038 deg" in text and "×1.01" in text
+    assert "too few dof" in text and "0.06 mm" in text and "0.038 deg" in text and "x1.01" in text
 
 
 def test_plots_draw_into_given_axes():

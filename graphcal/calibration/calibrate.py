@@ -399,15 +399,6 @@ def noise_summary(options: CalibrationOptions, problem: CalibrationProblem) -> d
     return out
 
 
-def _field_text(name: str, value: float) -> str:
-    """A noise-model value at the edge: ``sigma_ground_m`` 6e-05 -> ``0.06 mm``, rad -> deg."""
-    if name.endswith("_rad"):
-        return f"{np.degrees(value):.3g} deg"
-    if name.endswith("_m"):
-        return f"{1e3 * value:.3g} mm"
-    return f"x{value:.3g}"
-
-
 def _residuals(data, problem, values, T_world_body, sensors, outliers) -> list[StationResidual]:
     from ..solvers.batch import whitened_errors
 
@@ -463,7 +454,7 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
     held = [g for g in result.noise_groups if g.status != "learned"]
     if held:
         lines.append("  noise not learned: " + "; ".join(
-            f"{g.group} {', '.join(_field_text(k, v) for k, v in g.fields)} ({g.status}, {g.dof:.1f} dof; "
+            f"{g.group} {g.values_text()} ({g.status}, {g.dof:.1f} dof; "
             f"the residuals point to {g.data_scale:.2g}x)" for g in held))
     if result.outliers:
         lines.append(f"  outlier stations: {', '.join(map(str, result.outliers))}")

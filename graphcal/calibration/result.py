@@ -128,6 +128,18 @@ class NoiseGroupEstimate:
     data_scale: float
     p_high: float
 
+    def values_text(self) -> str:
+        """The values at the edge, e.g. ``0.06 mm`` (``_m``), ``0.038 deg`` (``_rad``), ``x1.01`` (a scale)."""
+        out = []
+        for name, v in self.fields:
+            if name.endswith("_rad"):
+                out.append(f"{np.degrees(v):.3g} deg")
+            elif name.endswith("_m"):
+                out.append(f"{1e3 * v:.3g} mm")
+            else:
+                out.append(f"x{v:.3g}")
+        return ", ".join(out)
+
 
 @dataclass(frozen=True, eq=False)
 class CalibrationResult:

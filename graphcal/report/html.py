@@ -176,15 +176,7 @@ def _noise_section(result) -> str:
         return '<p class="small">The noise model was given, not learned from the data.</p>'
     rows = [_row(["group", "σ", "status", "dof", "residuals point to", "χ² p (upper)"], header=True)]
     for g in groups:
-        vals = []
-        for k, v in g.fields:
-            if k.endswith("_rad"):
-                vals.append(f"{_n(np.rad2deg(v), '.4g')} deg")
-            elif k.endswith("_m"):
-                vals.append(f"{_n(v * 1000.0, '.4g')} mm")
-            else:
-                vals.append(f"×{_n(v, '.3g')}")
-        rows.append(_row([f"<code>{_e(g.group)}</code>", _e(", ".join(vals)), _e(g.status), _n(g.dof, ".1f"),
+        rows.append(_row([f"<code>{_e(g.group)}</code>", _e(g.values_text()), _e(g.status), _n(g.dof, ".1f"),
                           f"×{_n(g.data_scale, '.3g')}", _n(g.p_high, ".2g")]))  # fmt: skip
     return (
         "<table>" + "".join(rows) + "</table>"
