@@ -177,7 +177,7 @@ def _noise_section(result) -> str:
     rows = [_row(["group", "σ", "status", "dof", "residuals point to", "χ² p (upper)"], header=True)]
     for g in groups:
         rows.append(_row([f"<code>{_e(g.group)}</code>", _e(g.values_text()), _e(g.status), _n(g.dof, ".1f"),
-                          f"×{_n(g.data_scale, '.3g')}", _n(g.p_high, ".2g")]))  # fmt: skip
+                          f"x{_n(g.data_scale, '.3g')}", _n(g.p_high, ".2g")]))  # fmt: skip
     return (
         "<table>" + "".join(rows) + "</table>"
         '<p class="small">σ of each noise group learned from the residuals (variance-component estimation). '
