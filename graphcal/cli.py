@@ -93,6 +93,9 @@ def _build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", type=Path, default=None,
                    help="planes.csv to write (default: DATASET/planes.csv, only if it does not exist)")
     e.add_argument("--max-planes", type=int, default=1)
+    e.add_argument("--plane-points", type=int, default=None, metavar="N",
+                   help="fit each cloud's planes on at most N of its points, every k-th one (default: all); "
+                        "as calibrate --plane-points")
     e.add_argument("--quiet", action="store_true")
 
     dg = sub.add_parser("diagnose", help="what the model gets wrong on these data: named causes, evidence, "
@@ -184,7 +187,8 @@ def _cmd_validate(args) -> int:
 def _cmd_extract_planes(args) -> int:
     from .plane_table import extract_planes_to_csv
 
-    out = extract_planes_to_csv(args.dataset, args.out, max_planes=args.max_planes, progress=not args.quiet)
+    out = extract_planes_to_csv(args.dataset, args.out, max_planes=args.max_planes, progress=not args.quiet,
+                                max_points=args.plane_points)
     print(f"wrote {out}")
     return 0
 

@@ -285,15 +285,17 @@ class _WorkerTraceback(Exception):
 
 
 def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *, max_planes: int = 1,
-                          progress: bool = False) -> Path:
+                          progress: bool = False, max_points: int | None = None) -> Path:
     """Read a dataset's clouds, fit planes, and write ``planes.csv`` atomically.
 
     ``out`` defaults to ``DATASET/planes.csv``; an existing file is never replaced (give another
-    ``out``).
+    ``out``). ``max_points``: fit each cloud on at most this many of its points (see
+    :func:`planes_rows`; None: all), as ``graphcal calibrate --plane-points`` does.
     """
     from .io.atomic import atomic_write_text
     from .io.dataset import Table, cloud_paths, load_cloud, read_dataset, table_csv_text
 
+    max_points = check_max_points(max_points, "--plane-points")
     ds = read_dataset(dataset)
     out_path = Path(out) if out is not None else Path(dataset) / "planes.csv"
     if out_path.exists():
@@ -304,6 +306,6 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
         raise DatasetError(Path(dataset) / "clouds", "clouds/<sensor>/<station>.ply", "at least one station cloud")
     types = {name: spec.type for name, spec in ds.sensors.items()}
     pairs = [(key, functools.partial(load_cloud, ds, *key)) for key in sorted(paths)]  # read by the workers
-    rows = planes_rows(pairs, types, max_planes=max_planes, progress=progress)
+    rows = planes_rows(pairs, types, max_planes=max_planes, progress=progress, max_points=max_points)
     atomic_write_text(out_path, table_csv_text(Table.from_columns(rows)), overwrite=False)
     return out_path

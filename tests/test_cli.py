@@ -92,6 +92,16 @@ def test_extract_planes_writes_once_and_never_overwrites(small_dataset, tmp_path
     proc = run("extract-planes", small_dataset, "--out", out, "--quiet")
     assert proc.returncode == 2 and "never overwrites" in proc.stderr
     assert out.read_bytes() == before
+    # --plane-points: each plane fitted on at most N points of its cloud, as calibrate's option
+    thin = tmp_path / "planes_thin.csv"
+    run("extract-planes", small_dataset, "--out", thin, "--plane-points", "2000", "--quiet", check_rc=0)
+    col = rows[0].split(",").index("n_points")
+    full_n = [float(r.split(",")[col]) for r in rows[1:]]
+    thin_n = [float(r.split(",")[col]) for r in thin.read_text().splitlines()[1:]]
+    assert len(thin_n) == 8 and max(thin_n) <= 2000 < min(full_n)
+    proc = run("extract-planes", small_dataset, "--out", tmp_path / "bad.csv", "--plane-points", "5", "--quiet")
+    assert proc.returncode == 2 and "--plane-points" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "bad.csv").exists()
 
 
 def test_example_simulate_and_validate(tmp_path):

@@ -150,6 +150,16 @@ def test_without_commanded_poses_or_imu_two_sessions(tmp_path_factory):
                                np.r_[batch.sigma_rot_deg, batch.sigma_xyz_mm], rtol=0.05)
 
 
+def test_plane_points_on_a_dataset_with_planes_csv_is_reported(clean):
+    """--plane-points cannot apply when the planes come from planes.csv: the incremental mode says
+    so, as the batch does (tests/test_calibration.py), instead of ignoring it silently."""
+    ds, _, _, _, inc = clean
+    assert ds.planes is not None
+    assert not any("plane_max_points" in w for w in inc.warnings)
+    res = calibrate_incremental(ds, options=PLAIN, plane_max_points=5000, sigma_target_deg=1e9)  # stops at once
+    assert any("plane_max_points=5000 had no effect" in w and "planes.csv" in w for w in res.warnings)
+
+
 # ----------------------------------------------------------------------------- (d) sigmas and stop rule
 def test_sigmas_never_grow(clean):
     _, _, _, _, inc = clean

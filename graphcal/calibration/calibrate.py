@@ -62,6 +62,15 @@ def solve_problem(problem: CalibrationProblem, *, progress: bool = False, stage:
     return result
 
 
+def unused_plane_points_warning(plane_max_points: int | None, planes_given: bool, ds) -> list[str]:
+    """The warning (a list of at most one) that ``plane_max_points`` did nothing: the planes were
+    passed in (``planes_given``) or the dataset ``ds`` has planes.csv, so no cloud was fitted."""
+    if plane_max_points is None or not (planes_given or ds.planes is not None):
+        return []
+    return [f"plane_max_points={plane_max_points} had no effect: the planes were "
+            + ("given" if planes_given else "read from planes.csv, not fitted to the clouds")]
+
+
 def calibrate(
     dataset,
     *,
@@ -94,9 +103,7 @@ def calibrate(
     values, iterations = lm.values, lm.iterations
     outliers: set = set()
     warnings: list[str] = []
-    if plane_max_points is not None and (planes_given or ds.planes is not None):
-        warnings.append(f"plane_max_points={plane_max_points} had no effect: the planes were "
-                        + ("given" if planes_given else "read from planes.csv, not fitted to the clouds"))
+    warnings += unused_plane_points_warning(plane_max_points, planes_given, ds)
 
     def resolve(opts, excluded, stage, start=None):
         nonlocal problem, values, iterations

@@ -663,10 +663,11 @@ def calibrate_incremental(
     """
     from ..io.dataset import Dataset, load_dataset_robot, read_dataset
     from ..solvers.covariance import marginal_covariances
-    from .calibrate import _residuals, _result
+    from .calibrate import _residuals, _result, unused_plane_points_warning
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
     robot = load_dataset_robot(ds)
+    warnings: list[str] = unused_plane_points_warning(plane_max_points, data is not None, ds)
     if data is None:
         data = calibration_data(ds, robot, progress=progress, plane_max_points=plane_max_points)
     problem = build_problem(ds, robot, data, replace(options, robust=False))  # Gaussian planes, gated
@@ -679,7 +680,6 @@ def calibrate_incremental(
         detect_changes=detect_changes, window=window, p_false_alarm=p_false_alarm,
         n_tests=max(1, len(data.stations)),
     )
-    warnings: list[str] = []
     stopped = None
     targets = sigma_target_deg is not None or sigma_target_mm is not None
     for st, (graph_a, values_a, meas) in zip(data.stations, station_updates(problem, data)):
