@@ -433,9 +433,6 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
     from ..report.write import write_calibration_outputs
     from .graph import options_for_ground_roughness
 
-    if incremental and ground_roughness_m > 0:
-        raise GraphcalError("--ground-roughness-mm is not supported with --incremental (its per-session ground "
-                            "planes are not in the iSAM2 station split yet); calibrate in batch")
     options = options_for_ground_roughness(CalibrationOptions(legs=legs), ground_roughness_m)
     if incremental:
         from .incremental import calibrate_incremental

@@ -246,13 +246,15 @@ class IncrementalCalibrator:
         return graph, values
 
     def measurement_factor(self, station: int, sensor: str, s_key: int, *, plane: PlaneMeasurement | None = None,
-                           points: np.ndarray | None = None) -> gtsam.NonlinearFactor:
+                           points: np.ndarray | None = None, g_key: int | None = None) -> gtsam.NonlinearFactor:
         """The plane (camera) or range-to-plane (laser) factor of one station and sensor on the
         extrinsic key ``s_key``, built by graph.py's builder but always Gaussian: the incremental
-        solver gates outliers with the change test instead of a robust loss (module docstring)."""
+        solver gates outliers with the change test instead of a robust loss (module docstring).
+        ``g_key``: the session's ground plane variable (uneven ground, cameras only)."""
         from .graph import measurement_factor
 
-        return measurement_factor(X(station), s_key, sensor, self.options, plane=plane, points=points, robust=False)
+        return measurement_factor(X(station), s_key, sensor, self.options, plane=plane, points=points, robust=False,
+                                  g_key=g_key)
 
     def add_station(
         self,
@@ -277,6 +279,10 @@ class IncrementalCalibrator:
         sid = int(station.station)
         if sid in self._initial_body:
             raise GraphcalError(f"station {sid} was already added")
+        if self.options.ground_unevenness_m > 0 or self.options.ground_unevenness_rad > 0:
+            raise GraphcalError("add_station: uneven ground (options.ground_unevenness_*) needs a ground plane per "
+                                "session, which this online path does not build; use calibrate_incremental on a "
+                                "dataset, or add_factors with the factors of build_problem")
         planes = dict(planes or {})
         scans = dict(scan_points or {})
         unknown = (set(planes) | set(scans)) - set(self._priors)
@@ -363,10 +369,10 @@ class IncrementalCalibrator:
             if not self.detect_changes:
                 continue
             key = self._key[name]
-            est = gtsam.Values()
-            est.insert(x_key, self._isam.calculateEstimatePose3(x_key))
-            est.insert(key, self._isam.calculateEstimatePose3(key))
             built[name] = (key, make(key))
+            # the current estimate of the factor's variables: body pose, extrinsic (and the
+            # session's ground plane on uneven ground)
+            est = self._isam.calculateEstimate([int(k) for k in built[name][1].keys()])
             nis, dof = innovation_nis(built[name][1], est, self._covariance_of)
             decisions[name] = self._detector[name].test(sid, nis, dof)
 
@@ -593,8 +599,9 @@ def station_updates(problem: CalibrationProblem, data: CalibrationData):
 
 
 def _value(values: gtsam.Values, key: int):
-    """The value of ``key`` in a form ``Values.insert`` accepts (Pose3, Rot3, Point3 or Vector)."""
-    for read in (values.atPose3, values.atRot3, values.atPoint3, values.atVector):
+    """The value of ``key`` in a form ``Values.insert`` accepts (Pose3, Rot3, Point3, OrientedPlane3 or
+    Vector)."""
+    for read in (values.atPose3, values.atRot3, values.atPoint3, values.atOrientedPlane3, values.atVector):
         try:
             return read(key)
         except RuntimeError:
@@ -604,12 +611,16 @@ def _value(values: gtsam.Values, key: int):
 
 def _batch_or_rebuilt(problem: CalibrationProblem, cal: IncrementalCalibrator, data: CalibrationData, station: int,
                       sensor: str, index: int, s_key: int) -> gtsam.NonlinearFactor:
-    """The batch graph's own measurement factor on its own key; rebuilt on a new segment's key."""
+    """The batch graph's own measurement factor on its own key; rebuilt on a new segment's key
+    (on the batch factor's ground plane variable, if it has one: uneven ground)."""
+    factor = problem.graph.at(index)
     if s_key == problem.sensor_keys[sensor]:
-        return problem.graph.at(index)
+        return factor
     m = (station, sensor)
     if m in data.planes:
-        return cal.measurement_factor(station, sensor, s_key, plane=data.planes[m])
+        g_keys = [int(k) for k in factor.keys() if gtsam.Symbol(k).chr() == ord("g")]
+        return cal.measurement_factor(station, sensor, s_key, plane=data.planes[m],
+                                      g_key=g_keys[0] if g_keys else None)
     return cal.measurement_factor(station, sensor, s_key, points=data.scan_points[m])
 
 
