@@ -295,7 +295,7 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
     from .io.atomic import atomic_write_text
     from .io.dataset import Table, cloud_paths, load_cloud, read_dataset, table_csv_text
 
-    max_points = check_max_points(max_points, "--plane-points")
+    max_points = check_max_points(max_points, "max_points (--plane-points)")
     ds = read_dataset(dataset)
     out_path = Path(out) if out is not None else Path(dataset) / "planes.csv"
     if out_path.exists():

@@ -13,7 +13,6 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from ..errors import GraphcalError
 from ..geometry import from_gtsam_pose
 from .graph import CalibrationOptions, CalibrationProblem, build_problem, predicted_plane_errors
 from .measurements import CalibrationData, calibration_data
