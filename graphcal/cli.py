@@ -81,6 +81,10 @@ def _build_parser() -> argparse.ArgumentParser:
                         "all). Faster on large clouds, a little less accurate: on 258k-point Kinect clouds 50000 "
                         "took 0.5-0.6x the time, with 35 %% more translation error (docs/calibration.md). No effect "
                         "when the dataset has planes.csv")
+    c.add_argument("--noise-from", type=Path, default=None, metavar="CALIBRATION_YAML",
+                   help="use the noise model (noise_model) of an earlier calibration.yaml of this robot as "
+                        "given instead of learning it; for --incremental, which cannot learn it "
+                        "(docs/incremental.md)")
     c.add_argument("--quiet", action="store_true")
 
     g = sub.add_parser("suggest-poses", help="propose the k body poses that most shrink the extrinsic covariance")
@@ -165,7 +169,8 @@ def _cmd_calibrate(args) -> int:
 
     print(run_calibrate(args.dataset, args.out, legs=args.legs, incremental=args.incremental,
                         progress=not args.quiet, ground_roughness_m=1e-3 * args.ground_roughness_mm,
-                        plane_max_points=check_max_points(args.plane_points, "--plane-points")))
+                        plane_max_points=check_max_points(args.plane_points, "--plane-points"),
+                        noise_from=args.noise_from))
     return 0
 
 

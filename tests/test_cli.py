@@ -158,7 +158,9 @@ def test_suggest_poses_prints_and_writes_reachable_poses(small_dataset, tmp_path
 
 @pytest.mark.parametrize("extra, words", [(["--ground-roughness-mm", "-3"], "must be a number >= 0 (mm), got -3"),
                                           (["--ground-roughness-mm", "nan"], "must be a number >= 0"),
-                                          (["--plane-points", "50"], "--plane-points must be a whole number of points >= 100")])
+                                          (["--plane-points", "50"], "--plane-points must be a whole number of points >= 100"),
+                                          (["--noise-from", "nowhere/calibration.yaml"],
+                                           "nowhere/calibration.yaml: file: expected a readable calibration.yaml")])
 def test_calibrate_ground_roughness_bad_use_is_one_line_exit_2(small_dataset, tmp_path, extra, words):
     proc = run("calibrate", small_dataset, "--out", tmp_path / "out", "--quiet", *extra)
     assert proc.returncode == 2, proc.stderr

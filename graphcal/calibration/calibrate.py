@@ -424,15 +424,21 @@ def _residuals(data, problem, values, T_world_body, sensors, outliers) -> list[S
 
 def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,
                   progress: bool = True, ground_roughness_m: float = 0.0,
-                  plane_max_points: int | None = None) -> str:
+                  plane_max_points: int | None = None, noise_from: str | Path | None = None) -> str:
     """The ``graphcal calibrate`` command: calibrate and write the outputs; returns a summary.
     ``ground_roughness_m``: RMS bump height of the ground (m), see
     :func:`graphcal.calibration.graph.options_for_ground_roughness`; ``plane_max_points``: see
-    :func:`calibrate`."""
+    :func:`calibrate`; ``noise_from``: an earlier ``calibration.yaml`` whose noise model is used
+    as given, not learned (:func:`graphcal.calibration.noise_file.options_with_noise_from`)."""
     from ..report.write import write_calibration_outputs
     from .graph import options_for_ground_roughness
 
     options = options_for_ground_roughness(CalibrationOptions(legs=legs), ground_roughness_m)
+    scaled: tuple[str, ...] = ()
+    if noise_from is not None:
+        from .noise_file import options_with_noise_from
+
+        options, scaled = options_with_noise_from(noise_from, options)
     if incremental:
         from .incremental import calibrate_incremental
 
@@ -440,6 +446,11 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
                                        plane_max_points=plane_max_points)
     else:
         result = calibrate(dataset, options=options, progress=progress, plane_max_points=plane_max_points)
+    if noise_from is not None:
+        unscaled = [name for name in result.sensors if name not in scaled]
+        notes = tuple(f"{noise_from} has no plane_scale:{name}: the plane noise of {name} is its own noise "
+                      "model, unscaled" for name in unscaled)
+        result = dataclasses.replace(result, noise_source=str(noise_from), warnings=result.warnings + notes)
     written = write_calibration_outputs(result, out_dir)
     lines = [f"calibrated {len(result.sensors)} sensor(s) from {dataset} ({result.solver}); wrote {out_dir}:"]
     for name, s in result.sensors.items():
@@ -450,7 +461,8 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
     lines.append(f"  residuals after: normal {result.normal_rms_deg:.3f} deg RMS, distance {result.distance_rms_mm:.2f} mm RMS")
     if result.noise:
         n = result.noise
-        how = ("noise (defaults; the incremental mode does not learn it)" if incremental
+        how = (f"noise from {noise_from} (not learned)" if noise_from is not None
+               else "noise (defaults; the incremental mode does not learn it: see --noise-from)" if incremental
                else "noise learned from the data")
         lines.append(f"  {how}: joints {np.degrees(n['sigma_joint_rad']):.3f} deg, "
                      f"contact {1e3 * n['sigma_contact_m']:.2f} mm, IMU {np.degrees(n['sigma_imu_rad']):.3f} deg")

@@ -163,6 +163,8 @@ class CalibrationResult:
             name -> value, e.g. ``sigma_joint_rad``, ``plane_scale:depth``.
         noise_groups: how each group's sigma was set (:class:`NoiseGroupEstimate`; empty when the
             noise was not learned).
+        noise_source: the ``calibration.yaml`` the noise model was read from
+            (``calibrate --noise-from``), or "" (learned, or the defaults in incremental mode).
     """
 
     dataset: str
@@ -181,3 +183,4 @@ class CalibrationResult:
     warnings: tuple[str, ...] = ()
     noise: dict = field(default_factory=dict)
     noise_groups: tuple[NoiseGroupEstimate, ...] = ()
+    noise_source: str = ""

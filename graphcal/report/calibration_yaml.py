@@ -208,6 +208,9 @@ def calibration_to_dict(result) -> dict:
     if noise:
         # the noise model of the final solve (SI units; learned by variance-component estimation)
         doc["noise_model"] = {str(k): float(v) for k, v in noise.items()}
+    source = getattr(result, "noise_source", "") or ""
+    if source:
+        doc["noise_model_from"] = str(source)  # calibrate --noise-from: given, not learned
     groups = getattr(result, "noise_groups", ()) or ()
     if groups:
         # how each group's sigma was set: learned, or held (too few dof: the data hint at data_scale)

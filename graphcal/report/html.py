@@ -173,7 +173,9 @@ def _residual_section(result) -> str:
 def _noise_section(result) -> str:
     groups = getattr(result, "noise_groups", ()) or ()
     if not groups:
-        return '<p class="small">The noise model was given, not learned from the data.</p>'
+        source = getattr(result, "noise_source", "") or ""
+        where = f" (read from <code>{_e(source)}</code>)" if source else ""
+        return f'<p class="small">The noise model was given{where}, not learned from the data.</p>'
     rows = [_row(["group", "σ", "status", "dof", "residuals point to", "χ² p (upper)"], header=True)]
     for g in groups:
         rows.append(_row([f"<code>{_e(g.group)}</code>", _e(g.values_text()), _e(g.status), _n(g.dof, ".1f"),

@@ -162,9 +162,9 @@ def write_simulation(result: SimulationResult, out_dir: str | Path, *, output: s
     truth = dict(result.truth)
     c = result.config
     truth["config"] = {
-        "robot": c.robot, "program": c.program, "ground": c.ground, "seed": c.seed, "n_sessions": c.n_sessions,
-        "output": output, "cloud_stride": c.cloud_stride,
-        "leg_error_sigma_rad": c.leg_error_sigma_rad, "leg_error_sigma_m": c.leg_error_sigma_m,
+        "robot": c.robot, "program": c.program, "ground": c.ground, "seed": int(c.seed),
+        "n_sessions": int(c.n_sessions), "output": output, "cloud_stride": int(c.cloud_stride),
+        "leg_error_sigma_rad": float(c.leg_error_sigma_rad), "leg_error_sigma_m": float(c.leg_error_sigma_m),
     }
     urdf = c.custom_robot.urdf_xml if c.custom_robot is not None else None
     write_dataset(ds, out_dir, clouds=clouds, robot_urdf_xml=urdf, overwrite=overwrite,

@@ -489,10 +489,10 @@ def _truth_dict(
             int(r.station): {"T_world_body": _pose_yaml(r.T_world_body_real)} for r in records
         },
         "noise": {
-            "tracking_sigma_rad": config.tracking_sigma_rad,
-            "encoder_sigma_rad": config.encoder_sigma_rad,
-            "joint_flex_sigma_rad": config.joint_flex_sigma_rad,
-            "imu_accel_sigma_m_s2": config.imu_accel_sigma_m_s2,
-            "imu_gyro_sigma_rad_s": config.imu_gyro_sigma_rad_s,
+            "tracking_sigma_rad": float(config.tracking_sigma_rad),
+            "encoder_sigma_rad": float(config.encoder_sigma_rad),
+            "joint_flex_sigma_rad": float(config.joint_flex_sigma_rad),
+            "imu_accel_sigma_m_s2": float(config.imu_accel_sigma_m_s2),
+            "imu_gyro_sigma_rad_s": float(config.imu_gyro_sigma_rad_s),
         },
     }
