@@ -154,6 +154,11 @@ def test_suggest_poses_prints_and_writes_reachable_poses(small_dataset, tmp_path
     table = [line.split() for line in proc.stdout.splitlines() if line.strip()[:1].isdigit()]
     sig_rot_x = [float(r[7]) for r in table]
     assert all(b <= a + 1e-9 for a, b in zip(sig_rot_x, sig_rot_x[1:]))
+    # an existing file (here the user's poses; it could be the dataset's stations.csv) is never replaced
+    before = out.read_bytes()
+    proc = run("suggest-poses", small_dataset, "-k", "2", "--out", out)
+    assert proc.returncode == 2 and "never overwrites" in proc.stderr and "Traceback" not in proc.stderr
+    assert out.read_bytes() == before
 
 
 @pytest.mark.parametrize("extra, words", [(["--ground-roughness-mm", "-3"], "must be a number >= 0 (mm), got -3"),

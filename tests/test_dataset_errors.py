@@ -52,6 +52,18 @@ def set_cell(file: str, row: int, column: str, value: str):
     return f
 
 
+def set_cells(file: str, row: int, values: dict):
+    """row: 1-based data row; values: column -> text."""
+
+    def f(d: Path):
+        rows = _rows(d / file)
+        for column, value in values.items():
+            rows[row][rows[0].index(column)] = value
+        _write_rows(d / file, rows)
+
+    return f
+
+
 def drop_column(file: str, column: str):
     def f(d: Path):
         rows = _rows(d / file)
@@ -257,6 +269,11 @@ CASES = [
     ("planes-rms", set_cell(P, 1, "rms", "-0.1"), P, ["row 1 (line 2), column rms", ">= 0"]),
     ("planes-cov-asym", set_cell(P, 2, "cov_01", "5e-7"), P, ["row 2 (line 3), column cov_00..cov_33", "symmetric"]),
     ("planes-cov-diag", set_cell(P, 2, "cov_22", "-1e-6"), P, ["row 2 (line 3), column cov_00..cov_33", "variances"]),
+    ("planes-cov-zero", set_cells(P, 2, {f"cov_{i}{j}": "0" for i in range(4) for j in range(4)}), P,
+     ["row 2 (line 3), column cov_00..cov_33", "full rank 3 across the plane", "leave out the cov_ columns"]),
+    ("planes-cov-indefinite", set_cells(P, 2, {f"cov_{i}{j}": "1e-6" if i == j else "5e-6"
+                                               for i in range(4) for j in range(4)}), P,
+     ["row 2 (line 3), column cov_00..cov_33", "positive semi-definite", "eigenvalue of -4e-06"]),
     ("planes-without-stations", chain(remove(S), remove(M), remove("clouds/depth/1.ply")), P,
      ["row 1 (line 2), column station", "no stations.csv"]),
     # mocap.csv

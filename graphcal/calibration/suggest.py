@@ -447,10 +447,19 @@ def predict_sigmas(dataset, poses, *, sensor: str | None = None,
 def suggest_poses_command(dataset, k: int, out: str | Path | None = None) -> str:
     """The ``graphcal suggest-poses`` command: a text table of the k suggested poses; with ``out``
     also a stations-like CSV of the commanded poses (station, session, body pose, IK joint angles),
-    written atomically."""
+    written atomically; an existing ``out`` is never replaced (checked before the work).
+
+    The sigma of each rank is that of a new session of the suggested stations up to that rank
+    (the dataset's own stations are not counted: it plans a calibration session)."""
+    if out is not None and (Path(out).exists() or Path(out).is_symlink()):
+        from ..errors import DatasetError
+
+        raise DatasetError(out, "--out", "a file that does not exist yet (graphcal never overwrites it); "
+                           "give another name")
     poses = suggest_poses(dataset, k)
     lines = [f"suggested stations: {len(poses)} (greedy D-optimal; sigma = predicted 1-sigma of the extrinsic "
-             "after the stations up to that rank, body axes)",
+             "from a new session of the stations up to that rank, body axes; the dataset's own stations "
+             "are not counted)",
              f"{'rank':>4} {'roll':>7} {'pitch':>7} {'yaw':>7} {'height':>7} {'x':>7} {'y':>7}  "
              f"{'sigma rot x/y/z (deg)':>23}  {'sigma xyz (mm)':>20}",
              f"{'':>4} {'deg':>7} {'deg':>7} {'deg':>7} {'m':>7} {'m':>7} {'m':>7}"]
@@ -476,6 +485,6 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None) -> str
             for f in poses[0].q_by_foot:
                 for j, name in enumerate(robot.leg(f).joint_names):
                     cols[f"q_{name}"] = [float(p.q_by_foot[f][j]) for p in poses]
-        atomic_write_text(out, table_csv_text(Table.from_columns(cols)))
+        atomic_write_text(out, table_csv_text(Table.from_columns(cols)), overwrite=False)
         lines.append(f"wrote {out}")
     return "\n".join(lines)

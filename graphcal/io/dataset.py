@@ -970,6 +970,26 @@ def _check_planes(p: _Parsed, header: _Header, station_ids: np.ndarray | None) -
         if bad.any():
             i = int(np.argmax(bad))
             raise p.err(i, "cov_00..cov_33", "variances >= 0 on the diagonal", diag[i].tolist())
+        Cs = 0.5 * (C + np.swapaxes(C, 1, 2))
+        low = np.linalg.eigvalsh(Cs)[:, 0]
+        bad = low < -1e-9 * np.maximum(scale, 1e-300)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise p.err(i, "cov_00..cov_33", "a positive semi-definite covariance", f"an eigenvalue of {low[i]:.3g}")
+        # the plane factor needs it across the plane: tilt about two in-plane axes and the offset d
+        helper = np.eye(3)[np.argmin(np.abs(n), axis=1)]
+        t1 = np.cross(helper, n)
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+        t2 = np.cross(n / norm[:, None], t1)
+        G = np.zeros((len(t), 4, 3))
+        G[:, :3, 0], G[:, :3, 1], G[:, 3, 2] = t1, t2, 1.0
+        w = np.linalg.eigvalsh(np.swapaxes(G, 1, 2) @ Cs @ G)
+        bad = (w[:, 0] <= 1e-12 * w[:, 2]) | (w[:, 2] <= 0.0)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise p.err(i, "cov_00..cov_33", "a covariance of full rank 3 across the plane (two tilts and d); "
+                        "without a covariance leave out the cov_ columns (a default is used), never zeros",
+                        f"eigenvalues {np.array2string(w[i], precision=3)}")
     for i, s in enumerate(t["sensor"].tolist()):
         if s not in header.sensors:
             raise p.err(i, "sensor", f"a sensor of dataset.yaml ({', '.join(header.sensors) or 'none'})", s)
