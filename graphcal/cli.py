@@ -96,7 +96,8 @@ def _build_parser() -> argparse.ArgumentParser:
     e.add_argument("dataset", type=Path)
     e.add_argument("--out", type=Path, default=None,
                    help="planes.csv to write (default: DATASET/planes.csv, only if it does not exist)")
-    e.add_argument("--max-planes", type=int, default=1)
+    e.add_argument("--max-planes", type=int, default=1, metavar="K",
+                   help="planes to extract from each cloud, largest first (default 1: the ground; more for stairs)")
     e.add_argument("--plane-points", type=int, default=None, metavar="N",
                    help="fit each cloud's planes on at most N of its points, every k-th one (default: all); "
                         "as calibrate --plane-points")

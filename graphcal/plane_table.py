@@ -296,6 +296,8 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
     from .io.dataset import Table, cloud_paths, load_cloud, read_dataset, table_csv_text
 
     max_points = check_max_points(max_points, "max_points (--plane-points)")
+    if isinstance(max_planes, bool) or not isinstance(max_planes, (int, np.integer)) or max_planes < 1:
+        raise GraphcalError(f"max_planes (--max-planes) must be a whole number >= 1, got {max_planes!r}")
     ds = read_dataset(dataset)
     out_path = Path(out) if out is not None else Path(dataset) / "planes.csv"
     if out_path.exists():

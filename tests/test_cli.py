@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -102,6 +103,10 @@ def test_extract_planes_writes_once_and_never_overwrites(small_dataset, tmp_path
     proc = run("extract-planes", small_dataset, "--out", tmp_path / "bad.csv", "--plane-points", "5", "--quiet")
     assert proc.returncode == 2 and "--plane-points" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "bad.csv").exists()
+    # no plane asked for: refused (it wrote a header-only planes.csv, which then hid the clouds)
+    proc = run("extract-planes", small_dataset, "--out", tmp_path / "none.csv", "--max-planes", "0", "--quiet")
+    assert proc.returncode == 2 and "--max-planes" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "none.csv").exists()
 
 
 def test_example_simulate_and_validate(tmp_path):
@@ -159,6 +164,47 @@ def test_suggest_poses_prints_and_writes_reachable_poses(small_dataset, tmp_path
     proc = run("suggest-poses", small_dataset, "-k", "2", "--out", out)
     assert proc.returncode == 2 and "never overwrites" in proc.stderr and "Traceback" not in proc.stderr
     assert out.read_bytes() == before
+
+
+def test_a_planes_csv_cut_short_is_reported_not_silently_used(small_dataset, tmp_path):
+    """When planes.csv exists the clouds are not read: stations it lacks are named, and a header-only
+    planes.csv is refused (it read as "nothing to calibrate")."""
+    import shutil
+
+    ds = tmp_path / "ds"
+    shutil.copytree(small_dataset, ds)
+    lines = (ds / "planes.csv").read_text().splitlines()
+    stations = sorted(int(line.split(",")[0]) for line in lines[1:])
+    (ds / "planes.csv").write_text("\n".join(lines[:5]) + "\n")  # the first 4 of 8 planes
+    kept = sorted(int(line.split(",")[0]) for line in lines[1:5])
+    proc = run("calibrate", ds, "--out", tmp_path / "cal", "--quiet", check_rc=0)
+    dropped = ", ".join(str(s) for s in stations if s not in kept)
+    assert f"depth: planes.csv has no plane for 4 of the 8 stations with a cloud ({dropped})" in proc.stdout
+    (ds / "planes.csv").write_text(lines[0] + "\n")
+    proc = run("calibrate", ds, "--out", tmp_path / "cal2", "--quiet")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "planes.csv: rows: expected at least one plane: when planes.csv exists the clouds are not read" in proc.stderr
+    assert not (tmp_path / "cal2").exists()
+
+
+def test_a_sensor_prior_known_exactly_is_held_and_said_so(small_dataset, tmp_path):
+    """sigma_mm: 0 (the contract allows sigmas >= 0) holds the translation at the CAD value; it is
+    not reported as undetermined by the data."""
+    import shutil
+
+    from graphcal.report.calibration_yaml import read_calibration_yaml
+
+    ds = tmp_path / "ds"
+    shutil.copytree(small_dataset, ds)
+    doc = yaml.safe_load((ds / "dataset.yaml").read_text())
+    prior = doc["sensors"]["depth"]["T_body_sensor_prior"]
+    prior["sigma_mm"] = 0
+    (ds / "dataset.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    proc = run("calibrate", ds, "--out", tmp_path / "cal", "--quiet", check_rc=0)
+    assert "depth: translation held at the CAD value (sigma_mm: 0 in dataset.yaml" in proc.stdout
+    cal = read_calibration_yaml(tmp_path / "cal" / "calibration.yaml")
+    assert np.allclose(cal["sensors"]["depth"]["T_body_sensor"]["xyz"], prior["xyz"], atol=1e-5)
+    assert not [u for u in cal["sensors"]["depth"]["unobservable"] if "translation" in u or "height" in u]
 
 
 @pytest.mark.parametrize("extra, words", [(["--ground-roughness-mm", "-3"], "must be a number >= 0 (mm), got -3"),

@@ -755,6 +755,18 @@ def test_write_outputs_refuses_previous_calibration_with_user_files(tmp_path, fa
     assert _snapshot(out) == before
 
 
+def test_calibrate_refuses_a_folder_with_user_files_before_the_work(tmp_path):
+    """The output folder is checked first: the dataset (here absent) is not even read."""
+    from graphcal.calibration.calibrate import run_calibrate
+
+    out = tmp_path / "calib"
+    out.mkdir()
+    (out / "my_notes.txt").write_text("keep me")
+    with pytest.raises(GraphcalError, match="my_notes.txt"):
+        run_calibrate(tmp_path / "no_dataset_here", out, progress=False)
+    assert (out / "my_notes.txt").read_text() == "keep me"
+
+
 def test_write_outputs_overwrite_false_and_empty_folder(tmp_path, fast_report):
     out = tmp_path / "calib"
     out.mkdir()

@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from ..geometry import from_gtsam_pose
-from .graph import CalibrationOptions, CalibrationProblem, build_problem, predicted_plane_errors
+from .graph import (CalibrationOptions, CalibrationProblem, build_problem, extrinsic_prior_for_observability,
+                    predicted_plane_errors)
 from .measurements import CalibrationData, calibration_data
 from .result import (
     CalibrationResult,
@@ -62,12 +63,29 @@ def solve_problem(problem: CalibrationProblem, *, progress: bool = False, stage:
 
 
 def unused_plane_points_warning(plane_max_points: int | None, planes_given: bool, ds) -> list[str]:
-    """The warning (a list of at most one) that ``plane_max_points`` did nothing: the planes were
-    passed in (``planes_given``) or the dataset ``ds`` has planes.csv, so no cloud was fitted."""
-    if plane_max_points is None or not (planes_given or ds.planes is not None):
-        return []
-    return [f"plane_max_points={plane_max_points} had no effect: the planes were "
-            + ("given" if planes_given else "read from planes.csv, not fitted to the clouds")]
+    """The warnings about where the planes came from: that ``plane_max_points`` did nothing (the
+    planes were passed in, ``planes_given``, or the dataset ``ds`` has planes.csv, so no cloud was
+    fitted), and that planes.csv has no plane for stations that have a camera cloud (the clouds are
+    not read when planes.csv exists: a planes.csv cut short or out of date silently drops them)."""
+    out = []
+    if plane_max_points is not None and (planes_given or ds.planes is not None):
+        out.append(f"plane_max_points={plane_max_points} had no effect: the planes were "
+                   + ("given" if planes_given else "read from planes.csv, not fitted to the clouds"))
+    if not planes_given and ds.planes is not None and ds.root is not None:
+        from ..io.dataset import cloud_paths
+
+        have = set(zip(ds.planes["sensor"].tolist(), (int(s) for s in ds.planes["station"].tolist())))
+        cameras = {n for n, spec in ds.sensors.items() if spec.type in ("depth_camera", "stereo_camera")}
+        clouds = [key for key in cloud_paths(ds) if key[0] in cameras]
+        for sensor in sorted({k[0] for k in clouds}):
+            missing = sorted(st for sn, st in clouds if sn == sensor and (sn, st) not in have)
+            if missing:
+                total = sum(1 for sn, _ in clouds if sn == sensor)
+                shown = ", ".join(map(str, missing[:8])) + (", ..." if len(missing) > 8 else "")
+                out.append(f"{sensor}: planes.csv has no plane for {len(missing)} of the {total} stations with a "
+                           f"cloud ({shown}); they are not used: when planes.csv exists the clouds are not read "
+                           "(if it is out of date, delete it or refit it with graphcal extract-planes --out NEW)")
+    return out
 
 
 def calibrate(
@@ -332,10 +350,10 @@ def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set,
         T = from_gtsam_pose(values.atPose3(key))
         cov = np.asarray(covs[key])
         T_cad, sig_m, sig_rad = problem.sensor_priors[name]
-        cov_prior = np.diag([sig_rad**2] * 3 + [sig_m**2] * 3)
+        cov_prior, held = extrinsic_prior_for_observability(sig_m, sig_rad)
         s_rot, s_xyz, corr, _ = body_axis_sigmas(T, cov)
         unobs = tuple(unobservable_directions(T, cov, cov_prior))
-        warnings += [f"{name}: {u}" for u in unobs]
+        warnings += [f"{name}: {u}" for u in unobs + held]
         conflict = prior_conflict(T, T_cad, sig_m, sig_rad)
         if conflict:
             warnings.append(f"{name}: {conflict}")
@@ -430,9 +448,10 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
     :func:`graphcal.calibration.graph.options_for_ground_roughness`; ``plane_max_points``: see
     :func:`calibrate`; ``noise_from``: an earlier ``calibration.yaml`` whose noise model is used
     as given, not learned (:func:`graphcal.calibration.noise_file.options_with_noise_from`)."""
-    from ..report.write import write_calibration_outputs
+    from ..report.write import check_output_folder, write_calibration_outputs
     from .graph import options_for_ground_roughness
 
+    check_output_folder(out_dir)  # refuse early, before the work (checked again when writing)
     options = options_for_ground_roughness(CalibrationOptions(legs=legs), ground_roughness_m)
     scaled: tuple[str, ...] = ()
     if noise_from is not None:

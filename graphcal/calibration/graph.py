@@ -303,6 +303,24 @@ LOOSE_SIGMA = 1e3
 DEFAULT_PLANE_COV = np.diag([1e-6, 1e-6, 1e-6, 1e-6])
 
 
+#: a zero sigma in dataset.yaml's T_body_sensor_prior ("known exactly") enters the graph at these
+PRIOR_SIGMA_FLOOR_M = 1e-6
+PRIOR_SIGMA_FLOOR_RAD = 1e-9
+
+
+def extrinsic_prior_for_observability(sigma_m: float, sigma_rad: float) -> tuple[np.ndarray, tuple[str, ...]]:
+    """The 6x6 prior covariance ``[rot, trans]`` (rad, m) the posterior of an extrinsic is compared
+    with to name undetermined directions, and a note per part held at the CAD value. A zero sigma
+    (the user says the CAD value is exact) is not "undetermined by the data": that part counts as
+    determined (compared with 1 rad / 1 m) and gets the note instead."""
+    rot = sigma_rad if sigma_rad > 0 else 1.0
+    trans = sigma_m if sigma_m > 0 else 1.0
+    notes = tuple(f"{part} held at the CAD value ({key}: 0 in dataset.yaml: known exactly)"
+                  for part, key, s in (("rotation", "sigma_rpy_deg", sigma_rad), ("translation", "sigma_mm", sigma_m))
+                  if not s > 0)
+    return np.diag([rot**2] * 3 + [trans**2] * 3), notes
+
+
 def huber_loss(dim: int, options: CalibrationOptions):
     """Huber loss for a factor of ``dim`` rows. GTSAM's Robust model applies the M-estimator to the
     whole factor's whitened norm, so its threshold grows with the dimension: k is the chi-square
@@ -501,8 +519,8 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         key = S(k)
         sensor_keys[name], sensor_priors[name], ext0[name] = key, prior, T0
         values.insert(key, to_gtsam_pose(T0))
-        sig_m = max(prior[1], 1e-6)
-        sig_r = max(prior[2], 1e-9)
+        sig_m = max(prior[1], PRIOR_SIGMA_FLOOR_M)
+        sig_r = max(prior[2], PRIOR_SIGMA_FLOOR_RAD)
         graph.add(extrinsic_prior(key, T_cad, sig_m, sig_r))
     if not sensor_keys:
         raise GraphcalError("no sensor has ground planes or scan points at any station: nothing to calibrate")
@@ -547,7 +565,8 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         ext_keys[f"segment:{name}:{station}"] = key
         values.insert(key, to_gtsam_pose(ext0[name]))
         T_cad, sig_m, sig_r = sensor_priors[name]
-        add_prior(extrinsic_prior(key, T_cad, max(sig_m, 1e-6), max(sig_r, 1e-9)), f"segment:{name}:{station}")
+        add_prior(extrinsic_prior(key, T_cad, max(sig_m, PRIOR_SIGMA_FLOOR_M), max(sig_r, PRIOR_SIGMA_FLOOR_RAD)),
+                  f"segment:{name}:{station}")
 
     sessions = list(dict.fromkeys(st.session for st in data.stations))
     session_planes = {}

@@ -59,7 +59,8 @@ from factors.keys import F, S, X
 from ..errors import GraphcalError
 from ..geometry import from_gtsam_pose, to_gtsam_pose
 from .change_detection import ChangeDetector, Decision, innovation_nis, joint_covariance
-from .graph import GAUGE_PRIOR_SIGMAS, CalibrationOptions, CalibrationProblem, build_problem
+from .graph import (GAUGE_PRIOR_SIGMAS, PRIOR_SIGMA_FLOOR_M, PRIOR_SIGMA_FLOOR_RAD, CalibrationOptions,
+                    CalibrationProblem, build_problem, extrinsic_prior_for_observability)
 from .measurements import CalibrationData, PlaneMeasurement, StationMeasurements, calibration_data
 from .result import CalibrationResult, ExtrinsicSegment, IncrementalStep, SensorEstimate
 
@@ -242,7 +243,7 @@ class IncrementalCalibrator:
                 continue
             T_cad, sig_m, sig_r = self._priors[name]
             values.insert(key, to_gtsam_pose(self._init_ext[name]))
-            graph.add(extrinsic_prior(key, T_cad, max(sig_m, 1e-6), max(sig_r, 1e-9)))
+            graph.add(extrinsic_prior(key, T_cad, max(sig_m, PRIOR_SIGMA_FLOOR_M), max(sig_r, PRIOR_SIGMA_FLOOR_RAD)))
         return graph, values
 
     def measurement_factor(self, station: int, sensor: str, s_key: int, *, plane: PlaneMeasurement | None = None,
@@ -436,7 +437,7 @@ class IncrementalCalibrator:
         T_old = self._isam.calculateEstimatePose3(old)
         _, sig_m, sig_r = self._priors[name]
         values.insert(new, T_old)
-        graph.add(extrinsic_prior(new, from_gtsam_pose(T_old), max(sig_m, 1e-6), max(sig_r, 1e-9)))
+        graph.add(extrinsic_prior(new, from_gtsam_pose(T_old), max(sig_m, PRIOR_SIGMA_FLOOR_M), max(sig_r, PRIOR_SIGMA_FLOOR_RAD)))
         self._key[name] = new
         self._changes[name].append(int(dec.change_station))
         old_seg = self._segments[name][-1]
@@ -518,7 +519,7 @@ class IncrementalCalibrator:
         cov = np.asarray(self._isam.marginalCovariance(key), dtype=float)
         T_cad, sig_m, sig_r = self._priors[sensor]
         s_rot, s_xyz, corr, _ = body_axis_sigmas(T, cov)
-        prior = np.diag([max(sig_r, 1e-9) ** 2] * 3 + [max(sig_m, 1e-6) ** 2] * 3)
+        prior, _ = extrinsic_prior_for_observability(sig_m, sig_r)  # the batch result carries the notes
         return SensorEstimate(
             name=sensor, type=self._types.get(sensor, ""), T_body_sensor=T, covariance=cov, T_body_sensor_prior=T_cad,
             sigma_rot_deg=np.asarray(s_rot), sigma_xyz_mm=np.asarray(s_xyz), correlation=np.asarray(corr),

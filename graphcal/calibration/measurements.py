@@ -98,6 +98,13 @@ def ground_planes(ds, *, progress: bool = False, plane_max_points: int | None = 
         p = ds.planes
         rows = {c: p[c] for c in p.columns}
         count = len(p)
+        if count == 0 and ds.root is not None:
+            from ..errors import DatasetError
+            from ..io.dataset import cloud_paths
+
+            if cloud_paths(ds):
+                raise DatasetError(ds.root / "planes.csv", "rows", "at least one plane: when planes.csv exists the "
+                                   "clouds are not read (delete it to fit the clouds)", "a header only")
     else:
         from ..io.dataset import cloud_paths, load_cloud
 
