@@ -138,6 +138,7 @@ def test_calibrate_writes_the_outputs_and_never_into_the_dataset(small_dataset, 
     for g in groups.values():
         assert g["status"] in {"learned", "too few dof", "at floor", "not converged"}
         assert all(doc["noise_model"][k] == v for k, v in g["values"].items())
+    assert "implausibly" not in proc.stdout and "outside the URDF" not in proc.stdout  # clean data: no alarm
     held = [k for k, g in groups.items() if g["status"] != "learned"]
     assert ("noise not learned:" in proc.stdout) == bool(held)
     assert all(k in proc.stdout for k in held)
@@ -185,6 +186,31 @@ def test_a_planes_csv_cut_short_is_reported_not_silently_used(small_dataset, tmp
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "planes.csv: rows: expected at least one plane: when planes.csv exists the clouds are not read" in proc.stderr
     assert not (tmp_path / "cal2").exists()
+
+
+@pytest.mark.parametrize("edit", ["degrees", "swapped"])
+def test_joint_angles_that_cannot_be_right_are_warned_about(small_dataset, tmp_path, edit):
+    """Joint angles in degrees, or two joint columns swapped on one leg: calibrate still answers
+    (the sensors and the IMU determine the extrinsic) but says the legs' data are wrong."""
+    import csv
+    import shutil
+
+    ds = tmp_path / "ds"
+    shutil.copytree(small_dataset, ds)
+    rows = list(csv.reader((ds / "stations.csv").open(newline="")))
+    if edit == "degrees":
+        for r in rows[1:]:
+            for i, c in enumerate(rows[0]):
+                if c.startswith("q_"):
+                    r[i] = repr(float(r[i]) * 180.0 / np.pi)
+    else:
+        a, b = rows[0].index("q_lf_coxa_joint"), rows[0].index("q_lf_femur_joint")
+        rows[0][a], rows[0][b] = rows[0][b], rows[0][a]
+    with (ds / "stations.csv").open("w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    proc = run("calibrate", ds, "--out", tmp_path / "cal", "--quiet", check_rc=0)
+    assert "the stance feet fit their kinematics implausibly badly" in proc.stdout
+    assert ("stations have joint angles outside the URDF's limits" in proc.stdout) == (edit == "degrees")
 
 
 def test_a_sensor_prior_known_exactly_is_held_and_said_so(small_dataset, tmp_path):

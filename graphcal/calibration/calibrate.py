@@ -176,6 +176,7 @@ def calibrate(
         if outliers and options.estimate_noise:
             options = estimate_noise(options)
     result = _result(ds, robot, data, problem, values, outliers, iterations, options)
+    warnings += implausible_leg_data_warnings(data, robot, options)
     if options.estimate_noise:
         if not noise_stats:  # the rounds ran out (or outliers were left out) after the last update
             noise_stats.update(noise_update(options, problem, values, converge=False).stats)
@@ -185,6 +186,45 @@ def calibrate(
     if warnings:
         result = dataclasses.replace(result, warnings=tuple(warnings) + result.warnings)
     return result
+
+
+#: a learned stance-foot noise beyond these is not a robot's encoders and feet but wrong data
+PLAUSIBLE_JOINT_SIGMA_RAD = float(np.radians(2.0))
+PLAUSIBLE_CONTACT_SIGMA_M = 0.02
+
+
+def implausible_leg_data_warnings(data: CalibrationData, robot, options: CalibrationOptions) -> list[str]:
+    """Warnings that the joint angles cannot be what they claim: angles outside the URDF's limits
+    (``graphcal validate`` lists them), and a learned stance-foot noise beyond
+    :data:`PLAUSIBLE_JOINT_SIGMA_RAD` / :data:`PLAUSIBLE_CONTACT_SIGMA_M` (measured: angles in
+    degrees gave 41 deg / 402 mm, two joint columns swapped on one leg 7.2 deg / 44 mm; a simulated
+    0.3 deg flex gave 0.29 deg / 1.0 mm)."""
+    out = []
+    bad_stations, example = 0, None
+    for st in data.stations:
+        hit = None
+        for foot, q in st.q_by_foot.items():
+            leg = robot.legs[foot]
+            outside = (np.asarray(q) < leg.lower - 1e-3) | (np.asarray(q) > leg.upper + 1e-3)
+            if outside.any():
+                j = int(np.argmax(outside))
+                hit = (leg.joint_names[j], float(q[j]), float(leg.lower[j]), float(leg.upper[j]))
+                break
+        if hit is not None:
+            bad_stations += 1
+            example = example or (st.station, *hit)
+    if bad_stations:
+        s, j, q, lo, hi = example
+        out.append(f"{bad_stations} of {len(data.stations)} stations have joint angles outside the URDF's limits "
+                   f"(station {s}: q_{j} = {q:.4g} rad, limits [{lo:.4g}, {hi:.4g}]): joint angles must be radians, "
+                   "with the URDF's joint names and signs (graphcal validate lists them)")
+    if options.estimate_noise and (options.sigma_joint_rad > PLAUSIBLE_JOINT_SIGMA_RAD
+                                   or options.sigma_contact_m > PLAUSIBLE_CONTACT_SIGMA_M):
+        out.append(f"the stance feet fit their kinematics implausibly badly (noise learned: joints "
+                   f"{np.degrees(options.sigma_joint_rad):.3g} deg, contact {1e3 * options.sigma_contact_m:.3g} mm): "
+                   "joint angles in degrees, joint columns swapped or of the wrong sign, feet not planted, or a "
+                   "robot model that is not this robot's; with that noise the legs carry almost no weight in the estimate")
+    return out
 
 
 VCE_ROUNDS = 8
