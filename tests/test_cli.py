@@ -213,6 +213,32 @@ def test_joint_angles_that_cannot_be_right_are_warned_about(small_dataset, tmp_p
     assert ("stations have joint angles outside the URDF's limits" in proc.stdout) == (edit == "degrees")
 
 
+def test_a_closed_pipe_and_a_garbage_cloud_give_no_traceback_nor_warnings(small_dataset, tmp_path):
+    import os
+    import shutil
+
+    # `graphcal validate D | head -1`: the reader is gone before graphcal prints
+    proc = subprocess.Popen([sys.executable, "-m", "graphcal", "validate", str(small_dataset)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    proc.wait(timeout=300)
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err
+    assert proc.returncode == 141
+    # random bytes after a valid header: one line naming the file and the point, no numpy warnings
+    ds = tmp_path / "ds"
+    shutil.copytree(small_dataset, ds)
+    (ds / "planes.csv").unlink()
+    cloud = sorted((ds / "clouds" / "depth").glob("*.ply"))[0]
+    data = bytearray(cloud.read_bytes())
+    start = data.index(b"end_header\n") + len(b"end_header\n")
+    data[start:] = os.urandom(len(data) - start)
+    cloud.write_bytes(bytes(data))
+    proc = run("validate", ds)
+    assert proc.returncode == 2 and f"{cloud.name}: point" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
 def test_a_sensor_prior_known_exactly_is_held_and_said_so(small_dataset, tmp_path):
     """sigma_mm: 0 (the contract allows sigmas >= 0) holds the translation at the CAD value; it is
     not reported as undetermined by the data."""

@@ -191,7 +191,9 @@ def read_ply(path: str | Path) -> np.ndarray:
         del data
         if points is None:
             points = _read_with_open3d(path, header)
-    if not math.isfinite(float(np.add.reduce(points, axis=None))):  # one pass, no temporary
+    with np.errstate(over="ignore", invalid="ignore"):  # garbage bytes overflow: the check below names them
+        total = float(np.add.reduce(points, axis=None))  # one pass, no temporary
+    if not math.isfinite(total):
         finite = np.isfinite(points).all(axis=1)
         if not finite.all():
             i = int(np.argmin(finite))
