@@ -90,6 +90,16 @@ def rename_column(file: str, old: str, new: str):
     return f
 
 
+def semicolon_separated(rel: str):
+    """The file as a spreadsheet in a comma-decimal locale exports it: ';' between the cells."""
+
+    def f(d: Path):
+        rows = _rows(d / rel)
+        (d / rel).write_text("\n".join(";".join(r) for r in rows) + "\n")
+
+    return f
+
+
 def write_file(rel: str, content: str | bytes):
     def f(d: Path):
         p = d / rel
@@ -204,6 +214,7 @@ CASES = [
      ["stations.csv or timeseries.csv"]),
     # stations.csv
     ("stations-empty", write_file(S, ""), S, ["header", "column names"]),
+    ("stations-semicolons", semicolon_separated(S), S, ["header", "separated by commas (this file uses semicolons"]),
     ("stations-no-station", drop_column(S, "station"), S, ["column station", "required"]),
     ("stations-unknown-column", add_column(S, "temperature", "20"), S, ["column temperature", "unknown column"]),
     ("stations-contact-not-allowed", add_column(S, "contact_lf_foot", "1"), S, ["column contact_lf_foot"]),

@@ -217,6 +217,8 @@ def test_simulate_command_writes_a_contract_dataset(tmp_path):
     (["--program", "tripod-walk", "--robot", "octopus"], "qingzhui"),
     (["--program", "tripod-walk", "--robot", "qingzhui", "--effect", "ground_tilt"], "--effect"),
     (["--program", "tripod-walk", "--robot", "qingzhui", "--distance", "0.1"], "shorter than the speed ramps"),
+    (["--program", "tripod-walk", "--robot", "qingzhui", "--duration", "1"],
+     "duration_s 1 s is too short for a walk: it needs at least 4.9 s"),
     (["--program", "chai2015", "--distance", "3"], "walking programs"),
 ])
 def test_bad_walking_requests_are_named(tmp_path, capsys, words, message):

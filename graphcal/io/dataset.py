@@ -404,7 +404,8 @@ class ValidationReport:
             f"{self.path}: valid {FORMAT} dataset",
             f"  robot: {self.robot}",
             f"  sensors: {self.n_sensors} ({', '.join(self.sensors) or 'none'})",
-            f"  stations: {self.n_stations} in {self.n_sessions} session(s); "
+            f"  stations: {self.n_stations} in "
+            f"{self.n_sessions if self.n_sessions or not self.n_stations else 'an unknown number of'} session(s); "
             f"timeseries samples: {self.n_timeseries_rows}",
             f"  clouds: {self.n_clouds} ({self.n_cloud_points} points); planes: {self.n_planes}; "
             f"mocap rows: {self.n_mocap_rows}",
@@ -771,6 +772,10 @@ def _read_csv(path: Path, kind: str) -> _Parsed:
         raise DatasetError(path, f"line {max(reader.line_num, 1)}", "well-formed CSV", _one_line(str(exc))) from None
     if header is None:
         raise DatasetError(path, "header", "a first line with the column names", "an empty file")
+    if len(header) == 1 and (";" in header[0] or "\t" in header[0]):
+        sep = "semicolons" if ";" in header[0] else "tabs"
+        raise DatasetError(path, "header", f"column names separated by commas (this file uses {sep}: the "
+                           "contract's CSV is comma-separated, with a point as the decimal mark)", _cell(header[0]))
 
     for j, name in enumerate(header):
         if not name:

@@ -183,8 +183,13 @@ class WalkingConfig:
             (c.cloud_stride >= 1, "cloud_stride must be >= 1"),
             (0.5 < c.duty_factor < 0.9, "duty_factor must be in (0.5, 0.9)"),
             (c.speed_m_s > 0 and c.cycle_s > 0, "speed_m_s and cycle_s must be > 0"),
-            (c.distance_m >= c.speed_m_s * c.ramp_s, f"the path ({c.distance_m:.2f} m) is shorter than the speed "
-             f"ramps ({c.speed_m_s * c.ramp_s:.2f} m): walk further or longer"),
+            (c.distance_m >= c.speed_m_s * c.ramp_s,
+             (f"duration_s {c.duration_s:g} s is too short for a walk: it needs at least "
+              f"{2 * c.still_s + 2 * c.ramp_s + c.cycle_s:g} s (standing still {c.still_s:g} s at each end, "
+              f"speed ramps of {c.ramp_s:g} s, a gait cycle of {c.cycle_s:g} s)"
+              if c.duration_s is not None and not st else
+              f"the path ({c.distance_m:.2f} m) is shorter than the speed ramps "
+              f"({c.speed_m_s * c.ramp_s:.2f} m): walk further or longer")),
             (c.still_s >= 0 and c.ramp_s > 0, "still_s must be >= 0 and ramp_s > 0"),
         ]
         if st:
