@@ -90,6 +90,13 @@ def rename_column(file: str, old: str, new: str):
     return f
 
 
+def header_only(rel: str):
+    def f(d: Path):
+        _write_rows(d / rel, _rows(d / rel)[:1])
+
+    return f
+
+
 def semicolon_separated(rel: str):
     """The file as a spreadsheet in a comma-decimal locale exports it: ';' between the cells."""
 
@@ -215,6 +222,7 @@ CASES = [
     # stations.csv
     ("stations-empty", write_file(S, ""), S, ["header", "column names"]),
     ("stations-semicolons", semicolon_separated(S), S, ["header", "separated by commas (this file uses semicolons"]),
+    ("stations-header-only", header_only(S), P, ["column station", "(stations.csv has a header but no rows)"]),
     ("stations-no-station", drop_column(S, "station"), S, ["column station", "required"]),
     ("stations-unknown-column", add_column(S, "temperature", "20"), S, ["column temperature", "unknown column"]),
     ("stations-contact-not-allowed", add_column(S, "contact_lf_foot", "1"), S, ["column contact_lf_foot"]),

@@ -1005,7 +1005,8 @@ def _check_planes(p: _Parsed, header: _Header, station_ids: np.ndarray | None) -
         bad = ~np.isin(t["station"], station_ids)
         if bad.any():
             i = int(np.argmax(bad))
-            raise p.err(i, "station", "a station id of stations.csv", int(t["station"][i]))
+            empty = " (stations.csv has a header but no rows)" if len(station_ids) == 0 else ""
+            raise p.err(i, "station", f"a station id of stations.csv{empty}", int(t["station"][i]))
 
 
 def _marker_ok(name: str, feet: Sequence[str], markers: Mapping[str, MarkerSpec]) -> bool:
