@@ -454,12 +454,12 @@ def prior_conflict(T_body_sensor: np.ndarray, T_prior: np.ndarray, sigma_m: floa
 
 
 def noise_summary(options: CalibrationOptions, problem: CalibrationProblem) -> dict:
-    """The noise model of the final solve, SI units."""
-    out = {name: float(getattr(options, name)) for name in
-           ("sigma_joint_rad", "sigma_contact_m", "sigma_ground_m", "sigma_imu_rad", "sigma_commanded_rad",
-            "sigma_commanded_m")}
+    """The noise model of the final solve, SI units (what ``--noise-from`` reads back)."""
+    from .noise_file import NOISE_KEYS, PLANE_SCALE_PREFIX
+
+    out = {name: float(getattr(options, name)) for name in NOISE_KEYS}
     for sensor in problem.sensor_keys:
-        out[f"plane_scale:{sensor}"] = options.plane_scale(sensor)
+        out[f"{PLANE_SCALE_PREFIX}{sensor}"] = options.plane_scale(sensor)
     return out
 
 
