@@ -43,13 +43,7 @@ def _write_rows(path: Path, rows) -> None:
 
 def set_cell(file: str, row: int, column: str, value: str):
     """row: 1-based data row."""
-
-    def f(d: Path):
-        rows = _rows(d / file)
-        rows[row][rows[0].index(column)] = value
-        _write_rows(d / file, rows)
-
-    return f
+    return set_cells(file, row, {column: value})
 
 
 def set_cells(file: str, row: int, values: dict):

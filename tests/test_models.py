@@ -412,3 +412,16 @@ def test_leg_perturbation_is_frozen_and_hashable():
     assert apply_perturbation(builtin_urdf("a1"), empty)  # no-op still valid URDF
     s = a + LegPerturbation({"j": 0.05})
     assert s.joint_offsets_rad["j"] == pytest.approx(0.15)
+
+
+def test_outside_limits_skips_joints_without_usable_limits():
+    """A URDF joint without <limit> can come back as lower == upper: never 'outside' (validate and
+    calibrate's joint-angle warnings share this rule)."""
+    from dataclasses import replace
+
+    leg = load_robot(model="octopus").leg("lf_foot")
+    lo, hi = np.array(leg.lower), np.array(leg.upper)
+    q = np.vstack([0.5 * (lo + hi), hi + 0.01, lo - 0.0005])
+    assert leg.outside_limits(q).tolist() == [[False] * 3, [True] * 3, [False] * 3]
+    no_limits = replace(leg, lower=np.zeros(3), upper=np.zeros(3))
+    assert not no_limits.outside_limits(q).any()

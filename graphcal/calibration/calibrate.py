@@ -205,7 +205,7 @@ def implausible_leg_data_warnings(data: CalibrationData, robot, options: Calibra
         hit = None
         for foot, q in st.q_by_foot.items():
             leg = robot.legs[foot]
-            outside = (np.asarray(q) < leg.lower - 1e-3) | (np.asarray(q) > leg.upper + 1e-3)
+            outside = leg.outside_limits(q)
             if outside.any():
                 j = int(np.argmax(outside))
                 hit = (leg.joint_names[j], float(q[j]), float(leg.lower[j]), float(leg.upper[j]))

@@ -1367,10 +1367,11 @@ def validate_dataset(path: str | Path) -> ValidationReport:
                 continue
             for foot in robot.feet:
                 leg = robot.legs[foot]
-                for j, lo, hi in zip(leg.joint_names, leg.lower, leg.upper):
-                    q = t[f"q_{j}"]
-                    out = int(((q < lo - 1e-3) | (q > hi + 1e-3)).sum())
-                    if out and np.isfinite([lo, hi]).all() and lo < hi:
+                if not leg.n_joints:
+                    continue
+                outside = leg.outside_limits(np.stack([t[f"q_{j}"] for j in leg.joint_names], axis=-1))
+                for j, lo, hi, out in zip(leg.joint_names, leg.lower, leg.upper, outside.sum(axis=0).tolist()):
+                    if out:
                         warnings.append(
                             f"{kind}.csv: q_{j} outside the URDF limits [{lo:.4g}, {hi:.4g}] on {out} row(s)"
                         )

@@ -88,6 +88,14 @@ class Leg:
         """Number of moving joints of the leg."""
         return len(self.joint_names)
 
+    def outside_limits(self, q, tol: float = 1e-3) -> np.ndarray:
+        """Which joint values ``q`` (..., n) (rad or m) lie more than ``tol`` outside the URDF's limits;
+        joints without usable limits (infinite, or ``lower >= upper`` as a URDF without a ``<limit>``
+        gives) are never outside."""
+        q = np.asarray(q, dtype=float)
+        known = np.isfinite(self.lower) & np.isfinite(self.upper) & (self.lower < self.upper)
+        return known & ((q < self.lower - tol) | (q > self.upper + tol))
+
     def joint_index(self, joint: str) -> int:
         """Position of ``joint`` in :attr:`joint_names`; ModelError if it is not in this leg."""
         try:
