@@ -91,6 +91,8 @@ def _build_parser() -> argparse.ArgumentParser:
     g.add_argument("dataset", type=Path)
     g.add_argument("-k", type=int, default=10, help="number of poses (default 10)")
     g.add_argument("--out", type=Path, default=None, help="write the poses as CSV here")
+    g.add_argument("--after-existing", action="store_true",
+                   help="count the dataset's own stations (its first session) as done: suggest the k to add")
 
     e = sub.add_parser("extract-planes", help="fit planes to a dataset's clouds and write planes.csv")
     e.add_argument("dataset", type=Path)
@@ -178,7 +180,7 @@ def _cmd_calibrate(args) -> int:
 def _cmd_suggest(args) -> int:
     from .calibration.suggest import suggest_poses_command
 
-    print(suggest_poses_command(args.dataset, args.k, out=args.out))
+    print(suggest_poses_command(args.dataset, args.k, out=args.out, after_existing=args.after_existing))
     return 0
 
 

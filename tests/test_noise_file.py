@@ -120,7 +120,7 @@ def test_incremental_with_the_noise_a_batch_run_learned_reports_the_batch_sigma(
     online, cov_online, sigma_online, xi = _sigma_and_error(tmp_path / "b_online", sim_b)
     assert online["noise_model"] == learned_a
     assert online["noise_model_from"] == str(tmp_path / "a" / "calibration.yaml")
-    assert "noise_estimation" not in online
+    assert {g["status"] for g in online["noise_estimation"].values()} == {"given"}  # checked, not learned
     assert "read from <code>" in (tmp_path / "b_online" / "report.html").read_text(encoding="utf-8")
     sigma_batch = _sigma_and_error(tmp_path / "b_batch", sim_b)[2]
     sigma_default = _sigma_and_error(tmp_path / "b_default", sim_b)[2]

@@ -167,3 +167,50 @@ def test_bad_arguments(chai):
         suggest_poses(ds, 3, sensor="nope")
     with pytest.raises(GraphcalError):
         suggest_poses(ds, 3, sigma_target_deg=0.1)
+
+
+def test_after_existing_plans_the_stations_to_add_to_the_dataset(chai):
+    """The dataset's 52 stations counted as done: the model's sigma of them alone is the sigma an
+    actual calibration of them reports (same noise model), and the suggestions shrink it from there."""
+    ds, _ = chai
+    model = _Model(ds, None, PLAIN)
+    Lam, n_done = model.existing_information()
+    assert n_done == 52
+    rot0, xyz0 = model.sigmas(model.prior_information() + Lam)
+    actual = calibrate(ds, options=PLAIN).sensors["depth"]
+    np.testing.assert_allclose(rot0, actual.sigma_rot_deg, rtol=0.15)
+    np.testing.assert_allclose(xyz0, actual.sigma_xyz_mm, rtol=0.15)
+
+    added = suggest_poses(ds, 3, options=PLAIN, after_existing=True)
+    fresh = suggest_poses(ds, 3, options=PLAIN)
+    s0 = np.r_[rot0, xyz0]
+    s = np.array([np.r_[p.sigma_rot_deg, p.sigma_xyz_mm] for p in added])
+    assert np.all(s[0] < s0) and np.all(s[1:] <= s[:-1] * (1 + 1e-9))
+    # a new session of 3 stations is far from the 52 (the suggestions do not count them there)
+    assert np.all(np.r_[fresh[-1].sigma_rot_deg, fresh[-1].sigma_xyz_mm] > s[-1])
+    # targets the 52 meet already: nothing to add
+    assert suggest_poses(ds, 3, options=PLAIN, after_existing=True, sigma_target_deg=rot0 * 1.01,
+                         sigma_target_mm=xyz0 * 1.01) == []
+
+
+def test_command_after_existing_says_what_it_counted(chai):
+    ds, _ = chai
+    text = suggest_poses_command(ds, 2, after_existing=True)
+    assert "the dataset's first session: 52 station(s) with a plane of depth" in text
+    assert "suggested stations to add: 2" in text
+    assert "--after-existing counts them" in suggest_poses_command(ds, 1)
+
+
+def test_after_existing_counts_only_stations_that_saw_the_ground(chai, tmp_path):
+    import shutil
+
+    ds, _ = chai
+    copy = tmp_path / "ds"
+    shutil.copytree(ds.root, copy)
+    lines = (copy / "planes.csv").read_text(encoding="utf-8").splitlines(keepends=True)
+    header = lines[0].split(",")
+    col = header.index("station")
+    kept = [ln for ln in lines[1:] if int(ln.split(",")[col]) not in {1, 2, 3, 4, 5}]
+    assert len(kept) == len(lines) - 1 - 5
+    (copy / "planes.csv").write_text("".join([lines[0]] + kept), encoding="utf-8")
+    assert _Model(read_dataset(copy), None, PLAIN).existing_information()[1] == 47

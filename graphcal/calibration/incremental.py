@@ -530,7 +530,8 @@ class IncrementalCalibrator:
     def problem(self) -> tuple[CalibrationProblem, gtsam.Values]:
         """The graph iSAM2 holds (removed factors left out) as a :class:`CalibrationProblem`, and
         the current estimate: for reports and batch covariances. ``sensor_keys`` are the current
-        (last) segments."""
+        (last) segments. ``factor_groups`` names the plane / scan factors' group (``plane:<sensor>``)
+        only: the other factors came from the caller, with no group attached."""
         factors = self._isam.getFactorsUnsafe()
         graph = gtsam.NonlinearFactorGraph()
         remap = {}
@@ -548,6 +549,7 @@ class IncrementalCalibrator:
             graph=graph, initial=values, sensor_keys={n: self._key[n] for n in ext0},
             sensor_priors={n: self._priors[n] for n in ext0}, station_keys=stations, leg_keys=dict(self._leg_keys),
             plane_factors=plane_factors, initial_body=dict(self._initial_body), initial_extrinsics=ext0,
+            factor_groups={i: f"plane:{m[1]}" for i, m in plane_factors.items()},
             excluded=frozenset(self._outliers) | frozenset((s, n) for n, s in self.held_stations().items()),
         )
         return problem, values
@@ -676,6 +678,7 @@ def calibrate_incremental(
     from ..io.dataset import Dataset, load_dataset_robot, read_dataset
     from ..solvers.covariance import marginal_covariances
     from .calibrate import _residuals, _result, unused_plane_points_warning
+    from .noise_check import given_noise_check
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
     robot = load_dataset_robot(ds)
@@ -753,11 +756,15 @@ def calibrate_incremental(
                                     {name: replace(est, T_body_sensor=T_k)}, outliers):
                     residuals[(r.station, r.sensor)] = r
         sensors[name] = replace(est, segments=tuple(segments), change_stations=cal.change_stations(name))
+    # the noise was given, not learned: checked against this run's residuals, the extrinsic covariance
+    # scaled up where the planes scatter more than it predicts (noise_check.py)
+    sensors, groups, noise_warnings = given_noise_check(inc_problem, values, options, sensors)
     res_list = tuple(sorted(residuals.values(), key=lambda r: (r.station, r.sensor)))
     after = [r for r in res_list if not r.outlier]
     normal_rms = float(np.sqrt(np.mean([r.angle_after_deg**2 for r in after]))) if after else float("nan")
     dist_rms = float(np.sqrt(np.mean([r.distance_after_mm**2 for r in after]))) if after else float("nan")
     return replace(
         res, sensors=sensors, residuals=res_list, normal_rms_deg=normal_rms, distance_rms_mm=dist_rms,
-        solver="incremental", history=tuple(cal.history), warnings=tuple(res.warnings) + tuple(warnings),
+        solver="incremental", history=tuple(cal.history),
+        warnings=tuple(res.warnings) + tuple(warnings) + tuple(noise_warnings), noise_groups=groups,
     )

@@ -48,7 +48,7 @@ def options_with_noise_from(path: str | Path, options: CalibrationOptions) -> tu
 
     Returns:
         ``(options, sensors)``: the options with :data:`NOISE_KEYS` and the plane scales from the
-        file and ``estimate_noise`` off, and the names of the sensors the file has a plane scale for.
+        file, ``estimate_noise`` off and ``scale_to_plane_residuals`` on (noise_check.py), and the names of the sensors the file has a plane scale for.
 
     Raises:
         DatasetError: unreadable or invalid file, no ``noise_model`` block, a missing sigma, a value
@@ -79,5 +79,6 @@ def options_with_noise_from(path: str | Path, options: CalibrationOptions) -> tu
     missing = [k for k in NOISE_KEYS if k not in values]
     if missing:
         raise DatasetError(path, f"noise_model.{missing[0]}", "this key (required)", "missing")
-    out = dataclasses.replace(options, estimate_noise=False, plane_sigma_scales=tuple(scales.items()), **values)
+    out = dataclasses.replace(options, estimate_noise=False, scale_to_plane_residuals=True,
+                              plane_sigma_scales=tuple(scales.items()), **values)
     return out, tuple(scales)

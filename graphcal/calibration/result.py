@@ -39,6 +39,9 @@ class SensorEstimate:
             that would determine it; empty when everything is determined.
         segments: the extrinsic segments in station order (one when the sensor never moved).
         change_stations: station ids where a change of the extrinsic was detected.
+        covariance_scale: the factor ``covariance`` (and every segment's) was multiplied by because
+            the plane residuals were larger than a noise model that was given, not learned, predicts
+            (noise_check.py; 1: not scaled).
     """
 
     name: str
@@ -52,6 +55,7 @@ class SensorEstimate:
     unobservable: tuple[str, ...] = ()
     segments: tuple[ExtrinsicSegment, ...] = ()
     change_stations: tuple[int, ...] = ()
+    covariance_scale: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)

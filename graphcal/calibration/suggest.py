@@ -73,7 +73,8 @@ class SuggestedPose:
         T_stance_body: (4, 4) commanded body pose in the stance frame (m).
         roll_deg, pitch_deg, yaw_deg: its ROS roll/pitch/yaw (deg); height_m: body height (m).
         sigma_rot_deg, sigma_xyz_mm: (3,) predicted 1-sigma of the extrinsic about / along the body
-            axes after the stations of rank <= this one (information model, module docstring).
+            axes after the stations of rank <= this one (and the dataset's own with
+            ``after_existing``; information model, module docstring).
         q_by_foot: foot -> (n,) joint angles that hold the pose with the feet planted (IK).
     """
 
@@ -138,6 +139,12 @@ class _Model:
         self.feet_world = np.array(feet_world)
         self.q_seed = {f: np.asarray(st1[0].q_by_foot[f], dtype=float) for f in self.feet}
         T1 = np.array([problem.initial_body[st.station] for st in st1])
+        # the first session's stations with a plane of this camera: what the dataset has already measured
+        seen = {station for (station, name) in data.planes if name == sensor}
+        done = [i for i, st in enumerate(st1) if st.station in seen]
+        self.existing_T = T1[done]
+        self.existing_q = {f: np.array([st1[i].q_by_foot[f] for i in done], dtype=float).reshape(len(done), -1)
+                           for f in self.feet}
         self.xy0 = T1[:, :2, 3].mean(axis=0)
         self.yaw0 = float(np.median([xyz_rpy_from_pose(T)[1][2] for T in T1]))
         self.height0 = float(np.median(T1[:, 2, 3]))
@@ -295,6 +302,18 @@ class _Model:
             P[i:i + 3, i:i + 3] = np.eye(3) / self.mount_sigma**2
         return P
 
+    def existing_information(self) -> tuple[np.ndarray, int]:
+        """((D, D) information, count) of the dataset's own stations of the first session that have
+        a plane of the camera, at their kinematic body poses with their measured joint angles
+        (stations of other sessions stood on other feet: not counted)."""
+        Lam = np.zeros((self.dim, self.dim))
+        n = 0
+        for info in self.station_informations(self.existing_T, self.existing_q) if len(self.existing_T) else ():
+            if info is not None:
+                Lam += info
+                n += 1
+        return Lam, n
+
     def sigmas(self, Lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Body-axis 1-sigma (deg, mm) of the extrinsic from an information matrix on theta."""
         from ..solvers.covariance import body_axis_sigmas
@@ -346,6 +365,7 @@ def suggest_poses(
     min_separation_deg: float = 2.0,
     sigma_target_deg=None,
     sigma_target_mm=None,
+    after_existing: bool = False,
 ) -> list[SuggestedPose]:
     """The k body poses that, commanded in the dataset's stance, determine the camera's extrinsic
     best (greedy D-optimal; see the module docstring).
@@ -365,6 +385,9 @@ def suggest_poses(
             sigma / target ratio (a soft maximum) instead of maximising the D-criterion, and the
             selection stops as soon as every sigma is at or below its target (the stop rule of
             the incremental calibration, planned ahead).
+        after_existing: count the dataset's own stations of its first session as done
+            (:meth:`_Model.existing_information`): the k stations to add to them, with sigmas of
+            them all; no station when the targets are met already. False: a new session.
 
     Returns:
         At most k :class:`SuggestedPose` in the order chosen (fewer when the targets are met
@@ -401,6 +424,10 @@ def suggest_poses(
             raise GraphcalError(f"suggest_poses: sigma targets must be > 0, got {target.tolist()}")
     alive = np.ones(len(poses), dtype=bool)
     Lam = model.prior_information()
+    if after_existing:
+        Lam = Lam + model.existing_information()[0]
+        if target is not None and np.all(np.concatenate(model.sigmas(Lam)) <= target):
+            return []
     out: list[SuggestedPose] = []
     for rank in range(1, k + 1):
         if not alive.any():
@@ -444,22 +471,37 @@ def predict_sigmas(dataset, poses, *, sensor: str | None = None,
     return model.sigmas(Lam)
 
 
-def suggest_poses_command(dataset, k: int, out: str | Path | None = None) -> str:
+def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, after_existing: bool = False) -> str:
     """The ``graphcal suggest-poses`` command: a text table of the k suggested poses; with ``out``
     also a stations-like CSV of the commanded poses (station, session, body pose, IK joint angles),
     written atomically; an existing ``out`` is never replaced (checked before the work).
 
     The sigma of each rank is that of a new session of the suggested stations up to that rank
-    (the dataset's own stations are not counted: it plans a calibration session)."""
+    (it plans a calibration session), or with ``after_existing`` that of the dataset's first
+    session plus the suggested stations up to that rank (it plans the stations to add)."""
     if out is not None and (Path(out).exists() or Path(out).is_symlink()):
         from ..errors import DatasetError
 
         raise DatasetError(out, "--out", "a file that does not exist yet (graphcal never overwrites it); "
                            "give another name")
-    poses = suggest_poses(dataset, k)
-    lines = [f"suggested stations: {len(poses)} (greedy D-optimal; sigma = predicted 1-sigma of the extrinsic "
-             "from a new session of the stations up to that rank, body axes; the dataset's own stations "
-             "are not counted)",
+    if after_existing:
+        from ..io.dataset import Dataset, read_dataset
+
+        dataset = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+        model = _Model(dataset, None, CalibrationOptions())
+        Lam, n_done = model.existing_information()
+        s_rot, s_xyz = model.sigmas(model.prior_information() + Lam)
+        head = [f"the dataset's first session: {n_done} station(s) with a plane of {model.sensor}, predicted sigma "
+                f"rot {' '.join(f'{v:.3f}' for v in s_rot)} deg, xyz {' '.join(f'{v:.2f}' for v in s_xyz)} mm",
+                f"suggested stations to add: {{n}} (greedy D-optimal; sigma = predicted 1-sigma of the extrinsic "
+                "from those stations and the suggested ones up to that rank, body axes)"]
+    else:
+        head = ["suggested stations: {n} (greedy D-optimal; sigma = predicted 1-sigma of the extrinsic "
+                "from a new session of the stations up to that rank, body axes; the dataset's own stations "
+                "are not counted: --after-existing counts them)"]
+    poses = suggest_poses(dataset, k, after_existing=after_existing)
+    head[-1] = head[-1].replace("{n}", str(len(poses)))
+    lines = head + [
              f"{'rank':>4} {'roll':>7} {'pitch':>7} {'yaw':>7} {'height':>7} {'x':>7} {'y':>7}  "
              f"{'sigma rot x/y/z (deg)':>23}  {'sigma xyz (mm)':>20}",
              f"{'':>4} {'deg':>7} {'deg':>7} {'deg':>7} {'m':>7} {'m':>7} {'m':>7}"]

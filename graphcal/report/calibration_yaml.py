@@ -155,6 +155,8 @@ def _sensor_dict(s) -> dict:
         "T_body_sensor_prior": pose_to_dict(s.T_body_sensor_prior),
         "correlation": _flist(s.correlation),
         "change_stations": [int(c) for c in s.change_stations],
+        # the factor covariance and sigma include (> 1: the plane residuals outgrew a given noise model)
+        "covariance_scale": _f(getattr(s, "covariance_scale", 1.0)),
     }
     if len(s.segments) > 1:
         segs = []
@@ -177,7 +179,7 @@ def calibration_to_dict(result) -> dict:
 
     Keys (docs/outputs.md): ``format``, ``dataset``, ``base_frame``, ``sensors`` (per sensor:
     ``type``, ``T_body_sensor``, ``covariance``, ``sigma``, ``unobservable``, ``T_body_sensor_prior``,
-    ``correlation``, ``change_stations`` and ``segments`` when the sensor moved), ``legs`` (only when
+    ``correlation``, ``change_stations``, ``covariance_scale`` and ``segments`` when the sensor moved), ``legs`` (only when
     legs were calibrated), ``outliers``, ``residuals``, ``solver``, ``warnings``.
     """
     doc: dict[str, Any] = {
@@ -213,7 +215,7 @@ def calibration_to_dict(result) -> dict:
         doc["noise_model_from"] = str(source)  # calibrate --noise-from: given, not learned
     groups = getattr(result, "noise_groups", ()) or ()
     if groups:
-        # how each group's sigma was set: learned, or held (too few dof: the data hint at data_scale)
+        # how each group's sigma was set: learned, held (too few dof: the data hint at data_scale), or given
         doc["noise_estimation"] = {
             str(g.group): {"status": str(g.status), "dof": _f(g.dof), "rows": int(g.rows),
                            "data_scale": _f(g.data_scale), "p_high": _f(g.p_high),

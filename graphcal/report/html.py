@@ -94,6 +94,13 @@ def _sensor_section(name: str, s, base_frame: str) -> str:
         f'<p class="small">Change from the prior: {_n(np.linalg.norm(xyz - xyz0), ".2f")} mm, '
         f"{_n(dang, '.3f')} deg.</p>"
     )
+    scale = float(getattr(s, "covariance_scale", 1.0))
+    if scale > 1.0:
+        parts.append(
+            f'<p class="small">The covariance (and every σ) includes a factor of {_n(scale, ".3g")} '
+            f"(σ ×{_n(np.sqrt(scale), '.3g')}): the plane residuals of this run scatter more than the given noise "
+            "model predicts.</p>"
+        )
     if s.unobservable:
         items = "".join(f"<li>{_e(u)}</li>" for u in s.unobservable)
         parts.append(
@@ -180,6 +187,16 @@ def _noise_section(result) -> str:
     for g in groups:
         rows.append(_row([f"<code>{_e(g.group)}</code>", _e(g.values_text()), _e(g.status), _n(g.dof, ".1f"),
                           f"x{_n(g.data_scale, '.3g')}", _n(g.p_high, ".2g")]))  # fmt: skip
+    if all(g.status == "given" for g in groups):
+        source = getattr(result, "noise_source", "") or ""
+        where = f" read from <code>{_e(source)}</code>" if source else " (the defaults)"
+        return (
+            "<table>" + "".join(rows) + "</table>"
+            f'<p class="small">The noise model was given{where}, not learned from the data. The table shows '
+            "the factor each group's residuals point to for its σ at the solution. With a noise model read from "
+            "an earlier calibration, each sensor's covariance is multiplied by its planes' factor squared when "
+            "that is above 1 (the sensor section says so).</p>"
+        )
     return (
         "<table>" + "".join(rows) + "</table>"
         '<p class="small">σ of each noise group learned from the residuals (variance-component estimation). '
