@@ -106,7 +106,8 @@ def test_noise_from_an_understating_file_is_written_and_said(dataset, tmp_path):
     earlier = {"format": "graphcal-calibration/1", "outliers": [],
                "sensors": {"depth": {"T_body_sensor": {"xyz": [0.0, 0.0, 0.0], "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0],
                                                        "rpy_deg": [0.0, 0.0, 0.0]},
-                                     "covariance": np.eye(6).tolist(), "sigma": {"rot_deg": [1.0] * 3, "xyz_mm": [1.0] * 3},
+                                     "covariance": np.eye(6).tolist(),
+                                     "sigma": {"rot_deg": [1.0] * 3, "xyz_mm": [1.0] * 3},
                                      "unobservable": []}},
                "residuals": {"normal_rms_deg": 0.01, "distance_rms_mm": 0.3}, "noise_model": noise}
     src.write_text(yaml.safe_dump(earlier), encoding="utf-8")

@@ -549,7 +549,8 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
             f"{g.group} {g.data_scale:.2g}" for g in given))
     for name, s in result.sensors.items():
         if s.covariance_scale > 1.0:
-            lines.append(f"  {name}: covariance x{s.covariance_scale:.3g} (its plane residuals outgrew the given noise)")
+            lines.append(f"  {name}: covariance x{s.covariance_scale:.3g} "
+                         "(its plane residuals outgrew the given noise)")
     if held:
         lines.append("  noise not learned: " + "; ".join(
             f"{g.group} {g.values_text()} ({g.status}, {g.dof:.1f} dof; "

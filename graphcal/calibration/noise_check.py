@@ -40,7 +40,7 @@ import dataclasses
 import numpy as np
 
 from .calibrate import (NOISE_TOO_SMALL_P, VCE_INNER_ITERATIONS, VCE_INNER_TOLERANCE, VCE_MIN_REDUNDANCY,
-                        noise_groups_report, noise_update)
+                        noise_groups_report)
 from .graph import CalibrationOptions, CalibrationProblem
 from .noise_estimation import converged_scales
 from .result import NoiseGroupEstimate, SensorEstimate
@@ -63,21 +63,22 @@ def given_noise_check(
             ``xi = [omega (rad), v (m)]``, sigmas in deg and mm about body axes).
 
     Returns:
-        With ``options.scale_to_plane_residuals``, every sensor whose plane group has enough redundancy (``_vce_eligible``) and a variance
-        factor ``s^2 > 1`` gets its covariance and every segment's covariance multiplied by
-        ``s^2``, its sigmas by ``s`` and ``covariance_scale = s^2``; the others are returned as
-        given (``covariance_scale = 1``).
+        With ``options.scale_to_plane_residuals``, every sensor whose plane group has at least
+        ``VCE_MIN_REDUNDANCY`` dof and a variance factor ``s^2 > 1`` gets its covariance and every
+        segment's covariance multiplied by ``s^2``, its sigmas by ``s`` and
+        ``covariance_scale = s^2``; the others are returned as given (``covariance_scale = 1``).
     """
-    stats = noise_update(options, problem, values, converge=False).stats
-    groups, warnings = noise_groups_report(stats, options, given=True)
+    scaling = options.scale_to_plane_residuals
+    # the statistics at the solution (the first iteration) and, when scaling, the plane groups'
+    # scales iterated to their fixed point on this linearisation with the other groups held
+    fit = converged_scales(problem.graph, values, problem.factor_groups, problem.factor_components,
+                           eligible=lambda v: v.group.startswith("plane:") and v.redundancy >= VCE_MIN_REDUNDANCY,
+                           tolerance=VCE_INNER_TOLERANCE, max_iterations=VCE_INNER_ITERATIONS if scaling else 1)
+    groups, warnings = noise_groups_report(fit.first, options, given=True)
     out = dict(sensors)
-    if not options.scale_to_plane_residuals:
+    if not scaling:
         return out, groups, warnings
-    # the plane groups' scales iterated to their fixed point on this linearisation, the other
-    # groups held as given
-    fixed = converged_scales(problem.graph, values, problem.factor_groups, problem.factor_components,
-                             eligible=lambda v: v.group.startswith("plane:") and v.redundancy >= VCE_MIN_REDUNDANCY,
-                             tolerance=VCE_INNER_TOLERANCE, max_iterations=VCE_INNER_ITERATIONS).scales
+    fixed = fit.scales
     by_group = {g.group: g for g in groups}
     for name, est in sensors.items():
         v = by_group.get(f"plane:{name}")

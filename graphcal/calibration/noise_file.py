@@ -48,7 +48,8 @@ def options_with_noise_from(path: str | Path, options: CalibrationOptions) -> tu
 
     Returns:
         ``(options, sensors)``: the options with :data:`NOISE_KEYS` and the plane scales from the
-        file, ``estimate_noise`` off and ``scale_to_plane_residuals`` on (noise_check.py), and the names of the sensors the file has a plane scale for.
+        file, ``estimate_noise`` off and ``scale_to_plane_residuals`` on (noise_check.py), and the
+        names of the sensors the file has a plane scale for.
 
     Raises:
         DatasetError: unreadable or invalid file, no ``noise_model`` block, a missing sigma, a value

@@ -61,6 +61,9 @@ __all__ = ["SuggestedPose", "suggest_poses", "predict_sigmas", "suggest_poses_co
 MIN_GROUND_RAYS = 30
 _RAY_GRID = (48, 36)  # pixel grid used to predict a plane's covariance (the scale c absorbs it)
 _CAMERAS = ("depth_camera", "stereo_camera")
+#: random candidate poses drawn, and the rotation within which a chosen pose's neighbours are dropped (deg)
+N_CANDIDATES = 500
+MIN_SEPARATION_DEG = 2.0
 _BODY_UNITS = np.r_[[np.degrees(1.0)] * 3, [1e3] * 3]  # rad, m -> deg, mm
 
 
@@ -358,11 +361,11 @@ def suggest_poses(
     k: int,
     *,
     candidates=None,
-    n_candidates: int = 500,
+    n_candidates: int = N_CANDIDATES,
     seed: int = 0,
     sensor: str | None = None,
     options: CalibrationOptions = CalibrationOptions(),
-    min_separation_deg: float = 2.0,
+    min_separation_deg: float = MIN_SEPARATION_DEG,
     sigma_target_deg=None,
     sigma_target_mm=None,
     after_existing: bool = False,
@@ -396,9 +399,16 @@ def suggest_poses(
     Raises:
         GraphcalError: k < 1, no camera, no reachable candidate.
     """
+    return _suggest(_Model(dataset, sensor, options), k, candidates=candidates, n_candidates=n_candidates, seed=seed,
+                    min_separation_deg=min_separation_deg, sigma_target_deg=sigma_target_deg,
+                    sigma_target_mm=sigma_target_mm, after_existing=after_existing)
+
+
+def _suggest(model: _Model, k: int, *, candidates, n_candidates: int, seed: int, min_separation_deg: float,
+             sigma_target_deg, sigma_target_mm, after_existing: bool) -> list[SuggestedPose]:
+    """:func:`suggest_poses` on a built model."""
     if k < 1:
         raise GraphcalError(f"suggest_poses: k must be >= 1, got {k}")
-    model = _Model(dataset, sensor, options)
     C = _candidates(model, n_candidates, seed) if candidates is None else np.asarray(candidates, dtype=float)
     if C.ndim != 3 or C.shape[1:] != (4, 4):
         raise GraphcalError(f"suggest_poses: candidates must be (M, 4, 4) poses, got shape {C.shape}")
@@ -484,11 +494,8 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
 
         raise DatasetError(out, "--out", "a file that does not exist yet (graphcal never overwrites it); "
                            "give another name")
+    model = _Model(dataset, None, CalibrationOptions())
     if after_existing:
-        from ..io.dataset import Dataset, read_dataset
-
-        dataset = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
-        model = _Model(dataset, None, CalibrationOptions())
         Lam, n_done = model.existing_information()
         s_rot, s_xyz = model.sigmas(model.prior_information() + Lam)
         head = [f"the dataset's first session: {n_done} station(s) with a plane of {model.sensor}, predicted sigma "
@@ -499,7 +506,9 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
         head = ["suggested stations: {n} (greedy D-optimal; sigma = predicted 1-sigma of the extrinsic "
                 "from a new session of the stations up to that rank, body axes; the dataset's own stations "
                 "are not counted: --after-existing counts them)"]
-    poses = suggest_poses(dataset, k, after_existing=after_existing)
+    poses = _suggest(model, k, candidates=None, n_candidates=N_CANDIDATES, seed=0,
+                     min_separation_deg=MIN_SEPARATION_DEG, sigma_target_deg=None, sigma_target_mm=None,
+                     after_existing=after_existing)
     head[-1] = head[-1].replace("{n}", str(len(poses)))
     lines = head + [
              f"{'rank':>4} {'roll':>7} {'pitch':>7} {'yaw':>7} {'height':>7} {'x':>7} {'y':>7}  "
@@ -520,12 +529,8 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
         for i, c in enumerate(("qw", "qx", "qy", "qz")):
             cols[f"body_{c}"] = [float(xyz_quat_wxyz_from_pose(p.T_stance_body)[1][i]) for p in poses]
         if poses:
-            from ..io.dataset import Dataset, load_dataset_robot, read_dataset
-
-            ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
-            robot = load_dataset_robot(ds)
             for f in poses[0].q_by_foot:
-                for j, name in enumerate(robot.leg(f).joint_names):
+                for j, name in enumerate(model.robot.leg(f).joint_names):
                     cols[f"q_{name}"] = [float(p.q_by_foot[f][j]) for p in poses]
         atomic_write_text(out, table_csv_text(Table.from_columns(cols)), overwrite=False)
         lines.append(f"wrote {out}")
