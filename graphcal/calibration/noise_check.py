@@ -17,8 +17,8 @@ residuals point to for the group's sigma) and
   the planes point to: one update x1.8^2, the fixed point x8.4, the truth x9.2).
 
 Why the planes: they carry the extrinsic, and their scatter varies from session to session more
-than chi-square sampling does (with unmodelled joint flex, the plane factor of one session under
-another's learned noise ranged over 0.8-1.9), so the scale learned on one session often
+than chi-square sampling does (with unmodelled joint flex, one update at session B's solution
+under session A's learned noise read 0.77-1.86 over 60 pairs, from 10-56 dof), so the scale learned on one session often
 understates the next one's. Not for the defaults: they are conservative as a whole (large joint
 sigma, small plane noise), and scaling their planes alone made a conservative covariance more so.
 
