@@ -86,6 +86,7 @@ import numpy as np
 
 from .errors import GraphcalError
 from .geometry import canonical_plane, pose_matrix, se3_exp, transform_points
+from .solvers.point_to_plane import constrained_step, point_to_plane_jacobian
 
 __all__ = [
     "StairsError",
@@ -341,21 +342,15 @@ def _icp_to_map(
                 keep &= np.abs(np.einsum("ij,ij->i", src_normals[ok] @ R.T, n)) >= normal_cos_min
             ps, n, r, sig = ps[keep], n[keep], r[keep], sig[keep]
             fitness = float(keep.sum()) / len(src_sensor)
-            n_s = n @ R  # normals in the sensor frame: R^T n
-            J = np.hstack([np.cross(ps, n_s), n_s])  # d r / d [omega, v]
+            J = point_to_plane_jacobian(ps, n, R)  # d r / d [omega, v]
             z = np.abs(r) / sig
             w = np.where(z <= 2.0, 1.0, 2.0 / np.maximum(z, 1e-12)) / sig**2  # Huber at 2 sigma
             H_data = (J * w[:, None]).T @ J
-            H = H_data + np.diag(prior)
             g = (J * w[:, None]).T @ r + prior * delta_total
-            step = -np.linalg.solve(H, g)
             # degenerate directions (along a plane, along the nosings): no update there; the
             # noise of the map normals alone would let the cloud slide (module docstring)
-            Hs = H_data / np.outer(scale, scale)
-            lam, V = np.linalg.eigh(Hs)
-            Vc = V[:, lam >= degeneracy_ratio * lam[-1]]
-            n_degenerate = 6 - Vc.shape[1]
-            step = (Vc @ (Vc.T @ (step * scale))) / scale
+            cs = constrained_step(H_data, g, scale=scale, degeneracy_ratio=degeneracy_ratio, prior_information=prior)
+            step, n_degenerate = cs.step, cs.n_degenerate
             T = T @ se3_exp(step)
             delta_total += step
             if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-5:

@@ -315,6 +315,15 @@ PRIOR_SIGMA_FLOOR_M = 1e-6
 PRIOR_SIGMA_FLOOR_RAD = 1e-9
 
 
+def floored_extrinsic_prior(key: int, T_body_sensor, sigma_m: float, sigma_rad: float):
+    """The prior factor of an extrinsic (or of one of its segments) at ``T_body_sensor`` (4x4 or
+    gtsam.Pose3: the CAD pose, or the estimate before a change) with dataset.yaml's sigmas (m, rad);
+    a zero sigma ("known exactly") enters at ``PRIOR_SIGMA_FLOOR_M`` / ``PRIOR_SIGMA_FLOOR_RAD``."""
+    from factors.priors import extrinsic_prior
+
+    return extrinsic_prior(key, T_body_sensor, max(sigma_m, PRIOR_SIGMA_FLOOR_M), max(sigma_rad, PRIOR_SIGMA_FLOOR_RAD))
+
+
 def extrinsic_prior_for_observability(sigma_m: float, sigma_rad: float) -> tuple[np.ndarray, tuple[str, ...]]:
     """The 6x6 prior covariance ``[rot, trans]`` (rad, m) the posterior of an extrinsic is compared
     with to name undetermined directions, and a note per part held at the CAD value. A zero sigma
@@ -483,7 +492,6 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
 
     ext = extensions if extensions is not None else ModelExtensions()
     from factors.foot_on_ground import foot_on_ground_factor
-    from factors.priors import extrinsic_prior
     from ..solvers.closed_form import extrinsic_from_scan_points
 
     if not data.stations:
@@ -526,9 +534,7 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         key = S(k)
         sensor_keys[name], sensor_priors[name], ext0[name] = key, prior, T0
         values.insert(key, to_gtsam_pose(T0))
-        sig_m = max(prior[1], PRIOR_SIGMA_FLOOR_M)
-        sig_r = max(prior[2], PRIOR_SIGMA_FLOOR_RAD)
-        graph.add(extrinsic_prior(key, T_cad, sig_m, sig_r))
+        graph.add(floored_extrinsic_prior(key, T_cad, prior[1], prior[2]))
     if not sensor_keys:
         raise GraphcalError("no sensor has ground planes or scan points at any station: nothing to calibrate")
 
@@ -572,8 +578,7 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         ext_keys[f"segment:{name}:{station}"] = key
         values.insert(key, to_gtsam_pose(ext0[name]))
         T_cad, sig_m, sig_r = sensor_priors[name]
-        add_prior(extrinsic_prior(key, T_cad, max(sig_m, PRIOR_SIGMA_FLOOR_M), max(sig_r, PRIOR_SIGMA_FLOOR_RAD)),
-                  f"segment:{name}:{station}")
+        add_prior(floored_extrinsic_prior(key, T_cad, sig_m, sig_r), f"segment:{name}:{station}")
 
     sessions = list(dict.fromkeys(st.session for st in data.stations))
     session_planes = {}

@@ -59,8 +59,8 @@ from factors.keys import F, S, X
 from ..errors import GraphcalError
 from ..geometry import from_gtsam_pose, to_gtsam_pose
 from .change_detection import ChangeDetector, Decision, innovation_nis, joint_covariance
-from .graph import (GAUGE_PRIOR_SIGMAS, PRIOR_SIGMA_FLOOR_M, PRIOR_SIGMA_FLOOR_RAD, CalibrationOptions,
-                    CalibrationProblem, build_problem, extrinsic_prior_for_observability)
+from .graph import (GAUGE_PRIOR_SIGMAS, CalibrationOptions, CalibrationProblem, build_problem,
+                    extrinsic_prior_for_observability, floored_extrinsic_prior)
 from .measurements import CalibrationData, PlaneMeasurement, StationMeasurements, calibration_data
 from .result import CalibrationResult, ExtrinsicSegment, IncrementalStep, SensorEstimate
 
@@ -201,7 +201,6 @@ class IncrementalCalibrator:
         stance-foot, IMU and commanded-pose factors (a fresh graph and values)."""
         from factors.foot_on_ground import foot_on_ground_factor
         from factors.keys import M
-        from factors.priors import extrinsic_prior
         from .graph import imu_mounting_prior, leg_parameter_priors, station_factors
         from .kinematic_pose import feet_in_body
 
@@ -243,7 +242,7 @@ class IncrementalCalibrator:
                 continue
             T_cad, sig_m, sig_r = self._priors[name]
             values.insert(key, to_gtsam_pose(self._init_ext[name]))
-            graph.add(extrinsic_prior(key, T_cad, max(sig_m, PRIOR_SIGMA_FLOOR_M), max(sig_r, PRIOR_SIGMA_FLOOR_RAD)))
+            graph.add(floored_extrinsic_prior(key, T_cad, sig_m, sig_r))
         return graph, values
 
     def measurement_factor(self, station: int, sensor: str, s_key: int, *, plane: PlaneMeasurement | None = None,
@@ -429,7 +428,6 @@ class IncrementalCalibrator:
     def _start_segment(self, name: str, dec: Decision, graph, values, remove: list, added: list) -> None:
         """A change of ``name``'s extrinsic at ``dec.change_station``: new key with a loose prior at
         the old estimate; the measurements from the change station on move to it."""
-        from factors.priors import extrinsic_prior
 
         old = self._key[name]
         new = int(S(self._next_s))
@@ -437,7 +435,7 @@ class IncrementalCalibrator:
         T_old = self._isam.calculateEstimatePose3(old)
         _, sig_m, sig_r = self._priors[name]
         values.insert(new, T_old)
-        graph.add(extrinsic_prior(new, from_gtsam_pose(T_old), max(sig_m, PRIOR_SIGMA_FLOOR_M), max(sig_r, PRIOR_SIGMA_FLOOR_RAD)))
+        graph.add(floored_extrinsic_prior(new, from_gtsam_pose(T_old), sig_m, sig_r))
         self._key[name] = new
         self._changes[name].append(int(dec.change_station))
         old_seg = self._segments[name][-1]

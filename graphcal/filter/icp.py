@@ -11,7 +11,8 @@ Hessian. Open3D's own ``registration_icp`` solves the full 6x6 system and slides
 a flat floor, where two translations and one rotation are unconstrained; here they stay at
 ``T_init`` (the filter's prediction) and the result reports which directions it measured.
 
-Coordinates: the right perturbation ``T = T_hat Exp(xi)``, ``xi = [omega, v]``
+The Gauss-Newton step and the Jacobian are :mod:`graphcal.solvers.point_to_plane`'s (shared with
+the stairs' stitching). Coordinates: the right perturbation ``T = T_hat Exp(xi)``, ``xi = [omega, v]``
 (docs/conventions.md). For a correspondence (source point s, target point q, target normal n,
 m = R^T n) the residual has the Jacobian ``[(s x m)^T, m^T]`` and the variance
 ``sigma(s)^2 (m . s_hat)^2 + sigma(q)^2 (n . q_hat)^2`` (each point's range noise along its ray,
@@ -30,6 +31,8 @@ from typing import Callable
 import numpy as np
 
 from ..errors import GraphcalError
+from ..geometry import se3_exp
+from ..solvers.point_to_plane import constrained_step, point_to_plane_jacobian
 
 __all__ = ["IcpResult", "TargetCloud", "prepare_target", "icp_relative_pose", "range_sigma_function", "adjoint"]
 
@@ -141,12 +144,6 @@ def prepare_target(points: np.ndarray, sigma_fn: Callable[[np.ndarray], np.ndarr
     return TargetCloud(P, pcd, c, n, var_offset, var_normal, valid)
 
 
-def _exp_se3(xi: np.ndarray) -> np.ndarray:
-    from ..geometry import se3_exp
-
-    return se3_exp(xi)
-
-
 def icp_relative_pose(
     source_points: np.ndarray,
     target: TargetCloud,
@@ -192,7 +189,7 @@ def icp_relative_pose(
         r = np.einsum("ij,ij->i", n, d)
         dt2 = np.einsum("ij,ij->i", d, d) - r * r
         m = n @ R
-        J = np.hstack([np.cross(s, m), m])
+        J = point_to_plane_jacobian(s, n, R)
         var = ((sig_src[i] * np.einsum("ij,ij->i", m, s_hat_all[i])) ** 2 + target.var_offset[j]
                + dt2 * target.var_normal[j])
         w = 1.0 / np.maximum(var, 1e-12)
@@ -209,18 +206,12 @@ def icp_relative_pose(
     it = 0
     for it in range(1, max_iterations + 1):
         H, g, r, _ = linearise(T)
-        Hs = H / np.outer(scale, scale)
-        lam, V = np.linalg.eigh(Hs)
-        keep = lam >= degenerate_ratio * lam[-1]
-        Vk = V[:, keep]
-        dx = (-Vk @ ((Vk.T @ (g / scale)) / lam[keep])) / scale
-        T = T @ _exp_se3(dx)
+        dx = constrained_step(H, g, scale=scale, degeneracy_ratio=degenerate_ratio).step
+        T = T @ se3_exp(dx)
         if np.linalg.norm(dx[:3]) < 1e-7 and np.linalg.norm(dx[3:]) < 1e-6:
             break
     H, g, r, fitness = linearise(T)
-    Hs = H / np.outer(scale, scale)
-    lam, V = np.linalg.eigh(Hs)
-    keep = lam >= degenerate_ratio * lam[-1]
-    A = V[:, keep].T * scale  # rows v_s^T S: A xi = v_s^T xi_s
-    cov = np.diag(1.0 / lam[keep])
+    last = constrained_step(H, g, scale=scale, degeneracy_ratio=degenerate_ratio)
+    A = last.basis.T * scale  # rows v_s^T S: A xi = v_s^T xi_s
+    cov = np.diag(1.0 / last.eigenvalues)
     return IcpResult(T, H, A, cov, int(len(r)), float(fitness), float(np.sqrt(np.mean(r**2))), it)

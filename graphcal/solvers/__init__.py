@@ -5,7 +5,9 @@
 * :mod:`.batch` — Levenberg–Marquardt driven from Python (no per-callback copy of ``Values``),
   per-factor chi-square and outlier lists;
 * :mod:`.covariance` — marginal covariances that never crash (Cholesky -> QR -> pseudo-inverse),
-  body-axis sigmas, named unobservable directions, NEES.
+  body-axis sigmas, named unobservable directions, NEES;
+* :mod:`.point_to_plane` — the Gauss-Newton step of point-to-plane ICP along the well-constrained
+  directions only (the EKF's keyframe ICP and the stairs' stitching).
 """
 
 from __future__ import annotations
