@@ -37,16 +37,15 @@ import math
 
 import numpy as np
 
-from graphcal.geometry import invert_pose, pose_from_xyz_rpy
+from graphcal.geometry import invert_pose
 from graphcal.legs.identify import IdentifyOptions, identify_legs
 from graphcal.legs.mocap_data import mocap_data_from_dataset
 from graphcal.legs.params import point_kinematics, theta_from_perturbation
 from graphcal.models.kinematics import fk_leg
-from graphcal.models.perturb import LegPerturbation
 from graphcal.models.robot import load_robot
-from graphcal.simulation.mocap import simulate_mocap
+from graphcal.simulation.mocap import YUAN_FOOT, YUAN_PERTURBATION, simulate_yuan_session
 
-FOOT = "fl_foot"
+FOOT = YUAN_FOOT
 DEG = math.pi / 180.0
 
 #: (Yuan's symbol, graphcal parameter, injected value SI, Yuan's identified value SI, Yuan's accuracy %)
@@ -63,12 +62,7 @@ PARAMETERS = (
 YUAN_RMSE_MM = (16.5, 1.0)
 YUAN_MEAN_ACCURACY = 91.87
 
-PERTURBATION = LegPerturbation(
-    {"fl_hip_joint": 1.0 * DEG, "fl_thigh_joint": 1.5 * DEG, "fl_calf_joint": 2.0 * DEG},
-    {"fl_thigh_joint": (0.0, 0.0038, 0.0), "fl_calf_joint": (0.0, 0.0, -0.010), "fl_foot_joint": (0.0, 0.0, -0.020)},
-)
-#: the true body-marker layout: turned by alpha_h = 3 deg and 5 mm higher than drawn
-T_LAYOUT_ERROR = pose_from_xyz_rpy([0.0, 0.0, 0.005], [0.0, 0.0, 3.0 * DEG])
+PERTURBATION = YUAN_PERTURBATION
 
 PAPER_INCONSISTENCIES = (
     "Eq. 4 sums the four body markers; the origin is their mean (the text says 'center point').",
@@ -95,10 +89,7 @@ def _accuracy(identified: float, true: float) -> float:
 
 def simulate(n_samples: int = 1000, seed: int = 2023):
     """The Table I simulation as a dataset (in memory) and its truth."""
-    return simulate_mocap(
-        "a1", feet=(FOOT,), n_samples=n_samples, perturbation=PERTURBATION, joint_noise_rad=1.0 * DEG,
-        marker_noise_m=0.001, noise="uniform", body_markers=True, body_marker_noise_m=0.0,
-        T_layout_error=T_LAYOUT_ERROR, seed=seed)
+    return simulate_yuan_session(n_samples, seed)
 
 
 def _options(**kw) -> IdentifyOptions:

@@ -270,3 +270,31 @@ def test_calibrate_ground_roughness_bad_use_is_one_line_exit_2(small_dataset, tm
     assert words in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_simulate_mocap_then_identify_legs_finds_yuans_errors_from_the_command_line(tmp_path):
+    """A user without a motion-capture room: `simulate --program mocap` writes Yuan's Table I session
+    (the A1's front-left leg, its errors hidden in truth.yaml) and `identify-legs` finds them."""
+    ds, out = tmp_path / "a1-mocap", tmp_path / "a1-legs"
+    proc = run("simulate", "--robot", "a1", "--program", "mocap", "--stations", "400", "--seed", "5", "--out", ds,
+               check_rc=0)
+    assert "400 motion-capture samples" in proc.stdout and "Table I" in proc.stdout
+    run("validate", ds, check_rc=0)
+    run("identify-legs", ds, "--out", out, "--mocap-free", "rz,z", "--origins", "none", "--quiet", check_rc=0)
+    truth = yaml.safe_load((ds / "truth.yaml").read_text())["legs"]
+    legs = yaml.safe_load((out / "legs.yaml").read_text())
+    found = legs["legs"]["fl_foot"]
+    expected = {f"{j}.offset_rad": v for j, v in truth["joint_offsets_rad"].items()}
+    expected.update({f"{j}.delta_m": float(np.linalg.norm(v)) for j, v in truth["origin_deltas_m"].items()})
+    assert set(found) == set(expected)
+    z = [(found[k]["value"] - v) / found[k]["sigma"] for k, v in expected.items()]
+    assert max(abs(x) for x in z) < 4.0, dict(zip(expected, z))
+    rmse = legs["foot_error_mm"]["fl_foot"]
+    assert rmse["rmse_after"] < 0.3 * rmse["rmse_before"]
+
+
+def test_simulate_mocap_refuses_the_station_program_options(tmp_path):
+    proc = run("simulate", "--program", "mocap", "--out", tmp_path / "x", "--sessions", "2", "--quiet")
+    assert proc.returncode == 2
+    assert "--sessions" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "x").exists()

@@ -39,11 +39,28 @@ __all__ = [
     "MocapSimulation",
     "simulate_mocap",
     "write_mocap_simulation",
+    "YUAN_FOOT",
+    "YUAN_PERTURBATION",
+    "YUAN_LAYOUT_ERROR",
+    "simulate_yuan_session",
 ]
 
 #: the body somewhere in the motion-capture room (m, rad): 1.2 m forward, 0.3 m up, turned 30 deg
 DEFAULT_T_MOCAP_BODY = pose_from_xyz_rpy([1.2, -0.4, 0.3], np.radians([2.0, -1.0, 30.0]))
 DEFAULT_T_MOCAP_BODY.setflags(write=False)
+
+#: Yuan et al.'s Table I set-up: the A1's front-left leg in the air, its foot marked
+YUAN_FOOT = "fl_foot"
+#: the errors Yuan et al. injected (Table I): joint zeros 1, 1.5, 2 deg; the hip-thigh offset omega
+#: +3.8 mm, the thigh and calf 10 and 20 mm longer
+YUAN_PERTURBATION = LegPerturbation(
+    {"fl_hip_joint": float(np.radians(1.0)), "fl_thigh_joint": float(np.radians(1.5)),
+     "fl_calf_joint": float(np.radians(2.0))},
+    {"fl_thigh_joint": (0.0, 0.0038, 0.0), "fl_calf_joint": (0.0, 0.0, -0.010), "fl_foot_joint": (0.0, 0.0, -0.020)},
+)
+#: the true body-marker layout of Table I: turned by alpha_h = 3 deg and 5 mm higher than drawn
+YUAN_LAYOUT_ERROR = pose_from_xyz_rpy([0.0, 0.0, 0.005], [0.0, 0.0, float(np.radians(3.0))])
+YUAN_LAYOUT_ERROR.setflags(write=False)
 
 
 def a1_body_marker_layout(height_m: float = 0.06, half_length_m: float = 0.15, half_width_m: float = 0.07) -> np.ndarray:
@@ -227,6 +244,18 @@ def simulate_mocap(
                   "body_marker_m": float(sb) if body_markers else 0.0},
     }
     return MocapSimulation(ds, truth, urdf_true, q_true, T_body_meas, None if model is not None else robot.urdf_xml)
+
+
+def simulate_yuan_session(n_samples: int = 1000, seed: int = 2023, *,
+                          perturbation: LegPerturbation = YUAN_PERTURBATION) -> MocapSimulation:
+    """Yuan et al.'s Table I simulation: the A1's front-left leg through ``n_samples`` random
+    configurations, uniform noise of +-1 deg on the encoders and +-1 mm on the foot marker,
+    noise-free body markers glued ``YUAN_LAYOUT_ERROR`` off their drawing, the leg's true errors
+    ``perturbation`` (default Table I's)."""
+    return simulate_mocap(
+        "a1", feet=(YUAN_FOOT,), n_samples=n_samples, perturbation=perturbation,
+        joint_noise_rad=float(np.radians(1.0)), marker_noise_m=0.001, noise="uniform", body_markers=True,
+        body_marker_noise_m=0.0, T_layout_error=YUAN_LAYOUT_ERROR, seed=seed)
 
 
 def write_mocap_simulation(sim: MocapSimulation, out_dir: str | Path, *, overwrite: bool = False) -> Path:

@@ -208,6 +208,14 @@ def simulate_to_folder(
     """
     from .walking import WALKING_PROGRAMS
 
+    if program == MOCAP_PROGRAM:
+        return _mocap_to_folder(robot=robot, out_dir=out_dir, seed=seed, n_stations=n_stations, leg_errors=leg_errors,
+                                overwrite=overwrite, unsupported=(
+                                    ("--ground", ground != "level"), ("--effect", bool(effects)),
+                                    ("--sessions", n_sessions != 1), ("--sensor", bool(sensors)),
+                                    ("--output", output != "both"), ("--cloud-stride", cloud_stride not in (None, 4)),
+                                    ("--distance", distance_m is not None), ("--duration", duration_s is not None),
+                                    ("--cloud-rate", cloud_rate_hz is not None)))
     if program in WALKING_PROGRAMS:
         return _walk_to_folder(program=program, robot=robot, out_dir=out_dir, seed=seed, output=output,
                                cloud_stride=cloud_stride, leg_errors=leg_errors, effects=effects,
@@ -252,6 +260,51 @@ def simulate_to_folder(
         f"({program} program, {ground} ground); sensors: {', '.join(result.sensor_cad) or 'none'}; "
         f"{len(clouds)} clouds, {n_planes} planes; hidden effects: {hidden}; truth in {out_dir / 'truth.yaml'}"
     )
+
+
+#: the motion-capture program (Yuan et al.): a leg in the air, its foot marker and the body markers
+MOCAP_PROGRAM = "mocap"
+#: samples of the motion-capture program when --stations is not given (Yuan's Table I: 1000)
+MOCAP_DEFAULT_SAMPLES = 1000
+
+
+def _mocap_to_folder(*, robot, out_dir, seed, n_stations, leg_errors, overwrite, unsupported) -> str:
+    """The motion-capture program: Yuan et al.'s Table I session (:func:`.mocap.simulate_yuan_session`)
+    on the A1; on another robot the same session of its first leg. The leg's true errors: Table I's
+    (A1), none (other robots), or with ``leg_errors`` drawn from the seed (0.5 deg, 3 mm)."""
+    from ..models.perturb import LegPerturbation, link_length_delta
+    from ..models.robot import load_robot
+    from .mocap import YUAN_PERTURBATION, simulate_mocap, simulate_yuan_session, write_mocap_simulation
+    from .session import draw_leg_errors
+
+    refused = [name for name, given in unsupported if given]
+    if refused:
+        raise GraphcalError(f"program {MOCAP_PROGRAM}: {', '.join(refused)} not supported (a leg in the air "
+                            f"in the motion-capture room: --robot, --stations, --seed, --leg-errors)")
+    n = MOCAP_DEFAULT_SAMPLES if n_stations is None else int(n_stations)
+    if n < 1:
+        raise GraphcalError(f"--stations must be >= 1, got {n}")
+    model = load_robot(model=robot)
+    foot = "fl_foot" if robot == "a1" else model.feet[0]
+    if leg_errors:
+        offsets, lengths = draw_leg_errors(model, (foot,), float(np.radians(0.5)), 0.003, np.random.default_rng(seed))
+        perturbation = LegPerturbation(offsets, {j: tuple(float(x) for x in link_length_delta(model, j, d))
+                                                 for j, d in lengths.items()})
+        errors = "drawn from the seed (0.5 deg, 3 mm)"
+    elif robot == "a1":
+        perturbation, errors = YUAN_PERTURBATION, "Yuan et al.'s Table I"
+    else:
+        perturbation, errors = LegPerturbation(), "none (pass --leg-errors to draw some)"
+    if robot == "a1":
+        sim = simulate_yuan_session(n, seed, perturbation=perturbation)
+    else:
+        sim = simulate_mocap(robot, feet=(foot,), base_frame=model.base_frame, n_samples=n,
+                             perturbation=perturbation, joint_noise_rad=float(np.radians(1.0)), marker_noise_m=0.001,
+                             noise="uniform", body_markers=True, body_marker_noise_m=0.0, seed=seed)
+    out = write_mocap_simulation(sim, out_dir, overwrite=overwrite)
+    return (f"wrote {out}: {n} motion-capture samples of the {robot}'s {foot} leg in the air ({MOCAP_PROGRAM} "
+            f"program, Yuan et al.'s set-up: +-1 deg encoder and +-1 mm marker noise, body markers); leg errors: "
+            f"{errors}; truth in {Path(out) / 'truth.yaml'}; identify with: graphcal identify-legs {out} --out DIR")
 
 
 def _walk_to_folder(*, program, robot, out_dir, seed, output, cloud_stride, leg_errors, effects, n_stations,

@@ -205,20 +205,14 @@ def _true_robot(robot, config: SimulationConfig, rng: np.random.Generator):
     from ..models.perturb import LegPerturbation, apply_perturbation, link_length_delta
     from ..models.robot import load_robot
 
-    joint_offsets: dict[str, float] = {}
-    origin_deltas: dict[str, np.ndarray] = {}
-    for foot in robot.feet:
-        leg = robot.leg(foot)
-        for j, jtype in zip(leg.joint_names, leg.joint_types):
-            if config.leg_error_sigma_rad > 0 and jtype != "prismatic":
-                joint_offsets[j] = float(rng.normal(0.0, config.leg_error_sigma_rad))
+    joint_offsets, drawn_lengths = draw_leg_errors(robot, robot.feet, config.leg_error_sigma_rad,
+                                                   config.leg_error_sigma_m, rng)
     for j, off in config.effects.joint_offset.items():
         joint_offsets[j] = joint_offsets.get(j, 0.0) + float(off)
     link_changes = dict(config.effects.link_length)
-    if config.leg_error_sigma_m > 0:
-        for foot in robot.feet:
-            for j in _link_joints(robot, foot):
-                link_changes[j] = link_changes.get(j, 0.0) + float(rng.normal(0.0, config.leg_error_sigma_m))
+    for j, delta in drawn_lengths.items():
+        link_changes[j] = link_changes.get(j, 0.0) + delta
+    origin_deltas: dict[str, np.ndarray] = {}
     for j, delta in link_changes.items():
         origin_deltas[j] = np.asarray(link_length_delta(robot, j, float(delta)))
     pert = LegPerturbation(
@@ -228,6 +222,27 @@ def _true_robot(robot, config: SimulationConfig, rng: np.random.Generator):
     true_xml = apply_perturbation(robot.urdf_xml, pert)
     true_robot = load_robot(urdf_xml=true_xml, base_frame=robot.base_frame, feet=robot.feet)
     return true_robot, joint_offsets, link_changes
+
+
+def draw_leg_errors(robot, feet, sigma_rad: float, sigma_m: float,
+                    rng: np.random.Generator) -> tuple[dict[str, float], dict[str, float]]:
+    """Random kinematic errors of the legs of ``feet``: encoder zero errors ~ N(0, sigma_rad^2) (rad)
+    on every revolute joint, then link-length changes ~ N(0, sigma_m^2) (m) on every joint whose
+    origin is a link (:func:`_link_joints`). A zero sigma draws nothing. Returns (joint -> offset,
+    joint -> length change)."""
+    joint_offsets: dict[str, float] = {}
+    if sigma_rad > 0:
+        for foot in feet:
+            leg = robot.leg(foot)
+            for j, jtype in zip(leg.joint_names, leg.joint_types):
+                if jtype != "prismatic":
+                    joint_offsets[j] = float(rng.normal(0.0, sigma_rad))
+    link_changes: dict[str, float] = {}
+    if sigma_m > 0:
+        for foot in feet:
+            for j in _link_joints(robot, foot):
+                link_changes[j] = link_changes.get(j, 0.0) + float(rng.normal(0.0, sigma_m))
+    return joint_offsets, link_changes
 
 
 def _link_joints(robot, foot: str) -> tuple[str, ...]:
