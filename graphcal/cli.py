@@ -62,7 +62,8 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--effect", action="append", type=_effect_arg, default=[],
                    help="hide an effect: CAUSE or CAUSE:key=value,... (see docs/simulation.md); "
                         "CAUSE alone draws its magnitude and location from the seed")
-    s.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    s.add_argument("--overwrite", action="store_true",
+                   help="replace a previous simulation in --out (one with a graphcal truth.yaml and nothing else)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
 
     v = sub.add_parser("validate", help="check a dataset against the contract (docs/dataset.md)")

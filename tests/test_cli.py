@@ -298,3 +298,29 @@ def test_simulate_mocap_refuses_the_station_program_options(tmp_path):
     assert proc.returncode == 2
     assert "--sessions" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_simulate_overwrite_replaces_a_simulation_never_a_users_folder(tmp_path):
+    """--overwrite (which scripts/demo passes) replaces a previous simulation; a measured dataset (no
+    graphcal truth.yaml) or a simulation the user put notes in is refused and left as it was."""
+    from graphcal.simulation.run import SIMULATION_FILES
+    from graphcal.simulation.walking import TRUTH_TRAJECTORY_FILE
+
+    assert TRUTH_TRAJECTORY_FILE in SIMULATION_FILES
+    sim = tmp_path / "sim"
+    args = ("simulate", "--program", "random", "--stations", "3", "--output", "planes", "--quiet", "--out", sim)
+    run(*args, check_rc=0)
+    first = (sim / "planes.csv").read_text()
+    run(*args, "--seed", "1", "--overwrite", check_rc=0)
+    assert (sim / "planes.csv").read_text() != first  # replaced
+    (sim / "notes.txt").write_text("mine")
+    proc = run(*args, "--overwrite")
+    assert proc.returncode == 2 and "notes.txt" in proc.stderr and "Traceback" not in proc.stderr
+    assert (sim / "notes.txt").read_text() == "mine"
+    measured = tmp_path / "measured"
+    measured.mkdir()
+    for name in ("dataset.yaml", "stations.csv", "planes.csv"):
+        (measured / name).write_text((sim / name).read_text())
+    proc = run("simulate", "--program", "random", "--stations", "3", "--quiet", "--out", measured, "--overwrite")
+    assert proc.returncode == 2 and "not a previous graphcal simulation" in proc.stderr
+    assert sorted(p.name for p in measured.iterdir()) == ["dataset.yaml", "planes.csv", "stations.csv"]

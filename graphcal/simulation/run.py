@@ -208,6 +208,8 @@ def simulate_to_folder(
     """
     from .walking import WALKING_PROGRAMS
 
+    if overwrite:
+        check_simulation_overwrite(Path(out_dir))
     if program == MOCAP_PROGRAM:
         return _mocap_to_folder(robot=robot, out_dir=out_dir, seed=seed, n_stations=n_stations, leg_errors=leg_errors,
                                 overwrite=overwrite, unsupported=(
@@ -260,6 +262,32 @@ def simulate_to_folder(
         f"({program} program, {ground} ground); sensors: {', '.join(result.sensor_cad) or 'none'}; "
         f"{len(clouds)} clouds, {n_planes} planes; hidden effects: {hidden}; truth in {out_dir / 'truth.yaml'}"
     )
+
+
+#: what a simulation writes at the top of its folder (the contract's files and truth.yaml)
+SIMULATION_FILES = frozenset({"dataset.yaml", "stations.csv", "timeseries.csv", "planes.csv", "mocap.csv",
+                              "robot.urdf", "clouds", "truth.yaml", "truth_trajectory.csv"})
+
+
+def check_simulation_overwrite(out_dir: Path) -> None:
+    """OutputExistsError unless ``out_dir`` is absent, empty, or a previous simulation: its
+    ``truth.yaml`` says ``graphcal-truth/`` and it holds nothing but :data:`SIMULATION_FILES`.
+    ``--overwrite`` replaces a simulation, never a folder of the user's (a measured dataset has no
+    truth.yaml)."""
+    from ..io.atomic import OutputExistsError, previous_output_files
+
+    if out_dir.is_symlink() or (out_dir.exists() and not out_dir.is_dir()):
+        raise OutputExistsError(f"{out_dir}: exists and is not a folder; --overwrite replaces only a previous simulation")
+    if not out_dir.is_dir() or not any(out_dir.iterdir()):
+        return
+    ours = previous_output_files(out_dir, "truth.yaml", SIMULATION_FILES, "graphcal-truth/")
+    if ours is None:
+        raise OutputExistsError(f"{out_dir}: not a previous graphcal simulation (no graphcal truth.yaml); "
+                                f"--overwrite replaces only those: choose another --out")
+    other = sorted(p.name for p in out_dir.iterdir() if p.name not in SIMULATION_FILES)
+    if other:
+        raise OutputExistsError(f"{out_dir}: holds files a simulation did not write ({', '.join(other[:5])}); "
+                                f"--overwrite replaces only a previous simulation: move them or choose another --out")
 
 
 #: the motion-capture program (Yuan et al.): a leg in the air, its foot marker and the body markers
