@@ -191,3 +191,18 @@ def test_diagnose_printed_labels_do_not_fit(out):
 def test_runtime(out):
     # CPU time, not wall time: the wall time depends on the other jobs on the machine
     assert out["_cpu_s"] < 20.0
+
+
+def test_legs_without_joint_angles_is_refused_not_answered_with_the_prior(tmp_path):
+    """Chai's measured data have commanded poses and no joint angles: --legs, which drops the
+    commanded roll, pitch and height in favour of the stance feet, would leave the body poses free and
+    return the CAD prior as the answer (it did, exit 0). It is a one-line exit 2 naming stations.csv."""
+    import subprocess
+
+    md = _load("make_dataset")
+    ds = md.build_dataset(tmp_path / "printed")
+    proc = subprocess.run([sys.executable, "-m", "graphcal", "calibrate", str(ds), "--out", str(tmp_path / "o"),
+                           "--legs", "--quiet"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    assert "stations.csv" in proc.stderr and "--legs" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "o").exists()

@@ -315,6 +315,11 @@ PRIOR_SIGMA_FLOOR_M = 1e-6
 PRIOR_SIGMA_FLOOR_RAD = 1e-9
 
 
+def _stations_file(ds) -> str:
+    """The dataset's stations.csv as a user would name it (its folder's, when the dataset has one)."""
+    return str(ds.root / "stations.csv") if getattr(ds, "root", None) is not None else "stations.csv"
+
+
 def floored_extrinsic_prior(key: int, T_body_sensor, sigma_m: float, sigma_rad: float):
     """The prior factor of an extrinsic (or of one of its segments) at ``T_body_sensor`` (4x4 or
     gtsam.Pose3: the CAD pose, or the estimate before a change) with dataset.yaml's sigmas (m, rad);
@@ -495,7 +500,11 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
     from ..solvers.closed_form import extrinsic_from_scan_points
 
     if not data.stations:
-        raise GraphcalError("the dataset has no stations")
+        raise GraphcalError(f"{_stations_file(ds)}: no stations (a header without rows): nothing to calibrate")
+    if options.legs and not any(st.q_by_foot for st in data.stations):
+        raise GraphcalError(f"{_stations_file(ds)}: --legs estimates the legs from the stance feet's joint angles, "
+                            f"and no station has any (no q_<joint> columns for the feet of dataset.yaml's robot); "
+                            f"calibrate without --legs")
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     groups: dict[int, str] = {}
