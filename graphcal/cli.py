@@ -96,6 +96,9 @@ def _build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out", type=Path, default=None, help="write the poses as CSV here")
     g.add_argument("--after-existing", action="store_true",
                    help="count the dataset's own stations (its first session) as done: suggest the k to add")
+    g.add_argument("--noise-from", type=Path, default=None, metavar="CALIBRATION_YAML",
+                   help="predict sigma with the noise model an earlier calibration of this robot learned "
+                        "(default: graphcal's defaults, which a calibration usually improves on)")
 
     e = sub.add_parser("extract-planes", help="fit planes to a dataset's clouds and write planes.csv")
     e.add_argument("dataset", type=Path)
@@ -183,7 +186,8 @@ def _cmd_calibrate(args) -> int:
 def _cmd_suggest(args) -> int:
     from .calibration.suggest import suggest_poses_command
 
-    print(suggest_poses_command(args.dataset, args.k, out=args.out, after_existing=args.after_existing))
+    print(suggest_poses_command(args.dataset, args.k, out=args.out, after_existing=args.after_existing,
+                                noise_from=args.noise_from))
     return 0
 
 
@@ -199,7 +203,7 @@ def _cmd_extract_planes(args) -> int:
     from .plane_table import extract_planes_to_csv
 
     out = extract_planes_to_csv(args.dataset, args.out, max_planes=args.max_planes, progress=not args.quiet,
-                                max_points=args.plane_points)
+                                max_points=args.plane_points, on_warning=lambda w: print(f"warning: {w}"))
     print(f"wrote {out}")
     return 0
 

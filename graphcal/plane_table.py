@@ -7,7 +7,7 @@ from __future__ import annotations
 import functools
 import itertools
 from pathlib import Path
-from typing import Iterable, Mapping
+from typing import Callable, Iterable, Mapping
 
 import numpy as np
 
@@ -284,13 +284,39 @@ class _WorkerTraceback(Exception):
         return "in the plane-extraction worker process:\n" + str(self.args[0])
 
 
+def camera_clouds_without_planes(ds, have) -> dict[str, tuple[list[int], int]]:
+    """Sensor -> (the stations whose camera cloud has no plane in ``have``, the sensor's number of
+    clouds), for the cameras with such stations. ``have``: the ``(sensor, station)`` pairs with a
+    plane (from planes.csv, or fitted)."""
+    from .io.dataset import cloud_paths
+
+    have = {(str(sn), int(st)) for sn, st in have}
+    cameras = {n for n, spec in ds.sensors.items() if spec.type in ("depth_camera", "stereo_camera")}
+    clouds = [key for key in cloud_paths(ds) if key[0] in cameras]
+    out = {}
+    for sensor in sorted({k[0] for k in clouds}):
+        missing = sorted(st for sn, st in clouds if sn == sensor and (sn, st) not in have)
+        if missing:
+            out[sensor] = (missing, sum(1 for sn, _ in clouds if sn == sensor))
+    return out
+
+
+def no_plane_found_warning(sensor: str, missing: list[int], total: int, consequence: str) -> str:
+    """The warning for clouds in which no plane was found (stations ``missing`` of ``total``)."""
+    shown = ", ".join(map(str, missing[:8])) + (", ..." if len(missing) > 8 else "")
+    return (f"{sensor}: no plane found in the clouds of {len(missing)} of the {total} stations ({shown}; "
+            f"clouds/{sensor}/<station>.ply: too few points, collinear points or no plane among them); {consequence}")
+
+
 def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *, max_planes: int = 1,
-                          progress: bool = False, max_points: int | None = None) -> Path:
+                          progress: bool = False, max_points: int | None = None,
+                          on_warning: Callable[[str], None] | None = None) -> Path:
     """Read a dataset's clouds, fit planes, and write ``planes.csv`` atomically.
 
     ``out`` defaults to ``DATASET/planes.csv``; an existing file is never replaced (give another
-    ``out``). ``max_points``: fit each cloud on at most this many of its points (see
-    :func:`planes_rows`; None: all), as ``graphcal calibrate --plane-points`` does.
+    ``out``); a missing parent folder is created. ``max_points``: fit each cloud on at most this
+    many of its points (see :func:`planes_rows`; None: all), as ``graphcal calibrate --plane-points``
+    does. ``on_warning`` receives one line per camera with clouds in which no plane was found.
     """
     from .io.atomic import atomic_write_text
     from .io.dataset import Table, cloud_paths, load_cloud, read_dataset, table_csv_text
@@ -301,7 +327,7 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
     ds = read_dataset(dataset)
     out_path = Path(out) if out is not None else Path(dataset) / "planes.csv"
     if out_path.exists():
-        raise DatasetError(out_path, "planes.csv", "a file that does not exist yet (graphcal never overwrites it); "
+        raise DatasetError(out_path, "--out", "a file that does not exist yet (graphcal never overwrites it); "
                            "pass --out to write elsewhere")
     paths = cloud_paths(ds)
     if not paths:
@@ -309,5 +335,10 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
     types = {name: spec.type for name, spec in ds.sensors.items()}
     pairs = [(key, functools.partial(load_cloud, ds, *key)) for key in sorted(paths)]  # read by the workers
     rows = planes_rows(pairs, types, max_planes=max_planes, progress=progress, max_points=max_points)
+    if on_warning is not None:
+        have = zip(rows["sensor"], rows["station"])
+        for sensor, (missing, total) in camera_clouds_without_planes(ds, have).items():
+            on_warning(no_plane_found_warning(sensor, missing, total, "the planes file has no row for them"))
+    out_path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out_path, table_csv_text(Table.from_columns(rows)), overwrite=False)
     return out_path

@@ -324,3 +324,22 @@ def test_simulate_overwrite_replaces_a_simulation_never_a_users_folder(tmp_path)
     proc = run("simulate", "--program", "random", "--stations", "3", "--quiet", "--out", measured, "--overwrite")
     assert proc.returncode == 2 and "not a previous graphcal simulation" in proc.stderr
     assert sorted(p.name for p in measured.iterdir()) == ["dataset.yaml", "planes.csv", "stations.csv"]
+
+
+def test_a_cloud_without_a_plane_is_named_not_dropped_silently(small_dataset, tmp_path):
+    """A cloud of collinear points gives no plane: calibrate and extract-planes name its station
+    (they dropped it without a word); extract-planes creates a missing parent folder of --out."""
+    import shutil
+
+    from graphcal.io.ply import write_ply
+
+    ds = tmp_path / "ds"
+    shutil.copytree(small_dataset, ds)
+    (ds / "planes.csv").unlink()
+    write_ply(ds / "clouds" / "depth" / "3.ply", np.c_[np.linspace(0, 1, 50), np.zeros(50), np.full(50, 2.0)])
+    proc = run("extract-planes", ds, "--out", tmp_path / "new" / "planes.csv", "--quiet", check_rc=0)
+    assert "no plane found in the clouds of 1 of the 8 stations (3;" in proc.stdout
+    assert (tmp_path / "new" / "planes.csv").is_file()
+    run("calibrate", ds, "--out", tmp_path / "out", "--quiet", check_rc=0)
+    doc = yaml.safe_load((tmp_path / "out" / "calibration.yaml").read_text())
+    assert any("no plane found in the clouds of 1 of the 8 stations (3;" in w for w in doc["warnings"])

@@ -215,3 +215,30 @@ def test_after_existing_counts_only_stations_that_saw_the_ground(chai, tmp_path)
     assert len(kept) == len(lines) - 1 - 5
     (copy / "planes.csv").write_text("".join([lines[0]] + kept), encoding="utf-8")
     assert _Model(read_dataset(copy), None, PLAIN).existing_information()[1] == 47
+
+
+def test_noise_from_predicts_the_sigma_a_calibration_with_that_noise_reports(chai, tmp_path):
+    """A calibration learns its noise model (here far below the defaults: the simulated joints do not
+    flex), so the defaults' prediction is many times its sigma; with --noise-from its calibration.yaml
+    the model predicts the sigma the calibration reported."""
+    from graphcal.calibration.noise_file import options_with_noise_from
+    from graphcal.report.calibration_yaml import calibration_yaml_text
+
+    ds, _ = chai
+    result = calibrate(ds)  # the default: noise learned
+    learned = result.sensors["depth"]
+    path = tmp_path / "calibration.yaml"
+    path.write_text(calibration_yaml_text(result), encoding="utf-8")
+    options, _ = options_with_noise_from(path, CalibrationOptions())
+    model = _Model(ds, None, options)
+    Lam, _ = model.existing_information()
+    rot, xyz = model.sigmas(model.prior_information() + Lam)
+    # measured: within 0.7 % per axis
+    np.testing.assert_allclose(rot, learned.sigma_rot_deg, rtol=0.02)
+    np.testing.assert_allclose(xyz, learned.sigma_xyz_mm, rtol=0.02)
+    default = _Model(ds, None, CalibrationOptions())
+    rot_d, _ = default.sigmas(default.prior_information() + default.existing_information()[0])
+    assert np.all(rot_d > 2 * rot)  # the defaults' prediction is the wrong one here (measured 3.0-28x)
+    text = suggest_poses_command(ds, 1, after_existing=True, noise_from=path)
+    assert f"noise model: learned by the calibration {path}" in text
+    assert "--noise-from" in suggest_poses_command(ds, 1)

@@ -62,29 +62,33 @@ def solve_problem(problem: CalibrationProblem, *, progress: bool = False, stage:
     return result
 
 
-def unused_plane_points_warning(plane_max_points: int | None, planes_given: bool, ds) -> list[str]:
+def plane_source_warnings(plane_max_points: int | None, planes_given: bool, ds, fitted=None) -> list[str]:
     """The warnings about where the planes came from: that ``plane_max_points`` did nothing (the
     planes were passed in, ``planes_given``, or the dataset ``ds`` has planes.csv, so no cloud was
-    fitted), and that planes.csv has no plane for stations that have a camera cloud (the clouds are
-    not read when planes.csv exists: a planes.csv cut short or out of date silently drops them)."""
+    fitted), and which stations with a camera cloud have no plane: planes.csv has none for them (the
+    clouds are not read when planes.csv exists: a planes.csv cut short or out of date silently drops
+    them), or, when the clouds were fitted, no plane was found in theirs (``fitted``: the
+    ``(station, sensor)`` keys of the fitted planes; too few points, collinear points, no plane)."""
     out = []
     if plane_max_points is not None and (planes_given or ds.planes is not None):
         out.append(f"plane_max_points={plane_max_points} had no effect: the planes were "
                    + ("given" if planes_given else "read from planes.csv, not fitted to the clouds"))
-    if not planes_given and ds.planes is not None and ds.root is not None:
-        from ..io.dataset import cloud_paths
+    if planes_given or ds.root is None or (ds.planes is None and fitted is None):
+        return out
+    from ..plane_table import camera_clouds_without_planes, no_plane_found_warning
 
-        have = set(zip(ds.planes["sensor"].tolist(), (int(s) for s in ds.planes["station"].tolist())))
-        cameras = {n for n, spec in ds.sensors.items() if spec.type in ("depth_camera", "stereo_camera")}
-        clouds = [key for key in cloud_paths(ds) if key[0] in cameras]
-        for sensor in sorted({k[0] for k in clouds}):
-            missing = sorted(st for sn, st in clouds if sn == sensor and (sn, st) not in have)
-            if missing:
-                total = sum(1 for sn, _ in clouds if sn == sensor)
-                shown = ", ".join(map(str, missing[:8])) + (", ..." if len(missing) > 8 else "")
-                out.append(f"{sensor}: planes.csv has no plane for {len(missing)} of the {total} stations with a "
-                           f"cloud ({shown}); they are not used: when planes.csv exists the clouds are not read "
-                           "(if it is out of date, delete it or refit it with graphcal extract-planes --out NEW)")
+    if ds.planes is not None:
+        have = zip(ds.planes["sensor"].tolist(), ds.planes["station"].tolist())
+    else:
+        have = ((sensor, station) for station, sensor in fitted)
+    for sensor, (missing, total) in camera_clouds_without_planes(ds, have).items():
+        if ds.planes is not None:
+            shown = ", ".join(map(str, missing[:8])) + (", ..." if len(missing) > 8 else "")
+            out.append(f"{sensor}: planes.csv has no plane for {len(missing)} of the {total} stations with a "
+                       f"cloud ({shown}); they are not used: when planes.csv exists the clouds are not read "
+                       "(if it is out of date, delete it or refit it with graphcal extract-planes --out NEW)")
+        else:
+            out.append(no_plane_found_warning(sensor, missing, total, "those stations are not used"))
     return out
 
 
@@ -120,7 +124,7 @@ def calibrate(
     values, iterations = lm.values, lm.iterations
     outliers: set = set()
     warnings: list[str] = []
-    warnings += unused_plane_points_warning(plane_max_points, planes_given, ds)
+    warnings += plane_source_warnings(plane_max_points, planes_given, ds, data.planes)
 
     def resolve(opts, excluded, stage, start=None):
         nonlocal problem, values, iterations

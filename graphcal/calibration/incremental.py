@@ -675,14 +675,15 @@ def calibrate_incremental(
     """
     from ..io.dataset import Dataset, load_dataset_robot, read_dataset
     from ..solvers.covariance import marginal_covariances
-    from .calibrate import _residuals, _result, unused_plane_points_warning
+    from .calibrate import _residuals, _result, plane_source_warnings
     from .noise_check import given_noise_check
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
     robot = load_dataset_robot(ds)
-    warnings: list[str] = unused_plane_points_warning(plane_max_points, data is not None, ds)
+    planes_given = data is not None
     if data is None:
         data = calibration_data(ds, robot, progress=progress, plane_max_points=plane_max_points)
+    warnings: list[str] = plane_source_warnings(plane_max_points, planes_given, ds, data.planes)
     problem = build_problem(ds, robot, data, replace(options, robust=False))  # Gaussian planes, gated
     R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
     cal = IncrementalCalibrator(

@@ -179,7 +179,8 @@ class _Model:
             ratios.append(float(np.trace(H @ C)) / 3.0)
         if not ratios:
             raise GraphcalError(f"suggest_poses: no plane of {sensor!r} with a covariance to calibrate the noise model")
-        self.cov_scale = float(np.median(ratios))
+        # and to the sensor's plane noise scale (learned by a calibration: --noise-from)
+        self.cov_scale = float(np.median(ratios)) * options.plane_scale(sensor) ** 2
 
     # -- pieces
     def _plane_information(self, T_world_sensor: np.ndarray):
@@ -481,20 +482,35 @@ def predict_sigmas(dataset, poses, *, sensor: str | None = None,
     return model.sigmas(Lam)
 
 
-def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, after_existing: bool = False) -> str:
+def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, after_existing: bool = False,
+                          noise_from: str | Path | None = None) -> str:
     """The ``graphcal suggest-poses`` command: a text table of the k suggested poses; with ``out``
     also a stations-like CSV of the commanded poses (station, session, body pose, IK joint angles),
-    written atomically; an existing ``out`` is never replaced (checked before the work).
+    written atomically (a missing parent folder is created); an existing ``out`` is never replaced
+    (checked before the work).
 
     The sigma of each rank is that of a new session of the suggested stations up to that rank
     (it plans a calibration session), or with ``after_existing`` that of the dataset's first
-    session plus the suggested stations up to that rank (it plans the stations to add)."""
+    session plus the suggested stations up to that rank (it plans the stations to add). The noise
+    model is graphcal's defaults, or with ``noise_from`` the one an earlier calibration learned (its
+    ``calibration.yaml``, :func:`graphcal.calibration.noise_file.options_with_noise_from`)."""
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+        raise GraphcalError(f"-k (the number of poses) must be a whole number >= 1, got {k}")
     if out is not None and (Path(out).exists() or Path(out).is_symlink()):
         from ..errors import DatasetError
 
         raise DatasetError(out, "--out", "a file that does not exist yet (graphcal never overwrites it); "
                            "give another name")
-    model = _Model(dataset, None, CalibrationOptions())
+    options = CalibrationOptions()
+    if noise_from is not None:
+        from .noise_file import options_with_noise_from
+
+        options, _ = options_with_noise_from(noise_from, options)
+        noise_line = f"noise model: learned by the calibration {noise_from}"
+    else:
+        noise_line = ("noise model: graphcal's defaults (0.1 deg joints, 0.5 deg IMU, ...); a calibration learns its "
+                      "own and reports sigma for it: --noise-from ITS/calibration.yaml predicts with that")
+    model = _Model(dataset, None, options)
     if after_existing:
         Lam, n_done = model.existing_information()
         s_rot, s_xyz = model.sigmas(model.prior_information() + Lam)
@@ -510,7 +526,7 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
                      min_separation_deg=MIN_SEPARATION_DEG, sigma_target_deg=None, sigma_target_mm=None,
                      after_existing=after_existing)
     head[-1] = head[-1].replace("{n}", str(len(poses)))
-    lines = head + [
+    lines = [noise_line] + head + [
              f"{'rank':>4} {'roll':>7} {'pitch':>7} {'yaw':>7} {'height':>7} {'x':>7} {'y':>7}  "
              f"{'sigma rot x/y/z (deg)':>23}  {'sigma xyz (mm)':>20}",
              f"{'':>4} {'deg':>7} {'deg':>7} {'deg':>7} {'m':>7} {'m':>7} {'m':>7}"]
@@ -532,6 +548,7 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
             for f in poses[0].q_by_foot:
                 for j, name in enumerate(model.robot.leg(f).joint_names):
                     cols[f"q_{name}"] = [float(p.q_by_foot[f][j]) for p in poses]
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out, table_csv_text(Table.from_columns(cols)), overwrite=False)
         lines.append(f"wrote {out}")
     return "\n".join(lines)
