@@ -343,3 +343,30 @@ def test_a_cloud_without_a_plane_is_named_not_dropped_silently(small_dataset, tm
     run("calibrate", ds, "--out", tmp_path / "out", "--quiet", check_rc=0)
     doc = yaml.safe_load((tmp_path / "out" / "calibration.yaml").read_text())
     assert any("no plane found in the clouds of 1 of the 8 stations (3;" in w for w in doc["warnings"])
+
+
+@pytest.mark.parametrize("args, words", [
+    (("simulate", "--seed", "-1"), "--seed must be a whole number >= 0"),
+    (("simulate", "--program", "random", "--stations", "0"), "--stations must be >= 1"),
+    (("simulate", "--program", "chai2015", "--stations", "5"), "--stations applies to the random and mocap"),
+    (("simulate", "--program", "mocap", "--ground", "bumpy-big"), "--ground"),
+])
+def test_bad_simulate_values_are_one_line_exit_2(tmp_path, args, words):
+    proc = run(*args, "--out", tmp_path / "x", "--quiet")
+    assert proc.returncode == 2 and words in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("option, value, words", [
+    ("--sigma-joint-deg", "inf", "--sigma-joint-deg must be a finite number >= 0"),
+    ("--sigma-joint-deg", "nan", "--sigma-joint-deg must be a finite number >= 0"),
+    ("--sigma-marker-mm", "0", "--sigma-marker-mm must be a finite number > 0"),
+])
+def test_bad_identify_legs_sigmas_are_one_line_exit_2(tmp_path, option, value, words):
+    ds = tmp_path / "mocap"
+    run("simulate", "--robot", "a1", "--program", "mocap", "--stations", "20", "--out", ds, "--quiet", check_rc=0)
+    proc = run("identify-legs", ds, "--out", tmp_path / "o", option, value, "--quiet")
+    assert proc.returncode == 2 and words in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "o").exists()

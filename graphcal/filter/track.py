@@ -321,6 +321,8 @@ def run_track(dataset: str | Path, out: str | Path, progress: bool = True, *, co
     from .metrics import chi2_band, load_truth, nees_against_truth, trajectory_metrics, whiteness
 
     out = Path(out)
+    if not (np.isfinite(tum_rate_hz) and tum_rate_hz >= 0):
+        raise GraphcalError(f"--tum-rate must be a finite number >= 0 (Hz; 0 = every sample), got {tum_rate_hz}")
     _check_out(out, overwrite)
     ds, inp, res = track(dataset, config=config, progress=progress)
     truth = load_truth(ds.root) if ds.root is not None else None

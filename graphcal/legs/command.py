@@ -45,6 +45,12 @@ def run_identify_legs(dataset: str | Path, out: str | Path, progress: bool = Tru
     """
     from graphcal.legs.report import check_output_folder, write_identification_outputs
 
+    import math
+
+    if not (math.isfinite(sigma_marker_mm) and sigma_marker_mm > 0):
+        raise GraphcalError(f"--sigma-marker-mm must be a finite number > 0 (mm), got {sigma_marker_mm}")
+    if not (math.isfinite(sigma_joint_deg) and sigma_joint_deg >= 0):
+        raise GraphcalError(f"--sigma-joint-deg must be a finite number >= 0 (deg), got {sigma_joint_deg}")
     check_output_folder(Path(out))  # fail before the work, not after
     options = IdentifyOptions(sigma_marker_m=sigma_marker_mm / 1000.0, sigma_joint_rad=sigma_joint_deg * 3.141592653589793 / 180.0,
                               origins=origins, mocap_free=parse_mocap_free(mocap_free))

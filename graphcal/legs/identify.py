@@ -110,10 +110,10 @@ class IdentifyOptions:
         bad = [c for c in self.mocap_free if c not in MOCAP_COMPONENTS]
         if bad:
             raise GraphcalError(f"mocap_free: unknown component(s) {bad}; choose from {', '.join(MOCAP_COMPONENTS)}")
-        if not (self.sigma_marker_m > 0):
-            raise GraphcalError(f"sigma_marker_m must be > 0, got {self.sigma_marker_m}")
-        if self.sigma_joint_rad < 0:
-            raise GraphcalError(f"sigma_joint_rad must be >= 0, got {self.sigma_joint_rad}")
+        if not (np.isfinite(self.sigma_marker_m) and self.sigma_marker_m > 0):
+            raise GraphcalError(f"sigma_marker_m must be a finite number > 0 (m), got {self.sigma_marker_m}")
+        if not (np.isfinite(self.sigma_joint_rad) and self.sigma_joint_rad >= 0):
+            raise GraphcalError(f"sigma_joint_rad must be a finite number >= 0 (rad), got {self.sigma_joint_rad}")
         object.__setattr__(self, "mocap_free", tuple(self.mocap_free))
 
 

@@ -208,6 +208,13 @@ def simulate_to_folder(
     """
     from .walking import WALKING_PROGRAMS
 
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise GraphcalError(f"--seed must be a whole number >= 0, got {seed}")
+    if n_stations is not None and program not in ("random", MOCAP_PROGRAM):
+        raise GraphcalError(f"--stations applies to the random and mocap programs; {program} has its own "
+                            f"stations (leave --stations out)")
+    if n_stations is not None and n_stations < 1:
+        raise GraphcalError(f"--stations must be >= 1, got {n_stations}")
     if overwrite:
         check_simulation_overwrite(Path(out_dir))
     if program == MOCAP_PROGRAM:
