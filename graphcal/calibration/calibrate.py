@@ -454,6 +454,10 @@ def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set,
 #: A CAD prior further from the estimate than this many of its own sigmas is reported as wrong.
 PRIOR_CONFLICT_SIGMAS = 5.0
 
+#: noise groups (noise_estimation.py) in the words of calibrate's summary line
+_GROUP_WORDS = {"stance_foot/joint": "joints", "stance_foot/contact": "contact", "imu": "IMU",
+                "commanded": "commanded pose"}
+
 
 def prior_conflict(T_body_sensor: np.ndarray, T_prior: np.ndarray, sigma_m: float, sigma_rad: float) -> str:
     """A sentence when the CAD prior (4x4, with its sigma in m and rad from dataset.yaml) is further
@@ -464,8 +468,9 @@ def prior_conflict(T_body_sensor: np.ndarray, T_prior: np.ndarray, sigma_m: floa
 
     angle = float(rotation_angle_between(T_body_sensor[:3, :3], T_prior[:3, :3]))
     dist = float(np.linalg.norm(T_body_sensor[:3, 3] - T_prior[:3, 3]))
-    k_rot = angle / max(sigma_rad, 1e-9)  # the floors the graph puts on a zero sigma
-    k_xyz = dist / max(sigma_m, 1e-6)
+    # a zero sigma holds that part at the CAD value (a note says so): what is left of it is rounding
+    k_rot = angle / sigma_rad if sigma_rad > 0 else 0.0
+    k_xyz = dist / sigma_m if sigma_m > 0 else 0.0
     if max(k_rot, k_xyz) <= PRIOR_CONFLICT_SIGMAS:
         return ""
     return (f"the CAD prior in dataset.yaml is {np.degrees(angle):.1f} deg and {1e3 * dist:.0f} mm from the "
@@ -544,8 +549,15 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
         how = (f"noise from {noise_from} (not learned)" if noise_from is not None
                else "noise (defaults; the incremental mode does not learn it: see --noise-from)" if incremental
                else "noise learned from the data")
-        lines.append(f"  {how}: joints {np.degrees(n['sigma_joint_rad']):.3f} deg, "
-                     f"contact {1e3 * n['sigma_contact_m']:.2f} mm, IMU {np.degrees(n['sigma_imu_rad']):.3f} deg")
+        learned = [g for g in result.noise_groups if g.status == "learned"]
+        if noise_from is None and not incremental and result.noise_groups:
+            # only what was learned: a dataset without joint angles or an IMU has no such group
+            if learned:
+                lines.append(f"  {how}: " + ", ".join(f"{_GROUP_WORDS.get(g.group, g.group)} {g.values_text()}"
+                                                      for g in learned))
+        else:
+            lines.append(f"  {how}: joints {np.degrees(n['sigma_joint_rad']):.3f} deg, "
+                         f"contact {1e3 * n['sigma_contact_m']:.2f} mm, IMU {np.degrees(n['sigma_imu_rad']):.3f} deg")
     held = [g for g in result.noise_groups if g.status not in ("learned", "given")]
     given = [g for g in result.noise_groups if g.status == "given"]
     if given:

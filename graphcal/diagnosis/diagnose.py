@@ -234,6 +234,16 @@ def _joint_cov(problem, values, keys) -> np.ndarray:
         return block_diag(*[np.asarray(covs[k]) for k in keys])
 
 
+def _params_text(params: dict) -> str:
+    """``{'tilt_rad': np.float64(0.02)}`` as ``tilt_rad=0.02`` (3 significant digits; SI) for progress lines."""
+    def one(v):
+        try:
+            return f"{float(v):.3g}"
+        except (TypeError, ValueError):
+            return str(v)
+    return ", ".join(f"{k}={one(v)}" for k, v in params.items())
+
+
 def _parameters(cand: Candidate, model: DiagnosisModel, problem, values) -> tuple[dict, dict]:
     ek = problem.extension_keys
     cause = cand.cause
@@ -431,12 +441,12 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         model = ext_model
         if not named:
             say(f"{cand.label()}: significant (log10 p {sc.evidence.log10_p_family:.1f}) but below the catalogue's "
-                f"minimum size {params}: kept in the model as a nuisance, not named")
+                f"minimum size {_params_text(params)}: kept in the model as a nuisance, not named")
             notes.append(f"{cand.label()} is significant but below the catalogue's minimum size "
                          f"({', '.join(f'{k}={v:.3g}' for k, v in params.items())}): estimated, not named")
             problem, values = ext_problem, ext_values
             continue
-        say(f"found {cand.label()}: {params} (sigma {sig}); LR {ev.statistic:.1f} on {ev.dof} dof"
+        say(f"found {cand.label()}: {_params_text(params)} (sigma {_params_text(sig)}); LR {ev.statistic:.1f} on {ev.dof} dof"
             + (f"; held-out RMS {gain.heldout_rms_before:.3f} -> {gain.heldout_rms_after:.3f}" if gain else ""))
         if old is not None:
             findings = [f for f in findings if f.candidate != old]
