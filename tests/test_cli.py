@@ -188,29 +188,23 @@ def test_a_planes_csv_cut_short_is_reported_not_silently_used(small_dataset, tmp
     assert not (tmp_path / "cal2").exists()
 
 
-@pytest.mark.parametrize("edit", ["degrees", "swapped"])
-def test_joint_angles_that_cannot_be_right_are_warned_about(small_dataset, tmp_path, edit):
-    """Joint angles in degrees, or two joint columns swapped on one leg: calibrate still answers
-    (the sensors and the IMU determine the extrinsic) but says the legs' data are wrong."""
+def test_joint_columns_swapped_are_warned_about(small_dataset, tmp_path):
+    """Two joint columns swapped on one leg: calibrate still answers (the sensors and the IMU
+    determine the extrinsic) but says the legs' data are wrong. (Angles in degrees are an error:
+    test_joint_angles_in_degrees_are_an_error_naming_the_column.)"""
     import csv
     import shutil
 
     ds = tmp_path / "ds"
     shutil.copytree(small_dataset, ds)
     rows = list(csv.reader((ds / "stations.csv").open(newline="")))
-    if edit == "degrees":
-        for r in rows[1:]:
-            for i, c in enumerate(rows[0]):
-                if c.startswith("q_"):
-                    r[i] = repr(float(r[i]) * 180.0 / np.pi)
-    else:
-        a, b = rows[0].index("q_lf_coxa_joint"), rows[0].index("q_lf_femur_joint")
-        rows[0][a], rows[0][b] = rows[0][b], rows[0][a]
+    a, b = rows[0].index("q_lf_coxa_joint"), rows[0].index("q_lf_femur_joint")
+    rows[0][a], rows[0][b] = rows[0][b], rows[0][a]
     with (ds / "stations.csv").open("w", newline="") as f:
         csv.writer(f).writerows(rows)
     proc = run("calibrate", ds, "--out", tmp_path / "cal", "--quiet", check_rc=0)
     assert "the stance feet fit their kinematics implausibly badly" in proc.stdout
-    assert ("stations have joint angles outside the URDF's limits" in proc.stdout) == (edit == "degrees")
+    assert "stations have joint angles outside the URDF's limits" not in proc.stdout
 
 
 def test_a_closed_pipe_and_a_garbage_cloud_give_no_traceback_nor_warnings(small_dataset, tmp_path):
@@ -370,3 +364,45 @@ def test_bad_identify_legs_sigmas_are_one_line_exit_2(tmp_path, option, value, w
     assert proc.returncode == 2 and words in proc.stderr, proc.stderr
     assert "Traceback" not in proc.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_dataset_yaml_ground_and_stance_values_are_used_or_warned_about(small_dataset, tmp_path):
+    """ground.type other than level and an unknown stance.feet_fixed_within are warned about by
+    validate (they were read and ignored); feet_fixed_within: station makes every station a stance."""
+    import shutil
+
+    from graphcal.calibration.measurements import station_measurements
+    from graphcal.io.dataset import load_dataset_robot, read_dataset
+
+    ds = tmp_path / "ds"
+    shutil.copytree(small_dataset, ds)
+    doc = yaml.safe_load((ds / "dataset.yaml").read_text())
+    doc["ground"], doc["stance"] = {"type": "tilted"}, {"feet_fixed_within": "leg"}
+    (ds / "dataset.yaml").write_text(yaml.safe_dump(doc))
+    out = run("validate", ds, check_rc=0).stdout
+    assert "ground.type 'tilted'" in out and "feet_fixed_within 'leg'" in out
+    doc["stance"] = {"feet_fixed_within": "station"}
+    (ds / "dataset.yaml").write_text(yaml.safe_dump(doc))
+    d = read_dataset(ds)
+    sessions = {st.session for st in station_measurements(d, load_dataset_robot(d))}
+    assert len(sessions) == 8  # 2 sessions in stations.csv, 8 stations each re-planted
+
+
+def test_joint_angles_in_degrees_are_an_error_naming_the_column(small_dataset, tmp_path):
+    import shutil
+
+    ds = tmp_path / "ds"
+    shutil.copytree(small_dataset, ds)
+    lines = (ds / "stations.csv").read_text().splitlines()
+    head = lines[0].split(",")
+    rows = [ln.split(",") for ln in lines[1:]]
+    for r in rows:
+        for i, c in enumerate(head):
+            if c.startswith("q_"):
+                r[i] = repr(float(r[i]) * 180.0 / np.pi)
+    (ds / "stations.csv").write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
+    for cmd in (("validate", ds), ("calibrate", ds, "--out", tmp_path / "o", "--quiet")):
+        proc = run(*cmd)
+        assert proc.returncode == 2, proc.stdout + proc.stderr
+        assert "stations.csv: column q_" in proc.stderr and "degrees?" in proc.stderr
+        assert "Traceback" not in proc.stderr

@@ -1262,11 +1262,34 @@ def _check_joint_columns(robot, parsed: Mapping[str, _Parsed]) -> None:
                     raise DatasetError(p.file, f"header, column {prefix}{j}", "a moving joint of the URDF",
                                        f"{j!r}{_suggest(j, joints)}")  # fmt: skip
         for foot in robot.feet:
-            for j in robot.legs[foot].joint_names:
+            leg = robot.legs[foot]
+            for k, j in enumerate(leg.joint_names):
                 if not p.table.has(f"q_{j}"):
                     raise DatasetError(p.file, f"header, column q_{j}",
                                        f"a column for every moving joint on a leg (joint {j!r} of foot {foot!r})",
                                        "missing")  # fmt: skip
+                _check_radians(p, j, leg.joint_types[k], leg.lower[k], leg.upper[k])
+
+
+#: the values of dataset.yaml's stance.feet_fixed_within graphcal knows: the feet stay planted within
+#: a session (the contract's default) or are re-planted at every station
+FEET_FIXED_WITHIN = ("session", "station")
+
+
+def _check_radians(p: _Parsed, joint: str, joint_type: str, lower: float, upper: float) -> None:
+    """Degrees where the contract says radians: a revolute joint whose URDF limits lie within one
+    turn, with most of its rows beyond a full turn (2 pi), cannot be in radians. (A few rows beyond
+    the limits are left to the limit warnings: a sign error or a wrapped encoder.)"""
+    if joint_type == "prismatic" or not (np.isfinite(lower) and np.isfinite(upper)):
+        return
+    if max(abs(lower), abs(upper)) > 2 * np.pi or not len(p.table):
+        return
+    q = np.abs(np.asarray(p.table[f"q_{joint}"], dtype=float))
+    beyond = int(np.count_nonzero(q > 2 * np.pi))
+    if beyond > len(q) / 2:
+        raise DatasetError(p.file, f"column q_{joint}",
+                           f"radians (the contract's unit; its URDF limits are [{lower:.4g}, {upper:.4g}] rad)",
+                           f"{beyond} of {len(q)} rows beyond a full turn, up to {q.max():.4g}: degrees?")
 
 
 def read_dataset(path: str | Path) -> Dataset:
@@ -1353,6 +1376,14 @@ def validate_dataset(path: str | Path) -> ValidationReport:
             sessions.update(t["session"].tolist())
     if ds.stations is not None and not ds.stations.has("session") and len(ds.stations):
         warnings.append("stations.csv has no session column (which stations share a stance is unknown)")
+    if str(ds.ground.get("type", "level")) != "level":
+        warnings.append(f"dataset.yaml ground.type {ds.ground['type']!r}: graphcal models a level ground (type: level) "
+                        "and reads it as one; a tilted or uneven floor shows in graphcal diagnose and is "
+                        "allowed for with calibrate --ground-roughness-mm")
+    fixed = str(ds.stance.get("feet_fixed_within", "session"))
+    if fixed not in FEET_FIXED_WITHIN:
+        warnings.append(f"dataset.yaml stance.feet_fixed_within {fixed!r}: graphcal knows "
+                        f"{' and '.join(FEET_FIXED_WITHIN)}; it is read as session")
     for name in ds.sensors:
         has_planes = ds.planes is not None and name in set(ds.planes["sensor"].tolist())
         has_clouds = any(s == name for s, _ in clouds) or (
