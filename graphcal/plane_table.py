@@ -301,9 +301,14 @@ def camera_clouds_without_planes(ds, have) -> dict[str, tuple[list[int], int]]:
     return out
 
 
+def stations_text(stations: list[int], at_most: int = 8) -> str:
+    """``1, 2, 3, ...``: the first ``at_most`` station ids of a warning."""
+    return ", ".join(map(str, stations[:at_most])) + (", ..." if len(stations) > at_most else "")
+
+
 def no_plane_found_warning(sensor: str, missing: list[int], total: int, consequence: str) -> str:
     """The warning for clouds in which no plane was found (stations ``missing`` of ``total``)."""
-    shown = ", ".join(map(str, missing[:8])) + (", ..." if len(missing) > 8 else "")
+    shown = stations_text(missing)
     return (f"{sensor}: no plane found in the clouds of {len(missing)} of the {total} stations ({shown}; "
             f"clouds/{sensor}/<station>.ply: too few points, collinear points or no plane among them); {consequence}")
 

@@ -75,7 +75,7 @@ def plane_source_warnings(plane_max_points: int | None, planes_given: bool, ds, 
                    + ("given" if planes_given else "read from planes.csv, not fitted to the clouds"))
     if planes_given or ds.root is None or (ds.planes is None and fitted is None):
         return out
-    from ..plane_table import camera_clouds_without_planes, no_plane_found_warning
+    from ..plane_table import camera_clouds_without_planes, no_plane_found_warning, stations_text
 
     if ds.planes is not None:
         have = zip(ds.planes["sensor"].tolist(), ds.planes["station"].tolist())
@@ -83,9 +83,8 @@ def plane_source_warnings(plane_max_points: int | None, planes_given: bool, ds, 
         have = ((sensor, station) for station, sensor in fitted)
     for sensor, (missing, total) in camera_clouds_without_planes(ds, have).items():
         if ds.planes is not None:
-            shown = ", ".join(map(str, missing[:8])) + (", ..." if len(missing) > 8 else "")
             out.append(f"{sensor}: planes.csv has no plane for {len(missing)} of the {total} stations with a "
-                       f"cloud ({shown}); they are not used: when planes.csv exists the clouds are not read "
+                       f"cloud ({stations_text(missing)}); they are not used: when planes.csv exists the clouds are not read "
                        "(if it is out of date, delete it or refit it with graphcal extract-planes --out NEW)")
         else:
             out.append(no_plane_found_warning(sensor, missing, total, "those stations are not used"))

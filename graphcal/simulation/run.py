@@ -316,9 +316,7 @@ def _mocap_to_folder(*, robot, out_dir, seed, n_stations, leg_errors, overwrite,
     if refused:
         raise GraphcalError(f"program {MOCAP_PROGRAM}: {', '.join(refused)} not supported (a leg in the air "
                             f"in the motion-capture room: --robot, --stations, --seed, --leg-errors)")
-    n = MOCAP_DEFAULT_SAMPLES if n_stations is None else int(n_stations)
-    if n < 1:
-        raise GraphcalError(f"--stations must be >= 1, got {n}")
+    n = MOCAP_DEFAULT_SAMPLES if n_stations is None else int(n_stations)  # >= 1: simulate_to_folder
     model = load_robot(model=robot)
     foot = "fl_foot" if robot == "a1" else model.feet[0]
     if leg_errors:
