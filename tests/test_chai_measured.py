@@ -206,3 +206,26 @@ def test_legs_without_joint_angles_is_refused_not_answered_with_the_prior(tmp_pa
     assert proc.returncode == 2, proc.stderr
     assert "stations.csv" in proc.stderr and "--legs" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_summary_lists_only_the_noise_groups_the_data_has(tmp_path):
+    """Chai's data have no joint angles and no IMU: the summary names no joint, contact or IMU sigma
+    (it printed their defaults as 'learned'), and a prior sigma of 0 is not a prior conflict."""
+    import subprocess
+
+    import numpy as np
+
+    from graphcal.calibration.calibrate import prior_conflict
+    from graphcal.geometry import se3_exp
+
+    md = _load("make_dataset")
+    ds = md.build_dataset(tmp_path / "printed")
+    proc = subprocess.run([sys.executable, "-m", "graphcal", "calibrate", str(ds), "--out", str(tmp_path / "o"),
+                           "--quiet"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "joints" not in proc.stdout and "IMU" not in proc.stdout
+    assert "noise not learned: commanded" in proc.stdout
+    T = np.eye(4)
+    nudged = T @ se3_exp(np.r_[1e-6, 0, 0, 2e-5, 0, 0])  # 20x the graph's 1e-6 m floor on a zero sigma
+    assert prior_conflict(nudged, T, 0.0, 0.0) == ""
+    assert "times its stated sigma" in prior_conflict(nudged, T, 1e-9, 1e-9)

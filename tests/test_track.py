@@ -181,3 +181,12 @@ def test_track_output_folder_safety(short_walk, tmp_path, capsys):
     assert first["format"] == second["format"] == "graphcal-track/1"
     n = len([ln for ln in (out / "trajectory.tum").read_text().splitlines() if not ln.startswith("#")])
     assert n == second["n_samples"]
+
+
+def test_track_refuses_a_negative_tum_rate_before_any_work(tmp_path):
+    from graphcal.errors import GraphcalError
+    from graphcal.filter.track import run_track
+
+    with pytest.raises(GraphcalError, match="--tum-rate must be a finite number >= 0"):
+        run_track(tmp_path / "no-such-dataset", tmp_path / "out", tum_rate_hz=-5.0)
+    assert not (tmp_path / "out").exists()
