@@ -275,11 +275,16 @@ def test_simulate_mocap_then_identify_legs_finds_yuans_errors_from_the_command_l
     assert "400 motion-capture samples" in proc.stdout and "Table I" in proc.stdout
     run("validate", ds, check_rc=0)
     run("identify-legs", ds, "--out", out, "--mocap-free", "rz,z", "--origins", "none", "--quiet", check_rc=0)
+    from graphcal.legs.params import leg_model, theta_from_perturbation
+    from graphcal.models.perturb import LegPerturbation
+    from graphcal.models.robot import load_robot
+
     truth = yaml.safe_load((ds / "truth.yaml").read_text())["legs"]
     legs = yaml.safe_load((out / "legs.yaml").read_text())
     found = legs["legs"]["fl_foot"]
-    expected = {f"{j}.offset_rad": v for j, v in truth["joint_offsets_rad"].items()}
-    expected.update({f"{j}.delta_m": float(np.linalg.norm(v)) for j, v in truth["origin_deltas_m"].items()})
+    model = leg_model(load_robot(model="a1"), "fl_foot", origins="none")  # the parameters identified
+    theta = theta_from_perturbation(model, LegPerturbation(truth["joint_offsets_rad"], truth["origin_deltas_m"]))
+    expected = dict(zip(model.names, theta.tolist()))
     assert set(found) == set(expected)
     z = [(found[k]["value"] - v) / found[k]["sigma"] for k, v in expected.items()]
     assert max(abs(x) for x in z) < 4.0, dict(zip(expected, z))

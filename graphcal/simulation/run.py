@@ -309,7 +309,7 @@ def _mocap_to_folder(*, robot, out_dir, seed, n_stations, leg_errors, overwrite,
     (A1), none (other robots), or with ``leg_errors`` drawn from the seed (0.5 deg, 3 mm)."""
     from ..models.perturb import LegPerturbation, link_length_delta
     from ..models.robot import load_robot
-    from .mocap import YUAN_PERTURBATION, simulate_mocap, simulate_yuan_session, write_mocap_simulation
+    from .mocap import YUAN_FOOT, YUAN_PERTURBATION, simulate_mocap, simulate_yuan_session, write_mocap_simulation
     from .session import draw_leg_errors
 
     refused = [name for name, given in unsupported if given]
@@ -318,7 +318,7 @@ def _mocap_to_folder(*, robot, out_dir, seed, n_stations, leg_errors, overwrite,
                             f"in the motion-capture room: --robot, --stations, --seed, --leg-errors)")
     n = MOCAP_DEFAULT_SAMPLES if n_stations is None else int(n_stations)  # >= 1: simulate_to_folder
     model = load_robot(model=robot)
-    foot = "fl_foot" if robot == "a1" else model.feet[0]
+    foot = YUAN_FOOT if robot == "a1" else model.feet[0]
     if leg_errors:
         offsets, lengths = draw_leg_errors(model, (foot,), float(np.radians(0.5)), 0.003, np.random.default_rng(seed))
         perturbation = LegPerturbation(offsets, {j: tuple(float(x) for x in link_length_delta(model, j, d))
