@@ -114,6 +114,7 @@ def test_incremental_with_the_noise_a_batch_run_learned_reports_the_batch_sigma(
                             noise_from=tmp_path / "a" / "calibration.yaml")
     run_calibrate(session_b, tmp_path / "b_default", incremental=True, progress=False)
     assert "noise from" in summary and "(not learned)" in summary
+    assert read_calibration_yaml(tmp_path / "a" / "calibration.yaml")["robot"] == "octopus"
 
     learned_a = read_calibration_yaml(tmp_path / "a" / "calibration.yaml")["noise_model"]
     assert learned_a["sigma_joint_rad"] > 2 * CalibrationOptions().sigma_joint_rad  # the flex was learned
@@ -121,6 +122,7 @@ def test_incremental_with_the_noise_a_batch_run_learned_reports_the_batch_sigma(
     assert online["noise_model"] == learned_a
     assert online["noise_model_from"] == str(tmp_path / "a" / "calibration.yaml")
     assert {g["status"] for g in online["noise_estimation"].values()} == {"given"}  # checked, not learned
+    assert not [w for w in online["warnings"] if "robot" in w]  # the same robot: no mismatch said
     assert "read from <code>" in (tmp_path / "b_online" / "report.html").read_text(encoding="utf-8")
     sigma_batch = _sigma_and_error(tmp_path / "b_batch", sim_b)[2]
     sigma_default = _sigma_and_error(tmp_path / "b_default", sim_b)[2]
@@ -132,3 +134,24 @@ def test_incremental_with_the_noise_a_batch_run_learned_reports_the_batch_sigma(
     assert float(xi @ np.linalg.solve(cov_online, xi)) < 16.8  # chi2(6) 99 %
     assert not online["sensors"]["depth"].get("change_stations")
     assert math.isfinite(online["residuals"]["distance_rms_mm"])
+
+
+def test_a_noise_model_of_another_robot_or_sensor_is_named(tmp_path):
+    """The file records the robot it calibrated; another robot's noise model, a file that records
+    none, and a plane scale of a sensor the dataset lacks are each one warning; a match is none."""
+    from graphcal.calibration.noise_file import noise_from_mismatch
+
+    path = _calibration_yaml(tmp_path, NOISE)
+    doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    notes = noise_from_mismatch(path, "octopus", ["depth"])
+    assert len(notes) == 1 and "records no robot" in notes[0]
+    path.write_text(yaml.safe_dump({**doc, "robot": "octopus"}, sort_keys=False), encoding="utf-8")
+    assert noise_from_mismatch(path, "octopus", ["depth", "laser"]) == ()
+    notes = noise_from_mismatch(path, "messor", ["depth"])
+    assert len(notes) == 1 and "'octopus'" in notes[0] and "'messor'" in notes[0]
+    notes = noise_from_mismatch(path, "octopus", ["laser"])
+    assert len(notes) == 1 and "plane_scale:depth" in notes[0] and "no sensor 'depth'" in notes[0]
+    path.write_text(yaml.safe_dump({**doc, "robot": ["octopus"]}, sort_keys=False), encoding="utf-8")
+    with pytest.raises(DatasetError) as exc:
+        noise_from_mismatch(path, "octopus", ["depth"])
+    assert exc.value.where == "robot"

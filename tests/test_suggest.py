@@ -5,6 +5,7 @@ information model agrees with an actual simulated calibration."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 
 import numpy as np
 import pytest
@@ -241,4 +242,9 @@ def test_noise_from_predicts_the_sigma_a_calibration_with_that_noise_reports(cha
     assert np.all(rot_d > 2 * rot)  # the defaults' prediction is the wrong one here (measured 3.0-28x)
     text = suggest_poses_command(ds, 1, after_existing=True, noise_from=path)
     assert f"noise model: learned by the calibration {path}" in text
+    assert "warning" not in text  # the same robot and sensor
     assert "--noise-from" in suggest_poses_command(ds, 1)
+    other = tmp_path / "other.yaml"  # another robot's calibration: said, still used
+    other.write_text(calibration_yaml_text(dataclasses.replace(result, robot_name="messor")), encoding="utf-8")
+    lines = suggest_poses_command(ds, 1, after_existing=True, noise_from=other).splitlines()
+    assert lines[1].startswith(f"warning: {other} is a calibration of the robot 'messor'")

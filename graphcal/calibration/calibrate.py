@@ -435,6 +435,7 @@ def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set,
     return CalibrationResult(
         dataset=str(ds.root) if ds.root is not None else "",
         robot_urdf_xml=robot.urdf_xml,
+        robot_name=str(robot.name),
         base_frame=robot.base_frame,
         sensors=sensors,
         legs=legs,
@@ -531,9 +532,12 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
     else:
         result = calibrate(dataset, options=options, progress=progress, plane_max_points=plane_max_points)
     if noise_from is not None:
+        from .noise_file import noise_from_mismatch
+
         unscaled = [name for name in result.sensors if name not in scaled]
-        notes = tuple(f"{noise_from} has no plane_scale:{name}: the plane noise of {name} is its own noise "
-                      "model, unscaled" for name in unscaled)
+        notes = noise_from_mismatch(noise_from, result.robot_name, result.sensors) + tuple(
+            f"{noise_from} has no plane_scale:{name}: the plane noise of {name} is its own noise "
+            "model, unscaled" for name in unscaled)
         result = dataclasses.replace(result, noise_source=str(noise_from), warnings=result.warnings + notes)
     written = write_calibration_outputs(result, out_dir)
     lines = [f"calibrated {len(result.sensors)} sensor(s) from {dataset} ({result.solver}); wrote {out_dir}:"]

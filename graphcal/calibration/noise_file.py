@@ -22,7 +22,7 @@ from pathlib import Path
 from ..errors import DatasetError
 from .graph import CalibrationOptions
 
-__all__ = ["NOISE_KEYS", "PLANE_SCALE_PREFIX", "options_with_noise_from"]
+__all__ = ["NOISE_KEYS", "PLANE_SCALE_PREFIX", "noise_from_mismatch", "options_with_noise_from"]
 
 #: the sigmas of ``noise_model`` (SI units), all required
 NOISE_KEYS = ("sigma_joint_rad", "sigma_contact_m", "sigma_ground_m", "sigma_imu_rad",
@@ -83,3 +83,39 @@ def options_with_noise_from(path: str | Path, options: CalibrationOptions) -> tu
     out = dataclasses.replace(options, estimate_noise=False, scale_to_plane_residuals=True,
                               plane_sigma_scales=tuple(scales.items()), **values)
     return out, tuple(scales)
+
+
+def noise_from_mismatch(path: str | Path, robot_name: str, sensors) -> tuple[str, ...]:
+    """Warnings when the ``calibration.yaml`` at ``path`` is not of this robot and these sensors.
+
+    A noise model is a property of one robot (its encoders, feet, IMU) and its sensors; another
+    robot's is a guess like the defaults, but one the output would call learned.
+
+    Args:
+        path: the ``calibration.yaml`` given to ``--noise-from`` (already read by
+            :func:`options_with_noise_from`).
+        robot_name: the dataset's robot (:attr:`graphcal.models.robot.RobotModel.name`).
+        sensors: the dataset's sensor names.
+
+    Returns:
+        One sentence per mismatch: another robot, no robot recorded (a file written before
+        calibration.yaml recorded it), a plane scale of a sensor the dataset does not have.
+    """
+    from ..report.calibration_yaml import read_calibration_yaml
+
+    path = Path(path)
+    doc = read_calibration_yaml(path)
+    out = []
+    theirs = doc.get("robot")
+    if theirs is None:
+        out.append(f"{path} records no robot (written by an older graphcal): cannot check that its noise model "
+                   f"is of this robot ({robot_name})")
+    elif theirs != robot_name:
+        out.append(f"{path} is a calibration of the robot {theirs!r}, this dataset's robot is {robot_name!r}: "
+                   "its noise model (encoders, feet, IMU) may not fit these data")
+    ours = set(sensors)
+    for key in doc.get("noise_model") or {}:
+        if isinstance(key, str) and key.startswith(PLANE_SCALE_PREFIX) and key[len(PLANE_SCALE_PREFIX):] not in ours:
+            out.append(f"{path} has {key}, but this dataset has no sensor {key[len(PLANE_SCALE_PREFIX):]!r} "
+                       f"(its sensors: {', '.join(sorted(ours))})")
+    return tuple(out)

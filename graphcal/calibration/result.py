@@ -169,6 +169,8 @@ class CalibrationResult:
             noise was not learned).
         noise_source: the ``calibration.yaml`` the noise model was read from
             (``calibrate --noise-from``), or "" (learned, or the defaults in incremental mode).
+        robot_name: the robot's name (a built-in model's, or the URDF's ``<robot name>``), written
+            to ``calibration.yaml`` so that ``--noise-from`` can tell another robot's file; "" if unknown.
     """
 
     dataset: str
@@ -188,3 +190,4 @@ class CalibrationResult:
     noise: dict = field(default_factory=dict)
     noise_groups: tuple[NoiseGroupEstimate, ...] = ()
     noise_source: str = ""
+    robot_name: str = ""

@@ -511,6 +511,10 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
         noise_line = ("noise model: graphcal's defaults (0.1 deg joints, 0.5 deg IMU, ...); a calibration learns its "
                       "own and reports sigma for it: --noise-from ITS/calibration.yaml predicts with that")
     model = _Model(dataset, None, options)
+    if noise_from is not None:
+        from .noise_file import noise_from_mismatch
+
+        noise_line += "".join(f"\nwarning: {w}" for w in noise_from_mismatch(noise_from, model.robot.name, model.ds.sensors))
     if after_existing:
         Lam, n_done = model.existing_information()
         s_rot, s_xyz = model.sigmas(model.prior_information() + Lam)

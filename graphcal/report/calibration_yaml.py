@@ -177,7 +177,8 @@ def _sensor_dict(s) -> dict:
 def calibration_to_dict(result) -> dict:
     """The ``calibration.yaml`` document of ``result`` as plain Python (str, float, int, list, dict).
 
-    Keys (docs/outputs.md): ``format``, ``dataset``, ``base_frame``, ``sensors`` (per sensor:
+    Keys (docs/outputs.md): ``format``, ``dataset``, ``base_frame``, ``robot`` (its name, when
+    known), ``sensors`` (per sensor:
     ``type``, ``T_body_sensor``, ``covariance``, ``sigma``, ``unobservable``, ``T_body_sensor_prior``,
     ``correlation``, ``change_stations``, ``covariance_scale`` and ``segments`` when the sensor moved), ``legs`` (only when
     legs were calibrated), ``outliers``, ``residuals``, ``solver``, ``warnings``.
@@ -186,8 +187,10 @@ def calibration_to_dict(result) -> dict:
         "format": FORMAT,
         "dataset": str(result.dataset),
         "base_frame": str(result.base_frame),
-        "sensors": {str(name): _sensor_dict(s) for name, s in result.sensors.items()},
     }
+    if result.robot_name:
+        doc["robot"] = str(result.robot_name)  # --noise-from tells another robot's file by it
+    doc["sensors"] = {str(name): _sensor_dict(s) for name, s in result.sensors.items()}
     if result.legs:
         legs = {}
         for foot, leg in result.legs.items():
@@ -381,6 +384,8 @@ def validate_calibration_dict(doc, path: str | Path = "calibration.yaml") -> dic
             c.fail(f"residuals.{k}", "a number", res[k])
     if "warnings" in doc:
         c.strings(doc["warnings"], "warnings", "warning sentences")
+    if "robot" in doc and not isinstance(doc["robot"], str):
+        c.fail("robot", "the robot's name (text)", doc["robot"])
     return doc
 
 
