@@ -453,3 +453,12 @@ def test_warnings_of_a_valid_dataset(dataset_copy):
         "stations.csv: q_lf_tibia_joint outside the URDF limits [-2.5, 2.5] on 1 row(s)",
     )
     assert "warning: sensor 'laser' has no cloud and no plane" in report.summary()
+
+
+def test_a_stations_file_without_rows_is_valid_but_warned_about(dataset_copy):
+    """The contract allows an empty table, but calibrate refuses it: validate says so before."""
+    for rel in (P, T, M, "clouds"):
+        remove(rel)(dataset_copy)
+    header_only(S)(dataset_copy)
+    report = validate_dataset(dataset_copy)
+    assert "stations.csv has a header but no rows: nothing to calibrate (calibrate refuses it)" in report.warnings

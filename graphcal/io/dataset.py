@@ -1374,6 +1374,8 @@ def validate_dataset(path: str | Path) -> ValidationReport:
     for t in (ds.stations, ds.timeseries):
         if t is not None and t.has("session"):
             sessions.update(t["session"].tolist())
+    if ds.stations is not None and not len(ds.stations):
+        warnings.append("stations.csv has a header but no rows: nothing to calibrate (calibrate refuses it)")
     if ds.stations is not None and not ds.stations.has("session") and len(ds.stations):
         warnings.append("stations.csv has no session column (which stations share a stance is unknown)")
     if str(ds.ground.get("type", "level")) != "level":
