@@ -112,3 +112,15 @@ def test_cli_bad_dataset_is_one_line(tmp_path):
     assert p.returncode == 2
     assert p.stderr.startswith("graphcal diagnose: error:") and "Traceback" not in p.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_the_last_progress_line_of_a_finding_gives_its_final_estimate(knocked, capsys):
+    """A finding is re-read in the final model (later findings and the noise re-learned move it);
+    progress ends with the numbers the report gives, not those of the moment it was found."""
+    from graphcal.diagnosis.diagnose import _params_text, diagnose
+
+    result = diagnose(knocked, progress=True, heldout=False)
+    lines = capsys.readouterr().err.splitlines()
+    for f in result.findings:
+        said = [ln for ln in lines if f.candidate.label() in ln and "sigma" in ln]
+        assert said and said[-1].endswith(f"{_params_text(f.parameters)} (sigma {_params_text(f.sigma)})")

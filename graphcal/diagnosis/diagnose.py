@@ -470,8 +470,13 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     # outliers can explain
     unexplained = (st is not None and st[2] < 1e-3) or too_many_outliers
     # re-read every finding's parameters in the final model (later findings can move earlier ones)
-    findings = [dataclasses.replace(f, parameters=p, sigma=s) for f in findings
-                for p, s in [_parameters(f.candidate, model, problem, values)]]
+    reread = [dataclasses.replace(f, parameters=p, sigma=s) for f in findings
+              for p, s in [_parameters(f.candidate, model, problem, values)]]
+    for before, after in zip(findings, reread):
+        if _params_text(before.parameters) != _params_text(after.parameters):  # what the report will say
+            say(f"{after.candidate.label()} in the final model: {_params_text(after.parameters)} "
+                f"(sigma {_params_text(after.sigma)})")
+    findings = reread
     nuisance = [c.label() for c in model.findings if c not in {f.candidate for f in findings}]
     from .residuals import residual_records, stance_records
 
