@@ -252,8 +252,11 @@ def main(argv: list[str] | None = None) -> int:
     except GraphcalError as exc:
         print(f"graphcal {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"graphcal {args.command}: interrupted; nothing was written", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        from .io.atomic import InterruptedAfterWrite
+
+        said = f"interrupted {exc}" if isinstance(exc, InterruptedAfterWrite) else "interrupted; nothing was written"
+        print(f"graphcal {args.command}: {said}", file=sys.stderr)
         return 130
     except BrokenPipeError:
         # the reader of stdout went away (``graphcal validate D | head -1``): stop quietly, as

@@ -308,6 +308,87 @@ def test_atomic_directory_exception_and_refusals(tmp_path):
     assert _leftovers(tmp_path) == []
 
 
+def _old_and_new(tmp_path):
+    target = tmp_path / "out"
+    with atomic_directory(target) as tmp:
+        (tmp / "a.txt").write_text("old")
+    return target
+
+
+@pytest.mark.parametrize("exchange", [True, False], ids=["one-call-exchange", "two-renames"])
+def test_ctrl_c_during_the_swap_leaves_the_new_folder_complete(tmp_path, monkeypatch, exchange):
+    """A SIGINT right after the old folder was moved aside (the moment an audit hit: the folder then
+    vanished and the CLI said nothing was written) is held back until the new folder is in place,
+    then raised as InterruptedAfterWrite; nothing hidden is left."""
+    import signal
+
+    from graphcal.io import atomic
+
+    target = _old_and_new(tmp_path)
+    if not exchange:
+        monkeypatch.setattr(atomic, "_exchange", lambda a, b: False)
+    real_rename, real_exchange = os.rename, atomic._exchange
+
+    def rename(a, b):
+        real_rename(a, b)
+        if Path(a) == target:  # the old folder moved aside: Ctrl-C now
+            os.kill(os.getpid(), signal.SIGINT)
+
+    def exchange_then_sigint(a, b):
+        done = real_exchange(a, b)
+        os.kill(os.getpid(), signal.SIGINT)
+        return done
+
+    monkeypatch.setattr(atomic.os, "rename", rename)
+    if exchange:
+        monkeypatch.setattr(atomic, "_exchange", exchange_then_sigint)
+    with pytest.raises(atomic.InterruptedAfterWrite, match="was written"):
+        with atomic_directory(target, overwrite=True) as tmp:
+            (tmp / "b.txt").write_text("new")
+    monkeypatch.undo()
+    assert sorted(p.name for p in target.iterdir()) == ["b.txt"]
+    assert _leftovers(tmp_path) == []
+
+
+def test_folders_left_by_a_killed_writer_are_cleaned_or_put_back(tmp_path):
+    """SIGKILL leaves hidden siblings named after the writer's process id. The next write to the same
+    folder removes a dead writer's temporary folder and puts a previous output it had moved aside
+    back (never deleting it); a live writer's folders are left alone."""
+    import subprocess
+    import sys
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True, check=True).stdout.strip()
+    target = tmp_path / "out"
+    (tmp_path / f".out.tmp-{dead}-abc123").mkdir()
+    (tmp_path / f".out.tmp-{dead}-abc123" / "calibration.yaml").write_text("half")
+    (tmp_path / f".out.old-{dead}-xyz789").mkdir()
+    (tmp_path / f".out.old-{dead}-xyz789" / "a.txt").write_text("previous")
+    live = tmp_path / f".out.tmp-{os.getppid()}-live01"  # the test runner's parent: alive
+    live.mkdir()
+    with pytest.raises(OutputExistsError):  # the previous output is back: not replaced unasked
+        with atomic_directory(target) as tmp:
+            (tmp / "b.txt").write_text("new")
+    assert (target / "a.txt").read_text() == "previous"
+    assert _leftovers(tmp_path) == [live.name]
+    with atomic_directory(target, overwrite=True) as tmp:
+        (tmp / "b.txt").write_text("new")
+    assert sorted(p.name for p in target.iterdir()) == ["b.txt"]
+    assert _leftovers(tmp_path) == [live.name]
+
+
+def test_the_cli_says_when_an_interrupt_came_after_the_output_was_written(monkeypatch, capsys):
+    from graphcal import cli
+    from graphcal.io.atomic import InterruptedAfterWrite
+
+    def interrupted(args):
+        raise InterruptedAfterWrite(Path("somewhere/out"))
+
+    monkeypatch.setattr(cli, "_cmd_validate", interrupted)
+    assert cli.main(["validate", "x"]) == 130
+    assert capsys.readouterr().err.strip() == "graphcal validate: interrupted after somewhere/out was written (complete)"
+
+
 def test_atomic_write_text_and_failures(tmp_path, monkeypatch):
     f = tmp_path / "x.txt"
     atomic_write_text(f, "one")

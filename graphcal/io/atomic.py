@@ -10,14 +10,22 @@ never damages what was there before:
 * :func:`atomic_directory` lets the caller build a whole folder in a hidden sibling temporary
   folder, and renames it onto the final name only when the ``with`` block ends without an
   exception. An existing non-empty folder is never replaced unless ``overwrite=True``; on any
-  exception the temporary folder is removed and the final path is left exactly as it was.
+  exception the temporary folder is removed and the final path is left exactly as it was. A
+  previous folder is swapped out in one system call where the OS has one (Linux
+  ``renameat2(RENAME_EXCHANGE)``), with Ctrl-C held back until the swap is over. A process killed
+  outright (SIGKILL, power loss) can leave its hidden sibling folders behind; they carry its process
+  id, and the next :func:`atomic_directory` on the same folder removes those of processes that are
+  gone (a previous folder moved aside and never replaced is put back instead).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import re
 import shutil
+import signal
 import tempfile
 import threading
 from pathlib import Path
@@ -25,7 +33,7 @@ from typing import Callable, Iterable, Iterator
 
 from graphcal.errors import GraphcalError
 
-__all__ = ["OutputExistsError", "atomic_file", "atomic_write_text", "atomic_write_bytes", "atomic_directory",
+__all__ = ["OutputExistsError", "InterruptedAfterWrite", "atomic_file", "atomic_write_text", "atomic_write_bytes", "atomic_directory",
            "fsync_directory", "check_output_folder", "previous_output_files"]
 
 
@@ -160,28 +168,97 @@ def atomic_directory(final_dir: str | Path, *, overwrite: bool = False) -> Itera
 
     * ``final_dir`` absent or an empty folder: it simply appears, complete.
     * ``final_dir`` a non-empty folder: refused with :class:`OutputExistsError` (checked before the
-      block runs and again at the end) unless ``overwrite=True``; then the old folder is moved
-      aside, the new one renamed in, and only then the old one deleted. If the swap fails, the old
-      folder is put back.
+      block runs and again at the end) unless ``overwrite=True``; then the two folders are exchanged
+      in one system call where the OS has one (Linux), else the old folder is moved aside and the new
+      one renamed in (if that fails, the old folder is put back); only then is the old one deleted.
     * ``final_dir`` a file or a symbolic link: always refused.
 
-    If the block raises, ``tmp`` is deleted and ``final_dir`` is untouched. The parent folder is
-    created if needed. The finished folder gets ``0o777`` minus the umask as permissions.
+    If the block raises, ``tmp`` is deleted and ``final_dir`` is untouched. A Ctrl-C (SIGINT) that
+    arrives during the swap is held back until it is over and then raised as
+    :class:`InterruptedAfterWrite` (the new folder is in place). Hidden siblings left by a process
+    that was killed (``.NAME.tmp-PID-*``, ``.NAME.old-PID-*``) are cleaned up first
+    (:func:`_clean_stale_siblings`). The parent folder is created if needed. The finished folder
+    gets ``0o777`` minus the umask as permissions.
     """
     final = Path(final_dir)
     if final.name in ("", ".", ".."):
         final = final.resolve()
-    _check_target(final, overwrite)
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=str(final.parent)))
+    _clean_stale_siblings(final)
+    _check_target(final, overwrite)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-{os.getpid()}-", dir=str(final.parent)))
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_current_umask())
-        _commit_directory(tmp, final, overwrite)
+        with _sigint_held(final) as held:
+            _commit_directory(tmp, final, overwrite)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     fsync_directory(final.parent)
+    if held:
+        raise InterruptedAfterWrite(final)
+
+
+class InterruptedAfterWrite(KeyboardInterrupt):
+    """Ctrl-C arrived while a finished output folder was being put in place: the folder is complete."""
+
+    def __init__(self, path: Path):
+        super().__init__(f"after {path} was written (complete)")
+        self.path = path
+
+
+@contextlib.contextmanager
+def _sigint_held(final: Path) -> Iterator[list]:
+    """Hold back SIGINT during the block (main thread only: Python runs signal handlers there, and
+    only there can they be changed); yields a list that is non-empty if one arrived."""
+    held: list = []
+    if threading.current_thread() is not threading.main_thread():
+        yield held
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if previous in (signal.SIG_IGN, None):  # ignored, or a handler not installed from Python
+        yield held
+        return
+    signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield held
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+_RENAME_EXCHANGE = 2  # linux/fs.h
+_renameat2 = None
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths in one system call (Linux ``renameat2(RENAME_EXCHANGE)``); False where the OS,
+    the C library or the file system has no such call (nothing was changed then)."""
+    global _renameat2
+    if _renameat2 is None:
+        _renameat2 = False
+        if os.name == "posix":
+            import ctypes
+
+            try:
+                fn = ctypes.CDLL(None, use_errno=True).renameat2
+            except (OSError, AttributeError):
+                fn = None
+            if fn is not None:
+                fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+                fn.restype = ctypes.c_int
+                _renameat2 = fn
+    if not _renameat2:
+        return False
+    import ctypes
+
+    at_fdcwd = -100  # AT_FDCWD: paths relative to the working folder (absolute ones as they are)
+    if _renameat2(at_fdcwd, os.fsencode(str(a)), at_fdcwd, os.fsencode(str(b)), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOTSUP):
+        return False  # not supported here: the caller falls back to two renames
+    raise OSError(err, os.strerror(err), str(b))
 
 
 def _commit_directory(tmp: Path, final: Path, overwrite: bool) -> None:
@@ -198,8 +275,11 @@ def _commit_directory(tmp: Path, final: Path, overwrite: bool) -> None:
             if not final.exists():
                 raise
             _check_target(final, overwrite)  # something appeared meanwhile: refuse unless overwrite
-    # overwrite=True and final is a non-empty folder: move it aside, swap, then delete it.
-    backup = Path(tempfile.mkdtemp(prefix=f".{final.name}.old-", dir=str(final.parent)))
+    # overwrite=True and final is a non-empty folder
+    if _exchange(tmp, final):  # one step: final is the new folder, tmp holds the old one
+        shutil.rmtree(tmp, ignore_errors=True)
+        return
+    backup = Path(tempfile.mkdtemp(prefix=f".{final.name}.old-{os.getpid()}-", dir=str(final.parent)))
     os.rmdir(backup)
     os.rename(final, backup)
     try:
@@ -209,6 +289,42 @@ def _commit_directory(tmp: Path, final: Path, overwrite: bool) -> None:
             os.rename(backup, final)
         raise
     shutil.rmtree(backup, ignore_errors=True)
+
+
+def _process_gone(pid: int) -> bool:
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except (PermissionError, OSError):  # another user's process: alive
+        return False
+    return False
+
+
+def _clean_stale_siblings(final: Path) -> None:
+    """Remove the hidden siblings ``.NAME.tmp-PID-*`` / ``.NAME.old-PID-*`` of ``final`` whose
+    process is gone (killed while writing). A ``.old`` folder is a previous output moved aside:
+    when ``final`` is missing (killed between the two renames of the fallback swap) it is put back
+    instead. Siblings of live processes, and anything else, are left alone."""
+    pattern = re.compile(rf"^\.{re.escape(final.name)}\.(tmp|old)-(\d+)-[A-Za-z0-9_]+$")
+    try:
+        names = sorted(os.listdir(final.parent))
+    except OSError:
+        return
+    for name in names:
+        m = pattern.match(name)
+        if m is None or not _process_gone(int(m.group(2))):
+            continue
+        path = final.parent / name
+        if path.is_symlink() or not path.is_dir():
+            continue
+        if m.group(1) == "old" and not (final.exists() or final.is_symlink()):
+            with contextlib.suppress(OSError):  # if that fails, it stays as it is: never deleted
+                os.rename(path, final)  # the previous results, back where they were
+            continue
+        shutil.rmtree(path, ignore_errors=True)
 
 
 def _shown(names: list[str]) -> str:
