@@ -436,6 +436,20 @@ def test_urdf_sensor_on_a_bracket_and_base_below_root():
     assert "a sensor on a bracket" in text
 
 
+def test_urdf_keeps_the_namespace_prefixes_of_the_input():
+    """Gazebo and xacro elements keep their prefixes (ElementTree wrote ns0:camera for sensor:camera,
+    which readers matching tag names literally do not see), with legs calibrated too."""
+    gazebo = ('<gazebo reference="cam" xmlns:sensor="http://playerstage.sourceforge.net/gazebo/xmlschema/#sensor">'
+              '<sensor:camera name="c1"/></gazebo>\n  <xacro:property name="unused" value="1"/>\n</robot>')
+    src = _MOUNT_URDF.replace('<robot name="mounted">', '<robot name="mounted" xmlns:xacro="http://www.ros.org/wiki/xacro">')
+    src = src.replace("</robot>", gazebo)
+    text = calibrated_urdf(src, "body", {"cam": pose_from_xyz_rpy([0.5, 0.0, 0.2], [0.0, 0.3, 0.0])},
+                           {"headcam": {"neck.offset_rad": 0.01}})
+    assert '<sensor:camera name="c1"' in text and '<xacro:property name="unused"' in text
+    assert 'xmlns:sensor="http://playerstage.sourceforge.net/gazebo/xmlschema/#sensor"' in text
+    assert "ns0" not in text
+
+
 def test_urdf_refuses_sensor_on_a_moving_link():
     with pytest.raises(ModelError, match="moves relative to the base frame"):
         calibrated_urdf(_MOUNT_URDF, "body", {"headcam": np.eye(4)})

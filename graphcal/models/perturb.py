@@ -26,6 +26,7 @@ import numpy as np
 
 from graphcal.errors import ModelError
 from graphcal.geometry import matrix_from_axis_angle, matrix_from_rpy, rpy_from_matrix
+from graphcal.models.urdf_xml import parse_urdf, urdf_to_text
 
 __all__ = [
     "FrozenMap",
@@ -122,13 +123,7 @@ def _fmt(x: float) -> str:
 
 
 def _parse(urdf_xml: str) -> ET.Element:
-    try:
-        root = ET.fromstring(urdf_xml)
-    except ET.ParseError as exc:
-        raise ModelError(f"URDF is not valid XML: {exc}") from None
-    if root.tag != "robot":
-        raise ModelError(f"not a URDF: root element is <{root.tag}>, expected <robot>")
-    return root
+    return parse_urdf(urdf_xml)
 
 
 def _joints(root: ET.Element) -> dict[str, ET.Element]:
@@ -229,7 +224,7 @@ def apply_perturbation(urdf_xml: str, pert: LegPerturbation) -> str:
                 f"joint offset on joint {name!r} of type {jtype!r}: only revolute, continuous and prismatic joints have one"
             )
         _set_origin(j, xyz, R)
-    return ET.tostring(root, encoding="unicode")
+    return urdf_to_text(root, urdf_xml)
 
 
 def link_length_delta(robot: Any, joint: str, delta_m: float) -> np.ndarray:

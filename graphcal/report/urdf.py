@@ -26,6 +26,7 @@ import numpy as np
 from graphcal.errors import ModelError
 from graphcal.geometry import from_pinocchio_se3, invert_pose, rpy_from_matrix
 from graphcal.models.perturb import LegPerturbation, apply_perturbation, link_length_delta
+from graphcal.models.urdf_xml import parse_urdf, urdf_to_text
 
 __all__ = ["calibrated_urdf", "leg_perturbation_from_parameters", "LEG_PARAMETER_KINDS"]
 
@@ -40,14 +41,7 @@ def _fmt(x: float) -> str:
 
 
 def _parse(urdf_xml: str) -> ET.Element:
-    parser = ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))
-    try:
-        root = ET.fromstring(urdf_xml, parser=parser)
-    except ET.ParseError as exc:
-        raise ModelError(f"URDF is not valid XML: {exc}") from None
-    if root.tag != "robot":
-        raise ModelError(f"not a URDF: root element is <{root.tag}>, expected <robot>")
-    return root
+    return parse_urdf(urdf_xml, comments=True)
 
 
 def leg_perturbation_from_parameters(urdf_xml: str, legs: Mapping[str, Mapping[str, float]]) -> LegPerturbation:
@@ -193,7 +187,7 @@ def calibrated_urdf(
         pert = leg_perturbation_from_parameters(urdf_xml, legs)
         if pert.joints:
             _copy_origins(root, apply_perturbation(urdf_xml, pert), pert.joints)
-    text = ET.tostring(root, encoding="unicode")
+    text = urdf_to_text(root, urdf_xml)
 
     try:
         m = pin.buildModelFromXML(text)
@@ -288,5 +282,5 @@ def calibrated_urdf(
         f"Calibrated sensor joints of ({_comment_text(sensor_list)}), "
         f"{'with' if legs else 'without'} calibrated leg parameters. -->"
     )
-    body = ET.tostring(root, encoding="unicode")
+    body = urdf_to_text(root, urdf_xml)
     return f'<?xml version="1.0" encoding="utf-8"?>\n{comment}\n{body}\n'
