@@ -96,11 +96,21 @@ def matrix_from_rpy(rpy_rad) -> np.ndarray:
     return R
 
 
+#: below this cos(pitch) the rotation is read as pitch = +-90 deg exactly (roll 0): the round trip then
+#: errs by at most ~this angle (rad); above it roll and yaw are read from entries of size cos(pitch)
+_GIMBAL_COS = 1e-6
+
+
 def rpy_from_matrix(R) -> np.ndarray:
-    """Inverse of :func:`matrix_from_rpy` (rad). At pitch = +-90 deg roll is set to 0."""
+    """Inverse of :func:`matrix_from_rpy` (rad); ``matrix_from_rpy`` of the result is ``R`` to ~1e-6 rad
+    at worst (near pitch = +-90 deg, where roll is set to 0), to rounding elsewhere.
+
+    cos(pitch) is read as ``hypot(R00, R10)``, not from ``arcsin(-R20)``: near +-1 that loses half the
+    digits (a cos(pitch) of 1e-16 read as 1e-8), and roll and yaw then came from rounding noise."""
     R = np.asarray(R, dtype=float)
-    pitch = np.arcsin(np.clip(-R[2, 0], -1.0, 1.0))
-    if abs(np.cos(pitch)) < 1e-9:
+    cos_pitch = float(np.hypot(R[0, 0], R[1, 0]))
+    pitch = np.arctan2(-R[2, 0], cos_pitch)
+    if cos_pitch < _GIMBAL_COS:
         roll = 0.0
         yaw = np.arctan2(-R[0, 1], R[1, 1])
     else:
