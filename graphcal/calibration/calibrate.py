@@ -564,12 +564,12 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
     held = [g for g in result.noise_groups if g.status not in ("learned", "given")]
     given = [g for g in result.noise_groups if g.status == "given"]
     if given:
-        lines.append("  the residuals point to (given sigma x): " + ", ".join(
+        lines.append("  the residuals point to (given sigma x, one update at the solution): " + ", ".join(
             f"{g.group} {g.data_scale:.2g}" for g in given))
     for name, s in result.sensors.items():
         if s.covariance_scale > 1.0:
             lines.append(f"  {name}: covariance x{s.covariance_scale:.3g} "
-                         "(its plane residuals outgrew the given noise)")
+                         "(its plane residuals outgrew the given noise; the planes' variance factor at its fixed point)")
     if held:
         lines.append("  noise not learned: " + "; ".join(
             f"{g.group} {g.values_text()} ({g.status}, {g.dof:.1f} dof; "
