@@ -260,7 +260,7 @@ def test_cli_identify_legs_writes_the_files(cli_dataset, tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "fl_foot: marker RMSE" in proc.stdout
     doc = yaml.safe_load((out / "legs.yaml").read_text())
-    assert doc["format"] == "graphcal-calibration/1"
+    assert doc["format"] == "graphcal-legs/1"
     legs = doc["legs"]
     assert set(legs) == {FOOT}
     for name, v in legs[FOOT].items():
@@ -316,3 +316,22 @@ def test_cli_bad_input_is_exit_2_naming_file_and_field(cli_dataset, tmp_path, ca
     assert "notes.txt" in capsys.readouterr().err and (mine / "notes.txt").read_text() == "precious"
     assert main(["identify-legs", str(ds), "--out", str(tmp_path / "o3"), "--quiet", "--mocap-free", "yaw"]) == 2
     assert "--mocap-free" in capsys.readouterr().err
+
+
+def test_a_previous_identification_of_either_format_id_may_be_replaced(tmp_path):
+    """legs.yaml has its own format id now; a folder written with the old one (graphcal-calibration/1)
+    is still recognised as a previous identify-legs output, anything else is refused."""
+    from graphcal.io.atomic import OutputExistsError
+    from graphcal.legs.report import check_output_folder
+
+    for fmt in ("graphcal-legs/1", "graphcal-calibration/1"):
+        out = tmp_path / fmt.replace("/", "_")
+        out.mkdir()
+        (out / "legs.yaml").write_text(f"format: {fmt}\n")
+        (out / "report.html").write_text("<html></html>")
+        check_output_folder(out)
+    out = tmp_path / "other"
+    out.mkdir()
+    (out / "legs.yaml").write_text("format: something-else/1\n")
+    with pytest.raises(OutputExistsError):
+        check_output_folder(out)

@@ -1,6 +1,6 @@
 """Outputs of ``graphcal identify-legs``: legs.yaml, robot_calibrated.urdf, report.html and figures.
 
-* ``legs.yaml`` (format ``graphcal-calibration/1``): the ``legs`` section with the schema of
+* ``legs.yaml`` (format ``graphcal-legs/1``): the ``legs`` section with the schema of
   ``calibration.yaml`` -- ``legs: {<foot frame>: {<parameter>: {value: v, sigma: s}}}`` (SI units;
   only the parameters that were estimated; the held ones are listed under ``identifiability``) --
   plus ``mocap`` (the estimated ``T_body_mocap`` / ``T_body_vbase`` and marker positions),
@@ -29,13 +29,17 @@ import yaml
 from graphcal.io.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from graphcal.io.atomic import check_output_folder as check_folder
 from graphcal.io.atomic import previous_output_files
-from graphcal.report.calibration_yaml import FORMAT, pose_to_dict
+from graphcal.report.calibration_yaml import pose_to_dict
 
 __all__ = ["LEGS_FILES", "legs_yaml_dict", "legs_yaml_text", "foot_error_figure", "identification_html",
            "write_identification_outputs"]
 
 #: fixed output names (one PNG per foot is added: foot_errors_<foot>.png)
 LEGS_FILES = {"legs": "legs.yaml", "urdf": "robot_calibrated.urdf", "report": "report.html"}
+
+#: legs.yaml is not a calibration.yaml (no sensors, residuals or outliers): its own format id.
+#: (Before 2026-11-21 it said graphcal-calibration/1 and failed that format's reader.)
+LEGS_FORMAT = "graphcal-legs/1"
 
 
 def _f(x) -> float:
@@ -88,7 +92,7 @@ def legs_yaml_dict(result, *, dataset: str | None = None, output_files=None) -> 
             e["rmse_nominal"] = float(1e3 * np.sqrt(np.mean(np.sum(allnom**2, axis=1))))
         errs[str(foot)] = e
     doc = {
-        "format": FORMAT,
+        "format": LEGS_FORMAT,
         "dataset": str(dataset if dataset is not None else result.source),
         "base_frame": str(result.base_frame),
         "legs": legs,
@@ -112,7 +116,7 @@ def legs_yaml_text(result, *, dataset: str | None = None, output_files=None) -> 
     """``legs.yaml`` text with a leading comment line."""
     doc = legs_yaml_dict(result, dataset=dataset, output_files=output_files)
     ds = " ".join(str(doc["dataset"]).split())
-    head = (f"# graphcal leg identification ({FORMAT}): leg kinematic parameters (SI, change from the nominal URDF) "
+    head = (f"# graphcal leg identification ({LEGS_FORMAT}): leg kinematic parameters (SI, change from the nominal URDF) "
             f"and their 1-sigma, written by graphcal identify-legs from dataset {ds}\n")
     return head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, allow_unicode=True, width=200)
 
@@ -255,8 +259,11 @@ def _png_name(foot: str) -> str:
 def check_output_folder(out: Path) -> None:
     """OutputExistsError unless ``out`` is absent, empty, or holds only a previous identify-legs output
     (graphcal.io.atomic.check_output_folder)."""
-    check_folder(out, lambda f: previous_output_files(f, LEGS_FILES["legs"], LEGS_FILES.values(), "graphcal-calibration/"),
-                 what="graphcal leg identification")
+    def previous(folder):  # legs.yaml of this version, or of one that wrote the calibration format id
+        return (previous_output_files(folder, LEGS_FILES["legs"], LEGS_FILES.values(), "graphcal-legs/")
+                or previous_output_files(folder, LEGS_FILES["legs"], LEGS_FILES.values(), "graphcal-calibration/"))
+
+    check_folder(out, previous, what="graphcal leg identification")
 
 
 def write_identification_outputs(result, out_dir, *, dataset: str | None = None) -> dict[str, Path]:
