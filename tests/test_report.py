@@ -788,3 +788,14 @@ def test_write_outputs_overwrite_false_and_empty_folder(tmp_path, fast_report):
     with pytest.raises(GraphcalError, match="overwrite=False"):
         write_calibration_outputs(make_result(legs=False), out, overwrite=False)
     assert os.listdir(out)
+
+
+def test_station_counts_agree_between_the_yaml_and_the_report(result):
+    """calibration.yaml counts every station with residuals, outliers included; the report's total
+    row splits the same number into inliers + outliers (it showed the inlier rows of all sensors)."""
+    from graphcal.report.html import _residual_section
+
+    n = calibration_to_dict(result)["residuals"]["stations"]
+    assert n == N_STATIONS and result.outliers == (17,)
+    total = _residual_section(result).split("all (solver)")[1]
+    assert f"<td>{n - 1} (+1 outl.)</td>" in total

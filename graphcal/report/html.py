@@ -163,8 +163,11 @@ def _residual_section(result) -> str:
             f"{_n(sm['distance_mean_mm_after'], '.3f')} / {_n(sm['distance_max_mm_after'], '.3f')}",
         ]))  # fmt: skip
     total = residual_summary(result)
+    # as calibration.yaml's residuals.stations: every station with residuals, outliers included
+    every = {int(r.station) for r in result.residuals}
+    n_out = len(every & {int(s) for s in result.outliers})
     rows.append(_row([
-        "<strong>all (solver)</strong>", str(total["stations"]),
+        "<strong>all (solver)</strong>", f"{len(every) - n_out} (+{n_out} outl.)",
         _n(total["normal_rms_deg_before"], ".4f"), _n(result.normal_rms_deg, ".4f"),
         _n(total["distance_rms_mm_before"], ".3f"), _n(result.distance_rms_mm, ".3f"), "", "",
     ]))  # fmt: skip
