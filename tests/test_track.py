@@ -180,7 +180,12 @@ def test_track_output_folder_safety(short_walk, tmp_path, capsys):
     second = _track(short_walk, out, "--no-icp", "--tum-rate", "0")  # a previous track output is replaced
     assert first["format"] == second["format"] == "graphcal-track/1"
     n = len([ln for ln in (out / "trajectory.tum").read_text().splitlines() if not ln.startswith("#")])
-    assert n == second["n_samples"]
+    assert n == second["n_samples"] == second["tum_samples"]
+    # thinned: the file says how many poses it holds, the metrics stay those of every sample
+    third = _track(short_walk, out, "--no-icp", "--tum-rate", "10")
+    n = len([ln for ln in (out / "trajectory.tum").read_text().splitlines() if not ln.startswith("#")])
+    assert n == third["tum_samples"] < third["n_samples"] / 5
+    assert third["ape_rmse_m"] is not None and third["ape_rmse_m"] == second["ape_rmse_m"]
 
 
 def test_track_refuses_a_negative_tum_rate_before_any_work(tmp_path):

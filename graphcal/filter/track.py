@@ -384,6 +384,10 @@ def run_track(dataset: str | Path, out: str | Path, progress: bool = True, *, co
     else:
         keep = np.arange(len(res.times))
     files: dict[str, bytes] = {"trajectory.tum": tum_text(res.times[keep], res.T_world_body[keep]).encode()}
+    # the metrics are of the filter (every sample), not of the thinned file: evo on trajectory.tum
+    # at --tum-rate 10 matches a tenth of the poses and reads a slightly different RMS
+    m["metrics_samples"] = "every filter sample (n_samples), whatever --tum-rate"
+    m["tum_samples"] = int(len(keep))
     for name, data in _figures(res, truth, series, nees_t, nees, nees_dof).items():
         files[name] = data
     if stairs_doc is not None:
