@@ -207,6 +207,69 @@ def test_joint_columns_swapped_are_warned_about(small_dataset, tmp_path):
     assert "stations have joint angles outside the URDF's limits" not in proc.stdout
 
 
+def _edit_stations(src, dst, edit):
+    import csv
+    import shutil
+
+    shutil.copytree(src, dst)
+    rows = list(csv.reader((dst / "stations.csv").open(newline="")))
+    edit(rows[0], rows[1:])
+    with (dst / "stations.csv").open("w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    return dst
+
+
+def _flip_knee(header, rows):
+    c = header.index("q_rf_tibia_joint")
+    for r in rows:
+        r[c] = repr(-float(r[c]))
+
+
+def _quaternion_xyzw(header, rows):
+    cols = [header.index(f"body_q{a}") for a in "wxyz"]
+    for r in rows:
+        w, x, y, z = (r[c] for c in cols)
+        for c, v in zip(cols, (x, y, z, w)):
+            r[c] = v
+
+
+@pytest.mark.parametrize("edit, words", [
+    (_flip_knee, "the stance feet fit their kinematics implausibly badly"),
+    (_quaternion_xyzw, "a quaternion in x, y, z, w order"),
+], ids=["knee-sign-flipped", "body-quaternion-xyzw"])
+def test_leg_and_commanded_pose_mistakes_are_warned_about(small_dataset, tmp_path, edit, words):
+    """Mistakes an audit made with its own hexapod's data that calibrate answered without a word: one
+    knee column of the wrong sign (contact learned 9-15 mm, under the old 20 mm threshold) and the
+    commanded body quaternion written x, y, z, w (commanded pose learned ~7 deg / 70 mm)."""
+    ds = _edit_stations(small_dataset, tmp_path / "ds", edit)
+    proc = run("calibrate", ds, "--out", tmp_path / "cal", "--quiet", check_rc=0)
+    assert words in proc.stdout, proc.stdout
+
+
+@pytest.mark.parametrize("learned, warned", [
+    ({}, False),  # the defaults
+    ({"sigma_joint_rad": np.radians(0.05), "sigma_contact_m": 0.0092, "sigma_ground_m": 0.001}, True),  # audit, seed 1
+    ({"sigma_joint_rad": np.radians(0.05), "sigma_contact_m": 0.0005, "sigma_ground_m": 0.0217}, True),
+    ({"sigma_joint_rad": np.radians(0.05), "sigma_contact_m": 0.0005, "sigma_ground_m": 0.0217,
+      "ground_unevenness_m": 0.01}, False),  # --ground-roughness-mm given: bumps may hold the feet
+    ({"sigma_joint_rad": np.radians(0.3), "sigma_contact_m": 0.001, "sigma_ground_m": 0.010}, False),  # 0.3 deg flex, big bumps
+    ({"sigma_commanded_rad": np.radians(6.8), "sigma_commanded_m": 0.068}, True),
+    ({"sigma_commanded_rad": np.radians(3.0), "sigma_commanded_m": 0.03}, False),
+])
+def test_implausible_learned_noise_thresholds(small_dataset, learned, warned):
+    import dataclasses
+
+    from graphcal.calibration.calibrate import implausible_leg_data_warnings
+    from graphcal.calibration.graph import CalibrationOptions
+    from graphcal.calibration.measurements import calibration_data
+    from graphcal.io.dataset import load_dataset_robot, read_dataset
+
+    ds = read_dataset(small_dataset)
+    robot = load_dataset_robot(ds)
+    options = dataclasses.replace(CalibrationOptions(), **learned)
+    assert bool(implausible_leg_data_warnings(calibration_data(ds, robot), robot, options)) is warned
+
+
 def test_a_closed_pipe_and_a_garbage_cloud_give_no_traceback_nor_warnings(small_dataset, tmp_path):
     import os
     import shutil

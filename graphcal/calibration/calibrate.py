@@ -198,8 +198,17 @@ def calibrate(
 
 
 #: a learned stance-foot noise beyond these is not a robot's encoders and feet but wrong data
+#: (measured: one knee column of the wrong sign on a user's hexapod gave contact 9.2-14.9 mm and
+#: feet 21.7-22.9 mm off a common ground, clean data 0.1-1.0 mm; the 20 mm of contact before missed it)
 PLAUSIBLE_JOINT_SIGMA_RAD = float(np.radians(2.0))
-PLAUSIBLE_CONTACT_SIGMA_M = 0.02
+PLAUSIBLE_CONTACT_SIGMA_M = 0.008
+#: planted feet further than this off one ground plane: wrong data, or ground rougher than this
+#: (then ``--ground-roughness-mm``; Chai's big bumpiness is 10 mm RMS)
+PLAUSIBLE_GROUND_SIGMA_M = 0.015
+#: a controller that misses its set body pose by more than this: a quaternion in x, y, z, w order,
+#: another frame or other units in the body_* columns (measured: xyzw order 6.8 deg / 68 mm)
+PLAUSIBLE_COMMANDED_SIGMA_RAD = float(np.radians(5.0))
+PLAUSIBLE_COMMANDED_SIGMA_M = 0.05
 
 
 def implausible_leg_data_warnings(data: CalibrationData, robot, options: CalibrationOptions) -> list[str]:
@@ -227,12 +236,23 @@ def implausible_leg_data_warnings(data: CalibrationData, robot, options: Calibra
         out.append(f"{bad_stations} of {len(data.stations)} stations have joint angles outside the URDF's limits "
                    f"(station {s}: q_{j} = {q:.4g} rad, limits [{lo:.4g}, {hi:.4g}]): joint angles must be radians, "
                    "with the URDF's joint names and signs (graphcal validate lists them)")
+    rough = options.ground_unevenness_m > 0  # --ground-roughness-mm: the feet may sit on bumps
     if options.estimate_noise and (options.sigma_joint_rad > PLAUSIBLE_JOINT_SIGMA_RAD
-                                   or options.sigma_contact_m > PLAUSIBLE_CONTACT_SIGMA_M):
+                                   or options.sigma_contact_m > PLAUSIBLE_CONTACT_SIGMA_M
+                                   or (options.sigma_ground_m > PLAUSIBLE_GROUND_SIGMA_M and not rough)):
         out.append(f"the stance feet fit their kinematics implausibly badly (noise learned: joints "
-                   f"{np.degrees(options.sigma_joint_rad):.3g} deg, contact {1e3 * options.sigma_contact_m:.3g} mm): "
-                   "joint angles in degrees, joint columns swapped or of the wrong sign, feet not planted, or a "
-                   "robot model that is not this robot's; with that noise the legs carry almost no weight in the estimate")
+                   f"{np.degrees(options.sigma_joint_rad):.3g} deg, contact {1e3 * options.sigma_contact_m:.3g} mm, "
+                   f"feet {1e3 * options.sigma_ground_m:.3g} mm off one ground plane): joint angles in degrees, joint "
+                   "columns swapped or of the wrong sign, feet not planted, foot frames that are not the contact "
+                   "points, or a robot model that is not this robot's (ground rougher than "
+                   f"{1e3 * PLAUSIBLE_GROUND_SIGMA_M:.0f} mm: --ground-roughness-mm); with that noise the legs carry "
+                   "almost no weight in the estimate")
+    if options.estimate_noise and data.stations and (options.sigma_commanded_rad > PLAUSIBLE_COMMANDED_SIGMA_RAD
+                                                     or options.sigma_commanded_m > PLAUSIBLE_COMMANDED_SIGMA_M):
+        out.append(f"the commanded body poses (stations.csv body_*) miss the pose the legs and the IMU give by "
+                   f"{np.degrees(options.sigma_commanded_rad):.3g} deg / {1e3 * options.sigma_commanded_m:.3g} mm "
+                   "(noise learned): a quaternion in x, y, z, w order (the contract's is w, x, y, z), another frame "
+                   "than T_world_body, or millimetres")
     return out
 
 
