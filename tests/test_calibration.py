@@ -211,3 +211,42 @@ def test_bumpy_ground_roughness_puts_the_bumps_into_sigma(tmp_path):
 
     with pytest.raises(GraphcalError, match="roughness"):
         options_for_ground_roughness(CalibrationOptions(), -0.001)
+
+
+def test_an_estimate_far_from_its_wide_prior_points_to_a_frame_mistake():
+    """Planes in the body frame fit a sensor at the body origin: an audit's 60 deg / 500 mm prior let
+    the estimate sit 137 deg / 395 mm away without a word. Beyond 30 deg or 250 mm the warning names
+    the frames, whatever the prior's sigma; a 10 deg / 100 mm mounting error inside it says nothing."""
+    from graphcal.calibration.calibrate import prior_conflict
+    from graphcal.geometry import matrix_from_rpy
+
+    T_prior = np.eye(4)
+    T_prior[:3, :3] = matrix_from_rpy(np.radians([-120.0, 0.0, -90.0]))
+    T_prior[:3, 3] = [0.25, 0.0, 0.3]
+    wide = (0.5, np.radians(60.0))
+    identity = np.eye(4)
+    said = prior_conflict(identity, T_prior, *wide)
+    assert "seldom a mounting error" in said and "sensor frame" in said and "times its stated sigma" not in said
+    near = T_prior.copy()
+    near[:3, :3] = T_prior[:3, :3] @ matrix_from_rpy(np.radians([10.0, 0.0, 0.0]))
+    near[:3, 3] += [0.1, 0.0, 0.0]
+    assert prior_conflict(near, T_prior, *wide) == ""
+    far_xyz = T_prior.copy()
+    far_xyz[:3, 3] += [0.3, 0.0, 0.0]
+    assert "seldom a mounting error" in prior_conflict(far_xyz, T_prior, *wide)
+    tight = prior_conflict(identity, T_prior, 0.05, np.radians(5.0))  # both: the conflict and the hint
+    assert "times its stated sigma" in tight and "seldom a mounting error" in tight
+
+
+def test_plane_normals_pointing_away_from_the_sensor_are_named():
+    from graphcal.calibration.calibrate import flipped_normal_warnings
+    from graphcal.calibration.result import StationResidual
+
+    def rows(sensor, angles, outlier=False):
+        return [StationResidual(i, sensor, 1.0, 5.0, a, 0.3, 2.0, outlier) for i, a in enumerate(angles)]
+
+    flipped = rows("depth", [179.9, 179.95, 0.05, 179.8]) + rows("laser", [0.1, 0.2, 179.0])
+    said = flipped_normal_warnings(flipped)
+    assert len(said) == 1 and said[0].startswith("depth: 3 of 4 plane normals point away from the sensor")
+    assert flipped_normal_warnings(rows("depth", [0.1, 179.0, 0.2, 179.0])) == []  # not most of them
+    assert flipped_normal_warnings(rows("depth", [179.0, 179.0], outlier=True) + rows("depth", [0.1])) == []

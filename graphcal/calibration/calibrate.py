@@ -449,6 +449,7 @@ def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set,
                                  np.sqrt(np.clip(np.diag(covs[key]), 0.0, None)))
     T_world_body = {st: from_gtsam_pose(values.atPose3(k)) for st, k in problem.station_keys.items()}
     residuals = _residuals(data, problem, values, T_world_body, sensors, outliers)
+    warnings += flipped_normal_warnings(residuals)
     after = [r for r in residuals if not r.outlier]
     normal_rms = float(np.sqrt(np.mean([r.angle_after_deg**2 for r in after]))) if after else float("nan")
     dist_rms = float(np.sqrt(np.mean([r.distance_after_mm**2 for r in after]))) if after else float("nan")
@@ -473,6 +474,10 @@ def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set,
 
 #: A CAD prior further from the estimate than this many of its own sigmas is reported as wrong.
 PRIOR_CONFLICT_SIGMAS = 5.0
+#: an estimate this far from its CAD prior, whatever the prior's sigma, points to data in the wrong
+#: frame (an audit's planes in the body frame with a 60 deg / 500 mm prior: 137 deg / 395 mm off, no word)
+FRAME_MISTAKE_DEG = 30.0
+FRAME_MISTAKE_M = 0.25
 
 #: noise groups (noise_estimation.py) in the words of calibrate's summary line
 _GROUP_WORDS = {"stance_foot/joint": "joints", "stance_foot/contact": "contact", "imu": "IMU",
@@ -491,12 +496,36 @@ def prior_conflict(T_body_sensor: np.ndarray, T_prior: np.ndarray, sigma_m: floa
     # a zero sigma holds that part at the CAD value (a note says so): what is left of it is rounding
     k_rot = angle / sigma_rad if sigma_rad > 0 else 0.0
     k_xyz = dist / sigma_m if sigma_m > 0 else 0.0
+    frames = angle > np.radians(FRAME_MISTAKE_DEG) or dist > FRAME_MISTAKE_M
+    hint = ("; a difference this large is seldom a mounting error: are the planes (planes.csv) and clouds in the "
+            "sensor frame, not the body or world frame, and is the prior T_body_sensor, not its inverse? (planes "
+            "in the body frame make the data fit a sensor at the body origin)")
     if max(k_rot, k_xyz) <= PRIOR_CONFLICT_SIGMAS:
-        return ""
+        if not frames:
+            return ""
+        return (f"the calibrated pose is {np.degrees(angle):.1f} deg and {1e3 * dist:.0f} mm from the CAD prior in "
+                f"dataset.yaml (within {max(k_rot, k_xyz):.1f} of its wide sigma)" + hint)
     return (f"the CAD prior in dataset.yaml is {np.degrees(angle):.1f} deg and {1e3 * dist:.0f} mm from the "
             f"calibrated pose, {max(k_rot, k_xyz):.0f} times its stated sigma ({np.degrees(sigma_rad):.3g} deg, "
             f"{1e3 * sigma_m:.3g} mm): the prior is wrong or its sigma too small (a tight wrong prior pulls "
-            "the estimate; widen sigma_rpy_deg / sigma_mm or correct the prior)")
+            "the estimate; widen sigma_rpy_deg / sigma_mm or correct the prior)" + (hint if frames else ""))
+
+
+def flipped_normal_warnings(residuals) -> list[str]:
+    """A warning per sensor most of whose planes are answered at more than 90 deg: their normals point
+    away from the sensor, against the contract (n from the plane towards the sensor, d >= 0). The
+    plane factor does not use the normal's sign, so the estimate stands, but the residual statistics
+    read ~180 deg and the exporter has a sign error (an audit's flipped normals went unsaid)."""
+    out = []
+    for sensor in dict.fromkeys(r.sensor for r in residuals):
+        rows = [r for r in residuals if r.sensor == sensor and not r.outlier and np.isfinite(r.angle_after_deg)]
+        flipped = sum(1 for r in rows if r.angle_after_deg > 90.0)
+        if rows and flipped > len(rows) / 2:
+            out.append(f"{sensor}: {flipped} of {len(rows)} plane normals point away from the sensor (answered at "
+                       "~180 deg): the contract's n points from the plane towards the sensor with d >= 0; the "
+                       "estimate does not depend on that sign, but the residual angles do and the plane exporter "
+                       "has a sign error")
+    return out
 
 
 def noise_summary(options: CalibrationOptions, problem: CalibrationProblem) -> dict:
@@ -566,7 +595,11 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
             f"  {name}: xyz {np.round(s.T_body_sensor[:3, 3], 4).tolist()} m, "
             f"sigma rot {np.round(s.sigma_rot_deg, 3).tolist()} deg, xyz {np.round(s.sigma_xyz_mm, 2).tolist()} mm"
         )
-    lines.append(f"  residuals after: normal {result.normal_rms_deg:.3f} deg RMS, distance {result.distance_rms_mm:.2f} mm RMS")
+    if np.isfinite(result.normal_rms_deg):
+        lines.append(f"  residuals after: normal {result.normal_rms_deg:.3g} deg RMS, distance "
+                     f"{result.distance_rms_mm:.3g} mm RMS")
+    else:  # laser scanners only: their residuals are point distances, not planes
+        lines.append("  residuals after: no plane residuals (laser scan points only)")
     if result.noise:
         n = result.noise
         how = (f"noise from {noise_from} (not learned)" if noise_from is not None
