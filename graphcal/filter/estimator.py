@@ -52,8 +52,10 @@ class TrackerConfig:
         init_window_s: accelerometer averaging window for the initial roll and pitch (s).
         sigma_init_*: initial standard deviations (position m; roll/pitch, yaw rad; velocity m/s;
             gyro bias rad/s; accel bias m/s^2). Position x, y and yaw define the world frame; the
-            roll/pitch error also carries the accelerometer bias (correlated, see
-            ``_initial_covariance``). Defaults match the simulator's IMU (graphcal.simulation.walking).
+            roll/pitch error also carries the accelerometer bias (correlated) and the white noise of
+            the window's mean (``noise.accel_noise_density / sqrt(init_window_s) / g``), both added
+            to ``sigma_init_roll_pitch_rad`` (the motion in the window) by ``_initial_covariance``.
+            Defaults match the simulator's IMU (graphcal.simulation.walking).
         record_cov_every: keep the pose covariance every k-th sample.
     """
 
@@ -268,9 +270,18 @@ def inputs_from_walking(result, *, clouds: bool = True) -> TrackInputs:
 
 
 # ----------------------------------------------------------------------------- the loop
-def _initial_state(inp: TrackInputs, pbf: np.ndarray, feet_idx: list[int], cfg: TrackerConfig):
-    t = inp.times
+def _init_window(times: np.ndarray, cfg: TrackerConfig) -> tuple[int, float]:
+    """(number of samples, duration s) of the accelerometer window that gives the initial roll and
+    pitch: the samples within ``init_window_s`` of the first; the duration is their number x the
+    sample interval (what the white noise of their mean depends on)."""
+    t = np.asarray(times, dtype=float)
     n0 = max(1, int(np.searchsorted(t, t[0] + cfg.init_window_s)))
+    dt = float(np.median(np.diff(t[: max(n0 + 1, 2)]))) if len(t) > 1 else 0.0
+    return n0, n0 * dt
+
+
+def _initial_state(inp: TrackInputs, pbf: np.ndarray, feet_idx: list[int], cfg: TrackerConfig):
+    n0, _ = _init_window(inp.times, cfg)
     a = inp.T_body_imu[:3, :3] @ inp.accel[:n0].mean(axis=0)
     roll = math.atan2(a[1], a[2])
     pitch = math.atan2(-a[0], math.hypot(a[1], a[2]))
@@ -282,21 +293,26 @@ def _initial_state(inp: TrackInputs, pbf: np.ndarray, feet_idx: list[int], cfg: 
     return NominalState(np.array([0.0, 0.0, z0]), np.zeros(3), R0, np.zeros(3), np.zeros(3))
 
 
-def _initial_covariance(cfg: TrackerConfig, n_slots: int, R_body_imu: np.ndarray) -> np.ndarray:
-    """P0. Roll and pitch come from the mean accelerometer reading, so their errors are the
-    accelerometer bias seen as a tilt: dtheta_x = -b_y / g, dtheta_y = b_x / g (plus
-    ``sigma_init_roll_pitch_rad`` for the motion and noise in the window): correlated with the bias."""
+def _initial_covariance(cfg: TrackerConfig, n_slots: int, R_body_imu: np.ndarray,
+                        window_s: float | None = None) -> np.ndarray:
+    """P0. Roll and pitch come from the mean accelerometer reading over ``window_s`` (default
+    ``cfg.init_window_s``), so their errors are the accelerometer bias seen as a tilt:
+    dtheta_x = -b_y / g, dtheta_y = b_x / g (correlated with the bias), plus the white noise of
+    that mean seen as a tilt, ``accel_noise_density / sqrt(window_s) / g`` per axis (0.48 mrad
+    with the defaults), plus ``sigma_init_roll_pitch_rad`` for motion in the window."""
     D = state_dim(n_slots)
+    g = 9.80665
+    window = cfg.init_window_s if window_s is None else window_s
     s = np.ones(D) * 1e-3
     s[0:2] = cfg.sigma_init_xy_m
     s[2] = cfg.sigma_init_z_m
     s[3:6] = cfg.sigma_init_velocity_m_s
-    s[6:8] = cfg.sigma_init_roll_pitch_rad
+    tilt_noise_var = cfg.noise.accel_noise_density**2 / window / g**2 if window > 0 else 0.0
+    s[6:8] = math.sqrt(cfg.sigma_init_roll_pitch_rad**2 + tilt_noise_var)
     s[8] = cfg.sigma_init_yaw_rad
     s[9:12] = cfg.sigma_init_gyro_bias
     s[12:15] = 0.0
     P = np.diag(s**2)
-    g = 9.80665
     G = np.zeros((D, 3))  # how the accelerometer bias (IMU frame) enters the initial state error
     G[6:8, :] = np.array([[0.0, -1.0 / g, 0.0], [1.0 / g, 0.0, 0.0]]) @ R_body_imu
     G[12:15, :] = np.eye(3)
@@ -361,7 +377,8 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
     group_idx = [[feet.index(f) for f in g] for g in groups]
 
     x0 = _initial_state(inp, pbf, group_idx[group[0]], cfg)
-    P0 = _initial_covariance(cfg, n_slots, np.asarray(inp.T_body_imu, dtype=float)[:3, :3])
+    P0 = _initial_covariance(cfg, n_slots, np.asarray(inp.T_body_imu, dtype=float)[:3, :3],
+                             _init_window(times, cfg)[1])
     ekf = LeggedEKF(x0, P0, cfg.noise.process_density(n_slots), np.eye(n_joints) * enc_var, kin_cov,
                     n_slots=n_slots, T_body_imu=inp.T_body_imu)
 
