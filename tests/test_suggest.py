@@ -248,3 +248,29 @@ def test_noise_from_predicts_the_sigma_a_calibration_with_that_noise_reports(cha
     other.write_text(calibration_yaml_text(dataclasses.replace(result, robot_name="messor")), encoding="utf-8")
     lines = suggest_poses_command(ds, 1, after_existing=True, noise_from=other).splitlines()
     assert lines[1].startswith(f"warning: {other} is a calibration of the robot 'messor'")
+
+
+def test_planes_without_covariance_and_stations_outside_the_visibility_model(chai, tmp_path, monkeypatch):
+    """planes.csv without cov_ columns is valid (calibrate gives those planes a default): suggest-poses
+    used to refuse it. Stations whose plane the camera model would not see are said to be left out
+    (an audit's floor seen at 0.2-0.98 m by a camera the Kinect model sees from 0.8 m)."""
+    import shutil
+
+    from graphcal.simulation import sensors
+
+    ds, _ = chai
+    bare = tmp_path / "bare"
+    shutil.copytree(ds.root, bare)
+    rows = list(csv.reader((bare / "planes.csv").open(newline="")))
+    keep = [i for i, c in enumerate(rows[0]) if not c.startswith("cov_")]
+    assert len(keep) < len(rows[0])
+    with (bare / "planes.csv").open("w", newline="") as f:
+        csv.writer(f).writerows([[r[i] for i in keep] for r in rows])
+    text = suggest_poses_command(bare, 1, after_existing=True)
+    assert "station(s) with a plane of depth" in text and "outside the visibility model" not in text
+
+    real = sensors.sensor_for_type
+    monkeypatch.setattr(sensors, "sensor_for_type",
+                        lambda t: dataclasses.replace(real(t), min_range_m=0.8, max_range_m=0.95))
+    text = suggest_poses_command(bare, 1, after_existing=True)
+    assert "lie outside the visibility model, a 57.5 x 43.5 deg camera seeing 0.8-0.95 m: not counted" in text

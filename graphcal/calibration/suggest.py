@@ -53,7 +53,7 @@ import numpy as np
 
 from ..errors import GraphcalError
 from ..geometry import invert_pose, pose_from_xyz_rpy, xyz_quat_wxyz_from_pose, xyz_rpy_from_pose
-from .graph import CalibrationOptions
+from .graph import DEFAULT_PLANE_COV, CalibrationOptions
 
 __all__ = ["SuggestedPose", "suggest_poses", "predict_sigmas", "suggest_poses_command", "MIN_GROUND_RAYS"]
 
@@ -167,20 +167,28 @@ class _Model:
         self.rays = self.camera.ray_directions()
         # calibrate the predicted plane covariance to the dataset's own plane fits
         ratios = []
+        from factors.plane_observation import plane_cov3
+
         for (station, name), p in data.planes.items():
-            if name != sensor or p.cov is None:
+            if name != sensor:
                 continue
             H = self._plane_information(problem.initial_body[station] @ self.T_ext)
             if H is None:
                 continue
-            from factors.plane_observation import plane_cov3
-
-            C = plane_cov3(p.n, p.cov)
+            # a plane without a covariance has the default calibrate gives it (planes.csv without cov_)
+            C = plane_cov3(p.n, p.cov if p.cov is not None else DEFAULT_PLANE_COV)
             ratios.append(float(np.trace(H @ C)) / 3.0)
         if not ratios:
-            raise GraphcalError(f"suggest_poses: no plane of {sensor!r} with a covariance to calibrate the noise model")
+            raise GraphcalError(f"suggest_poses: no plane of {sensor!r} lies where the visibility model "
+                                f"({self.visibility_text()}) sees the ground: nothing to calibrate the noise model on")
         # and to the sensor's plane noise scale (learned by a calibration: --noise-from)
         self.cov_scale = float(np.median(ratios)) * options.plane_scale(sensor) ** 2
+
+    def visibility_text(self) -> str:
+        """The camera model that decides where the ground is seen, in words."""
+        c = self.camera
+        return (f"a {c.hfov_deg:g} x {c.vfov_deg:g} deg camera seeing {c.min_range_m:g}-{c.max_range_m:g} m"
+                if hasattr(c, "hfov_deg") else type(c).__name__)
 
     # -- pieces
     def _plane_information(self, T_world_sensor: np.ndarray):
@@ -518,8 +526,11 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
     if after_existing:
         Lam, n_done = model.existing_information()
         s_rot, s_xyz = model.sigmas(model.prior_information() + Lam)
+        unseen = len(model.existing_T) - n_done
         head = [f"the dataset's first session: {n_done} station(s) with a plane of {model.sensor}, predicted sigma "
-                f"rot {' '.join(f'{v:.3f}' for v in s_rot)} deg, xyz {' '.join(f'{v:.2f}' for v in s_xyz)} mm",
+                f"rot {' '.join(f'{v:.3f}' for v in s_rot)} deg, xyz {' '.join(f'{v:.2f}' for v in s_xyz)} mm"
+                + (f" ({unseen} more with a plane lie outside the visibility model, {model.visibility_text()}: "
+                   "not counted)" if unseen > 0 else ""),
                 f"suggested stations to add: {{n}} (greedy D-optimal; sigma = predicted 1-sigma of the extrinsic "
                 "from those stations and the suggested ones up to that rank, body axes)"]
     else:
