@@ -124,3 +124,42 @@ def test_the_last_progress_line_of_a_finding_gives_its_final_estimate(knocked, c
     for f in result.findings:
         said = [ln for ln in lines if f.candidate.label() in ln and "sigma" in ln]
         assert said and said[-1].endswith(f"{_params_text(f.parameters)} (sigma {_params_text(f.sigma)})")
+
+
+@pytest.fixture(scope="module")
+def knee_flipped(tmp_path_factory):
+    """One knee column of the wrong sign (an audit's mistake with its own hexapod)."""
+    import csv
+    import shutil
+
+    from graphcal.simulation.run import simulate_to_folder
+
+    root = tmp_path_factory.mktemp("diagflip")
+    clean = root / "clean"
+    simulate_to_folder(robot="octopus", program="random", ground="level", out_dir=clean, seed=7, n_stations=30,
+                       n_sessions=2, output="planes", cloud_stride=8, progress=False)
+    out = root / "flipped"
+    shutil.copytree(clean, out)
+    rows = list(csv.reader((out / "stations.csv").open(newline="")))
+    c = rows[0].index("q_rf_tibia_joint")
+    for r in rows[1:]:
+        r[c] = repr(-float(r[c]))
+    with (out / "stations.csv").open("w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    return out
+
+
+def test_wrong_data_are_not_named_as_a_kinematic_error(knee_flipped):
+    """A sign-flipped knee fits best as the femur 229 mm shorter (a 100 mm link): that is wrong data,
+    not a link length; it is not named, the diagnosis says structure remains, and a finding that
+    does not predict held-out stations better carries a note saying so."""
+    from graphcal.diagnosis.diagnose import MAX_LINK_CHANGE_SHARE, diagnose, implausible_size
+
+    result = diagnose(knee_flipped)
+    for f in result.findings:
+        assert not implausible_size(f.candidate, f.parameters, result.model.robot), f.candidate.label()
+    assert any(f"more than {MAX_LINK_CHANGE_SHARE:.0%} of the" in n for n in result.notes)
+    assert result.unexplained_structure
+    weak = [f for f in result.findings if f.gain is not None and f.gain.heldout_rms_after >= f.gain.heldout_rms_before]
+    for f in weak:
+        assert any(f.candidate.label() in n and "does not predict held-out" in n for n in result.notes)

@@ -64,7 +64,8 @@ class Diagnosis:
     Attributes:
         nominal, final: residual summaries of the nominal and the final (extended) model.
         findings: named causes, in the order found (strongest evidence first).
-        unexplained_structure: the final planes still fail their chi-square test.
+        unexplained_structure: the final planes still fail their chi-square test, more stations fail
+            than outliers can explain, or a fitted cause had an impossible size (wrong data).
         structure_test: (chi2, redundancy, p) of that test, or None when no plane has a covariance.
         screening: per round, the top candidates as (label, log10 family p, statistic, dof).
         model: the final DiagnosisModel; values: its solution; problem: its graph.
@@ -371,6 +372,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     notes: list[str] = []
     rejected: set = set()
     too_many_outliers = False
+    inconsistent = False  # a fitted cause of impossible size: the data, not the model
     order = [st.station for st in data.stations]
     for _round in range(max_findings + MAX_NUISANCE):
         if len(findings) >= max_findings:
@@ -438,6 +440,20 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
                 gain = heldout_gain(system, j_cols, sc.columns.matrix(system), order)
         else:
             gain = None
+        size = implausible_size(cand, params, model.robot)
+        if size:
+            # not a kinematic error but wrong data (an audit's sign-flipped knee read as a femur 0.23 m shorter)
+            say(f"{cand.label()}: fits (LR {ev.statistic:.1f}) but {size}; not named")
+            notes.append(f"{cand.label()} fits the data but {size}: not named. Such a fit points to inconsistent "
+                         "data: frames, signs or units (graphcal validate, and calibrate's warnings)")
+            inconsistent = True
+            rejected.add(sc.candidate)
+            continue
+        if gain is not None and gain.heldout_rms_after >= gain.heldout_rms_before:
+            # named (a true per-session offset can score so on two folds), but said
+            notes.append(f"{cand.label()} improves the fit but does not predict held-out stations better (whitened "
+                         f"RMS {gain.heldout_rms_before:.3g} -> {gain.heldout_rms_after:.3g}): weak support; wrong data "
+                         "(frames, signs, units) can look like this")
         model = ext_model
         if not named:
             say(f"{cand.label()}: significant (log10 p {sc.evidence.log10_p_family:.1f}) but below the catalogue's "
@@ -468,7 +484,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     st = _structure_test(model, problem, values)
     # structure remains when the planes fail their absolute test, or when more stations fail than
     # outliers can explain
-    unexplained = (st is not None and st[2] < 1e-3) or too_many_outliers
+    unexplained = (st is not None and st[2] < 1e-3) or too_many_outliers or inconsistent
     # re-read every finding's parameters in the final model (later findings can move earlier ones)
     reread = [dataclasses.replace(f, parameters=p, sigma=s) for f in findings
               for p, s in [_parameters(f.candidate, model, problem, values)]]
@@ -485,6 +501,31 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
                      residual_records(nominal_model, nominal_problem, nominal_values),
                      residual_records(model, problem, values), stance_records(nominal_model, nominal_problem, nominal_values),
                      stance_records(model, problem, values), tuple(notes), tuple(nuisance))
+
+
+#: a link changed by more than this share of its nominal length is not a kinematic error
+MAX_LINK_CHANGE_SHARE = 0.5
+
+
+def implausible_size(cand: Candidate, params: dict, robot) -> str:
+    """Why a fitted cause cannot be what it claims ("" if it can): a link lengthened or shortened by
+    more than :data:`MAX_LINK_CHANGE_SHARE` of its nominal length (the joint's origin offset)."""
+    if cand.cause != "link_length":
+        return ""
+    from ..models.urdf_xml import parse_urdf
+
+    joint = str(cand.get("joint"))
+    for j in parse_urdf(robot.urdf_xml).findall("joint"):
+        if j.get("name") == joint:
+            o = j.find("origin")
+            xyz = [float(v) for v in (o.get("xyz", "0 0 0") if o is not None else "0 0 0").split()]
+            length = float(np.linalg.norm(xyz))
+            delta = float(params["delta_m"])
+            if abs(delta) > MAX_LINK_CHANGE_SHARE * length:
+                return (f"its change of {1e3 * delta:+.0f} mm is more than {MAX_LINK_CHANGE_SHARE:.0%} of the "
+                        f"{1e3 * length:.0f} mm link")
+            return ""
+    return ""
 
 
 def _outlier_group(significant, n_stations: int, already: int) -> Candidate | None:
