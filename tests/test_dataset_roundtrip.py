@@ -322,6 +322,18 @@ def test_ctrl_c_during_the_swap_leaves_the_new_folder_complete(tmp_path, monkeyp
     then raised as InterruptedAfterWrite; nothing hidden is left."""
     import signal
 
+    # Python's own Ctrl-C handler (a process started in the background by a non-interactive shell,
+    # as CI may be, inherits SIGINT ignored, and graphcal leaves an ignored SIGINT ignored)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _ctrl_c_during_the_swap(tmp_path, monkeypatch, exchange)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _ctrl_c_during_the_swap(tmp_path, monkeypatch, exchange):
+    import signal
+
     from graphcal.io import atomic
 
     target = _old_and_new(tmp_path)

@@ -504,7 +504,7 @@ def prior_conflict(T_body_sensor: np.ndarray, T_prior: np.ndarray, sigma_m: floa
         if not frames:
             return ""
         return (f"the calibrated pose is {np.degrees(angle):.1f} deg and {1e3 * dist:.0f} mm from the CAD prior in "
-                f"dataset.yaml (within {max(k_rot, k_xyz):.1f} of its wide sigma)" + hint)
+                f"dataset.yaml ({max(k_rot, k_xyz):.1f} times its sigma, which allows it)" + hint)
     return (f"the CAD prior in dataset.yaml is {np.degrees(angle):.1f} deg and {1e3 * dist:.0f} mm from the "
             f"calibrated pose, {max(k_rot, k_xyz):.0f} times its stated sigma ({np.degrees(sigma_rad):.3g} deg, "
             f"{1e3 * sigma_m:.3g} mm): the prior is wrong or its sigma too small (a tight wrong prior pulls "
