@@ -315,23 +315,24 @@ def _old_and_new(tmp_path):
     return target
 
 
+@pytest.fixture
+def python_sigint_handler():
+    """Python's own Ctrl-C handler for the test (a process started in the background by a
+    non-interactive shell, as CI may be, inherits SIGINT ignored, and graphcal leaves an ignored
+    SIGINT ignored)."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 @pytest.mark.parametrize("exchange", [True, False], ids=["one-call-exchange", "two-renames"])
-def test_ctrl_c_during_the_swap_leaves_the_new_folder_complete(tmp_path, monkeypatch, exchange):
+def test_ctrl_c_during_the_swap_leaves_the_new_folder_complete(tmp_path, monkeypatch, exchange,
+                                                               python_sigint_handler):
     """A SIGINT right after the old folder was moved aside (the moment an audit hit: the folder then
     vanished and the CLI said nothing was written) is held back until the new folder is in place,
     then raised as InterruptedAfterWrite; nothing hidden is left."""
-    import signal
-
-    # Python's own Ctrl-C handler (a process started in the background by a non-interactive shell,
-    # as CI may be, inherits SIGINT ignored, and graphcal leaves an ignored SIGINT ignored)
-    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        _ctrl_c_during_the_swap(tmp_path, monkeypatch, exchange)
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
-def _ctrl_c_during_the_swap(tmp_path, monkeypatch, exchange):
     import signal
 
     from graphcal.io import atomic

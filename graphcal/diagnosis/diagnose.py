@@ -512,19 +512,18 @@ def implausible_size(cand: Candidate, params: dict, robot) -> str:
     more than :data:`MAX_LINK_CHANGE_SHARE` of its nominal length (the joint's origin offset)."""
     if cand.cause != "link_length":
         return ""
-    from ..models.urdf_xml import parse_urdf
+    from ..errors import ModelError
+    from ..models.perturb import joint_origin
 
-    joint = str(cand.get("joint"))
-    for j in parse_urdf(robot.urdf_xml).findall("joint"):
-        if j.get("name") == joint:
-            o = j.find("origin")
-            xyz = [float(v) for v in (o.get("xyz", "0 0 0") if o is not None else "0 0 0").split()]
-            length = float(np.linalg.norm(xyz))
-            delta = float(params["delta_m"])
-            if abs(delta) > MAX_LINK_CHANGE_SHARE * length:
-                return (f"its change of {1e3 * delta:+.0f} mm is more than {MAX_LINK_CHANGE_SHARE:.0%} of the "
-                        f"{1e3 * length:.0f} mm link")
-            return ""
+    try:
+        xyz, _ = joint_origin(robot, str(cand.get("joint")))
+    except ModelError:
+        return ""
+    length = float(np.linalg.norm(xyz))
+    delta = float(params["delta_m"])
+    if abs(delta) > MAX_LINK_CHANGE_SHARE * length:
+        return (f"its change of {1e3 * delta:+.0f} mm is more than {MAX_LINK_CHANGE_SHARE:.0%} of the "
+                f"{1e3 * length:.0f} mm link")
     return ""
 
 

@@ -190,7 +190,7 @@ def atomic_directory(final_dir: str | Path, *, overwrite: bool = False) -> Itera
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_current_umask())
-        with _sigint_held(final) as held:
+        with _sigint_held() as held:
             _commit_directory(tmp, final, overwrite)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -209,7 +209,7 @@ class InterruptedAfterWrite(KeyboardInterrupt):
 
 
 @contextlib.contextmanager
-def _sigint_held(final: Path) -> Iterator[list]:
+def _sigint_held() -> Iterator[list]:
     """Hold back SIGINT during the block (main thread only: Python runs signal handlers there, and
     only there can they be changed); yields a list that is non-empty if one arrived."""
     held: list = []
