@@ -169,6 +169,21 @@ def test_laser_scanner_and_stereo_camera_in_one_graph(tmp_path):
     assert ang_l < 0.1 and dist_l < 2.0
     assert ang_s < 0.1 and dist_s < 1.0
     assert np.all(np.abs(z_l) < 4.0) and np.all(np.abs(z_s) < 4.0), (z_l, z_s)
+    assert not [w for w in result.warnings if "scan plane" in w]  # the simulated scans lie in z = 0
+
+
+def test_a_depth_cloud_declared_laser_scanner_is_the_first_warning(tmp_path):
+    """The stereo camera's 3-D clouds declared ``laser_scanner``: calibrate reads them as scan lines,
+    and its first warning says why that is wrong, naming a cloud file."""
+    path, _ = sim_dataset(tmp_path, "messor", output="clouds", robot="messor", program="random", n_stations=8,
+                          seed=24)
+    text = (path / "dataset.yaml").read_text()
+    (path / "dataset.yaml").write_text(text.replace("type: stereo_camera", "type: laser_scanner"))
+    result = calibrate(path)
+    assert result.warnings[0].startswith(
+        "sensor 'stereo' is a laser_scanner, but 8 of its 8 clouds do not lie in its scan plane z = 0")
+    assert "clouds/stereo/" in result.warnings[0]
+    assert not [w for w in result.warnings if "sensor 'laser' is a laser_scanner" in w]
 
 
 def test_directions_without_data_are_named_not_guessed(tmp_path):

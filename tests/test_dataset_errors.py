@@ -462,3 +462,25 @@ def test_a_stations_file_without_rows_is_valid_but_warned_about(dataset_copy):
     header_only(S)(dataset_copy)
     report = validate_dataset(dataset_copy)
     assert "stations.csv has a header but no rows: nothing to calibrate (calibrate refuses it)" in report.warnings
+
+
+def test_a_depth_cloud_declared_laser_scanner_is_warned_about(dataset_copy):
+    """A laser scanner's points are read as one scan line in its x-y plane: a depth camera's cloud
+    declared ``laser_scanner`` (|z| up to metres) is named, with its file; a planar scan is not."""
+    yaml_replace("type: depth_camera", "type: laser_scanner")(dataset_copy)
+    report = validate_dataset(dataset_copy)
+    (w,) = [w for w in report.warnings if "laser_scanner" in w]
+    assert w.startswith("sensor 'depth' is a laser_scanner, but 1 of its 1 clouds do not lie in its scan plane z = 0")
+    assert "clouds/depth/1.ply" in w and "type depth_camera" in w
+    # the same file flattened onto z = 0 (a 2-D scan): no warning
+    pts = read_ply(dataset_copy / "clouds/depth/1.ply")
+    pts[:, 2] = np.random.default_rng(0).normal(0.0, 0.005, len(pts))  # 5 mm: inside the 20 mm bound
+    write_ply(dataset_copy / "clouds/depth/1.ply", pts)
+    assert not [w for w in validate_dataset(dataset_copy).warnings if "laser_scanner" in w]
+
+
+def test_a_fractional_point_count_is_refused(dataset_copy):
+    """planes.csv n_points counts points: 12.5 is refused with its row, line and column."""
+    set_cell("planes.csv", 1, "n_points", "12.5")(dataset_copy)
+    with pytest.raises(DatasetError, match=r"row 1 \(line 2\), column n_points.*whole number"):
+        read_dataset(dataset_copy)

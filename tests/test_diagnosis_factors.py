@@ -137,3 +137,29 @@ def test_imu_tilted_jacobians_and_meaning(seed):
     e, H = imu_attitude_tilted_error(X_, R_bi, W, f_meas)
     np.testing.assert_allclose(fac.unwhitenedError(v), e, atol=1e-12)
     assert_jacobians(fac, v, [6, 3, 3], H, what=f"imu tilted seed {seed}")
+
+
+def test_the_family_p_value_is_bonferroni():
+    """A finding's family p-value is its p-value times the number of candidates tested."""
+    from scipy.stats import chi2
+
+    from graphcal.diagnosis.scores import evidence
+
+    ev = evidence("score", 9.0, 1, family_size=10, n_rows=100)
+    assert ev.p_value == pytest.approx(chi2.sf(9.0, 1), rel=1e-9)
+    assert ev.log10_p_family == pytest.approx(np.log10(10 * chi2.sf(9.0, 1)), abs=1e-9)
+
+
+def test_a_link_change_beyond_half_the_link_is_implausible():
+    """60 % of a link's length is wrong data, not a calibration; 40 % is a (large) plausible error."""
+    from graphcal.diagnosis.catalogue import Candidate
+    from graphcal.diagnosis.diagnose import implausible_size
+    from graphcal.models.perturb import joint_origin
+    from graphcal.models.robot import load_robot
+
+    robot = load_robot(model="octopus")
+    joint = "rf_tibia_joint"
+    L = float(np.linalg.norm(joint_origin(robot, joint)[0]))
+    cand = Candidate("link_length", (("joint", joint), ("leg", "rf_foot")))
+    assert implausible_size(cand, {"delta_m": -0.6 * L}, robot)
+    assert implausible_size(cand, {"delta_m": 0.4 * L}, robot) == ""

@@ -490,3 +490,17 @@ def test_a_late_detected_change_moves_fused_factors_without_double_counting(geo)
     est = cal.estimate("depth")
     assert est.change_stations == (28,) and [(g.first_station, g.last_station) for g in est.segments] == [
         (1, 27), (28, 52)]
+
+
+def test_the_default_station_level_locates_a_change():
+    """With the default per-station level (p 0.01), a NIS of 10 on 3 dof (p 0.019) is not a change
+    on its own; the window's test fires at the third station and the change is located there (a
+    level of 0.02 would place it at station 1)."""
+    from scipy.stats import chi2
+
+    det = ChangeDetector(window=3, p_false_alarm=1e-2, n_tests=1)
+    assert det.station_threshold(3) == pytest.approx(chi2.isf(0.01, 3))
+    assert det.test(1, 10.0, 3).action == "accept"
+    det.test(2, 1.0, 3)
+    d = det.test(3, 20.0, 3)
+    assert d.action == "change" and d.change_station == 3 and d.reroute == ()

@@ -335,3 +335,14 @@ def test_a_previous_identification_of_either_format_id_may_be_replaced(tmp_path)
     (out / "legs.yaml").write_text("format: something-else/1\n")
     with pytest.raises(OutputExistsError):
         check_output_folder(out)
+
+
+def test_the_identifiability_threshold_is_three_sigma_of_the_noise():
+    """A parameter whose effect on the residuals is 2 sigma in total is unidentifiable, 4 sigma
+    identifiable (S_MIN = 3)."""
+    from graphcal.legs.identifiability import identifiability
+
+    u = np.random.default_rng(2).normal(size=100)
+    u /= np.linalg.norm(u)
+    assert identifiability(np.c_[2.0 * u], ["p"], [1.0])["p"].status == "unidentifiable"
+    assert identifiability(np.c_[4.0 * u], ["p"], [1.0])["p"].status == "identifiable"

@@ -126,9 +126,51 @@ def test_two_components_recovered_from_a_known_mixture():
     assert scale["foot/contact"] == pytest.approx(2.0, rel=0.1)
 
 
-def test_converged_scales_are_the_fixed_point_of_repeated_solves():
+def _mixture(rng, n, theta_joint, theta_contact, joint_size):
+    """Like :func:`_two_component_data`, with the truth's variance factors and the joint
+    component's size (variance per unit of its random rank-2 factor) as arguments."""
+    x_true = np.array([0.3, -0.2, 0.5])
+    J = rng.normal(size=(n, 3, 2))
+    S_joint = J @ np.swapaxes(J, 1, 2) * joint_size
+    S_contact = np.broadcast_to(np.eye(3) * 1e-4, (n, 3, 3))
+    true_cov = theta_joint * S_joint + theta_contact * S_contact + 1e-14 * np.eye(3)
+    z = x_true + np.einsum("nij,nj->ni", np.linalg.cholesky(true_cov), rng.normal(size=(n, 3)))
+    return (x_true, z, S_joint, S_contact)
+
+
+_BOUNDS = {"foot/joint": (0.02, 50.0), "foot/contact": (0.02, 50.0)}
+
+
+def test_an_undetermined_split_shares_one_scale(monkeypatch):
+    """A foot whose noise is all joint noise, 100x smaller than the assumed contact noise, seen 40
+    times: the data cannot tell the two apart (Helmert's theta of the joint component has a
+    standard deviation > SPLIT_MAX_THETA_STD), so both keep their ratio and share one scale, and
+    each names the other. Split anyway, the joint component lands on its bound (0.02), where it
+    carries no redundancy and stays (the audit's false 'covariance may be too small')."""
+    graph, values, groups, comps = _build(_mixture(np.random.default_rng(0), 40, 1.0, 0.0, 1e-5), (1.0, 1.0))
+    res = ne.converged_scales(graph, values, groups, comps, eligible=_always, bounds=_BOUNDS)
+    assert res.scales["foot/joint"] == pytest.approx(res.scales["foot/contact"], rel=1e-12)
+    assert 0.1 < res.scales["foot/joint"] < 0.9  # learned down from the defaults, not to a bound
+    assert res.first["foot/joint"].shared_with == ("foot/contact",)
+    assert res.first["foot/contact"].shared_with == ("foot/joint",)
+    # the sparse (gtsam.Marginals) path decides the same
+    monkeypatch.setattr(ne, "DENSE_MAX_DIM", 0)
+    sparse = ne.group_variances(graph, values, groups, comps)
+    assert sparse["foot/joint"].shared_with == ("foot/contact",)
+    assert sparse["foot/joint"].helmert_theta == pytest.approx(res.first["foot/joint"].helmert_theta, rel=1e-6)
+    monkeypatch.undo()
+    monkeypatch.setattr(ne, "SPLIT_MAX_THETA_STD", np.inf)
+    forced = ne.converged_scales(graph, values, groups, comps, eligible=_always, bounds=_BOUNDS)
+    assert forced.first["foot/joint"].shared_with == ()
+    assert min(forced.scales.values()) == pytest.approx(0.02)
+
+
+def test_converged_scales_are_the_fixed_point_of_repeated_solves(monkeypatch):
     """Iterating on one linearisation reaches what repeated one-step updates with a re-solve of
-    the graph reach (a linear problem: the two must agree)."""
+    the graph reach (a linear problem: the two must agree). The split is held determined in both:
+    each one-step call decides it afresh, and this mixture's first step overshoots (joint 0.33)
+    to a ratio where it looks undetermined, while the iteration decides once, at the start."""
+    monkeypatch.setattr(ne, "split_determined", lambda N: True)
     data = _two_component_data(np.random.default_rng(4))
     graph, values, groups, comps = _build(data, (1.0, 1.0))
     scale = ne.converged_scales(graph, values, groups, comps, eligible=_always, tolerance=1e-6, max_iterations=200).scales
@@ -258,3 +300,51 @@ def test_noise_groups_report_names_how_each_sigma_was_set():
     assert warnings[0].startswith("noise group commanded (too few dof, 2.5 dof)")
     assert "stance_foot/joint (not converged" in warnings[1]
     assert all("may be too small" in w for w in warnings)
+
+
+def test_components_scaled_together_are_reported_as_one():
+    """Components that share one scale (an undetermined split) are learned together: status
+    'learned', each names the other, no warning; the console says so in words and
+    calibration.yaml records ``scaled_with``."""
+    from graphcal.calibration.calibrate import noise_groups_report
+
+    N = np.array([[7.3, 35.9], [35.9, 288.8]])  # the audit's hexapod at its fixed point
+    assert not ne.split_determined(N)  # joint: sqrt(2 (N^-1)_00) = 0.84
+    assert ne.split_determined(N * 20)  # 20x the data: 0.19
+    stats = ne.helmert_components("stance_foot", ["joint", "contact"], N, N @ [1.0, 1.02], [2.0, 80.0], 720,
+                                  split=False)
+    assert stats["stance_foot/joint"].helmert_theta == pytest.approx((N @ [1.0, 1.02]).sum() / N.sum())
+    assert stats["stance_foot/joint"].chi2 == stats["stance_foot/contact"].chi2 == pytest.approx((N @ [1.0, 1.02]).sum())
+    groups, warnings = noise_groups_report(stats, CalibrationOptions())
+    by = {g.group: g for g in groups}
+    assert by["stance_foot/joint"].status == by["stance_foot/contact"].status == "learned"
+    assert by["stance_foot/joint"].dof == pytest.approx(82.0)
+    assert by["stance_foot/joint"].shared_with == ("stance_foot/contact",)
+    assert warnings == []
+
+
+def test_calibrate_reports_components_scaled_together(tmp_path):
+    """End to end on 8 simulated stations (planes only), where the feet's joint and contact noise
+    are not separated by the data: the console says so, calibration.yaml records ``scaled_with``
+    for both components, and nothing warns that the covariance may be too small."""
+    import yaml
+
+    from graphcal.cli import main
+
+    res = simulate(SimulationConfig(robot="octopus", program="random", n_stations=8, seed=71, cloud_stride=8))
+    write_simulation(res, tmp_path / "ds", output="planes")
+    import contextlib
+    import io
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(["calibrate", str(tmp_path / "ds"), "--out", str(tmp_path / "cal"), "--quiet"]) == 0
+    text = out.getvalue()
+    assert "contact and joints noise scaled together: the data do not separate them" in text
+    doc = yaml.safe_load((tmp_path / "cal" / "calibration.yaml").read_text())
+    est = doc["noise_estimation"]
+    assert est["stance_foot/joint"]["scaled_with"] == ["stance_foot/contact"]
+    assert est["stance_foot/contact"]["scaled_with"] == ["stance_foot/joint"]
+    assert est["stance_foot/joint"]["status"] == "learned"
+    assert "scaled_with" not in est["imu"]
+    assert not any("may be too small" in w for w in doc["warnings"])
+

@@ -494,7 +494,7 @@ def test_urdf_legs_equal_perturb_and_kinematics(result):
 def test_urdf_legs_reproduce_the_calibration_model():
     """The calibrated URDF's FK equals graphcal.models.leg_params' parameterised FK, every leg and
     every parameter (the model the calibration estimates theta in)."""
-    lp = pytest.importorskip("graphcal.models.leg_params")
+    import graphcal.models.leg_params as lp  # in this repository: a broken import must fail, not skip
     for model in ("octopus", "a1"):
         nom = load_robot(model=model)
         rng = np.random.default_rng(11)
@@ -799,3 +799,37 @@ def test_station_counts_agree_between_the_yaml_and_the_report(result):
     assert n == N_STATIONS and result.outliers == (17,)
     total = _residual_section(result).split("all (solver)")[1]
     assert f"<td>{n - 1} (+1 outl.)</td>" in total
+
+
+def test_outlier_rows_stay_out_of_the_residual_summary():
+    """calibration.yaml's residual RMS and maxima are over the stations kept: a station listed in
+    ``outliers`` and a row flagged ``outlier`` are counted, not averaged in."""
+    from types import SimpleNamespace as NS
+
+    from graphcal.report.calibration_yaml import residual_summary
+
+    def row(station, angle_deg, distance_mm, outlier=False):
+        return NS(station=station, sensor="depth", outlier=outlier, angle_before_deg=angle_deg,
+                  angle_after_deg=angle_deg, distance_before_mm=distance_mm, distance_after_mm=distance_mm)
+
+    res = NS(outliers=(3,), residuals=[row(1, 0.3, 4.0), row(2, 0.4, -3.0), row(3, 9.0, 80.0), row(4, 5.0, 50.0, True)])
+    s = residual_summary(res)
+    assert s["stations"] == 2 and s["outlier_rows"] == 2
+    assert s["normal_rms_deg_after"] == pytest.approx(np.sqrt((0.3**2 + 0.4**2) / 2), rel=1e-12)
+    assert s["distance_max_mm_before"] == pytest.approx(4.0)
+
+
+def test_atomic_write_gives_a_new_file_the_umask_mode_and_keeps_a_replaced_files_mode(tmp_path):
+    """Not mkstemp's 0600: a new output is readable as any file the user writes (umask 022: 0644),
+    and a file the user chmod-ed keeps its mode when rewritten."""
+    from graphcal.io.atomic import atomic_write_text
+
+    old = os.umask(0o022)
+    try:
+        p = atomic_write_text(tmp_path / "a.yaml", "x")
+        assert stat.S_IMODE(p.stat().st_mode) == 0o644
+        os.chmod(p, 0o640)
+        atomic_write_text(p, "y")
+        assert stat.S_IMODE(p.stat().st_mode) == 0o640 and p.read_text() == "y"
+    finally:
+        os.umask(old)

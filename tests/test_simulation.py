@@ -263,3 +263,31 @@ def test_a_users_own_hexapod_urdf_is_simulated_and_written_in_the_contract(tmp_p
     assert "q_front_left_knee" in ds.stations.columns
     assert len(set(ds.stations["session"].tolist())) == 3
     assert validate_dataset(out).n_clouds == 10
+
+
+@pytest.mark.parametrize("robot, seed", [("octopus", 1), ("qingzhui", 2), ("qingzhui", 3)])
+def test_random_stations_stay_within_the_joint_limits(tmp_path, robot, seed):
+    """The random program's stations are poses the robot can take: every written joint angle lies
+    within the URDF's limits, so calibrate does not warn about the simulator's own data. Before:
+    octopus seed 1 wrote q_rf_coxa 6.087 rad (an IK that walked a full turn) and a flipped right
+    front knee on 21 of 60 stations; qingzhui seeds 2 and 3 hip angles up to 0.694 rad against
+    limits of +-0.6 (poses out of reach)."""
+    from graphcal.io.dataset import validate_dataset
+    from graphcal.simulation.run import write_simulation
+
+    res = simulate(SimulationConfig(robot=robot, program="random", n_stations=60, seed=seed, cloud_stride=16))
+    write_simulation(res, tmp_path / "ds", output="planes")
+    report = validate_dataset(tmp_path / "ds")
+    assert report.n_stations == 60
+    assert not [w for w in report.warnings if "outside the URDF limits" in w], report.warnings
+
+
+def test_wrap_revolute_turns_by_whole_turns_towards_the_middle_of_the_limits():
+    from graphcal.models.robot import load_robot
+    from graphcal.simulation.session import wrap_revolute
+
+    leg = load_robot(model="octopus").leg("rf_foot")
+    q = np.array([6.087, -0.3, 2.0 - 4 * np.pi])
+    w = wrap_revolute(leg, q)
+    np.testing.assert_allclose(w, [6.087 - 2 * np.pi, -0.3, 2.0], atol=1e-12)
+    assert not leg.outside_limits(w).any()

@@ -274,3 +274,14 @@ def test_planes_without_covariance_and_stations_outside_the_visibility_model(cha
                         lambda t: dataclasses.replace(real(t), min_range_m=0.8, max_range_m=0.95))
     text = suggest_poses_command(bare, 1, after_existing=True)
     assert "lie outside the visibility model, a 57.5 x 43.5 deg camera seeing 0.8-0.95 m: not counted" in text
+
+
+def test_the_d_criterion_is_the_extrinsics_marginal_information():
+    """The score is log det of the extrinsic's marginal information (the other unknowns
+    eliminated), i.e. minus log det of its marginal covariance, not the joint log det."""
+    from graphcal.calibration.suggest import _logdet_marginal
+
+    A = np.random.default_rng(0).normal(size=(3, 40, 12))
+    Lam = np.swapaxes(A, 1, 2) @ A
+    np.testing.assert_allclose(_logdet_marginal(Lam), -np.linalg.slogdet(np.linalg.inv(Lam)[:, :6, :6])[1], rtol=1e-9)
+    assert not np.allclose(_logdet_marginal(Lam), np.linalg.slogdet(Lam)[1], rtol=1e-3)

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from ..geometry import from_gtsam_pose
+from ..io.dataset import off_plane_scan_warning
 from .graph import (CalibrationOptions, CalibrationProblem, build_problem, extrinsic_prior_for_observability,
                     predicted_plane_errors)
 from .measurements import CalibrationData, calibration_data
@@ -122,7 +123,9 @@ def calibrate(
     lm = solve_problem(problem, progress=progress, stage="first solve (closed-form start, default noise)")
     values, iterations = lm.values, lm.iterations
     outliers: set = set()
-    warnings: list[str] = []
+    # a laser scanner's clouds that are not scans first: what follows from them is its consequence
+    warnings: list[str] = [off_plane_scan_warning(sensor, off, n)
+                           for sensor, (off, n) in sorted(getattr(data, "scans_off_plane", {}).items())]
     warnings += plane_source_warnings(plane_max_points, planes_given, ds, data.planes)
 
     def resolve(opts, excluded, stage, start=None):
@@ -402,7 +405,8 @@ def noise_groups_report(stats: dict, options: CalibrationOptions, *,
             status = "at floor"
         else:
             status = "not converged"
-        out.append(NoiseGroupEstimate(key, fields, status, dof, int(v.rows), scale, p_high))
+        out.append(NoiseGroupEstimate(key, fields, status, dof, int(v.rows), scale, p_high,
+                                      tuple(getattr(v, "shared_with", ()))))
         if given:
             continue
         if key.startswith("plane:") and fields[0][1] > PLANE_SCALE_WARN:
@@ -611,6 +615,10 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
             if learned:
                 lines.append(f"  {how}: " + ", ".join(f"{_GROUP_WORDS.get(g.group, g.group)} {g.values_text()}"
                                                       for g in learned))
+            shared = sorted({" and ".join(_GROUP_WORDS.get(k, k) for k in sorted((g.group, *g.shared_with)))
+                             for g in result.noise_groups if g.shared_with})
+            for words in shared:
+                lines.append(f"  {words} noise scaled together: the data do not separate them")
         else:
             lines.append(f"  {how}: joints {np.degrees(n['sigma_joint_rad']):.3f} deg, "
                          f"contact {1e3 * n['sigma_contact_m']:.2f} mm, IMU {np.degrees(n['sigma_imu_rad']):.3f} deg")

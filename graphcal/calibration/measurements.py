@@ -8,7 +8,7 @@ joint angles per leg, commanded body poses, IMU specific force, the ground plane
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -56,6 +56,9 @@ class CalibrationData:
     planes: dict
     scan_points: dict
     sensor_types: dict
+    #: laser scanner -> ((cloud file, 90th percentile of |z|, m), ...) for its clouds that lie off
+    #: its scan plane z = 0 (:data:`~graphcal.io.dataset.SCAN_PLANE_MAX_Z_M`), and its cloud count
+    scans_off_plane: dict = field(default_factory=dict)
 
 
 def station_measurements(ds, robot) -> tuple[StationMeasurements, ...]:
@@ -166,17 +169,27 @@ def ground_line_inliers(points_sensor: np.ndarray, *, distance_m: float = 0.03, 
 SCAN_MAX_RANGE_M = 4.0
 
 
-def scan_points(ds, *, max_points: int = 200, seed: int = 0, max_range_m: float = SCAN_MAX_RANGE_M) -> dict:
+def scan_points(ds, *, max_points: int = 200, seed: int = 0, max_range_m: float = SCAN_MAX_RANGE_M,
+                off_plane: dict | None = None) -> dict:
     """(station, sensor) -> (M, 3) ground points of every laser scanner cloud: the points on the
     scan's ground line (:func:`ground_line_inliers`; legs and obstacles dropped), evenly subsampled
-    to at most ``max_points`` (the dense point-to-plane factors do not need every beam)."""
-    from ..io.dataset import cloud_paths, load_cloud
+    to at most ``max_points`` (the dense point-to-plane factors do not need every beam).
+
+    ``off_plane``: filled with sensor -> ([(cloud file, 90th percentile of |z| in m), ...] of its
+    clouds off the scan plane z = 0, number of its clouds) (see :class:`CalibrationData`)."""
+    from ..io.dataset import SCAN_PLANE_MAX_Z_M, _shown_path, cloud_paths, load_cloud, scan_off_plane_m
 
     out = {}
-    for (sensor, station), _ in sorted(cloud_paths(ds).items()):
+    for (sensor, station), path in sorted(cloud_paths(ds).items()):
         if ds.sensors[sensor].type != "laser_scanner":
             continue
         pts = load_cloud(ds, sensor, station)
+        if off_plane is not None:
+            off, n = off_plane.get(sensor, ([], 0))
+            z90 = scan_off_plane_m(pts)
+            if z90 > SCAN_PLANE_MAX_Z_M:
+                off.append((_shown_path(ds.root, path), z90))
+            off_plane[sensor] = (off, n + 1)
         pts = pts[np.linalg.norm(pts, axis=1) <= max_range_m]
         if len(pts) < 10:
             continue
@@ -193,9 +206,12 @@ def calibration_data(ds, robot, *, progress: bool = False, plane_max_points: int
     from ..plane_table import check_max_points
 
     plane_max_points = check_max_points(plane_max_points, "plane_max_points")
+    off_plane: dict = {}
+    scans = scan_points(ds, off_plane=off_plane)
     return CalibrationData(
         stations=station_measurements(ds, robot),
         planes=ground_planes(ds, progress=progress, plane_max_points=plane_max_points),
-        scan_points=scan_points(ds),
+        scan_points=scans,
         sensor_types={name: spec.type for name, spec in ds.sensors.items()},
+        scans_off_plane={s: (tuple(off), n) for s, (off, n) in off_plane.items() if off},
     )

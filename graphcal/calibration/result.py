@@ -122,6 +122,9 @@ class NoiseGroupEstimate:
         p_high: probability of a chi-square ``data_scale^2 dof`` at least this large with ``dof``
             degrees of freedom, were the sigma right (small: the sigma is too small for these
             residuals; for one component of a sum an approximation).
+        shared_with: the other components of its group that share its scale, because the data did
+            not determine their split (``dof``, ``data_scale`` and ``p_high`` are then those of the
+            components' sum); empty otherwise.
     """
 
     group: str
@@ -131,6 +134,7 @@ class NoiseGroupEstimate:
     rows: int
     data_scale: float
     p_high: float
+    shared_with: tuple[str, ...] = ()
 
     def values_text(self) -> str:
         """The values at the edge, e.g. ``0.06 mm`` (``_m``), ``0.038 deg`` (``_rad``), ``x1.01`` (a scale)."""

@@ -82,6 +82,10 @@ MM_LIMIT_PRIOR_M = 10.0
 MM_LIMIT_PLANE_D_M = 100.0
 MM_LIMIT_MOCAP_M = 100.0
 MM_LIMIT_CLOUD_MEDIAN_M = 100.0
+#: a laser scanner's points lie in its scan plane, z = 0 of its frame (as a ROS LaserScan turned
+#: into points); a cloud whose 90th percentile of |z| is above this (m) is a 3-D cloud (a depth
+#: camera declared laser_scanner) or a scan written in another frame
+SCAN_PLANE_MAX_Z_M = 0.02
 
 _STRING_COLUMNS = ("session", "sensor", "marker")
 _NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*")
@@ -1353,6 +1357,32 @@ def _read_cloud(path: Path) -> np.ndarray:
     return pts
 
 
+def _shown_path(root: Path, f: Path) -> str:
+    """``f`` relative to the dataset folder ``root`` where it lies inside it, else in full."""
+    try:
+        return str(Path(f).relative_to(root))
+    except ValueError:
+        return str(f)
+
+
+def scan_off_plane_m(points: np.ndarray) -> float:
+    """How far a laser scanner's points ``(N, 3)`` (sensor frame, m) lie off its scan plane z = 0:
+    the 90th percentile of |z| (m; 0 for a 2-D scan; the range noise of a 2-D scanner lies along
+    its beams, in that plane)."""
+    z = np.abs(np.asarray(points, dtype=float)[:, 2])
+    return float(np.percentile(z, 90)) if len(z) else 0.0
+
+
+def off_plane_scan_warning(sensor: str, off: Sequence[tuple[str, float]], n_clouds: int) -> str:
+    """The warning for laser scanner ``sensor`` whose clouds ``off`` ((file, 90th percentile of |z|
+    in m), at least one) of ``n_clouds`` lie off its scan plane (:data:`SCAN_PLANE_MAX_Z_M`)."""
+    file, z90 = max(off, key=lambda x: x[1])
+    return (f"sensor {sensor!r} is a laser_scanner, but {len(off)} of its {n_clouds} clouds do not lie in "
+            f"its scan plane z = 0 (90% of |z| within {1e3 * SCAN_PLANE_MAX_Z_M:g} mm; {file}: "
+            f"{1e3 * z90:.0f} mm): a 3-D cloud (a depth camera: type depth_camera) or a scan in another "
+            "frame. A laser scanner's points are read as one scan line in the sensor's x-y plane")
+
+
 def validate_dataset(path: str | Path) -> ValidationReport:
     """:func:`read_dataset` plus every cloud read; counts and warnings of a valid dataset.
 
@@ -1363,8 +1393,16 @@ def validate_dataset(path: str | Path) -> ValidationReport:
     clouds = cloud_paths(ds)
     n_points = 0
     files = list(clouds.values()) + sorted(set(referenced) - set(clouds.values()))
+    sensor_of = {f: s for (s, _), f in clouds.items()}
+    off_plane: dict[str, list] = {}
     for f in files:
-        n_points += len(_read_cloud(f))
+        pts = _read_cloud(f)
+        n_points += len(pts)
+        sensor = sensor_of.get(f)
+        if sensor in ds.sensors and ds.sensors[sensor].type == "laser_scanner":
+            z90 = scan_off_plane_m(pts)
+            if z90 > SCAN_PLANE_MAX_Z_M:
+                off_plane.setdefault(sensor, []).append((_shown_path(ds.root, f), z90))
 
     warnings: list[str] = []
     times = [t["time"] for t in (ds.stations, ds.timeseries, ds.mocap) if t is not None and t.has("time") and len(t)]
@@ -1393,6 +1431,8 @@ def validate_dataset(path: str | Path) -> ValidationReport:
         )
         if not (has_planes or has_clouds):
             warnings.append(f"sensor {name!r} has no cloud and no plane")
+        if name in off_plane:
+            warnings.append(off_plane_scan_warning(name, off_plane[name], sum(s == name for s, _ in clouds)))
     if robot is not None:
         for kind in ("stations", "timeseries"):
             t = getattr(ds, kind)

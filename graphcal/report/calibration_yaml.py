@@ -222,7 +222,9 @@ def calibration_to_dict(result) -> dict:
         doc["noise_estimation"] = {
             str(g.group): {"status": str(g.status), "dof": _f(g.dof), "rows": int(g.rows),
                            "data_scale": _f(g.data_scale), "p_high": _f(g.p_high),
-                           "values": {str(k): float(v) for k, v in g.fields}}
+                           "values": {str(k): float(v) for k, v in g.fields},
+                           # components the data did not separate: they share one scale
+                           **({"scaled_with": [str(k) for k in g.shared_with]} if getattr(g, "shared_with", ()) else {})}
             for g in groups
         }
     return doc

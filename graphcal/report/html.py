@@ -188,7 +188,9 @@ def _noise_section(result) -> str:
         return f'<p class="small">The noise model was given{where}, not learned from the data.</p>'
     rows = [_row(["group", "σ", "status", "dof", "residuals point to", "χ² p (upper)"], header=True)]
     for g in groups:
-        rows.append(_row([f"<code>{_e(g.group)}</code>", _e(g.values_text()), _e(g.status), _n(g.dof, ".1f"),
+        shared = getattr(g, "shared_with", ())
+        status = g.status + (f" (scaled with {', '.join(shared)})" if shared else "")
+        rows.append(_row([f"<code>{_e(g.group)}</code>", _e(g.values_text()), _e(status), _n(g.dof, ".1f"),
                           f"x{_n(g.data_scale, '.3g')}", _n(g.p_high, ".2g")]))  # fmt: skip
     if all(g.status == "given" for g in groups):
         source = getattr(result, "noise_source", "") or ""
@@ -205,7 +207,9 @@ def _noise_section(result) -> str:
         '<p class="small">σ of each noise group learned from the residuals (variance-component estimation). '
         "<em>too few dof</em>: the group's rows carry too little redundancy for its σ to be estimated; it was "
         "held and the residuals only hint at the factor shown. Held above what the residuals point to, it makes "
-        "the covariance conservative; a small upper χ² p means its σ is too small (then a warning above).</p>"
+        "the covariance conservative; a small upper χ² p means its σ is too small (then a warning above). "
+        "<em>scaled with</em>: the data do not separate the components of a sum (a foot's joint and contact "
+        "noise), so they keep their ratio and share one scale; dof and χ² are those of their sum.</p>"
     )
 
 

@@ -12,7 +12,8 @@ body at the start of the session). Heights are absolute (m above the ground).
   their y_R (our x, roll) while pitching down (looking down at sample 11), stage 2 tilts about their
   x_R (our pitch) and ends looking up (sample 34 is the highest). x, y, yaw and height constant.
 * ``random``: random coverage, roll/pitch uniform within +-15 deg, yaw +-10 deg, height +-10 %,
-  x/y +-3 cm, over several sessions (stances).
+  x/y +-3 cm, over several sessions (stances); a pose the robot cannot take within its joint
+  limits is drawn again (``reachable``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ from ..errors import GraphcalError
 from ..geometry import pose_from_xyz_rpy
 
 PROGRAMS = ("chai2015", "labecki2012", "random")
+#: the random program draws a pose the robot cannot take within its joint limits again, at most
+#: this many times
+RANDOM_REDRAWS = 50
 
 # Chai et al. 2015, Table A1: (alpha', beta', gamma') in degrees, p_y' in mm (p_x' = p_z' = 0).
 CHAI2015_TABLE_A1 = (
@@ -69,6 +73,7 @@ def station_program(
     n_sessions: int = 1,
     seed: int = 0,
     tilt_scale: float = 1.0,
+    reachable=None,
 ) -> list[StationCommand]:
     """The commanded poses of a program.
 
@@ -79,6 +84,9 @@ def station_program(
         n_sessions: the stations are split into this many sessions (stances), in order.
         seed: random seed (``random`` only).
         tilt_scale: multiplies every commanded roll/pitch (for small robots whose legs reach less).
+        reachable: ``T_stance_body (4x4) -> bool``, whether the robot can take a pose within its
+            joint limits (``random`` only: a pose it cannot take is drawn again, up to
+            :data:`RANDOM_REDRAWS` times, then kept).
     """
     if name not in PROGRAMS:
         raise GraphcalError(f"unknown program {name!r}; expected one of {', '.join(PROGRAMS)}")
@@ -102,9 +110,14 @@ def station_program(
         rng = np.random.default_rng(seed)
         n = n_stations or 60
         for _ in range(n):
-            rpy = np.radians([rng.uniform(-15, 15) * tilt_scale, rng.uniform(-15, 15) * tilt_scale, rng.uniform(-10, 10)])
-            xyz = [rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03), default_height_m * rng.uniform(0.9, 1.1)]
-            poses.append(pose_from_xyz_rpy(xyz, rpy))
+            for _ in range(RANDOM_REDRAWS + 1):
+                rpy = np.radians([rng.uniform(-15, 15) * tilt_scale, rng.uniform(-15, 15) * tilt_scale,
+                                  rng.uniform(-10, 10)])
+                xyz = [rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03), default_height_m * rng.uniform(0.9, 1.1)]
+                T = pose_from_xyz_rpy(xyz, rpy)
+                if reachable is None or reachable(T):
+                    break
+            poses.append(T)
     if n_sessions < 1 or n_sessions > len(poses):
         raise GraphcalError(f"n_sessions must be between 1 and {len(poses)}, got {n_sessions}")
     bounds = np.linspace(0, len(poses), n_sessions + 1).round().astype(int)

@@ -48,6 +48,38 @@ GRAVITY_M_S2 = 9.80665
 DEFAULT_TILT_SCALE = {"octopus": 1.0, "qingzhui": 0.75, "messor": 0.5, "a1": 0.5}
 
 
+def wrap_revolute(leg, q: np.ndarray) -> np.ndarray:
+    """``q`` (n,) with every revolute joint turned by whole turns to the angle nearest the middle of
+    its limits (the same pose; an IK that walked around a full turn otherwise writes an angle 2 pi
+    outside the URDF's limits). Joints without finite limits are wrapped into [-pi, pi)."""
+    q = np.array(q, dtype=float)
+    lo, hi = np.asarray(leg.lower, dtype=float), np.asarray(leg.upper, dtype=float)
+    mid = np.where(np.isfinite(lo) & np.isfinite(hi) & (lo < hi), (lo + hi) / 2, 0.0)
+    rev = np.array([t == "revolute" for t in leg.joint_types])
+    q[rev] = mid[rev] + (q[rev] - mid[rev] + np.pi) % (2 * np.pi) - np.pi
+    return q
+
+
+def _reachable_within_limits(robot, info, q_nominal: dict):
+    """``T_stance_body -> bool``: whether every foot, planted at its nominal stance on the ground
+    (stance frame), is reached from the body pose within the joint limits (IK from the nominal
+    angles, revolute joints wrapped by :func:`wrap_revolute`)."""
+    from ..models.kinematics import ik_leg
+
+    p_stance = {f: np.r_[np.asarray(info.nominal_stance[f], dtype=float)[:2], 0.0] for f in robot.feet}
+
+    def reachable(T_stance_body: np.ndarray) -> bool:
+        T_body_stance = invert_pose(T_stance_body)
+        for f in robot.feet:
+            leg = robot.leg(f)
+            q, ok = ik_leg(leg, transform_points(T_body_stance, p_stance[f][None, :]), q_nominal[f][None, :])
+            if not ok[0] or leg.outside_limits(wrap_revolute(leg, q[0])).any():
+                return False
+        return True
+
+    return reachable
+
+
 def _nominal_q(robot, info) -> dict:
     """Joint angles of the nominal stance, per foot: IK from the zero configuration, else from the
     middle of the joint limits, else from random points inside them; the first solution that
@@ -298,6 +330,7 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
     terrain = make_terrain(config.ground, seed=config.seed, tilt_rad=tilt[0], tilt_axis_rad=tilt[1])
     terrain_scene = build_scene(terrain.meshes)
 
+    q_nominal = _nominal_q(robot, info)
     commands = station_program(
         config.program,
         default_height_m=h0,
@@ -305,6 +338,7 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
         n_sessions=config.n_sessions,
         seed=config.seed,
         tilt_scale=tilt_scale,
+        reachable=_reachable_within_limits(robot, info, q_nominal),
     )
     sessions = list(dict.fromkeys(c.session for c in commands))
     for s in config.effects.session_offset:
@@ -338,7 +372,7 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
         feet_world_real[s] = p_real
 
     # -- stations
-    q_prev = _nominal_q(robot, info)
+    q_prev = dict(q_nominal)
     records: list[StationRecord] = []
     real_poses = {}
     leg_q_true = {}
@@ -359,6 +393,12 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
                 raise GraphcalError(
                     f"station {cmd.station}: foot {f} cannot reach its planted position in the commanded pose"
                 )
+            q_ik[0] = wrap_revolute(leg, q_ik[0])
+            if leg.outside_limits(q_ik[0]).any():  # another branch (a flipped knee): from the nominal stance
+                q_nom, ok_nom = ik_leg(leg, p_body_cmd[k][None, :], q_nominal[f][None, :])
+                q_nom[0] = wrap_revolute(leg, q_nom[0])
+                if ok_nom[0] and leg.outside_limits(q_nom[0]).sum() < leg.outside_limits(q_ik[0]).sum():
+                    q_ik = q_nom
             q_prev[f] = q_ik[0]
             qa = q_ik[0] + rng.normal(0.0, config.tracking_sigma_rad, leg.n_joints)
             q_act[f] = qa
@@ -372,7 +412,7 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
             q_c, ok = ik_leg(true_robot.leg(f), p_body_planted[k][None, :], q_act[f][None, :])
             if not ok[0]:
                 raise GraphcalError(f"station {cmd.station}: foot {f} cannot stay planted (IK of the true leg failed)")
-            q_act[f] = q_c[0]
+            q_act[f] = wrap_revolute(true_robot.leg(f), q_c[0])
         leg_q_true[cmd.station] = q_act
         q_meas = {}
         for f in robot.feet:
