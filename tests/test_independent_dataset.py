@@ -145,7 +145,7 @@ def write_independent_dataset(root: Path) -> dict:
         assert o3d.io.write_point_cloud(str(root / "clouds" / "front_cam" / f"{s}.ply"), pcd)
         clouds[("front_cam", int(s))] = pts
     (root / "clouds" / "rear_lidar").mkdir(parents=True)
-    lidar = rng.uniform(-4, 4, (90, 3)) * [1, 1, 0.01]
+    lidar = rng.uniform(-4, 4, (90, 3)) * [1, 1, 0.001]  # a 2-D scan: within 4 mm of its plane z = 0
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(lidar))
     assert o3d.io.write_point_cloud(str(root / "clouds" / "rear_lidar" / "2.ply"), pcd, write_ascii=True)
     clouds[("rear_lidar", 2)] = lidar
