@@ -177,7 +177,7 @@ def scan_points(ds, *, max_points: int = 200, seed: int = 0, max_range_m: float 
 
     ``off_plane``: filled with sensor -> ([(cloud file, 90th percentile of |z| in m), ...] of its
     clouds off the scan plane z = 0, number of its clouds) (see :class:`CalibrationData`)."""
-    from ..io.dataset import SCAN_PLANE_MAX_Z_M, _shown_path, cloud_paths, load_cloud, scan_off_plane_m
+    from ..io.dataset import SCAN_PLANE_MAX_Z_M, cloud_paths, load_cloud, scan_off_plane_m, shown_path
 
     out = {}
     for (sensor, station), path in sorted(cloud_paths(ds).items()):
@@ -188,7 +188,7 @@ def scan_points(ds, *, max_points: int = 200, seed: int = 0, max_range_m: float 
             off, n = off_plane.get(sensor, ([], 0))
             z90 = scan_off_plane_m(pts)
             if z90 > SCAN_PLANE_MAX_Z_M:
-                off.append((_shown_path(ds.root, path), z90))
+                off.append((shown_path(ds.root, path), z90))
             off_plane[sensor] = (off, n + 1)
         pts = pts[np.linalg.norm(pts, axis=1) <= max_range_m]
         if len(pts) < 10:

@@ -1357,7 +1357,7 @@ def _read_cloud(path: Path) -> np.ndarray:
     return pts
 
 
-def _shown_path(root: Path, f: Path) -> str:
+def shown_path(root: Path, f: Path) -> str:
     """``f`` relative to the dataset folder ``root`` where it lies inside it, else in full."""
     try:
         return str(Path(f).relative_to(root))
@@ -1402,7 +1402,7 @@ def validate_dataset(path: str | Path) -> ValidationReport:
         if sensor in ds.sensors and ds.sensors[sensor].type == "laser_scanner":
             z90 = scan_off_plane_m(pts)
             if z90 > SCAN_PLANE_MAX_Z_M:
-                off_plane.setdefault(sensor, []).append((_shown_path(ds.root, f), z90))
+                off_plane.setdefault(sensor, []).append((shown_path(ds.root, f), z90))
 
     warnings: list[str] = []
     times = [t["time"] for t in (ds.stations, ds.timeseries, ds.mocap) if t is not None and t.has("time") and len(t)]
