@@ -49,6 +49,21 @@ def _outlier_measurements(problem: CalibrationProblem, values, options: Calibrat
     return bad, stats
 
 
+def _passing_again(ds, robot, data: CalibrationData, options: CalibrationOptions, values, excluded: frozenset) -> set:
+    """The left-out measurements that pass the chi-square test at ``values`` (a solution without them)
+    under ``options``: each is tested against its own noise only (a stricter test than that of the
+    measurements in the solve, whose residuals the solution absorbs in part)."""
+    from scipy.stats import chi2 as chi2_dist
+
+    from ..solvers.batch import whitened_errors
+
+    full = build_problem(ds, robot, data, options, initial=values)
+    idx = [i for i, m in full.plane_factors.items() if m in excluded]
+    errs = whitened_errors(full.graph, full.initial, idx)
+    return {full.plane_factors[i] for i, e in zip(idx, errs)
+            if e <= chi2_dist.ppf(options.outlier_p, full.graph.at(i).dim())}
+
+
 def solve_problem(problem: CalibrationProblem, *, progress: bool = False, stage: str = "solve"):
     """Levenberg–Marquardt on a built problem; returns the solver result. With ``progress`` one line
     per solve goes to stderr."""
@@ -154,17 +169,17 @@ def calibrate(
             resolve(opts, outliers, "noise re-estimated", start=None if step is None else values.retract(step))
         return opts
 
-    if options.estimate_noise:
-        options = estimate_noise(options)
-    if options.robust:
-        # data snooping with the learned noise model: leave out the worst measurements (within 10x
-        # of the worst chi-square), solve again, repeat until every measurement passes; one gross
-        # outlier left in biases the estimate enough to make good stations fail the test
-        per_sensor = {}
-        for m in problem.plane_factors.values():
-            per_sensor[m[1]] = per_sensor.get(m[1], 0) + 1
+    per_sensor: dict = {}
+    for m in problem.plane_factors.values():
+        per_sensor[m[1]] = per_sensor.get(m[1], 0) + 1
+
+    def leave_out_outliers(opts, *, screen: bool) -> None:
+        # data snooping: leave out the worst measurements (within 10x of the worst chi-square),
+        # solve again, repeat until every measurement passes; one gross outlier left in biases the
+        # estimate enough to make good stations fail the test
+        nonlocal outliers
         for _ in range(MAX_OUTLIER_ROUNDS):
-            bad, stats = _outlier_measurements(problem, values, options)
+            bad, stats = _outlier_measurements(problem, values, opts)
             if not bad:
                 break
             worst = max(stats[m] for m in bad)
@@ -172,14 +187,34 @@ def calibrate(
             over = [sn for sn in per_sensor
                     if sum(1 for m in outliers | new if m[1] == sn) > MAX_OUTLIER_SHARE * per_sensor[sn]]
             if over:
-                warnings.append(
-                    f"more than {MAX_OUTLIER_SHARE:.0%} of the measurements of {', '.join(over)} fail the "
-                    "chi-square test: the model does not fit these data (see graphcal diagnose); none more "
-                    "were left out")
+                if not screen:
+                    warnings.append(
+                        f"more than {MAX_OUTLIER_SHARE:.0%} of the measurements of {', '.join(over)} fail the "
+                        "chi-square test: the model does not fit these data (see graphcal diagnose); none more "
+                        "were left out")
                 break
             outliers |= new
-            resolve(options, outliers, f"{len(outliers)} outlier measurement(s) left out")
-        if outliers and options.estimate_noise:
+            stage = "screened at the default noise" if screen else "left out"
+            resolve(opts, outliers, f"{len(outliers)} outlier measurement(s) {stage}")
+
+    if options.robust and options.estimate_noise:
+        # gross outliers out before the noise is learned: left in, the variance components absorb
+        # them (measured: two stations with another station's clouds learned a contact noise of
+        # 11 mm and hid both); at the default noise the screen may also take good measurements,
+        # which are tested again below with the learned noise
+        leave_out_outliers(options, screen=True)
+    if options.estimate_noise:
+        options = estimate_noise(options)
+    if options.robust:
+        screened = frozenset(outliers)
+        if screened and options.estimate_noise:
+            back = _passing_again(ds, robot, data, options, values, screened)
+            if back:
+                outliers -= back
+                resolve(options, outliers, f"{len(back)} screened measurement(s) put back (they pass with the "
+                                           "learned noise)")
+        leave_out_outliers(options, screen=False)
+        if outliers != screened and options.estimate_noise:
             options = estimate_noise(options)
     result = _result(ds, robot, data, problem, values, outliers, iterations, options)
     warnings += implausible_leg_data_warnings(data, robot, options)
