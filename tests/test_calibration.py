@@ -9,9 +9,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from graphcal.calibration.calibrate import calibrate
+from graphcal.calibration.calibrate import _passing_again, calibrate, solve_problem
+from graphcal.calibration.graph import CalibrationOptions, build_problem
+from graphcal.calibration.measurements import calibration_data
 from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between, se3_exp
-from graphcal.io.dataset import read_dataset
+from graphcal.io.dataset import load_dataset_robot, read_dataset
 from graphcal.simulation.effects import Effects
 from graphcal.simulation.run import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
@@ -147,6 +149,16 @@ def test_outliers_are_left_out_before_the_noise_is_learned(tmp_path):
     assert dict(noise["stance_foot/contact"].fields)["sigma_contact_m"] < 0.5e-3
     ang, dist, z = errors(result.sensors["depth"], truth_T(truth, "depth"))
     assert ang < 0.03 and dist < 1.0 and np.all(np.abs(z) < 4.0)
+
+    # the re-test of what the screen left out: a good station left out with the two outliers is
+    # put back, the outliers are not
+    ds = read_dataset(path)
+    robot = load_dataset_robot(ds)
+    data = calibration_data(ds, robot)
+    excluded = frozenset({(4, "depth"), (29, "depth"), (10, "depth")})
+    problem = build_problem(ds, robot, data, CalibrationOptions(), exclude=excluded)
+    values = solve_problem(problem).values
+    assert _passing_again(ds, robot, data, CalibrationOptions(), problem, values, excluded) == {(10, "depth")}
 
 
 def test_unseen_hexapod_three_sessions_from_clouds(tmp_path):

@@ -49,19 +49,32 @@ def _outlier_measurements(problem: CalibrationProblem, values, options: Calibrat
     return bad, stats
 
 
-def _passing_again(ds, robot, data: CalibrationData, options: CalibrationOptions, values, excluded: frozenset) -> set:
-    """The left-out measurements that pass the chi-square test at ``values`` (a solution without them)
-    under ``options``: each is tested against its own noise only (a stricter test than that of the
-    measurements in the solve, whose residuals the solution absorbs in part)."""
+def _passing_again(ds, robot, data: CalibrationData, options: CalibrationOptions, problem: CalibrationProblem,
+                   values, excluded: frozenset) -> set:
+    """The left-out measurements that pass the chi-square test at ``values``, the solution of
+    ``problem`` (built without them) under ``options``: each measurement's innovation, whitened by its
+    own noise plus the uncertainty of the variables it sees (their joint marginal in ``problem``),
+    the test of the change detector (:func:`~graphcal.calibration.change_detection.innovation_nis`).
+    Tested against its own noise alone, a good plane fails: the body pose it would have moved is
+    far less certain than the plane."""
+    import gtsam
     from scipy.stats import chi2 as chi2_dist
 
-    from ..solvers.batch import whitened_errors
+    from .change_detection import innovation_nis, joint_covariance
 
     full = build_problem(ds, robot, data, options, initial=values)
-    idx = [i for i, m in full.plane_factors.items() if m in excluded]
-    errs = whitened_errors(full.graph, full.initial, idx)
-    return {full.plane_factors[i] for i, e in zip(idx, errs)
-            if e <= chi2_dist.ppf(options.outlier_p, full.graph.at(i).dim())}
+    try:
+        marginals = gtsam.Marginals(problem.graph, values)
+    except RuntimeError:  # an undetermined direction (gtsam's IndeterminantLinearSystem): keep them out
+        return set()
+
+    back = set()
+    for i, m in full.plane_factors.items():
+        if m in excluded:
+            nis, dof = innovation_nis(full.graph.at(i), full.initial, lambda keys: joint_covariance(marginals, keys))
+            if nis <= chi2_dist.ppf(options.outlier_p, dof):
+                back.add(m)
+    return back
 
 
 def solve_problem(problem: CalibrationProblem, *, progress: bool = False, stage: str = "solve"):
@@ -208,7 +221,7 @@ def calibrate(
     if options.robust:
         screened = frozenset(outliers)
         if screened and options.estimate_noise:
-            back = _passing_again(ds, robot, data, options, values, screened)
+            back = _passing_again(ds, robot, data, options, problem, values, screened)
             if back:
                 outliers -= back
                 resolve(options, outliers, f"{len(back)} screened measurement(s) put back (they pass with the "

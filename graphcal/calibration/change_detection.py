@@ -53,17 +53,19 @@ __all__ = [
 ]
 
 
-def joint_covariance(isam: gtsam.ISAM2, keys, dims) -> np.ndarray:
-    """Dense joint marginal covariance of ``keys`` (in that order) from an iSAM2 Bayes tree.
+def joint_covariance(source, keys, dims=None) -> np.ndarray:
+    """Dense joint marginal covariance of ``keys`` (in that order).
 
     Args:
-        isam: the iSAM2 instance.
+        source: an iSAM2 instance (its Bayes tree) or a ``gtsam.Marginals`` of a batch solution.
         keys: the variable keys.
-        dims: their tangent dimensions (same order).
+        dims: their tangent dimensions (same order; None: read from the diagonal blocks).
     """
     keys = [int(k) for k in keys]
-    jm = isam.jointMarginalCovariance(keys)
-    offs = np.concatenate([[0], np.cumsum(dims)])
+    jm = source.jointMarginalCovariance(keys)
+    if dims is None:
+        dims = [np.asarray(jm.at(k, k)).shape[0] for k in keys]
+    offs = np.concatenate([[0], np.cumsum(dims)]).astype(int)
     P = np.zeros((offs[-1], offs[-1]))
     for a, ka in enumerate(keys):
         for b in range(a, len(keys)):
