@@ -3,6 +3,7 @@ the same group scales, and a noise model that fits gives scales near 1."""
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 import pytest
 
@@ -348,3 +349,32 @@ def test_calibrate_reports_components_scaled_together(tmp_path):
     assert "scaled_with" not in est["imu"]
     assert not any("may be too small" in w for w in doc["warnings"])
 
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_redundancy_and_chi2_of_two_groups_measuring_one_point(dense, monkeypatch):
+    """Absolute numbers, computed here in closed form: one 3-D point measured n_a times with sigma_a
+    and n_b times with sigma_b. Each coordinate's hat diagonal is w_i / W (w = 1 / sigma^2,
+    W = n_a w_a + n_b w_b), so a group's redundancy is 3 n_g (1 - w_g / W) (together 3 (n - 1)),
+    and its chi-square the sum of its squared whitened residuals at the weighted mean."""
+    monkeypatch.setattr(ne, "_is_dense", lambda graph, values: dense)
+    rng = np.random.default_rng(5)
+    n_a, n_b, s_a, s_b = 7, 4, 0.01, 0.03
+    z = np.r_[rng.normal(scale=s_a, size=(n_a, 3)), rng.normal(scale=s_b, size=(n_b, 3))] + [1.0, 2.0, 3.0]
+    sig = np.r_[np.full(n_a, s_a), np.full(n_b, s_b)]
+    graph, groups = gtsam.NonlinearFactorGraph(), {}
+    for i, (zi, si) in enumerate(zip(z, sig)):
+        groups[i] = "a" if i < n_a else "b"
+        graph.add(gtsam.PriorFactorPoint3(0, zi, gtsam.noiseModel.Isotropic.Sigma(3, si)))
+    w = 1.0 / sig**2
+    x_hat = (w[:, None] * z).sum(axis=0) / w.sum()
+    values = gtsam.Values()
+    values.insert(0, x_hat)
+    out = ne.group_variances(graph, values, groups)
+    W = w.sum()
+    for g, sl, wg in (("a", slice(0, n_a), 1 / s_a**2), ("b", slice(n_a, None), 1 / s_b**2)):
+        n_g = sl.indices(len(z))[1] - sl.indices(len(z))[0]
+        assert out[g].redundancy == pytest.approx(3 * n_g * (1 - wg / W), rel=1e-9)
+        assert out[g].chi2 == pytest.approx(float((((z[sl] - x_hat) / sig[sl, None]) ** 2).sum()), rel=1e-9)
+        assert out[g].rows == 3 * n_g
+    assert out["a"].redundancy + out["b"].redundancy == pytest.approx(3 * (len(z) - 1), rel=1e-9)
