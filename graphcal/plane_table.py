@@ -323,7 +323,7 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
     many of its points (see :func:`planes_rows`; None: all), as ``graphcal calibrate --plane-points``
     does. ``on_warning`` receives one line per camera with clouds in which no plane was found.
     """
-    from .io.atomic import atomic_write_text
+    from .io.atomic import atomic_write_text, check_output_location, make_parent_folder
     from .io.dataset import Table, cloud_paths, load_cloud, read_dataset, table_csv_text
 
     max_points = check_max_points(max_points, "max_points (--plane-points)")
@@ -334,6 +334,7 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
     if out_path.exists():
         raise DatasetError(out_path, "--out", "a file that does not exist yet (graphcal never overwrites it); "
                            "pass --out to write elsewhere")
+    check_output_location(out_path)  # before the work
     paths = cloud_paths(ds)
     if not paths:
         raise DatasetError(Path(dataset) / "clouds", "clouds/<sensor>/<station>.ply", "at least one station cloud")
@@ -344,6 +345,6 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
         have = zip(rows["sensor"], rows["station"])
         for sensor, (missing, total) in camera_clouds_without_planes(ds, have).items():
             on_warning(no_plane_found_warning(sensor, missing, total, "the planes file has no row for them"))
-    out_path.parent.mkdir(parents=True, exist_ok=True)
+    make_parent_folder(out_path)
     atomic_write_text(out_path, table_csv_text(Table.from_columns(rows)), overwrite=False)
     return out_path

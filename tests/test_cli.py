@@ -150,6 +150,32 @@ def test_calibrate_writes_the_outputs_and_never_into_the_dataset(small_dataset, 
     assert sorted(p.name for p in small_dataset.iterdir()) == before
 
 
+def test_an_output_that_cannot_be_written_is_refused_before_the_work(small_dataset, tmp_path):
+    """--out under a regular file, in every writing command: one line naming --out, exit 2, before
+    the work (the file is left as it was)."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("user data")
+    for args in (("calibrate", small_dataset, "--out", notes / "cal", "--quiet"),
+                 ("suggest-poses", small_dataset, "-k", "2", "--out", notes / "poses.csv"),
+                 ("extract-planes", small_dataset, "--out", notes / "planes.csv"),
+                 ("diagnose", small_dataset, "--out", notes / "diag", "--quiet"),
+                 ("simulate", "--robot", "octopus", "--program", "chai2015", "--output", "planes",
+                  "--out", notes / "sim", "--quiet")):
+        proc = run(*args)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, (args[0], proc.stderr)
+        assert f"{notes}/" in proc.stderr and "is a file, not a folder" in proc.stderr, proc.stderr
+    assert notes.read_text() == "user data"
+
+
+def test_noise_from_inside_the_output_folder_is_refused_not_lost(small_dataset, tmp_path):
+    out = tmp_path / "cal"
+    run("calibrate", small_dataset, "--out", out, "--quiet", check_rc=0)
+    before = (out / "calibration.yaml").read_bytes()
+    proc = run("calibrate", small_dataset, "--out", out, "--noise-from", out / "calibration.yaml", "--quiet")
+    assert proc.returncode == 2 and "is inside --out" in proc.stderr, proc.stderr
+    assert (out / "calibration.yaml").read_bytes() == before
+
+
 def test_suggest_poses_prints_and_writes_reachable_poses(small_dataset, tmp_path):
     out = tmp_path / "poses.csv"
     proc = run("suggest-poses", small_dataset, "-k", "4", "--out", out, check_rc=0)

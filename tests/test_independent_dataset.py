@@ -13,6 +13,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from graphcal.errors import DatasetError
 from graphcal.io import cloud_paths, load_cloud, load_dataset_robot, read_dataset, validate_dataset
 
 LEGS = {  # leg name -> (hip position in base_link, m; yaw of the leg, deg)
@@ -322,3 +323,45 @@ def test_binary_ply_decoded_like_open3d(tmp_path, layout):
     assert got.dtype == np.float64 and got.shape == (n, 3)
     assert np.array_equal(got, expected)
     assert np.array_equal(got, ref)
+
+
+def test_ascii_ply_read_by_property_position_and_checked_line_by_line(tmp_path):
+    """ASCII PLY as other tools may write it: x, y, z in any order among other properties, a list
+    property, a face element after the vertices. Open3D's reader gave uninitialised memory for a
+    z, y, x order and shifted every point after a line with one value too many."""
+    from graphcal.io.ply import read_ply
+
+    pts = np.array([[0.5, -0.25, 1.0], [0.125, 0.0, 2.0], [-1.5, 3.25, 0.75]])
+    zyx = "".join(f"{z!r} {y!r} {x!r}\n" for x, y, z in pts.tolist())
+    head = "ply\nformat ascii 1.0\nelement vertex 3\nproperty double z\nproperty double y\nproperty double x\n"
+    (tmp_path / "zyx.ply").write_text(head + "end_header\n" + zyx)
+    assert np.array_equal(read_ply(tmp_path / "zyx.ply"), pts)
+    # a list property inside the vertex element, and a face element after it
+    rows = "".join(f"2 {k} {k + 1} {z!r} 7 {x!r} {y!r}\n" for k, (x, y, z) in enumerate(pts.tolist()))
+    text = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty list uchar int idx\nproperty double z\n"
+            "property uchar label\nproperty double x\nproperty double y\nelement face 1\n"
+            "property list uchar int vertex_indices\nend_header\n" + rows + "3 0 1 2\n")
+    (tmp_path / "list.ply").write_text(text)
+    assert np.array_equal(read_ply(tmp_path / "list.ply"), pts)
+    # one value too many on line 2 and one too few on line 3: the same number of values in all
+    bad = "ply\nformat ascii 1.0\nelement vertex 3\nproperty double x\nproperty double y\nproperty double z\n"
+    (tmp_path / "shifted.ply").write_text(bad + "end_header\n0.5 -0.25 1.0\n0.125 0.0 2.0 -1.5\n3.25 0.75\n")
+    with pytest.raises(DatasetError, match=r"shifted\.ply: line 2 after the header \(vertex 2\): expected 3 values"):
+        read_ply(tmp_path / "shifted.ply")
+
+
+def test_binary_ply_with_a_list_property_needs_x_y_z_first(tmp_path):
+    """Binary files with list properties go to Open3D, whose reader needs x, y, z first: read
+    right when they are, refused (not read as uninitialised memory) when they are not."""
+    from graphcal.io.ply import read_ply
+
+    pts = np.array([[0.5, -0.25, 1.0], [0.125, 0.0, 2.0]])
+    for order, name in (("xyz", "ok.ply"), ("zyx", "zyx.ply")):
+        head = b"ply\nformat binary_little_endian 1.0\nelement vertex 2\n" + b"".join(
+            b"property double %s\n" % a.encode() for a in order) + b"property list uchar int idx\nend_header\n"
+        body = b"".join(np.array([p["xyz".index(a)] for a in order], "<f8").tobytes()
+                        + np.array([1], "u1").tobytes() + np.array([k], "<i4").tobytes() for k, p in enumerate(pts))
+        (tmp_path / name).write_bytes(head + body)
+    assert np.array_equal(read_ply(tmp_path / "ok.ply"), pts)
+    with pytest.raises(DatasetError, match=r"zyx\.ply: header: expected vertex properties that begin x, y, z"):
+        read_ply(tmp_path / "zyx.ply")

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+from ..errors import GraphcalError
 from ..geometry import from_gtsam_pose
 from ..io.dataset import off_plane_scan_warning
 from .graph import (CalibrationOptions, CalibrationProblem, build_problem, extrinsic_prior_for_observability,
@@ -619,6 +620,9 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
     from .graph import options_for_ground_roughness
 
     check_output_folder(out_dir)  # refuse early, before the work (checked again when writing)
+    if noise_from is not None and Path(out_dir).resolve() in Path(noise_from).resolve().parents:
+        raise GraphcalError(f"--noise-from {noise_from} is inside --out {out_dir}, whose contents calibrate "
+                            "replaces: the file would be lost; copy it elsewhere or choose another --out")
     options = options_for_ground_roughness(CalibrationOptions(legs=legs), ground_roughness_m)
     scaled: tuple[str, ...] = ()
     if noise_from is not None:

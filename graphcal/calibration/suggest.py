@@ -509,6 +509,10 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
 
         raise DatasetError(out, "--out", "a file that does not exist yet (graphcal never overwrites it); "
                            "give another name")
+    if out is not None:
+        from ..io.atomic import check_output_location
+
+        check_output_location(out)  # before the work
     options = CalibrationOptions()
     if noise_from is not None:
         from .noise_file import options_with_noise_from
@@ -551,7 +555,7 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
                      f"{x:>7.3f} {y:>7.3f}  {' '.join(f'{v:7.3f}' for v in p.sigma_rot_deg)}  "
                      f"{' '.join(f'{v:6.2f}' for v in p.sigma_xyz_mm)}")
     if out is not None:
-        from ..io.atomic import atomic_write_text
+        from ..io.atomic import atomic_write_text, make_parent_folder
         from ..io.dataset import Table, table_csv_text
 
         cols: dict[str, list] = {"station": [p.rank for p in poses], "session": ["suggested"] * len(poses)}
@@ -563,7 +567,7 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
             for f in poses[0].q_by_foot:
                 for j, name in enumerate(model.robot.leg(f).joint_names):
                     cols[f"q_{name}"] = [float(p.q_by_foot[f][j]) for p in poses]
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        make_parent_folder(out)
         atomic_write_text(out, table_csv_text(Table.from_columns(cols)), overwrite=False)
         lines.append(f"wrote {out}")
     return "\n".join(lines)

@@ -41,6 +41,42 @@ class OutputExistsError(GraphcalError, FileExistsError):
     """The output path already holds something we must not replace (pass ``overwrite=True``)."""
 
 
+class OutputLocationError(GraphcalError):
+    """An output cannot be written where it was asked for (its parent is a file, or not writable)."""
+
+
+def _location_error(path: Path, exc: OSError, folder: Path | None = None) -> OutputLocationError:
+    """The error for an output ``path`` that could not be created in ``folder`` (default: its parent)."""
+    return OutputLocationError(f"{path}: cannot write in {folder or path.parent}: {exc.strerror or exc}")
+
+
+def make_parent_folder(path: str | Path) -> None:
+    """Create the folder of the output ``path`` (and its parents); :class:`OutputLocationError`
+    naming ``path`` when that cannot be done (a parent is a file, no permission)."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise _location_error(path, exc) from None
+
+
+def check_output_location(path: str | Path) -> None:
+    """Refuse early, before any work, an output ``path`` that cannot be written: the nearest existing
+    folder above it must be a folder in which a (hidden, at once removed) folder can be created.
+    Raises :class:`OutputLocationError` naming ``path``."""
+    path = Path(path).absolute()
+    base = path.parent
+    while not base.exists() and base != base.parent:
+        base = base.parent
+    if not base.is_dir():
+        raise OutputLocationError(f"{path}: cannot write there: {base} is a file, not a folder")
+    try:
+        probe = tempfile.mkdtemp(prefix=".graphcal-write-check-", dir=str(base))
+    except OSError as exc:
+        raise _location_error(path, exc, base) from None
+    os.rmdir(probe)
+
+
 _UMASK_LOCK = threading.Lock()
 
 
@@ -74,7 +110,10 @@ def fsync_directory(path: str | Path) -> None:
 
 
 def _temp_sibling(path: Path, suffix: str = ".tmp") -> tuple[int, Path]:
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=str(path.parent))
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=str(path.parent))
+    except OSError as exc:
+        raise _location_error(path, exc) from None
     return fd, Path(name)
 
 
@@ -183,10 +222,13 @@ def atomic_directory(final_dir: str | Path, *, overwrite: bool = False) -> Itera
     final = Path(final_dir)
     if final.name in ("", ".", ".."):
         final = final.resolve()
-    final.parent.mkdir(parents=True, exist_ok=True)
+    make_parent_folder(final)
     _clean_stale_siblings(final)
     _check_target(final, overwrite)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-{os.getpid()}-", dir=str(final.parent)))
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-{os.getpid()}-", dir=str(final.parent)))
+    except OSError as exc:
+        raise _location_error(final, exc) from None
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_current_umask())
@@ -348,6 +390,7 @@ def check_output_folder(out_dir: str | Path, previous_files: Callable[[Path], It
     if out.is_symlink():
         raise OutputExistsError(f"{out}: is a symbolic link; refusing to write a {what} there")
     if not out.exists():
+        check_output_location(out)
         return
     if not out.is_dir():
         raise OutputExistsError(f"{out}: exists and is not a folder; refusing to write a {what} there")

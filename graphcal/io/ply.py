@@ -187,7 +187,9 @@ def read_ply(path: str | Path) -> np.ndarray:
         if header.format == "ascii":
             header = read_ply_header(path, data)  # now with the body: its values are checked
             _check_ascii_numbers(path, data[header.header_bytes :])
-        points = _binary_vertex_xyz(header, data)
+            points = _ascii_vertex_xyz(path, header, data[header.header_bytes :])
+        else:
+            points = _binary_vertex_xyz(header, data)
         del data
         if points is None:
             points = _read_with_open3d(path, header)
@@ -239,9 +241,61 @@ def _binary_vertex_xyz(header: PlyHeader, data: bytes) -> np.ndarray | None:
     return None
 
 
+def _ascii_vertex_xyz(path: Path, header: PlyHeader, body: bytes) -> np.ndarray:
+    """x, y, z of an ASCII PLY, by the position of each property in its line (any order, other
+    properties and list properties allowed): one element per line, as the format has it. A line
+    with more or fewer values than its element's properties is named (Open3D reads the values
+    regardless of lines, which shifts every point after such a line, and reads properties in an
+    order other than x, y, z as uninitialised memory)."""
+    lines = [ln for ln in body.splitlines() if ln.strip()]
+    start = 0
+    for name, count, props in header.elements:
+        rows = lines[start:start + count]
+        if len(rows) < count:
+            raise _bad(path, f"element {name}", f"{count} lines as the header announces; unreadable or empty PLY",
+                       f"{len(rows)} lines")
+        if not any(p[2] for p in props):
+            sizes = np.fromiter((len(r.split()) for r in rows), dtype=np.int64, count=count)
+            wrong = np.flatnonzero(sizes != len(props))
+            if len(wrong):
+                k = int(wrong[0])
+                raise _bad(path, f"line {start + k + 1} after the header ({name} {k + 1})",
+                           f"{len(props)} values, one per property of '{name}'", f"{int(sizes[k])} values")
+        if name == "vertex":
+            pos = {p[0]: j for j, p in enumerate(props)}
+            if not any(p[2] for p in props):
+                values = np.array(b" ".join(rows).split(), dtype=np.float64).reshape(count, len(props))
+                return values[:, [pos["x"], pos["y"], pos["z"]]].copy()
+            points = np.empty((count, 3), dtype=np.float64)
+            for k, row in enumerate(rows):
+                tok, at, got = row.split(), 0, {}
+                try:
+                    for p in props:
+                        if p[2]:
+                            at += 1 + int(tok[at])
+                        else:
+                            got[p[0]] = float(tok[at])
+                            at += 1
+                except (ValueError, IndexError):
+                    at = -1
+                if at != len(tok):
+                    raise _bad(path, f"line {start + k + 1} after the header (vertex {k + 1})",
+                               "the values of the vertex properties, lists with their lengths", f"{len(tok)} values")
+                points[k] = (got["x"], got["y"], got["z"])
+            return points
+        start += count
+    raise _bad(path, "header", "an 'element vertex'")  # read_ply_header has checked it is there
+
+
 def _read_with_open3d(path: Path, header: PlyHeader) -> np.ndarray:
+    """A binary PLY with list properties, through Open3D; its reader needs the vertex properties
+    to begin x, y, z in that order (otherwise it returns uninitialised memory for them)."""
     import open3d as o3d
 
+    vertex = next(e for e in header.elements if e[0] == "vertex")
+    if [p[0] for p in vertex[2][:3]] != ["x", "y", "z"]:
+        raise _bad(path, "header", "vertex properties that begin x, y, z in that order (a binary PLY with list "
+                   "properties is read by Open3D, which needs it)", " ".join(p[0] for p in vertex[2]))
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         pcd = o3d.io.read_point_cloud(str(path), format="ply")
     points = np.asarray(pcd.points, dtype=np.float64).copy()

@@ -217,6 +217,10 @@ def simulate_to_folder(
         raise GraphcalError(f"--stations must be >= 1, got {n_stations}")
     if overwrite:
         check_simulation_overwrite(Path(out_dir))
+    if not Path(out_dir).exists():
+        from ..io.atomic import check_output_location
+
+        check_output_location(out_dir)  # before the work
     if program == MOCAP_PROGRAM:
         return _mocap_to_folder(robot=robot, out_dir=out_dir, seed=seed, n_stations=n_stations, leg_errors=leg_errors,
                                 overwrite=overwrite, unsupported=(
