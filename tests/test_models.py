@@ -296,6 +296,20 @@ def test_bad_urdf_inputs(tmp_path):
         load_robot()
 
 
+@pytest.mark.parametrize("old, new, words", [
+    ('<axis xyz="0 1.0 0"/>', '<axis xyz="0 0 0"/>', r"joint '\w+_joint': <axis xyz>: expected a nonzero axis"),
+    ('<origin xyz="0.1 0 0"', '<origin xyz="a b c"', r"joint '\w+_joint': <origin xyz>: expected three finite numbers, got 'a b c'"),
+    ('<axis xyz="0 1.0 0"/>', '<axis xyz="nan 1 0"/>', r"<axis xyz>: expected three finite numbers, got 'nan 1 0'"),
+])
+def test_bad_urdf_numbers_name_the_joint(old, new, words):
+    """A zero axis became NaN (then an SVD that did not converge in calibrate); a non-number origin
+    gave a page of urdfdom C++ errors and a message naming no joint."""
+    text = builtin_urdf("octopus")
+    assert old in text
+    with pytest.raises(ModelError, match=words):
+        load_robot(urdf_xml=text.replace(old, new, 1), base_frame="body", feet=("lf_foot",))
+
+
 def test_load_from_file_and_string_equal_builtin(tmp_path, robots):
     path = tmp_path / "a1.urdf"
     path.write_text(builtin_urdf("a1"))

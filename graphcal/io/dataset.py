@@ -1220,6 +1220,8 @@ def _load_robot_spec(root: Path | None, spec: RobotSpec, yaml_file: Path | str):
         else:
             urdf_text = Path(kwargs["urdf"]).read_text(encoding="utf-8")
         tree = ET.fromstring(urdf_text)
+        if tree.tag != "robot":  # not a URDF: load_robot's message says so, not robot.base_frame
+            raise ModelError(str(first))
         names = {e.get("name") for e in tree.iter() if e.tag in ("link", "joint")} - {None}
     except (ModelError, OSError, UnicodeDecodeError, ET.ParseError):
         raise DatasetError(yaml_file, src, f"a robot graphcal can load ({text(first)})", src_value) from None

@@ -241,6 +241,32 @@ def _read_urdf_text(urdf, urdf_xml, model) -> tuple[str, str | None, str]:
     return str(urdf_xml), None, "URDF string"
 
 
+def _check_urdf_numbers(root: ET.Element, what: str) -> None:
+    """Every ``origin`` (xyz, rpy) and joint ``axis`` (xyz) of a URDF holds three finite numbers and
+    an axis is not zero: :class:`ModelError` naming the joint or link (urdfdom would print a page of
+    C++ errors and say only that the model is invalid; a zero axis became NaN)."""
+    for parent in root.iter():
+        if parent.tag not in ("joint", "link", "visual", "collision", "inertial"):
+            continue
+        owner = parent.get("name") or parent.tag
+        for child in parent:
+            attrs = {"origin": ("xyz", "rpy"), "axis": ("xyz",)}.get(child.tag, ()) if parent.tag == "joint" or \
+                child.tag == "origin" else ()
+            for attr in attrs:
+                raw = child.get(attr)
+                if raw is None:
+                    continue
+                try:
+                    v = [float(x) for x in raw.split()]
+                except ValueError:
+                    v = []
+                if len(v) != 3 or not all(np.isfinite(v)):
+                    raise ModelError(f"{what}: {parent.tag} {owner!r}: <{child.tag} {attr}>: expected three finite "
+                                     f"numbers, got {raw!r}")
+                if child.tag == "axis" and not any(v):
+                    raise ModelError(f"{what}: joint {owner!r}: <axis xyz>: expected a nonzero axis, got {raw!r}")
+
+
 def load_robot(
     urdf: str | Path | None = None,
     *,
@@ -274,6 +300,7 @@ def load_robot(
         raise ModelError(f"{what} is not valid XML: {exc}") from None
     if root.tag != "robot":
         raise ModelError(f"{what} is not a URDF: root element is <{root.tag}>, expected <robot>")
+    _check_urdf_numbers(root, what)
     try:
         m = pin.buildModelFromXML(text)
     except (ValueError, RuntimeError) as exc:
@@ -369,6 +396,8 @@ def _extract_leg(m, base_frame: str, foot: str, what: str, link_names: Sequence[
         jm.calc(jd, q0)
         S = tangent_from_pinocchio(np.asarray(jd.S, dtype=float).reshape(6))  # [omega, v]
         axis = S[:3] if jtype == "revolute" else S[3:]
+        if not np.linalg.norm(axis) > 1e-12:
+            raise ModelError(f"joint {jname!r} in the {what} has a zero axis: expected <axis xyz> of nonzero length")
         axis = axis / np.linalg.norm(axis)
         T = from_pinocchio_se3(m.jointPlacements[jid])
         if k == 0:
