@@ -169,6 +169,61 @@ def test_bad_input_is_named_and_exits_2(short_walk, tmp_path, capsys):
     assert main(["track", str(tmp_path / "nowhere"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
 
 
+def _edit_csv(path, edit):
+    """Rewrite a CSV: ``edit(header, rows)`` changes the rows (lists of strings) in place."""
+    lines = path.read_text().splitlines()
+    header, rows = lines[0].split(","), [ln.split(",") for ln in lines[1:]]
+    edit(header, rows)
+    path.write_text("\n".join([",".join(header)] + [",".join(r) for r in rows]) + "\n")
+
+
+def _shift_time(header, rows, after=200, by=10.0):
+    i = header.index("time")
+    for r in rows[after:]:
+        r[i] = repr(float(r[i]) + by)
+
+
+def _no_contact(header, rows):
+    """No joint torques, and every contact_<foot> 0 (support detection then reads the contacts)."""
+    keep = [j for j, c in enumerate(header) if not c.startswith("tau_")]
+    header[:] = [header[j] for j in keep]
+    for r in rows:
+        r[:] = [r[j] for j in keep]
+    assert any(c.startswith("contact_") for c in header)
+    for j, c in enumerate(header):
+        if c.startswith("contact_"):
+            for r in rows:
+                r[j] = "0"
+
+
+def _accel_in_g(header, rows):
+    for c in ("imu_ax", "imu_ay", "imu_az"):
+        j = header.index(c)
+        for r in rows:
+            r[j] = repr(float(r[j]) / 9.80665)
+
+
+@pytest.mark.parametrize("name, file, edit, words", [
+    # a 10 s gap: integrated across, the estimate came out 36 deg tilted, 0.11 m high, without a word
+    ("gap", "timeseries.csv", _shift_time, ["row 201, column time", "gap 10 s", "split the file"]),
+    ("no_contact", "timeseries.csv", _no_contact, ["contact_", "at least one foot on the ground", "0 in every row"]),
+    ("accel_in_g", "timeseries.csv", _accel_in_g, ["imu_ax..imu_az", "units of g"]),
+    ("truth_zero_quaternion", "truth_trajectory.csv",
+     lambda h, rows: [rows[4].__setitem__(h.index(c), "0") for c in ("qw", "qx", "qy", "qz")],
+     ["truth_trajectory.csv: row 5, columns qw..qz", "unit quaternion"]),
+    ("truth_other_clock", "truth_trajectory.csv", lambda h, rows: _shift_time(h, rows, after=0, by=1000.0),
+     ["trajectory.file, column time", "truth 1000"]),
+])
+def test_timeseries_and_truth_mistakes_are_named_not_integrated(short_walk, tmp_path, capsys, name, file, edit, words):
+    ds = tmp_path / name
+    shutil.copytree(short_walk, ds)
+    _edit_csv(ds / file, edit)
+    assert main(["track", str(ds), "--out", str(tmp_path / "out"), "--quiet", "--no-icp"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and all(w in err for w in words), err
+    assert not (tmp_path / "out").exists()
+
+
 def test_track_output_folder_safety(short_walk, tmp_path, capsys):
     foreign = tmp_path / "foreign"
     foreign.mkdir()

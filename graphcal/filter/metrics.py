@@ -77,6 +77,15 @@ def load_truth(dataset_root: str | Path) -> Truth | None:
     from scipy.spatial.transform import Rotation
 
     q = np.column_stack([col["qx"], col["qy"], col["qz"], col["qw"]])
+    norm = np.linalg.norm(q, axis=1)
+    bad = ~(np.abs(norm - 1.0) <= 1e-3)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise DatasetError(csv, f"row {i + 1}, columns qw..qz", "a unit quaternion (norm within 0.001 of 1)",
+                           f"norm {norm[i]:.6g}")
+    if np.any(np.diff(col["time"]) <= 0):
+        i = int(np.argmax(np.diff(col["time"]) <= 0)) + 1
+        raise DatasetError(csv, f"row {i + 1}, column time", "strictly increasing times", float(col["time"][i]))
     T = np.zeros((len(data), 4, 4))
     T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
     T[:, :3, 3] = np.column_stack([col["x"], col["y"], col["z"]])
@@ -105,9 +114,15 @@ def trajectory_metrics(times, T_est, truth: Truth, *, max_diff_s: float = 0.002,
 
     ref = evo_trajectory(truth.times, truth.T_world_body)
     est = evo_trajectory(times, T_est)
-    ref, est = sync.associate_trajectories(ref, est, max_diff=max_diff_s)
-    if ref.num_poses < 2:
-        raise DatasetError("truth.yaml", "trajectory", "truth samples at the estimate's times", "no match")
+    try:
+        ref, est = sync.associate_trajectories(ref, est, max_diff=max_diff_s)
+    except sync.SyncException:
+        ref = None
+    if ref is None or ref.num_poses < 2:
+        raise DatasetError("truth.yaml", "trajectory.file, column time",
+                           f"truth samples within {max_diff_s * 1e3:g} ms of the estimate's times (the timeseries' clock)",
+                           f"truth {float(truth.times[0]):.6g}..{float(truth.times[-1]):.6g} s, estimate "
+                           f"{float(times[0]):.6g}..{float(times[-1]):.6g} s")
     data = (ref, est)
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data(data)

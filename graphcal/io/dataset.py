@@ -876,12 +876,14 @@ def _check_body_imu(p: _Parsed, stations: bool) -> None:
             if bad.any():
                 i = int(np.argmax(bad))
                 raise p.err(i, c, f"metres (|{c}| <= {MM_LIMIT_BODY_M:g}); {_MILLI}", float(t[c][i]))
-    if stations and t.has("imu_ax") and len(t):
+    if t.has("imu_ax") and len(t):
+        # the median specific force of a static station, and of a walking robot, is ~9.81 m/s²
         f = np.linalg.norm(np.stack([t[c] for c in IMU_ACCEL_COLUMNS], axis=1), axis=1)
         med = float(np.median(f))
         if 0.5 <= med <= 1.5:
+            where = "at a static station" if stations else "over a walk"
             raise p.err(int(np.argmin(np.abs(f - med))), "imu_ax..imu_az",
-                        "specific force in m/s² (about 9.81 at a static station); this looks like units of g",
+                        f"specific force in m/s² (a median norm of about 9.81 {where}); this looks like units of g",
                         f"median norm {med:.4g}")  # fmt: skip
 
 
