@@ -3,6 +3,8 @@ never overwrite what the user has, and the example scripts."""
 
 from __future__ import annotations
 
+import csv
+
 import importlib.util
 import subprocess
 import sys
@@ -381,6 +383,39 @@ def test_simulate_mocap_then_identify_legs_finds_yuans_errors_from_the_command_l
     assert rmse["rmse_after"] < 0.3 * rmse["rmse_before"]
 
 
+def _freeze_marker(folder):
+    """The fl_foot marker held at its first position (a marker the motion capture lost)."""
+    rows = list(csv.reader(open(folder / "mocap.csv", newline="")))
+    first = next(r[2:] for r in rows[1:] if r[1] == "fl_foot")
+    rows = [rows[0]] + [r[:2] + first if r[1] == "fl_foot" else r for r in rows[1:]]
+    csv.writer(open(folder / "mocap.csv", "w", newline=""), lineterminator="\n").writerows(rows)
+
+
+def _freeze_joints(folder):
+    rows = list(csv.reader(open(folder / "stations.csv", newline="")))
+    qi = [i for i, c in enumerate(rows[0]) if c.startswith("q_")]
+    for r in rows[2:]:
+        for i in qi:
+            r[i] = rows[1][i]
+    csv.writer(open(folder / "stations.csv", "w", newline=""), lineterminator="\n").writerows(rows)
+
+
+@pytest.mark.parametrize("edit, words", [
+    # identified before as a leg shrunk to a point, +- 0.000 mm, sigma nan, and a URDF written
+    (_freeze_marker, ["mocap.csv: marker 'fl_foot'", "a foot marker that moves", "spread 0 mm"]),
+    (_freeze_joints, ["stations.csv: columns q_fl_hip_joint", "joint values that vary"]),
+])
+def test_identify_legs_refuses_motion_capture_that_cannot_identify(tmp_path, edit, words):
+    folder = tmp_path / "mocap"
+    run("simulate", "--robot", "a1", "--program", "mocap", "--stations", "60", "--out", folder, "--quiet",
+        check_rc=0)
+    edit(folder)
+    proc = run("identify-legs", folder, "--out", tmp_path / "legs", "--quiet")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert all(w in proc.stderr for w in words), proc.stderr
+    assert not (tmp_path / "legs").exists()
+
+
 def test_simulate_mocap_refuses_the_station_program_options(tmp_path):
     proc = run("simulate", "--program", "mocap", "--out", tmp_path / "x", "--sessions", "2", "--quiet")
     assert proc.returncode == 2
@@ -447,9 +482,11 @@ def test_bad_simulate_values_are_one_line_exit_2(tmp_path, args, words):
 
 
 @pytest.mark.parametrize("option, value, words", [
-    ("--sigma-joint-deg", "inf", "--sigma-joint-deg must be a finite number >= 0"),
-    ("--sigma-joint-deg", "nan", "--sigma-joint-deg must be a finite number >= 0"),
+    ("--sigma-joint-deg", "inf", "--sigma-joint-deg must be a number from 0 to 360"),
+    ("--sigma-joint-deg", "nan", "--sigma-joint-deg must be a number from 0 to 360"),
+    ("--sigma-joint-deg", "1e308", "--sigma-joint-deg must be a number from 0 to 360 (deg), got 1e+308"),
     ("--sigma-marker-mm", "0", "--sigma-marker-mm must be a finite number > 0"),
+    ("--sigma-marker-mm", "1e308", "--sigma-marker-mm must be at most 1e6"),
 ])
 def test_bad_identify_legs_sigmas_are_one_line_exit_2(tmp_path, option, value, words):
     ds = tmp_path / "mocap"

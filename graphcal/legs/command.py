@@ -49,8 +49,10 @@ def run_identify_legs(dataset: str | Path, out: str | Path, progress: bool = Tru
 
     if not (math.isfinite(sigma_marker_mm) and sigma_marker_mm > 0):
         raise GraphcalError(f"--sigma-marker-mm must be a finite number > 0 (mm), got {sigma_marker_mm}")
-    if not (math.isfinite(sigma_joint_deg) and sigma_joint_deg >= 0):
-        raise GraphcalError(f"--sigma-joint-deg must be a finite number >= 0 (deg), got {sigma_joint_deg}")
+    if not (math.isfinite(sigma_joint_deg) and 0 <= sigma_joint_deg <= 360.0):
+        raise GraphcalError(f"--sigma-joint-deg must be a number from 0 to 360 (deg), got {sigma_joint_deg}")
+    if sigma_marker_mm > 1e6:
+        raise GraphcalError(f"--sigma-marker-mm must be at most 1e6 (mm), got {sigma_marker_mm}")
     check_output_folder(Path(out))  # fail before the work, not after
     options = IdentifyOptions(sigma_marker_m=sigma_marker_mm / 1000.0, sigma_joint_rad=sigma_joint_deg * 3.141592653589793 / 180.0,
                               origins=origins, mocap_free=parse_mocap_free(mocap_free))

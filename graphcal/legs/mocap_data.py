@@ -102,6 +102,14 @@ class MocapData:
         return tuple(f for f in self.robot.feet if f in have)
 
 
+#: a leg whose joints all vary less than this over a marker's samples identifies nothing
+MIN_JOINT_SPREAD_RAD = 1e-6
+#: a foot marker that spreads less than this over its samples (in the frame its points are used in)
+#: did not follow the foot (measured: a frozen marker made the identification shrink the leg to a
+#: point, "+- 0.000 mm", sigma nan, and write that URDF)
+MIN_MARKER_SPREAD_M = 1e-3
+
+
 def marker_foot(name: str, feet, markers) -> str | None:
     """The foot a marker is fixed to (by its name or ``mocap.markers.<name>.link``), or None."""
     if name in markers:
@@ -242,6 +250,18 @@ def mocap_data_from_dataset(dataset, *, sigma_body_marker_m: float | None = None
         if len(ts) < MIN_SAMPLES:
             warnings.append(f"marker {name!r}: only {len(ts)} sample(s), not used (at least {MIN_SAMPLES})")
             continue
+        joint_spread = np.ptp(q, axis=0) if q.size else np.zeros(0)
+        if q.shape[1] and not np.any(joint_spread > MIN_JOINT_SPREAD_RAD):
+            raise DatasetError(jfile, f"columns {', '.join(f'q_{j}' for j in leg.joint_names)}",
+                               f"joint values that vary over the samples of marker {name!r} (the leg's parameters "
+                               "are identified from its motion)", "the same values in every sample")
+        if float(np.max(np.ptp(P, axis=0))) < MIN_MARKER_SPREAD_M:
+            raise DatasetError(mocap_file, f"marker {name!r}",
+                               f"a foot marker that moves as the joints move (it spreads less than "
+                               f"{MIN_MARKER_SPREAD_M * 1e3:g} mm{' in the virtual base' if use_vbase else ''}: "
+                               "a marker the motion capture lost and held, or the wrong marker)",
+                               f"spread {float(np.max(np.ptp(P, axis=0))) * 1e3:.3g} mm while the joints move "
+                               f"{float(np.degrees(joint_spread.max())):.3g} deg")
         spec = ds.mocap_markers.get(name)
         pfm = None if spec is None or spec.xyz is None else np.array(spec.xyz, dtype=float)
         tracks.append(MarkerTrack(name, foot, t_arr, q, P, pfm, cov_extra))

@@ -263,7 +263,7 @@ def _check_urdf_numbers(root: ET.Element, what: str) -> None:
                 if len(v) != 3 or not all(np.isfinite(v)):
                     raise ModelError(f"{what}: {parent.tag} {owner!r}: <{child.tag} {attr}>: expected three finite "
                                      f"numbers, got {raw!r}")
-                if child.tag == "axis" and not any(v):
+                if child.tag == "axis" and not any(v) and parent.get("type") in ("revolute", "continuous", "prismatic"):
                     raise ModelError(f"{what}: joint {owner!r}: <axis xyz>: expected a nonzero axis, got {raw!r}")
 
 

@@ -335,7 +335,9 @@ class _Checker:
 def validate_calibration_dict(doc, path: str | Path = "calibration.yaml") -> dict:
     """Check a loaded ``calibration.yaml`` document; returns it, or raises :class:`DatasetError`."""
     c = _Checker(Path(path))
-    c.mapping(doc, "", ())
+    if doc is None:
+        c.fail("top level", "a calibration.yaml mapping", "an empty file")
+    c.mapping(doc, "top level", ())
     if "format" not in doc:
         c.fail("format", f"the key format: {FORMAT}", "missing")
     if doc["format"] != FORMAT:
