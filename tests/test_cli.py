@@ -178,6 +178,33 @@ def test_noise_from_inside_the_output_folder_is_refused_not_lost(small_dataset, 
     assert (out / "calibration.yaml").read_bytes() == before
 
 
+def test_calibrate_legs_writes_them_and_shows_progress(small_dataset, tmp_path):
+    """``--legs`` end to end: the legs block of calibration.yaml (every foot, every parameter with
+    value and sigma), the same values written into robot_calibrated.urdf, and progress on stderr
+    (no --quiet: one line per solve)."""
+    import xml.etree.ElementTree as ET
+
+    from graphcal.models.builtin import builtin_urdf
+    from graphcal.report.calibration_yaml import read_calibration_yaml
+
+    out = tmp_path / "cal_legs"
+    proc = run("calibrate", small_dataset, "--out", out, "--legs", check_rc=0)
+    assert "calibrate: first solve (closed-form start, default noise):" in proc.stderr
+    assert proc.stderr.count("LM iterations") >= 2, proc.stderr
+    legs = read_calibration_yaml(out / "calibration.yaml")["legs"]
+    assert set(legs) == {f"{leg}_foot" for leg in ("lf", "lm", "lr", "rf", "rm", "rr")}
+    assert all(len(p) == 6 and all(set(v) == {"value", "sigma"} for v in p.values()) for p in legs.values())
+    tibia = legs["rm_foot"]["rm_foot_joint.delta_m"]
+    assert abs(tibia["value"] - 0.015) < 3 * tibia["sigma"]  # the injected 15 mm (8 stations: a wide sigma)
+
+    def foot_z(text):
+        j = next(e for e in ET.fromstring(text).iter("joint") if e.get("name") == "rm_foot_joint")
+        return float(j.find("origin").get("xyz").split()[2])
+
+    written = foot_z((out / "robot_calibrated.urdf").read_text())
+    assert written == pytest.approx(foot_z(builtin_urdf("octopus")) - tibia["value"], abs=1e-9)
+
+
 def test_suggest_poses_prints_and_writes_reachable_poses(small_dataset, tmp_path):
     out = tmp_path / "poses.csv"
     proc = run("suggest-poses", small_dataset, "-k", "4", "--out", out, check_rc=0)
