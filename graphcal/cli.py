@@ -92,7 +92,12 @@ def _build_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("suggest-poses", help="propose the k body poses that most shrink the extrinsic covariance")
     g.add_argument("dataset", type=Path)
-    g.add_argument("-k", type=int, default=10, help="number of poses (default 10)")
+    g.add_argument("-k", type=int, default=10, help="number of poses (default 10; with targets, the most)")
+    g.add_argument("--sigma-target-deg", type=float, nargs="+", default=None, metavar="DEG",
+                   help="aim at this 1-sigma of the extrinsic's rotation (one value, or three: body x y z) and "
+                        "stop as soon as it and --sigma-target-mm are reached")
+    g.add_argument("--sigma-target-mm", type=float, nargs="+", default=None, metavar="MM",
+                   help="the same for the translation (mm)")
     g.add_argument("--out", type=Path, default=None, help="write the poses as CSV here")
     g.add_argument("--after-existing", action="store_true",
                    help="count the dataset's own stations (its first session) as done: suggest the k to add")
@@ -187,7 +192,8 @@ def _cmd_suggest(args) -> int:
     from .calibration.suggest import suggest_poses_command
 
     print(suggest_poses_command(args.dataset, args.k, out=args.out, after_existing=args.after_existing,
-                                noise_from=args.noise_from))
+                                noise_from=args.noise_from, sigma_target_deg=args.sigma_target_deg,
+                                sigma_target_mm=args.sigma_target_mm))
     return 0
 
 

@@ -12,6 +12,7 @@ import pytest
 
 from graphcal.calibration.calibrate import calibrate
 from graphcal.calibration.graph import CalibrationOptions
+from graphcal.errors import GraphcalError
 from graphcal.calibration.suggest import _Model, predict_sigmas, suggest_poses, suggest_poses_command
 from graphcal.io.dataset import read_dataset
 from graphcal.models.builtin import builtin_info
@@ -59,6 +60,23 @@ def test_suggested_poses_reach_chai_sigmas_with_half_the_stations(chai, targeted
     # sigmas only shrink as stations are added
     s = np.array([np.r_[p.sigma_rot_deg, p.sigma_xyz_mm] for p in targeted])
     assert np.all(s[1:] <= s[:-1] * (1 + 1e-9))
+
+
+def test_the_command_reaches_chai_sigmas_with_half_the_stations(chai):
+    """``graphcal suggest-poses --sigma-target-deg ... --sigma-target-mm ...`` with Chai's predicted
+    sigmas as targets and a budget of all 52 stations: it stops once every axis is reached, with at
+    most 26 stations (the issue's claim, on the command itself)."""
+    ds, (rot, xyz) = chai
+    text = suggest_poses_command(ds.root, 52, sigma_target_deg=list(rot), sigma_target_mm=list(xyz))
+    n = int(text.split("targets reached with ")[1].split()[0])
+    assert n <= 26, text
+    last = text.splitlines()[-1].split()
+    assert int(last[0]) == n
+    sig = np.array([float(v) for v in last[7:13]])
+    # the table prints 3 decimals (deg) and 2 (mm): compare at that resolution
+    assert np.all(sig[:3] <= np.round(rot, 3) + 5e-4) and np.all(sig[3:] <= np.round(xyz, 2) + 5e-3), (sig, rot, xyz)
+    with pytest.raises(GraphcalError, match="go together"):
+        suggest_poses_command(ds.root, 5, sigma_target_deg=[0.01])
 
 
 def test_d_optimal_beats_chai_on_its_criterion(chai):
