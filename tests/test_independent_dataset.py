@@ -254,6 +254,13 @@ def test_independent_dataset_with_only_a_timeseries(tmp_path):
     report = validate_dataset(root)
     assert report.n_stations == 0 and report.n_timeseries_rows == 5 and report.n_clouds == 3
     assert report.warnings == ("sensor 'rear_lidar' has no cloud and no plane",)
+    # a cloud no row names (the file cut short): the message says so, not "a station id of stations.csv"
+    stray = root / "clouds" / "front_cam" / "00006.ply"
+    stray.parent.mkdir(parents=True, exist_ok=True)
+    stray.write_bytes((root / "scans" / "front" / "000000.ply").read_bytes())
+    with pytest.raises(DatasetError, match=r"00006\.ply: file name: .*cloud_front_cam cell of timeseries\.csv, got "
+                                           r"00006\.ply \(no stations\.csv, and no row of timeseries\.csv names it\)"):
+        validate_dataset(root)
 
 
 @pytest.mark.parametrize("fmt", ["binary_big_endian", "ascii_float_xyz_with_normals"])

@@ -1106,8 +1106,10 @@ def _station_clouds(
             elif f.resolve() not in ref_resolved:
                 expected = "<station>.ply with a station id of stations.csv"
                 got = f"{f.name} ({'no stations.csv' if station_ids is None else 'no such station'})"
-                if sid is None:
-                    expected += ", or a cloud named in timeseries.csv"
+                if sid is None or station_ids is None:
+                    expected += f", or a cloud named in a cloud_{sdir.name} cell of timeseries.csv"
+                    if station_ids is None:
+                        got = f"{f.name} (no stations.csv, and no row of timeseries.csv names it)"
                 raise DatasetError(f, "file name", expected, got)
     return out
 
