@@ -157,7 +157,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_work(small_datas
     the work (the file is left as it was)."""
     notes = tmp_path / "notes.txt"
     notes.write_text("user data")
-    for args in (("calibrate", small_dataset, "--out", notes / "cal", "--quiet"),
+    for args in (("calibrate", small_dataset, "--out", notes / "cal"),  # no --quiet: no solve may start
                  ("suggest-poses", small_dataset, "-k", "2", "--out", notes / "poses.csv"),
                  ("extract-planes", small_dataset, "--out", notes / "planes.csv"),
                  ("diagnose", small_dataset, "--out", notes / "diag", "--quiet"),
@@ -166,6 +166,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_work(small_datas
         proc = run(*args)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, (args[0], proc.stderr)
         assert f"{notes}/" in proc.stderr and "is a file, not a folder" in proc.stderr, proc.stderr
+        assert "LM iterations" not in proc.stderr  # refused before the work, not after it
     assert notes.read_text() == "user data"
 
 

@@ -77,11 +77,13 @@ def load_truth(dataset_root: str | Path) -> Truth | None:
     from scipy.spatial.transform import Rotation
 
     q = np.column_stack([col["qx"], col["qy"], col["qz"], col["qw"]])
+    from ..io.dataset import UNIT_NORM_TOL
+
     norm = np.linalg.norm(q, axis=1)
-    bad = ~(np.abs(norm - 1.0) <= 1e-3)
+    bad = ~(np.abs(norm - 1.0) <= UNIT_NORM_TOL)  # the contract's tolerance for body_q* (NaN fails too)
     if bad.any():
         i = int(np.argmax(bad))
-        raise DatasetError(csv, f"row {i + 1}, columns qw..qz", "a unit quaternion (norm within 0.001 of 1)",
+        raise DatasetError(csv, f"row {i + 1}, columns qw..qz", f"a unit quaternion (norm within {UNIT_NORM_TOL:g} of 1)",
                            f"norm {norm[i]:.6g}")
     if np.any(np.diff(col["time"]) <= 0):
         i = int(np.argmax(np.diff(col["time"]) <= 0)) + 1

@@ -246,12 +246,14 @@ def _check_urdf_numbers(root: ET.Element, what: str) -> None:
     an axis is not zero: :class:`ModelError` naming the joint or link (urdfdom would print a page of
     C++ errors and say only that the model is invalid; a zero axis became NaN)."""
     for parent in root.iter():
-        if parent.tag not in ("joint", "link", "visual", "collision", "inertial"):
-            continue
         owner = parent.get("name") or parent.tag
         for child in parent:
-            attrs = {"origin": ("xyz", "rpy"), "axis": ("xyz",)}.get(child.tag, ()) if parent.tag == "joint" or \
-                child.tag == "origin" else ()
+            if child.tag == "origin":
+                attrs = ("xyz", "rpy")
+            elif child.tag == "axis" and parent.tag == "joint":
+                attrs = ("xyz",)
+            else:
+                continue
             for attr in attrs:
                 raw = child.get(attr)
                 if raw is None:
