@@ -47,6 +47,37 @@ def test_monte_carlo_nees_of_the_extrinsic_is_in_its_95_percent_interval(tmp_pat
     assert lo <= np.mean(values) <= hi
 
 
+def test_unseen_hexapod_nees_with_the_noise_learned_is_in_its_95_percent_interval(tmp_path):
+    """Issue 3's acceptance case with the product's defaults (noise learned from the data), over 10
+    seeds: a hexapod graphcal does not ship (tests/custom_hexapod.py), 45 random stations in three
+    sessions, IMU, clouds (calibrate fits the planes). Every run within the goal (0.1 deg, 2 mm) and
+    the mean NEES inside its 95 % interval. bench/calibration_nees.py --scenario unseen runs 200
+    seeds (600-799; these 10 are its first): learned 5.30 (just below [5.53, 6.49]: conservative),
+    the simulator's noise model 5.83 (inside); every run within the goal."""
+    import custom_hexapod
+
+    from graphcal.geometry import rotation_angle_between
+    from graphcal.simulation.session import CustomRobot
+
+    n_runs = 10
+    values = []
+    for seed in range(600, 600 + n_runs):
+        res = simulate(SimulationConfig(robot="sidewinder", program="random", n_stations=45, n_sessions=3, seed=seed,
+                                        tilt_scale=0.8, cloud_stride=8,
+                                        custom_robot=CustomRobot(custom_hexapod.urdf_xml(), custom_hexapod.info())))
+        write_simulation(res, tmp_path / f"u{seed}", output="clouds")
+        t = res.truth["sensors"]["front_cam"]["T_body_sensor"]
+        T_true = pose_from_xyz_quat_wxyz(t["xyz"], t["quaternion_wxyz"])
+        est = calibrate(tmp_path / f"u{seed}").sensors["front_cam"]
+        T = est.T_body_sensor
+        assert np.degrees(rotation_angle_between(T[:3, :3], T_true[:3, :3])) < 0.1, seed
+        assert 1e3 * np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 2.0, seed
+        values.append(nees(T_true, T, est.covariance))
+    lo, hi = chi2.ppf([0.025, 0.975], 6 * n_runs) / n_runs
+    print(f"unseen hexapod, mean NEES over {n_runs} runs: {np.mean(values):.2f} (95 % interval {lo:.2f} .. {hi:.2f})")
+    assert lo <= np.mean(values) <= hi
+
+
 def test_noise_is_learned_from_the_data(tmp_path):
     """Variance-component estimation recovers the encoder noise the simulator used (0.02 deg) from
     the default guess (0.1 deg), and finds no contact noise."""

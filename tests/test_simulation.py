@@ -265,6 +265,38 @@ def test_a_users_own_hexapod_urdf_is_simulated_and_written_in_the_contract(tmp_p
     assert validate_dataset(out).n_clouds == 10
 
 
+def test_a_station_where_the_camera_saw_nothing_has_no_cloud_file(tmp_path):
+    """The custom hexapod's camera sits 0.42 m above the floor, pitched 32 deg down; with the body
+    pitched down 11.6 deg (seed 604, station 23) every floor point is closer than the Kinect's 0.8 m
+    minimum range: an empty cloud. Before: write_simulation refused the whole dataset ("points:
+    expected a non-empty (N, 3) array", 2 of the first 8 seeds of bench/calibration_nees.py
+    --scenario unseen). Now the station has no cloud file, as a real recording would have none."""
+    import custom_hexapod
+    import yaml
+
+    from graphcal.calibration.calibrate import calibrate
+    from graphcal.io.dataset import read_dataset
+    from graphcal.simulation.run import write_simulation
+    from graphcal.simulation.session import CustomRobot
+
+    res = simulate(SimulationConfig(robot="sidewinder", program="random", n_stations=45, n_sessions=3, seed=604,
+                                    tilt_scale=0.8, cloud_stride=8,
+                                    custom_robot=CustomRobot(custom_hexapod.urdf_xml(), custom_hexapod.info())))
+    empty = sorted(k for k, v in res.clouds.items() if len(v) == 0)
+    assert empty == [("front_cam", 23)]
+    out = tmp_path / "ds"
+    write_simulation(res, out, output="both")
+    assert not (out / "clouds" / "front_cam" / "23.ply").exists()
+    assert (out / "clouds" / "front_cam" / "22.ply").exists() and (out / "clouds" / "front_cam" / "24.ply").exists()
+    assert yaml.safe_load((out / "truth.yaml").read_text())["config"]["empty_clouds"] == [["front_cam", 23]]
+    ds = read_dataset(out)
+    assert 23 not in set(ds.planes["station"].tolist()) and len(ds.planes["station"]) == 44
+    assert 23 in set(ds.stations["station"].tolist())  # the station itself stays: its joints, IMU
+    result = calibrate(out)
+    assert ("front_cam" not in {r.sensor for r in result.residuals if r.station == 23})
+    assert len([r for r in result.residuals if r.sensor == "front_cam"]) == 44
+
+
 @pytest.mark.parametrize("robot, seed", [("octopus", 1), ("qingzhui", 2), ("qingzhui", 3)])
 def test_random_stations_stay_within_the_joint_limits(tmp_path, robot, seed):
     """The random program's stations are poses the robot can take: every written joint angle lies

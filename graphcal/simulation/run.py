@@ -150,7 +150,12 @@ def write_simulation(result: SimulationResult, out_dir: str | Path, *, output: s
                      overwrite: bool = False, progress: bool = False):
     """Write a simulation as a dataset folder: the contract's files (clouds and/or planes) and
     ``truth.yaml`` beside ``dataset.yaml``; a custom robot's URDF as ``robot.urdf``. Returns the
-    written :class:`~graphcal.io.dataset.Dataset` (in memory)."""
+    written :class:`~graphcal.io.dataset.Dataset` (in memory).
+
+    A station where a sensor saw nothing (every ray missed or fell outside the sensor's range: a
+    depth camera mounted low, tilted towards the floor closer than its minimum range) has no cloud
+    file for that sensor, as a real recording would have none; ``truth.yaml`` lists these under
+    ``config: empty_clouds`` as ``[sensor, station]`` pairs."""
     import yaml
 
     from ..io.dataset import write_dataset
@@ -158,13 +163,15 @@ def write_simulation(result: SimulationResult, out_dir: str | Path, *, output: s
     if output not in ("clouds", "planes", "both"):
         raise GraphcalError(f"output must be clouds, planes or both, got {output!r}")
     ds = result_to_dataset(result, with_planes=output in ("planes", "both"), progress=progress)
-    clouds = result.clouds if output in ("clouds", "both") else {}
+    clouds = {k: v for k, v in result.clouds.items() if len(v)} if output in ("clouds", "both") else {}
+    empty = sorted([str(s), int(st)] for (s, st), v in result.clouds.items() if not len(v))
     truth = dict(result.truth)
     c = result.config
     truth["config"] = {
         "robot": c.robot, "program": c.program, "ground": c.ground, "seed": int(c.seed),
         "n_sessions": int(c.n_sessions), "output": output, "cloud_stride": int(c.cloud_stride),
         "leg_error_sigma_rad": float(c.leg_error_sigma_rad), "leg_error_sigma_m": float(c.leg_error_sigma_m),
+        "empty_clouds": empty,
     }
     urdf = c.custom_robot.urdf_xml if c.custom_robot is not None else None
     write_dataset(ds, out_dir, clouds=clouds, robot_urdf_xml=urdf, overwrite=overwrite,
