@@ -47,7 +47,8 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sessions", type=int, default=1, help="number of stances (feet re-planted between them)")
     s.add_argument("--sensor", action="append", default=None, help="simulate only this sensor (repeatable)")
     s.add_argument("--output", choices=("clouds", "planes", "both"), default="both",
-                   help="write raw clouds, fitted planes (planes.csv), or both (default)")
+                   help="write raw clouds, fitted planes (planes.csv), or both (default); a laser "
+                        "scanner's scans are written as clouds with every choice (a scan has no plane)")
     s.add_argument("--cloud-stride", type=int, default=None,
                    help="keep every k-th camera pixel row/column (1 = full 640x480 frames; default 4; "
                         "tripod-walk 16, tripod-stairs 8)")

@@ -129,7 +129,7 @@ def test_outlier_stations_are_found_and_do_not_hurt(tmp_path):
     assert set(result.outliers) == {5, 30, 44}
     assert not any("plane_max_points" in w for w in result.warnings)
     # planes.csv given: a cap on the cloud points cannot apply, and the result says so
-    assert any("plane_max_points=5000 had no effect" in w
+    assert any("--plane-points 5000 (plane_max_points) had no effect" in w
                for w in calibrate(path, plane_max_points=5000).warnings)
     ang, dist, _ = errors(result.sensors["depth"], truth_T(truth, "depth"))
     assert ang < 0.03 and dist < 1.5

@@ -193,6 +193,21 @@ def test_identify_yuans_parameter_set_and_noise_free_exactness():
     assert res.residuals[0].rmse_after_mm < 1e-6 and res.iterations <= 8
 
 
+@pytest.mark.parametrize("n_samples, warned", [(3, True), (60, False)])
+def test_a_fit_without_redundancy_is_warned_about(n_samples, warned):
+    """3 samples of one foot marker: 9 coordinates for 9 unknowns, an exact fit (before: a calf
+    offset 18 sigma off the truth and no warning). 60 samples: 180 coordinates, no warning."""
+    pert = LegPerturbation({"fl_calf_joint": 2.0 * DEG}, {"fl_calf_joint": (0, 0, -0.01)})
+    sim = simulate_mocap("a1", feet=(FOOT,), n_samples=n_samples, perturbation=pert, joint_noise_rad=0.1 * DEG,
+                         marker_noise_m=0.0005, noise="gaussian", seed=5)
+    data = mocap_data_from_dataset(sim.dataset)
+    res = identify_legs(data.robot, data.tracks, T_body_mocap_nominal=data.T_body_mocap_nominal, frame=data.frame)
+    hits = [w for w in res.warnings if "residual degree(s) of freedom" in w]
+    assert bool(hits) == warned, res.warnings
+    if warned:
+        assert res.dof < 10 and f"only {res.dof} residual" in hits[0]
+
+
 def test_unknown_marker_makes_the_last_links_aliased(yuan_like):
     sim, _ = yuan_like
     from dataclasses import replace

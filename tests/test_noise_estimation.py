@@ -301,6 +301,13 @@ def test_noise_groups_report_names_how_each_sigma_was_set():
     assert warnings[0].startswith("noise group commanded (too few dof, 2.5 dof)")
     assert "stance_foot/joint (not converged" in warnings[1]
     assert all("may be too small" in w for w in warnings)
+    # a group with ~0 dof (one station: its plane's 3 rows are spent on the body pose) and residuals
+    # below its sigma: a chi-square of 2e-5 dof puts its mass at 0, p_high is tiny whatever the scale,
+    # and it was warned about ("0.058 times its sigma ... may be too small"); now not
+    stats0 = {"plane:depth": ne.GroupVariance("plane:depth", chi2=0.058**2 * 2e-5, redundancy=2e-5, rows=3)}
+    groups0, warnings0 = noise_groups_report(stats0, opts)
+    assert groups0[0].status == "too few dof" and groups0[0].p_high < 1e-3
+    assert warnings0 == []
 
 
 def test_components_scaled_together_are_reported_as_one():

@@ -297,6 +297,21 @@ def test_a_station_where_the_camera_saw_nothing_has_no_cloud_file(tmp_path):
     assert len([r for r in result.residuals if r.sensor == "front_cam"]) == 44
 
 
+def test_output_planes_keeps_the_laser_scans(tmp_path):
+    """A laser scanner's data are its scan points (a 2D scan has no plane): with --output planes they
+    are still written as clouds. Before, `simulate --sensor laser --output planes` wrote a dataset
+    with no sensor data ("0 clouds, 0 planes", exit 0) and calibrate found nothing to calibrate."""
+    from graphcal.simulation.run import simulate_to_folder
+
+    out = tmp_path / "ds"
+    msg = simulate_to_folder(robot="messor", program="labecki2012", ground="level", out_dir=out, output="planes",
+                             cloud_stride=8, progress=False)
+    assert "44 clouds, 44 planes" in msg
+    assert len(list((out / "clouds" / "laser").glob("*.ply"))) == 44
+    assert not (out / "clouds" / "stereo").exists()
+    assert set(np.unique(np.loadtxt(out / "planes.csv", delimiter=",", skiprows=1, usecols=1, dtype=str))) == {"stereo"}
+
+
 @pytest.mark.parametrize("robot, seed", [("octopus", 1), ("qingzhui", 2), ("qingzhui", 3)])
 def test_random_stations_stay_within_the_joint_limits(tmp_path, robot, seed):
     """The random program's stations are poses the robot can take: every written joint angle lies

@@ -8,6 +8,7 @@ and solve again without them, then read the marginal covariances (solvers/covari
 from __future__ import annotations
 
 import dataclasses
+from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -18,6 +19,7 @@ from ..geometry import from_gtsam_pose
 from ..io.dataset import off_plane_scan_warning
 from .graph import (CalibrationOptions, CalibrationProblem, build_problem, extrinsic_prior_for_observability,
                     predicted_plane_errors)
+from .ground_selection import ground_choice_warnings
 from .measurements import CalibrationData, calibration_data
 from .result import (
     CalibrationResult,
@@ -101,7 +103,7 @@ def plane_source_warnings(plane_max_points: int | None, planes_given: bool, ds, 
     ``(station, sensor)`` keys of the fitted planes; too few points, collinear points, no plane)."""
     out = []
     if plane_max_points is not None and (planes_given or ds.planes is not None):
-        out.append(f"plane_max_points={plane_max_points} had no effect: the planes were "
+        out.append(f"--plane-points {plane_max_points} (plane_max_points) had no effect: the planes were "
                    + ("given" if planes_given else "read from planes.csv, not fitted to the clouds"))
     if planes_given or ds.root is None or (ds.planes is None and fitted is None):
         return out
@@ -156,6 +158,8 @@ def calibrate(
     warnings: list[str] = [off_plane_scan_warning(sensor, off, n)
                            for sensor, (off, n) in sorted(getattr(data, "scans_off_plane", {}).items())]
     warnings += plane_source_warnings(plane_max_points, planes_given, ds, data.planes)
+    warnings += ground_choice_warnings(getattr(data, "ground_not_largest", {}),
+                                       Counter(sensor for _, sensor in data.planes))
 
     def resolve(opts, excluded, stage, start=None):
         nonlocal problem, values, iterations
@@ -465,7 +469,10 @@ def noise_groups_report(stats: dict, options: CalibrationOptions, *,
                 "or the ground is not one plane (bumps: give --ground-roughness-mm; an offset per session or a "
                 "tilted floor: graphcal diagnose). On uneven ground the reported covariance is too small: the "
                 "scale treats the unevenness as independent noise per station")
-        if status != "learned" and p_high < NOISE_TOO_SMALL_P:
+        # only residuals above their sigma make the covariance too small (with ~0 dof the chi-square
+        # puts all its mass at 0 and any positive statistic has a tiny p: 1 station gave 'residuals
+        # 0.058 times its sigma ... may be too small')
+        if status != "learned" and scale > 1.0 and p_high < NOISE_TOO_SMALL_P:
             warnings.append(
                 f"noise group {key} ({status}, {dof:.1f} dof): its residuals are {scale:.2g} times its sigma "
                 f"(chi-square p = {p_high:.2g}); the reported covariance may be too small")

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import replace
+from collections import Counter
 from functools import partial
 from typing import Callable, Mapping
 
@@ -368,6 +369,12 @@ class IncrementalCalibrator:
             self._makers[(sid, name)] = make
             if not self.detect_changes:
                 continue
+            if not any(seg["stations"] for seg in self._segments[name]):
+                # the sensor's first measurement: nothing measured before it can have changed, and
+                # its innovation would be taken against the CAD prior, linearised there (a laser
+                # scan's ranges are far from linear over a 5 deg prior error: clean Messor data
+                # declared "changed at station 1")
+                continue
             key = self._key[name]
             built[name] = (key, make(key))
             # the current estimate of the factor's variables: body pose, extrinsic (and the
@@ -676,6 +683,7 @@ def calibrate_incremental(
     from ..io.dataset import Dataset, load_dataset_robot, read_dataset
     from ..solvers.covariance import marginal_covariances
     from .calibrate import _residuals, _result, plane_source_warnings
+    from .ground_selection import ground_choice_warnings
     from .noise_check import given_noise_check
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
@@ -684,6 +692,8 @@ def calibrate_incremental(
     if data is None:
         data = calibration_data(ds, robot, progress=progress, plane_max_points=plane_max_points)
     warnings: list[str] = plane_source_warnings(plane_max_points, planes_given, ds, data.planes)
+    warnings += ground_choice_warnings(getattr(data, "ground_not_largest", {}),
+                                       Counter(sensor for _, sensor in data.planes))
     problem = build_problem(ds, robot, data, replace(options, robust=False))  # Gaussian planes, gated
     R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
     cal = IncrementalCalibrator(

@@ -59,6 +59,9 @@ class CalibrationData:
     #: laser scanner -> ((cloud file, 90th percentile of |z|, m), ...) for its clouds that lie off
     #: its scan plane z = 0 (:data:`~graphcal.io.dataset.SCAN_PLANE_MAX_Z_M`), and its cloud count
     scans_off_plane: dict = field(default_factory=dict)
+    #: (station, sensor) -> how many planes the camera saw there, where the floor taken (the plane
+    #: the kinematics predict) is not the largest of them (stairs, a wall, a table)
+    ground_not_largest: dict = field(default_factory=dict)
 
 
 def station_measurements(ds, robot) -> tuple[StationMeasurements, ...]:
@@ -96,7 +99,29 @@ def ground_planes(ds, *, progress: bool = False, plane_max_points: int | None = 
     """(station, sensor) -> :class:`PlaneMeasurement` of every camera: from planes.csv when the
     dataset has it, otherwise fitted from the clouds (on at most ``plane_max_points`` points of each,
     see :func:`graphcal.plane_table.planes_rows`; None: all). Where a station has several planes
-    (stairs, walls) the one with most points is taken as the ground."""
+    (stairs, walls) the one with most points; :func:`calibration_data` instead takes the one the
+    kinematics predict (:mod:`graphcal.calibration.ground_selection`)."""
+    candidates, _ = plane_candidates(ds, progress=progress, plane_max_points=plane_max_points)
+    return {k: v[0] for k, v in candidates.items()}
+
+
+def _plane_rows_to_measurements(rows: dict, count: int, out: dict) -> None:
+    for k in range(count):
+        key = (int(rows["station"][k]), str(rows["sensor"][k]))
+        npts = int(rows["n_points"][k]) if "n_points" in rows else 0
+        if all(f"cov_{i}{j}" in rows for i in range(4) for j in range(4)):
+            cov = np.array([[float(rows[f"cov_{i}{j}"][k]) for j in range(4)] for i in range(4)])
+        else:
+            cov = None
+        n = np.array([float(rows["nx"][k]), float(rows["ny"][k]), float(rows["nz"][k])])
+        out.setdefault(key, []).append(PlaneMeasurement(key[0], key[1], n, float(rows["d"][k]), cov, npts))
+
+
+def plane_candidates(ds, *, progress: bool = False, plane_max_points: int | None = None) -> tuple[dict, object]:
+    """The planes every camera saw: ((station, sensor) -> [:class:`PlaneMeasurement`, ...] largest
+    first, ``refit``): from planes.csv (every row; ``refit`` None) or fitted to the clouds (the
+    largest plane of each; ``refit(key)`` fits up to ``ground_selection.REFIT_MAX_PLANES`` planes
+    to that station's cloud)."""
     from ..plane_table import planes_rows
 
     types = {name: spec.type for name, spec in ds.sensors.items()}
@@ -118,19 +143,22 @@ def ground_planes(ds, *, progress: bool = False, plane_max_points: int | None = 
         pairs = [(key, functools.partial(load_cloud, ds, *key)) for key in sorted(cams)]  # read by the workers
         rows = planes_rows(pairs, types, progress=progress, total=len(cams), max_points=plane_max_points)
         count = len(rows["station"])
-    best: dict = {}
-    for k in range(count):
-        key = (int(rows["station"][k]), str(rows["sensor"][k]))
-        npts = int(rows["n_points"][k]) if "n_points" in rows else 0
-        if key in best and best[key].n_points >= npts:
-            continue
-        if all(f"cov_{i}{j}" in rows for i in range(4) for j in range(4)):
-            cov = np.array([[float(rows[f"cov_{i}{j}"][k]) for j in range(4)] for i in range(4)])
-        else:
-            cov = None
-        n = np.array([float(rows["nx"][k]), float(rows["ny"][k]), float(rows["nz"][k])])
-        best[key] = PlaneMeasurement(key[0], key[1], n, float(rows["d"][k]), cov, npts)
-    return best
+    out: dict = {}
+    _plane_rows_to_measurements(rows, count, out)
+    for key in out:
+        out[key].sort(key=lambda p: -p.n_points)  # stable: planes.csv's order among equal counts
+    refit = None
+    if ds.planes is None:
+        def refit(key):
+            from .ground_selection import REFIT_MAX_PLANES
+
+            station, sensor = key
+            more = planes_rows([((sensor, station), functools.partial(load_cloud, ds, sensor, station))], types,
+                               max_planes=REFIT_MAX_PLANES, max_points=plane_max_points, processes=False, workers=1)
+            found: dict = {}
+            _plane_rows_to_measurements(more, len(more["station"]), found)
+            return sorted(found.get(key, []), key=lambda p: -p.n_points)
+    return out, refit
 
 
 def ground_line_inliers(points_sensor: np.ndarray, *, distance_m: float = 0.03, iterations: int = 200,
@@ -208,10 +236,23 @@ def calibration_data(ds, robot, *, progress: bool = False, plane_max_points: int
     plane_max_points = check_max_points(plane_max_points, "plane_max_points")
     off_plane: dict = {}
     scans = scan_points(ds, off_plane=off_plane)
-    return CalibrationData(
+    candidates, refit = plane_candidates(ds, progress=progress, plane_max_points=plane_max_points)
+    data = CalibrationData(
         stations=station_measurements(ds, robot),
-        planes=ground_planes(ds, progress=progress, plane_max_points=plane_max_points),
+        planes={k: v[0] for k, v in candidates.items()},
         scan_points=scans,
         sensor_types={name: spec.type for name, spec in ds.sensors.items()},
         scans_off_plane={s: (tuple(off), n) for s, (off, n) in off_plane.items() if off},
     )
+    if data.planes:
+        # the floor among each station's planes: the one the stance feet and the extrinsic predict
+        from .graph import _kinematic_bodies
+        from .ground_selection import choose_ground_planes
+
+        u_body, height, _ = _kinematic_bodies(data, robot)  # cached on data: the graph reuses it
+        priors = {name: (spec.T_body_sensor_prior.matrix, spec.T_body_sensor_prior.sigma_m,
+                         spec.T_body_sensor_prior.sigma_rad) for name, spec in ds.sensors.items()}
+        chosen, moved = choose_ground_planes(candidates, u_body, height, priors, refit)
+        data.planes.update(chosen)
+        data.ground_not_largest.update(moved)
+    return data

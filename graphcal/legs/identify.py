@@ -318,6 +318,12 @@ def _right_log(T_ref, T) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- main
+#: fewer residual degrees of freedom than this (or than the unknowns) and identify-legs warns that
+#: the fit is nearly exact (3 samples of the A1's leg: 9 coordinates for 9 unknowns, 0 dof, a calf
+#: offset 18 sigma off the truth with no warning)
+MIN_REDUNDANCY_DOF = 10
+
+
 def identify_legs(
     robot,
     tracks: Sequence[MarkerTrack],
@@ -520,6 +526,13 @@ def identify_legs(
     dof = m_rows - u
     chi2 = 2.0 * float(sum(gB.at(i).error(v) for i in range(len(trs))))
     sigma0 = math.sqrt(chi2 / dof) if dof > 0 else float("nan")
+    if dof < max(MIN_REDUNDANCY_DOF, u):
+        per_marker = math.ceil(2 * u / (3 * max(1, len(trs))))
+        warnings.append(
+            f"only {dof} residual degree(s) of freedom ({m_rows} marker coordinates for {u} unknowns): the fit is "
+            "(nearly) exact, so its residuals cannot check the sigmas, and errors of the parameters held at nominal "
+            f"go unseen into the free ones; record more samples (at least {per_marker} per marker for twice as many "
+            "coordinates as unknowns)")
     keys = [V(0)] + [L(feet.index(f)) for f in feet if free_theta[f].size] + [tr.k_key for tr in trs if tr.k_key is not None]
     covs = marginal_covariances(gB, v, keys)
     warnings.extend(covs.warnings)

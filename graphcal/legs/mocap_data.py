@@ -199,6 +199,7 @@ def mocap_data_from_dataset(dataset, *, sigma_body_marker_m: float | None = None
         body_times = set.intersection(*(set(by_marker[b]) for b in BODY_MARKERS))
 
     tracks: list[MarkerTrack] = []
+    too_few: dict[str, int] = {}  # foot marker -> its samples, where fewer than MIN_SAMPLES
     for name in sorted(by_marker):
         if name.startswith("body."):
             continue
@@ -249,6 +250,7 @@ def mocap_data_from_dataset(dataset, *, sigma_body_marker_m: float | None = None
                 cov_extra = point_covariance_in_vbase(P, virtual_base_covariance(B, sigma_body_marker_m))
         if len(ts) < MIN_SAMPLES:
             warnings.append(f"marker {name!r}: only {len(ts)} sample(s), not used (at least {MIN_SAMPLES})")
+            too_few[name] = len(ts)
             continue
         joint_spread = np.ptp(q, axis=0) if q.size else np.zeros(0)
         if q.shape[1] and not np.any(joint_spread > MIN_JOINT_SPREAD_RAD):
@@ -270,6 +272,7 @@ def mocap_data_from_dataset(dataset, *, sigma_body_marker_m: float | None = None
                            f"samples of at least one marker on a foot of robot.feet ({', '.join(feet) or 'none'}): "
                            f"named after the foot (lf_foot, lf_foot.1) or with mocap.markers.<name>.link a foot, "
                            f"at least {MIN_SAMPLES} samples",
-                           ", ".join(sorted(by_marker)) or "no markers")  # fmt: skip
+                           ("foot markers with too few samples: " + ", ".join(f"{m} ({k})" for m, k in sorted(too_few.items()))
+                            if too_few else ", ".join(sorted(by_marker)) or "no markers"))  # fmt: skip
     source = str(root if isinstance(dataset, Dataset) else dataset)
     return MocapData(robot, tuple(tracks), "vbase" if use_vbase else "mocap", T_nominal, source, tuple(warnings))

@@ -119,7 +119,8 @@ def station_program(
                     break
             poses.append(T)
     if n_sessions < 1 or n_sessions > len(poses):
-        raise GraphcalError(f"n_sessions must be between 1 and {len(poses)}, got {n_sessions}")
+        raise GraphcalError(f"n_sessions (--sessions) must be between 1 and the number of stations ({len(poses)}, "
+                            f"--stations), got {n_sessions}")
     bounds = np.linspace(0, len(poses), n_sessions + 1).round().astype(int)
     out = []
     for s in range(n_sessions):

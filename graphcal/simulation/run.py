@@ -146,6 +146,15 @@ def result_to_dataset(result: SimulationResult, *, with_planes: bool, progress: 
     )
 
 
+def clouds_written(result: SimulationResult, output: str) -> dict:
+    """(sensor, station) -> points of the clouds :func:`write_simulation` writes for ``output``:
+    every non-empty one with ``clouds`` or ``both``; with ``planes`` only the laser scanners' (a
+    scanner's data are its scan points, a 2D scan has no plane to fit: ``--output planes`` would
+    otherwise leave it without data)."""
+    scans = {n for n, cad in result.sensor_cad.items() if cad.type == "laser_scanner"}
+    return {k: v for k, v in result.clouds.items() if len(v) and (output in ("clouds", "both") or k[0] in scans)}
+
+
 def write_simulation(result: SimulationResult, out_dir: str | Path, *, output: str = "both",
                      overwrite: bool = False, progress: bool = False):
     """Write a simulation as a dataset folder: the contract's files (clouds and/or planes) and
@@ -155,7 +164,8 @@ def write_simulation(result: SimulationResult, out_dir: str | Path, *, output: s
     A station where a sensor saw nothing (every ray missed or fell outside the sensor's range: a
     depth camera mounted low, tilted towards the floor closer than its minimum range) has no cloud
     file for that sensor, as a real recording would have none; ``truth.yaml`` lists these under
-    ``config: empty_clouds`` as ``[sensor, station]`` pairs."""
+    ``config: empty_clouds`` as ``[sensor, station]`` pairs. A laser scanner's scans are written as
+    clouds with every ``output`` (its data are the scan points; it has no planes)."""
     import yaml
 
     from ..io.dataset import write_dataset
@@ -163,7 +173,7 @@ def write_simulation(result: SimulationResult, out_dir: str | Path, *, output: s
     if output not in ("clouds", "planes", "both"):
         raise GraphcalError(f"output must be clouds, planes or both, got {output!r}")
     ds = result_to_dataset(result, with_planes=output in ("planes", "both"), progress=progress)
-    clouds = {k: v for k, v in result.clouds.items() if len(v)} if output in ("clouds", "both") else {}
+    clouds = clouds_written(result, output)
     empty = sorted([str(s), int(st)] for (s, st), v in result.clouds.items() if not len(v))
     truth = dict(result.truth)
     c = result.config
@@ -271,7 +281,7 @@ def simulate_to_folder(
     config = replace(config, effects=combined)
     result = simulate(config, progress=progress)
     ds = write_simulation(result, out_dir, output=output, overwrite=overwrite, progress=progress)
-    clouds = result.clouds if output in ("clouds", "both") else {}
+    clouds = clouds_written(result, output)
     n_planes = len(ds.planes) if ds.planes is not None else 0
     sessions = len(set(r.session for r in result.stations))
     hidden = ", ".join(combined.active()) or "none"

@@ -411,7 +411,12 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
         for k, f in enumerate(robot.feet):
             q_c, ok = ik_leg(true_robot.leg(f), p_body_planted[k][None, :], q_act[f][None, :])
             if not ok[0]:
-                raise GraphcalError(f"station {cmd.station}: foot {f} cannot stay planted (IK of the true leg failed)")
+                hint = ""
+                if config.effects.active() or config.leg_error_sigma_m > 0 or config.leg_error_sigma_rad > 0:
+                    hint = ("; hidden here: " + (", ".join(config.effects.active()) or "leg errors")
+                            + ". Is a magnitude more than this leg can take? (--effect CAUSE:key=value sets it)")
+                raise GraphcalError(f"station {cmd.station}: foot {f} cannot stay planted (IK of the true leg "
+                                    f"failed){hint}")
             q_act[f] = wrap_revolute(true_robot.leg(f), q_c[0])
         leg_q_true[cmd.station] = q_act
         q_meas = {}
