@@ -248,7 +248,9 @@ def test_bumpy_ground_roughness_puts_the_bumps_into_sigma(tmp_path):
     assert not [w for w in rough.warnings if "the planes scatter" in w], rough.warnings
     est = rough.sensors["depth"]
     ang, dist, z = errors(est, T_true)
-    assert np.all(np.abs(z) < 4.0), z
+    # measured: largest |error| / sigma 1.2 (NEES 1.8); with the roughness terms at a third of the
+    # bump height (until the eighteenth stop) 3.57 (NEES 15.8; mean NEES 82 over 12 seeds)
+    assert np.all(np.abs(z) < 2.5), z
     assert ang < 0.3 and dist < 6.0  # the estimate itself is as before: the bumps are not removed
     from graphcal.errors import GraphcalError
 

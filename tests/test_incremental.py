@@ -263,11 +263,14 @@ def test_knock_without_outlier_guard_is_declared_at_the_station(knocked):
 
 
 def test_uneven_ground_roughness_keeps_false_changes_out_and_finds_the_knock(tmp_path_factory):
-    """Chai's little bumpiness (3 mm RMS), seed 1, a 1 deg knock at station 25. With the flat-floor
-    model the bumps look like the sensor moving (measured: false changes at 13, 21 and 41 besides
-    25); with the roughness (--ground-roughness-mm 3) the change is found at 25 only, and on the
-    same ground without a knock the incremental estimate equals the batch one (the session's ground
-    plane variable goes through the station split; the knocked segment's factors are rebuilt on it)."""
+    """Chai's little bumpiness (3 mm RMS), seed 1, a 3 deg knock at station 25. With the flat-floor
+    model the bumps look like the sensor moving (false changes besides 25); with the roughness
+    (--ground-roughness-mm 3) the change is found at 25 only, and on the same ground without a knock
+    the incremental estimate equals the batch one (the session's ground plane variable goes through
+    the station split; the knocked segment's factors are rebuilt on it). Since the roughness terms
+    are the bump height itself (eighteenth stop: honest sigma, mean NEES 82 -> 9.1) each plane may
+    wobble by ~0.3 deg, and a 1 deg knock is no longer found on these bumps (0 of 6 seeds; 2 deg: 3
+    of 6, late; 3 deg: 6 of 6, docs/incremental.md); before, 1 deg was found here."""
     from graphcal.calibration.graph import options_for_ground_roughness
     from graphcal.errors import GraphcalError
 
@@ -276,7 +279,7 @@ def test_uneven_ground_roughness_keeps_false_changes_out_and_finds_the_knock(tmp
                                         ground="bumpy-little", effects=effects))
         return _dataset(tmp_path_factory, name, sim)
 
-    knock = ExtrinsicChange("depth", station=KNOCK_STATION, angle_rad=float(np.radians(1.0)), axis=_knock_axis(1))
+    knock = ExtrinsicChange("depth", station=KNOCK_STATION, angle_rad=float(np.radians(3.0)), axis=_knock_axis(1))
     ds = bumpy("bumpy_knock", Effects(extrinsic_change=knock))
     flat = calibrate_incremental(ds, options=CalibrationOptions(estimate_noise=False))
     assert len(flat.sensors["depth"].change_stations) > 1, flat.sensors["depth"].change_stations  # false changes
