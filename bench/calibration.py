@@ -33,7 +33,6 @@ import json
 import statistics
 import tempfile
 import time
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -125,7 +124,7 @@ def bench_isam(n_stations: int = 500, checkpoints=(50, 100, 250, 500)) -> dict:
     import gtsam
 
     from graphcal.calibration.graph import CalibrationOptions, build_problem
-    from graphcal.calibration.incremental import IncrementalCalibrator, _batch_or_rebuilt, station_updates
+    from graphcal.calibration.incremental import calibrator_for_problem, dataset_station_steps, station_updates
     from graphcal.calibration.measurements import calibration_data
     from graphcal.io.dataset import load_dataset_robot, read_dataset
     from graphcal.simulation.run import write_simulation
@@ -159,17 +158,9 @@ def bench_isam(n_stations: int = 500, checkpoints=(50, 100, 250, 500)) -> dict:
     # (IncrementalCalibrator.add_factors): update A and its relinearising updates, the change test
     # (the innovation against the joint marginal of the factor's variables), update B, and the
     # extrinsic's estimate and marginal covariance with its body-axis sigmas
-    R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
-    cal = IncrementalCalibrator(
-        robot, problem.sensor_priors, options=options,
-        sensor_types={n: ds.sensors[n].type for n in problem.sensor_keys}, sensor_keys=problem.sensor_keys,
-        initial_extrinsics=problem.initial_extrinsics, R_body_imu=R_body_imu,
-        imu_sigma_rad=ds.imu.T_body_imu_prior.sigma_rad if ds.imu is not None else 0.0,
-        n_tests=len(data.stations))
+    cal = calibrator_for_problem(ds, robot, problem, data, options)
     step_ms = []
-    for st, (graph_a, values_a, meas) in zip(data.stations, station_updates(problem, data)):
-        makers = {name: partial(_batch_or_rebuilt, problem, cal, data, st.station, name, idx)
-                  for name, idx in meas.items()}
+    for st, graph_a, values_a, makers in dataset_station_steps(problem, data, cal):
         t0 = time.perf_counter()
         cal.add_factors(st.station, graph_a, values_a, makers, initial_body=problem.initial_body[st.station])
         step_ms.append(1e3 * (time.perf_counter() - t0))

@@ -646,6 +646,32 @@ def _sigmas_below(cal: IncrementalCalibrator, steps, target_deg: float | None, t
     return True
 
 
+def calibrator_for_problem(ds, robot, problem: CalibrationProblem, data: CalibrationData,
+                           options: CalibrationOptions, **detector) -> IncrementalCalibrator:
+    """The :class:`IncrementalCalibrator` of a dataset's built batch ``problem``: its sensor priors,
+    keys and closed-form initial extrinsics, the IMU's mounting prior from dataset.yaml, and the
+    change test spread over the dataset's stations (``detector``: ``detect_changes``, ``window``,
+    ``p_false_alarm``, ...)."""
+    imu = ds.imu.T_body_imu_prior if ds.imu is not None else None
+    return IncrementalCalibrator(
+        robot, problem.sensor_priors, options=options,
+        sensor_types={n: ds.sensors[n].type for n in problem.sensor_keys}, sensor_keys=problem.sensor_keys,
+        initial_extrinsics=problem.initial_extrinsics,
+        R_body_imu=imu.matrix[:3, :3] if imu is not None else None,
+        imu_sigma_rad=imu.sigma_rad if imu is not None else 0.0,
+        n_tests=max(1, len(data.stations)), **detector)
+
+
+def dataset_station_steps(problem: CalibrationProblem, data: CalibrationData, cal: IncrementalCalibrator):
+    """Per station in dataset order, what :meth:`IncrementalCalibrator.add_factors` takes:
+    ``(station, factors, values, measurement makers)`` (:func:`station_updates`; a measurement is the
+    batch graph's own factor, rebuilt on a new segment's key)."""
+    for st, (graph_a, values_a, meas) in zip(data.stations, station_updates(problem, data)):
+        makers = {name: partial(_batch_or_rebuilt, problem, cal, data, st.station, name, idx)
+                  for name, idx in meas.items()}
+        yield st, graph_a, values_a, makers
+
+
 def calibrate_incremental(
     dataset,
     *,
@@ -695,21 +721,11 @@ def calibrate_incremental(
     warnings += ground_choice_warnings(getattr(data, "ground_not_largest", {}),
                                        Counter(sensor for _, sensor in data.planes))
     problem = build_problem(ds, robot, data, replace(options, robust=False))  # Gaussian planes, gated
-    R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
-    cal = IncrementalCalibrator(
-        robot, problem.sensor_priors, options=options,
-        sensor_types={n: ds.sensors[n].type for n in problem.sensor_keys}, sensor_keys=problem.sensor_keys,
-        initial_extrinsics=problem.initial_extrinsics, R_body_imu=R_body_imu,
-        imu_sigma_rad=ds.imu.T_body_imu_prior.sigma_rad if ds.imu is not None else 0.0,
-        detect_changes=detect_changes, window=window, p_false_alarm=p_false_alarm,
-        n_tests=max(1, len(data.stations)),
-    )
+    cal = calibrator_for_problem(ds, robot, problem, data, options, detect_changes=detect_changes, window=window,
+                                 p_false_alarm=p_false_alarm)
     stopped = None
     targets = sigma_target_deg is not None or sigma_target_mm is not None
-    for st, (graph_a, values_a, meas) in zip(data.stations, station_updates(problem, data)):
-        makers = {}
-        for name, idx in meas.items():
-            makers[name] = partial(_batch_or_rebuilt, problem, cal, data, st.station, name, idx)
+    for st, graph_a, values_a, makers in dataset_station_steps(problem, data, cal):
         steps = cal.add_factors(st.station, graph_a, values_a, makers, initial_body=problem.initial_body[st.station])
         if progress:
             txt = "; ".join(f"{s.sensor}: rot {np.round(s.sigma_rot_deg, 3).tolist()} deg, "
