@@ -95,17 +95,9 @@ def station_measurements(ds, robot) -> tuple[StationMeasurements, ...]:
     return tuple(out)
 
 
-def ground_planes(ds, *, progress: bool = False, plane_max_points: int | None = None) -> dict:
-    """(station, sensor) -> :class:`PlaneMeasurement` of every camera: from planes.csv when the
-    dataset has it, otherwise fitted from the clouds (on at most ``plane_max_points`` points of each,
-    see :func:`graphcal.plane_table.planes_rows`; None: all). Where a station has several planes
-    (stairs, walls) the one with most points; :func:`calibration_data` instead takes the one the
-    kinematics predict (:mod:`graphcal.calibration.ground_selection`)."""
-    candidates, _ = plane_candidates(ds, progress=progress, plane_max_points=plane_max_points)
-    return {k: v[0] for k, v in candidates.items()}
-
-
 def _plane_rows_to_measurements(rows: dict, count: int, out: dict) -> None:
+    """Append the first ``count`` rows of a planes table (planes.csv's columns) to ``out``:
+    (station, sensor) -> [:class:`PlaneMeasurement`, ...] (sensor frame, m)."""
     for k in range(count):
         key = (int(rows["station"][k]), str(rows["sensor"][k]))
         npts = int(rows["n_points"][k]) if "n_points" in rows else 0
@@ -119,9 +111,10 @@ def _plane_rows_to_measurements(rows: dict, count: int, out: dict) -> None:
 
 def plane_candidates(ds, *, progress: bool = False, plane_max_points: int | None = None) -> tuple[dict, object]:
     """The planes every camera saw: ((station, sensor) -> [:class:`PlaneMeasurement`, ...] largest
-    first, ``refit``): from planes.csv (every row; ``refit`` None) or fitted to the clouds (the
-    largest plane of each; ``refit(key)`` fits up to ``ground_selection.REFIT_MAX_PLANES`` planes
-    to that station's cloud)."""
+    first, ``refit``): from planes.csv when the dataset has it (every row; ``refit`` None),
+    otherwise fitted to the clouds (the largest plane of each, on at most ``plane_max_points`` of its
+    points, see :func:`graphcal.plane_table.planes_rows`; None: all) with ``refit(key)`` fitting up
+    to ``ground_selection.REFIT_MAX_PLANES`` planes to that station's cloud."""
     from ..plane_table import planes_rows
 
     types = {name: spec.type for name, spec in ds.sensors.items()}
@@ -230,7 +223,8 @@ def scan_points(ds, *, max_points: int = 200, seed: int = 0, max_range_m: float 
 
 def calibration_data(ds, robot, *, progress: bool = False, plane_max_points: int | None = None) -> CalibrationData:
     """Everything the calibration graph reads from a dataset (``plane_max_points``: see
-    :func:`ground_planes`)."""
+    :func:`plane_candidates`; where a camera saw several planes the floor is the one the stance
+    feet and the extrinsic predict, :mod:`graphcal.calibration.ground_selection`)."""
     from ..plane_table import check_max_points
 
     plane_max_points = check_max_points(plane_max_points, "plane_max_points")
