@@ -49,6 +49,18 @@ def _misfit(plane, n_pred: np.ndarray, d_pred: float) -> tuple[float, float]:
     return float(np.arccos(np.clip(plane.n @ n_pred, -1.0, 1.0))), abs(float(plane.d) - d_pred)
 
 
+#: two fits of one plane (a cloud fitted again: Open3D's RANSAC is not bit-repeatable) agree within
+#: this angle (rad) and distance (m), far below the gates and a stair's riser
+SAME_PLANE_RAD = float(np.radians(0.05))
+SAME_PLANE_M = 5e-4
+
+
+def _same_plane(a, b) -> bool:
+    """Whether two fits are of the same plane (:data:`SAME_PLANE_RAD`, :data:`SAME_PLANE_M`)."""
+    ang, dd = _misfit(a, b.n, float(b.d))
+    return ang <= SAME_PLANE_RAD and dd <= SAME_PLANE_M
+
+
 def _consensus_extrinsic(picks: list, U: np.ndarray, H: np.ndarray, T_start: np.ndarray) -> np.ndarray:
     """Closed-form extrinsic from the picks that agree with most others: the distances' offsets
     ``d - h - u . t_start`` of the floor's picks cluster within the gate, a tread's lie a riser
@@ -143,7 +155,7 @@ def choose_ground_planes(
             if not changed:
                 break
         for k in keys:
-            if chosen[k] is not pool[k][0]:
+            if not _same_plane(chosen[k], pool[k][0]):  # a refit's largest is the same plane, another object
                 moved[k] = len(pool[k])
     return chosen, moved
 
