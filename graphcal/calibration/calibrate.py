@@ -8,7 +8,6 @@ and solve again without them, then read the marginal covariances (solvers/covari
 from __future__ import annotations
 
 import dataclasses
-from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -158,8 +157,7 @@ def calibrate(
     warnings: list[str] = [off_plane_scan_warning(sensor, off, n)
                            for sensor, (off, n) in sorted(getattr(data, "scans_off_plane", {}).items())]
     warnings += plane_source_warnings(plane_max_points, planes_given, ds, data.planes)
-    warnings += ground_choice_warnings(getattr(data, "ground_not_largest", {}),
-                                       Counter(sensor for _, sensor in data.planes))
+    warnings += ground_choice_warnings(data)
 
     def resolve(opts, excluded, stage, start=None):
         nonlocal problem, values, iterations

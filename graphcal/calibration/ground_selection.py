@@ -160,16 +160,17 @@ def choose_ground_planes(
     return chosen, moved
 
 
-def ground_choice_warnings(moved: Mapping[tuple[int, str], int], n_stations: Mapping[str, int]) -> list[str]:
-    """One warning per sensor with stations where the floor taken is not the largest plane
-    (``moved``: (station, sensor) -> planes seen there; ``n_stations``: sensor -> stations with a
-    plane)."""
+def ground_choice_warnings(data) -> list[str]:
+    """One warning per sensor of ``data`` (:class:`CalibrationData`) with stations where the floor
+    taken is not the largest plane the camera saw (``data.ground_not_largest``)."""
     from ..plane_table import stations_text
 
+    moved = getattr(data, "ground_not_largest", {})
     out = []
     for sensor in sorted({k[1] for k in moved}):
         ids = sorted(k[0] for k in moved if k[1] == sensor)
-        out.append(f"{sensor}: at {len(ids)} of {n_stations.get(sensor, len(ids))} stations the largest plane the "
+        total = sum(1 for k in data.planes if k[1] == sensor)
+        out.append(f"{sensor}: at {len(ids)} of {total} stations the largest plane the "
                    f"camera saw is not the floor (stairs, a wall or a table in view; stations {stations_text(ids)}): "
                    "the plane the stance feet and the extrinsic predict was taken instead")
     return out

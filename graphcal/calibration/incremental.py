@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import sys
 from dataclasses import replace
-from collections import Counter
 from functools import partial
 from typing import Callable, Mapping
 
@@ -718,8 +717,7 @@ def calibrate_incremental(
     if data is None:
         data = calibration_data(ds, robot, progress=progress, plane_max_points=plane_max_points)
     warnings: list[str] = plane_source_warnings(plane_max_points, planes_given, ds, data.planes)
-    warnings += ground_choice_warnings(getattr(data, "ground_not_largest", {}),
-                                       Counter(sensor for _, sensor in data.planes))
+    warnings += ground_choice_warnings(data)
     problem = build_problem(ds, robot, data, replace(options, robust=False))  # Gaussian planes, gated
     cal = calibrator_for_problem(ds, robot, problem, data, options, detect_changes=detect_changes, window=window,
                                  p_false_alarm=p_false_alarm)
