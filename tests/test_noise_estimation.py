@@ -186,6 +186,29 @@ def test_converged_scales_are_the_fixed_point_of_repeated_solves(monkeypatch):
     assert abs(one["foot/contact"] / scale["foot/contact"] - 1.0) > 0.01
 
 
+def test_settled_ends_the_iteration_after_the_first_update(monkeypatch):
+    """``settled(first) -> True`` stops after the first iteration with no scale updated and the
+    first iteration's statistics unchanged (calibrate's confirming call reads only those);
+    ``settled -> False`` changes nothing."""
+    data = _two_component_data(np.random.default_rng(6))
+    graph, values, groups, comps = _build(data, (1.0, 1.0))
+    solves = []
+    inverse = ne._arrow_inverse
+    monkeypatch.setattr(ne, "_arrow_inverse", lambda *a: solves.append(1) or inverse(*a))
+    full = ne.converged_scales(graph, values, groups, comps, eligible=_always)
+    n_full = len(solves)
+    assert n_full > 2  # this mixture needs several iterations
+    seen = []
+    stopped = ne.converged_scales(graph, values, groups, comps, eligible=_always,
+                                  settled=lambda first: seen.append(first) or True)
+    assert len(solves) - n_full == 1 and stopped.scales == {}
+    assert seen == [stopped.first]
+    for k, v in full.first.items():
+        assert stopped.first[k] == v
+    kept = ne.converged_scales(graph, values, groups, comps, eligible=_always, settled=lambda first: False)
+    assert kept.scales == full.scales
+
+
 def test_the_step_is_the_optimum_with_the_new_weights():
     """converged_scales' step from ``values`` lands on the optimum of the graph re-weighted with its
     scales (this graph is linear in its variable, so exactly); calibrate starts its re-solve there."""

@@ -41,12 +41,13 @@ def _outlier_measurements(problem: CalibrationProblem, values, options: Calibrat
 
     idx = list(problem.plane_factors)
     errs = whitened_errors(problem.graph, values, idx)
+    # one vectorised quantile call (scipy's ppf costs ~0.2 ms a call: 10 ms on Chai's 52 planes)
+    limits = chi2_dist.ppf(options.outlier_p, [problem.graph.at(i).dim() for i in idx])
     bad, stats = set(), {}
-    for i, e in zip(idx, errs):
+    for i, e, limit in zip(idx, errs, np.atleast_1d(limits)):
         m = problem.plane_factors[i]
-        dof = problem.graph.at(i).dim()
         stats[m] = float(e)
-        if e > chi2_dist.ppf(options.outlier_p, dof):
+        if e > limit:
             bad.add(m)
     return bad, stats
 
@@ -369,13 +370,19 @@ def noise_update(options: CalibrationOptions, problem: CalibrationProblem, value
 
     bounds = {g: (max(VCE_SCALE_BOUNDS[0], *(VCE_FLOOR[n] / getattr(options, n) for n in names)), VCE_SCALE_BOUNDS[1])
               for g, names in _GROUP_FIELDS.items()}
+
+    def changes(stats: dict) -> bool:
+        # a scale held at its bound (a sigma at its floor) is no change
+        return any(abs(float(np.clip(v.scale, *bounds.get(g, VCE_SCALE_BOUNDS))) - 1.0) > VCE_TOLERANCE
+                   for g, v in stats.items() if _vce_eligible(v))
+
+    # converging, a first update that changes nothing ends the call: calibrate then keeps its noise
+    # and reads only the statistics (with converge=False the one update is returned as it is)
     first, scale, step = converged_scales(problem.graph, values, problem.factor_groups, problem.factor_components,
-                                    eligible=_vce_eligible, bounds=bounds, tolerance=VCE_INNER_TOLERANCE,
-                                    max_iterations=VCE_INNER_ITERATIONS if converge else 1)
-    # a scale held at its bound (a sigma at its floor) is no change
-    lo_hi = VCE_SCALE_BOUNDS
-    changed = any(abs(float(np.clip(v.scale, *bounds.get(g, lo_hi))) - 1.0) > VCE_TOLERANCE
-                  for g, v in first.items() if _vce_eligible(v))
+                                          eligible=_vce_eligible, bounds=bounds, tolerance=VCE_INNER_TOLERANCE,
+                                          max_iterations=VCE_INNER_ITERATIONS if converge else 1,
+                                          settled=(lambda stats: not changes(stats)) if converge else None)
+    changed = changes(first)
     update = {}
     for group, names in _GROUP_FIELDS.items():
         if group in scale:
