@@ -1052,20 +1052,31 @@ def _check_mocap(p: _Parsed, header: _Header, times: np.ndarray | None) -> None:
 
 
 # ---------------------------------------------------------------------------- paths and clouds
-def _inside(root: Path, rel: str, file: Path | str, where: str) -> Path:
-    """Resolve a relative path written in a dataset file; it must stay inside the dataset folder."""
+def _inside(root: Path, rel: str, file: Path | str, where: str, *, root_resolved: Path | None = None,
+            resolved: Path | None = None) -> Path:
+    """Resolve a relative path written in a dataset file; it must stay inside the dataset folder.
+    ``root_resolved``, ``resolved``: ``root.resolve()`` and the path's own, when the caller has them
+    (a resolve costs ~0.1 ms: a dataset's clouds are listed several times a calibration)."""
     rel_norm = rel.replace("\\", "/")
     if PurePosixPath(rel_norm).is_absolute() or PureWindowsPath(rel).is_absolute() or PureWindowsPath(rel).drive:
         raise DatasetError(file, where, "a path relative to the dataset folder", f"{rel} (absolute)")
     full = root / rel_norm
     try:
-        resolved = full.resolve()
-        inside = resolved.is_relative_to(root.resolve())
+        resolved = full.resolve() if resolved is None else resolved
+        inside = resolved.is_relative_to(root.resolve() if root_resolved is None else root_resolved)
     except (OSError, RuntimeError, ValueError):
         inside = False
     if not inside:
         raise DatasetError(file, where, "a path inside the dataset folder (no '..', no link leading out)", rel)
     return full
+
+
+def _resolved_or_none(path: Path) -> Path | None:
+    """``path.resolve()``, or None where it fails (a link loop): :func:`_inside` then reports it."""
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError):
+        return None
 
 
 def _station_clouds(
@@ -1078,7 +1089,11 @@ def _station_clouds(
         return out
     if not cdir.is_dir():
         raise DatasetError(cdir, "file", "a folder clouds/<sensor>/<station>.ply", "not a folder")
-    _inside(root, "clouds", cdir, "folder")
+    try:
+        root_res = root.resolve()
+    except (OSError, RuntimeError):
+        root_res = None  # _inside then reports the folder
+    _inside(root, "clouds", cdir, "folder", root_resolved=root_res)
     ids = set(station_ids.tolist()) if station_ids is not None else set()
     ref_resolved = {p.resolve() for p in referenced}
     for sdir in sorted(cdir.iterdir()):
@@ -1088,14 +1103,17 @@ def _station_clouds(
             f for f in sdir.iterdir()
             if f.suffix.lower() == ".ply" and not f.name.startswith(".") and (f.is_file() or f.is_symlink())
         )  # fmt: skip
+        # a file that is no link resolves within its folder: one resolve per folder, not per file
+        sdir_res = sdir.resolve()
+        resolved = {f: _resolved_or_none(f) if f.is_symlink() else sdir_res / f.name for f in plys}
         if sdir.name not in sensors:
-            if plys and not all(f.resolve() in ref_resolved for f in plys):
+            if plys and not all(resolved[f] in ref_resolved for f in plys):
                 raise DatasetError(sdir, "folder", f"a folder named after a sensor of dataset.yaml "
                                    f"({', '.join(sensors) or 'none'})", sdir.name)  # fmt: skip
             continue
         for f in plys:
             rel = f"clouds/{sdir.name}/{f.name}"
-            _inside(root, rel, f, "file")
+            _inside(root, rel, f, "file", root_resolved=root_res, resolved=resolved[f])
             stem = f.stem
             sid = int(stem) if re.fullmatch(r"[+-]?[0-9]+", stem) else None
             if sid is not None and sid in ids:
@@ -1103,7 +1121,7 @@ def _station_clouds(
                     other = out[(sdir.name, sid)].name
                     raise DatasetError(f, "file", "one cloud per station", f"{other} and {f.name} for station {sid}")
                 out[(sdir.name, sid)] = f
-            elif f.resolve() not in ref_resolved:
+            elif resolved[f] not in ref_resolved:
                 expected = "<station>.ply with a station id of stations.csv"
                 got = f"{f.name} ({'no stations.csv' if station_ids is None else 'no such station'})"
                 if sid is None or station_ids is None:
@@ -1282,8 +1300,10 @@ def _check_joint_columns(robot, parsed: Mapping[str, _Parsed]) -> None:
 
 
 #: the values of dataset.yaml's stance.feet_fixed_within graphcal knows: the feet stay planted within
-#: a session (the contract's default) or are re-planted at every station
-FEET_FIXED_WITHIN = ("session", "station")
+#: a session (the contract's default), are re-planted at every station, or within a step of a walk
+#: (timeseries.csv's contact_<foot> columns say when; stations of such a dataset are read as
+#: "station": the robot stepped between them)
+FEET_FIXED_WITHIN = ("session", "station", "step")
 
 
 def _check_radians(p: _Parsed, joint: str, joint_type: str, lower: float, upper: float) -> None:
@@ -1420,7 +1440,8 @@ def validate_dataset(path: str | Path) -> ValidationReport:
             sessions.update(t["session"].tolist())
     if ds.stations is not None and not len(ds.stations):
         warnings.append("stations.csv has a header but no rows: nothing to calibrate (calibrate refuses it)")
-    if ds.stations is not None and not ds.stations.has("session") and len(ds.stations):
+    in_the_air = ds.mocap is not None and not ds.sensors  # a leg measured by markers: no foot is planted
+    if ds.stations is not None and not ds.stations.has("session") and len(ds.stations) and not in_the_air:
         warnings.append("stations.csv has no session column (which stations share a stance is unknown)")
     if str(ds.ground.get("type", "level")) != "level":
         warnings.append(f"dataset.yaml ground.type {ds.ground['type']!r}: graphcal models a level ground (type: level) "
@@ -1429,7 +1450,7 @@ def validate_dataset(path: str | Path) -> ValidationReport:
     fixed = str(ds.stance.get("feet_fixed_within", "session"))
     if fixed not in FEET_FIXED_WITHIN:
         warnings.append(f"dataset.yaml stance.feet_fixed_within {fixed!r}: graphcal knows "
-                        f"{' and '.join(FEET_FIXED_WITHIN)}; it is read as session")
+                        f"{', '.join(FEET_FIXED_WITHIN[:-1])} and {FEET_FIXED_WITHIN[-1]}; it is read as session")
     for name in ds.sensors:
         has_planes = ds.planes is not None and name in set(ds.planes["sensor"].tolist())
         has_clouds = any(s == name for s, _ in clouds) or (
