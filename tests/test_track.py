@@ -46,6 +46,13 @@ def short_walk(tmp_path_factory):
                      "--cloud-rate", "1")
 
 
+def test_the_simulated_walk_validates_without_warnings(short_walk):
+    """simulate's own walk (stance.feet_fixed_within: step) is no "unknown value" to validate."""
+    from graphcal.io.dataset import validate_dataset
+
+    assert validate_dataset(short_walk).warnings == ()
+
+
 def test_level_walk_20_m_drift_below_1_percent(level20):
     _, _, m = level20
     assert m["truth"] is True

@@ -71,7 +71,7 @@ def station_measurements(ds, robot) -> tuple[StationMeasurements, ...]:
         raise DatasetError(ds.root or "dataset", "stations.csv", "a stations.csv for a static calibration")
     n = len(t)
     sessions = t["session"] if t.has("session") else np.array(["default"] * n)
-    if str(ds.stance.get("feet_fixed_within", "session")) == "station":  # FEET_FIXED_WITHIN, io/dataset.py
+    if str(ds.stance.get("feet_fixed_within", "session")) in ("station", "step"):  # FEET_FIXED_WITHIN, io/dataset.py
         # dataset.yaml: the feet are re-planted at every station, so each is a stance of its own
         sessions = np.array([f"station {int(s)}" for s in t["station"]])
     has_cmd = t.has("body_x")

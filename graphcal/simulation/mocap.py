@@ -150,8 +150,9 @@ def simulate_mocap(
         T_mocap_body: (4, 4) the body in the motion-capture frame (default :data:`DEFAULT_T_MOCAP_BODY`).
         p_foot_marker: foot -> (3,) true marker position in the foot frame, m (default the foot origin).
         marker_xyz_known: write the foot markers' positions into dataset.yaml (else they are unknown).
-        q_ranges: joint -> (low, high) sampling range, rad / m (default the joint limits, +-pi
-            where unlimited).
+        q_ranges: joint -> (low, high) sampling range of the true angles, rad / m (default the
+            joint limits less the encoder noise, its half-width or 3 sigma, so that the readings stay
+            within the limits; +-pi where unlimited).
         seed: random seed.
 
     Raises:
@@ -187,8 +188,12 @@ def simulate_mocap(
     mocap_rows: list[tuple[float, str, np.ndarray]] = []
     for foot in feet:
         leg = robot.leg(foot)
-        lo = np.where(np.isfinite(leg.lower), leg.lower, -np.pi)
-        hi = np.where(np.isfinite(leg.upper), leg.upper, np.pi)
+        # the encoders read the true angle plus noise: drawn this far inside the limits, a reading
+        # stays within them (graphcal validate warns about readings beyond a URDF limit)
+        margin = joint_noise_rad if noise == "uniform" else 3.0 * joint_noise_rad
+        room = np.isfinite(leg.lower) & np.isfinite(leg.upper) & (leg.upper - leg.lower > 4.0 * margin)
+        lo = np.where(np.isfinite(leg.lower), leg.lower + np.where(room, margin, 0.0), -np.pi)
+        hi = np.where(np.isfinite(leg.upper), leg.upper - np.where(room, margin, 0.0), np.pi)
         for j, name in enumerate(leg.joint_names):
             if q_ranges and name in q_ranges:
                 lo[j], hi[j] = q_ranges[name]
