@@ -309,6 +309,12 @@ CASES = [
     ("cloud-two-for-one-station", cloud_points("clouds/depth/001.ply", [[0, 0, 1]]), "clouds/depth/",
      ["one cloud per station"]),
     ("cloud-symlink-out", symlink("clouds/depth/1.ply", "outside.ply"), "clouds/depth/1.ply", ["inside the dataset"]),
+    ("cloud-symlink-loop", lambda d: os.symlink("loop.ply", d / "clouds" / "depth" / "loop.ply"),
+     "clouds/depth/loop.ply", ["inside the dataset"]),
+    ("cloud-folder-symlink-out", lambda d: ((d / "timeseries.csv").unlink(),  # its clouds are checked first
+                                            shutil.move(d / "clouds" / "depth", d.parent / "depth_outside"),
+                                            os.symlink(d.parent / "depth_outside", d / "clouds" / "depth")),
+     "clouds/depth/", ["inside the dataset"]),
 ]
 
 
