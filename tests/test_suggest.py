@@ -303,3 +303,12 @@ def test_the_d_criterion_is_the_extrinsics_marginal_information():
     Lam = np.swapaxes(A, 1, 2) @ A
     np.testing.assert_allclose(_logdet_marginal(Lam), -np.linalg.slogdet(np.linalg.inv(Lam)[:, :6, :6])[1], rtol=1e-9)
     assert not np.allclose(_logdet_marginal(Lam), np.linalg.slogdet(Lam)[1], rtol=1e-3)
+
+
+def test_the_command_says_which_sensor_it_plans_for(tmp_path_factory, chai):
+    """The Messor's laser scanner is not in the information model: the command says it plans for the
+    stereo camera alone (it said nothing); a one-camera dataset gets no such line."""
+    sim = simulate(SimulationConfig(robot="messor", program="random", n_stations=8, seed=1, cloud_stride=16))
+    text = suggest_poses_command(_write(tmp_path_factory, "messor", sim), 1)
+    assert "planned for stereo (stereo_camera) alone; not for laser (laser_scanner)" in text
+    assert "planned for" not in suggest_poses_command(chai[0], 1)

@@ -542,6 +542,10 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
         from .noise_file import noise_from_mismatch
 
         noise_line += "".join(f"\nwarning: {w}" for w in noise_from_mismatch(noise_from, model.robot.name, model.ds.sensors))
+    others = [f"{name} ({spec.type})" for name, spec in model.ds.sensors.items() if name != model.sensor]
+    if others:  # e.g. the Messor's laser scanner beside its stereo camera
+        noise_line += (f"\nplanned for {model.sensor} ({model.ds.sensors[model.sensor].type}) alone; not for "
+                       f"{', '.join(others)} (the information model covers one camera)")
     if after_existing:
         Lam, n_done = model.existing_information()
         s_rot, s_xyz = model.sigmas(model.prior_information() + Lam)
