@@ -527,6 +527,19 @@ def test_bad_identify_legs_sigmas_are_one_line_exit_2(tmp_path, option, value, w
     assert not (tmp_path / "o").exists()
 
 
+def test_commands_needing_a_sensor_name_dataset_yaml_on_a_mocap_dataset(tmp_path):
+    """calibrate said "station 0: fewer than 3 legs" and diagnose "run graphcal extract-planes?" on
+    a motion-capture dataset; now each names dataset.yaml's sensors and identify-legs."""
+    ds = tmp_path / "mocap"
+    run("simulate", "--robot", "a1", "--program", "mocap", "--stations", "20", "--out", ds, "--quiet", check_rc=0)
+    for words in (("calibrate",), ("calibrate", "--incremental"), ("diagnose",)):
+        proc = run(words[0], ds, "--out", tmp_path / "o", *words[1:], "--quiet")
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert "dataset.yaml: sensors: expected at least one sensor for " + " ".join(words) in proc.stderr, proc.stderr
+        assert "graphcal identify-legs" in proc.stderr
+        assert not (tmp_path / "o").exists()
+
+
 def test_dataset_yaml_ground_and_stance_values_are_used_or_warned_about(small_dataset, tmp_path):
     """ground.type other than level and an unknown stance.feet_fixed_within are warned about by
     validate (they were read and ignored); feet_fixed_within: station makes every station a stance."""

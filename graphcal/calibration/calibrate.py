@@ -19,7 +19,7 @@ from ..io.dataset import off_plane_scan_warning
 from .graph import (CalibrationOptions, CalibrationProblem, build_problem, extrinsic_prior_for_observability,
                     predicted_plane_errors)
 from .ground_selection import ground_choice_warnings
-from .measurements import CalibrationData, calibration_data
+from .measurements import CalibrationData, calibration_data, require_sensors
 from .result import (
     CalibrationResult,
     ExtrinsicSegment,
@@ -146,6 +146,7 @@ def calibrate(
     from ..io.dataset import Dataset, load_dataset_robot, read_dataset
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+    require_sensors(ds, "calibrate")
     robot = load_dataset_robot(ds)
     planes_given = data is not None
     if data is None:

@@ -61,7 +61,8 @@ from ..geometry import from_gtsam_pose, to_gtsam_pose
 from .change_detection import ChangeDetector, Decision, innovation_nis, joint_covariance
 from .graph import (GAUGE_PRIOR_SIGMAS, CalibrationOptions, CalibrationProblem, build_problem,
                     extrinsic_prior_for_observability, floored_extrinsic_prior)
-from .measurements import CalibrationData, PlaneMeasurement, StationMeasurements, calibration_data
+from .measurements import (CalibrationData, PlaneMeasurement, StationMeasurements, calibration_data,
+                           require_sensors)
 from .result import CalibrationResult, ExtrinsicSegment, IncrementalStep, SensorEstimate
 
 __all__ = ["IncrementalCalibrator", "calibrate_incremental", "station_updates"]
@@ -712,6 +713,7 @@ def calibrate_incremental(
     from .noise_check import given_noise_check
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+    require_sensors(ds, "calibrate --incremental")
     robot = load_dataset_robot(ds)
     planes_given = data is not None
     if data is None:

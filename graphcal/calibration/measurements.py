@@ -221,6 +221,18 @@ def scan_points(ds, *, max_points: int = 200, seed: int = 0, max_range_m: float 
     return out
 
 
+def require_sensors(ds, command: str) -> None:
+    """DatasetError naming dataset.yaml's ``sensors`` when the dataset has none (a motion-capture
+    dataset: its legs are identified by ``graphcal identify-legs``); ``command`` names what needs them."""
+    if ds.sensors:
+        return
+    from ..errors import DatasetError
+
+    where = ds.root / "dataset.yaml" if ds.root is not None else "dataset.yaml"
+    hint = " (its motion capture identifies the legs: graphcal identify-legs)" if ds.mocap is not None else ""
+    raise DatasetError(where, "sensors", f"at least one sensor for {command}{hint}", "none")
+
+
 def calibration_data(ds, robot, *, progress: bool = False, plane_max_points: int | None = None) -> CalibrationData:
     """Everything the calibration graph reads from a dataset (``plane_max_points``: see
     :func:`plane_candidates`; where a camera saw several planes the floor is the one the stance

@@ -349,7 +349,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         max_findings: stop after this many findings.
         heldout: compute the held-out gain of each finding (two-fold, by station).
     """
-    from ..calibration.measurements import calibration_data
+    from ..calibration.measurements import calibration_data, require_sensors
     from ..io.dataset import Dataset, load_dataset_robot, read_dataset
 
     def say(msg):
@@ -357,6 +357,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
             print(f"diagnose: {msg}", file=sys.stderr, flush=True)
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+    require_sensors(ds, "diagnose")
     robot = load_dataset_robot(ds)
     data = calibration_data(ds, robot, progress=progress)
     if not data.planes and not data.scan_points:
