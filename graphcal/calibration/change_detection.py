@@ -42,7 +42,8 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
+
+from .. import chi2
 
 __all__ = [
     "Decision",

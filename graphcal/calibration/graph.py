@@ -354,8 +354,8 @@ def huber_loss(dim: int, options: CalibrationOptions):
 
 @functools.lru_cache(maxsize=64)
 def _huber_threshold(p: float, dim: int) -> float:
-    """sqrt of the chi-square quantile p of dim dof (scipy's ppf costs ~0.2 ms; one per factor)."""
-    from scipy.stats import chi2
+    """sqrt of the chi-square quantile p of dim dof (one per factor: cached)."""
+    from .. import chi2
 
     return float(np.sqrt(chi2.ppf(p, dim)))
 
