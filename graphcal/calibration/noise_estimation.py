@@ -15,8 +15,8 @@ E[s_g^2] = 1. Each group's sigma is multiplied by s_g and the graph is solved ag
 algebra, no re-solve of the nonlinear graph) so that one re-solve and one check usually suffice
 (Chai's 52 stations: 2 calls and 1 re-solve). :func:`group_variances`
 is one update at a solution. h_i comes from the joint marginal covariance of the factor's variables: read from
-one dense inverse of the information matrix for graphs of up to ``DENSE_MAX_DIM`` unknowns (a
-calibration of up to ~1,300 stations), otherwise from ``gtsam.Marginals`` factor by factor (cost
+the inverse of the information matrix, in the blocks a factor can read (:class:`_ArrowLayout`),
+for graphs of up to ``DENSE_MAX_DIM`` unknowns (a calibration of up to ~1,300 stations), otherwise from ``gtsam.Marginals`` factor by factor (cost
 growing with the number of factors, not cubically).
 
 A group whose covariance is a sum of components, ``Sigma = sum_k Sigma_k`` (a foot: joint noise
@@ -130,11 +130,12 @@ def helmert_components(group: str, names: list, N: np.ndarray, q: np.ndarray, re
                                tuple(k for k in keys if k != key)) for key in keys}
 
 
-#: graphs with at most this many unknowns get their joint marginals from one dense inverse (through
-#: the Schur complement of the station poses, :func:`_arrow_inverse`; memory ~ 2 n^2 doubles).
-#: Measured on 1,000 simulated Octopus stations (6,100 unknowns): calibrate took 18.8 s with it
-#: (peak 1.2 GB) and 83 s with the factor-by-factor marginals (3000 before: 72,240
-#: jointMarginalCovariance calls, 55 % of the time), the same noise model and extrinsic
+#: graphs with at most this many unknowns get their joint marginals from one inverse through the
+#: Schur complement of the station poses (:class:`_ArrowLayout`: memory ~ unknowns x globals).
+#: Measured on 1,000 simulated Octopus stations (6,100 unknowns, 5 sessions): calibrate took 18.8 s
+#: when this inverse was dense (peak 1.2 GB; n x n arrays), 83 s with the factor-by-factor marginals
+#: (3000 before: 72,240 jointMarginalCovariance calls, 55 % of the time), and 8.7 s in blocks (13.9 s
+#: dense, side by side), the same noise model and extrinsic. Not raised since: larger graphs not measured
 DENSE_MAX_DIM = 8000
 
 
@@ -257,7 +258,7 @@ def _factor_blocks(lin: gtsam.GaussianFactorGraph, values: gtsam.Values, keys, n
 
 
 def _arrow_split(columns: dict, factor_keys: list) -> tuple[dict, np.ndarray]:
-    """Split the unknowns for :func:`_arrow_inverse`: "local" variables, no two of which share a
+    """Split the unknowns for :class:`_ArrowLayout`: "local" variables, no two of which share a
     factor (a calibration graph's station poses: each station's factors touch its own pose and the
     shared variables only), chosen greedily by fewest neighbours; the rest is "global".
 
@@ -289,43 +290,127 @@ def _pd_inverse(M: np.ndarray) -> np.ndarray:
     return np.linalg.inv(M) if M.shape[-1] else M.copy()
 
 
+class _ArrowLayout:
+    """Where the blocks of an arrow-shaped normal matrix live in one flat array (:func:`_arrow_split`:
+    local variables coupled only through the global columns, ``H = [[D, B], [B^T, G]]`` with D block
+    diagonal), and their solution in the same layout. Per dimension d of the local variables (m_d of
+    them): ``D_d`` (m_d, d, d) and ``B_d`` (m_d, d, g); then ``G`` (g, g). The covariance uses the same
+    layout (``Sigma_LL`` per local variable, ``Sigma_LG``, ``Sigma_GG``): the blocks a factor can read,
+    since no factor touches two local variables. Memory O(stations x globals), not O(n^2) (1,000
+    stations: 6,100 unknowns, a dense n x n was 300 MB an array)."""
+
+    def __init__(self, n: int, local: dict, global_cols: np.ndarray):
+        self.n, self.local, self.g = n, local, np.asarray(global_cols, dtype=np.int64)
+        G = len(self.g)
+        # per column: local or not, its local variable (a number over all dimensions), its row in
+        # its dimension group's stack (variable v, component p: v * d + p), its D and B offsets; or
+        # its position among the globals
+        self.is_local = np.zeros(n, dtype=bool)
+        self.var = np.full(n, -1, dtype=np.int64)
+        self.row = np.zeros(n, dtype=np.int64)
+        self.dim = np.ones(n, dtype=np.int64)
+        self.d_off = np.zeros(n, dtype=np.int64)
+        self.b_off = np.zeros(n, dtype=np.int64)
+        self.gpos = np.full(n, -1, dtype=np.int64)
+        self.gpos[self.g] = np.arange(G)
+        self.offsets = {}
+        off = n_vars = 0
+        for d, idx in local.items():
+            m = len(idx)
+            self.offsets[d] = (off, off + m * d * d)  # D_d, then B_d
+            self.is_local[idx] = True
+            self.var[idx] = n_vars + np.arange(m)[:, None]
+            self.row[idx] = np.arange(m * d).reshape(m, d)
+            self.dim[idx] = d
+            self.d_off[idx], self.b_off[idx] = self.offsets[d]
+            off += m * d * d + m * d * G
+            n_vars += m
+        self.g_offset = off
+        self.size = off + G * G
+
+    def _index(self, C: np.ndarray, transpose_lg: bool) -> np.ndarray:
+        """Flat index of every entry (i, j) of the blocks C (F, k) x C (F, k, k) in the layout. -1:
+        two different local variables (never read: no factor touches both) and, with
+        ``transpose_lg`` False (the normal matrix keeps B = H_LG only), a (global, local) entry;
+        with True, its transpose's place (Sigma_GL = Sigma_LG^T)."""
+        ci, cj = C[:, :, None], C[:, None, :]
+        li, lj = self.is_local[ci], self.is_local[cj]
+        G = len(self.g)
+        out = np.full(np.broadcast_shapes(ci.shape, cj.shape), -1, dtype=np.int64)
+        same = li & lj & (self.var[ci] == self.var[cj])
+        out = np.where(same, self.d_off[ci] + self.row[ci] * self.dim[ci] + self.row[cj] % self.dim[cj], out)
+        out = np.where(li & ~lj, self.b_off[ci] + self.row[ci] * G + self.gpos[cj], out)
+        if transpose_lg:
+            out = np.where(~li & lj, self.b_off[cj] + self.row[cj] * G + self.gpos[ci], out)
+        return np.where(~li & ~lj, self.g_offset + self.gpos[ci] * G + self.gpos[cj], out)
+
+    def two_locals(self, C: np.ndarray) -> bool:
+        """Whether a factor of the blocks C (F, k) touches two different local variables."""
+        v = np.where(self.is_local[C], self.var[C], -1)
+        return bool(np.any((v[:, :, None] >= 0) & (v[:, None, :] >= 0) & (v[:, :, None] != v[:, None, :])))
+
+    def h_target(self, C: np.ndarray) -> np.ndarray:
+        """Where each entry of the factors' A^T A blocks (F, k, k) is summed (-1: not kept)."""
+        return self._index(C, transpose_lg=False)
+
+    def sigma_source(self, C: np.ndarray) -> np.ndarray:
+        """Where each entry of the factors' Sigma_x blocks (F, k, k) is read."""
+        return self._index(C, transpose_lg=True)
+
+    def solve(self, H_flat: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(Sigma_x in this layout, H^-1 rhs (n,))``: the Schur complement ``S = G - B^T D^-1 B``
+        of the local variables (a few dozen globals) is inverted densely, the local blocks one by one
+        (batched):
+
+            Sigma_GG = S^-1,   Sigma_LG = -D^-1 B S^-1,   Sigma_LiLi = D_i^-1 + D_i^-1 B_i S^-1 B_i^T D_i^-1.
+
+        Raises GraphcalError when H is not positive definite (a local block or S is not)."""
+        G = len(self.g)
+        S = H_flat[self.g_offset:].reshape(G, G)
+        r_g = rhs[self.g].copy()
+        Sigma = np.empty(self.size)
+        parts = []
+        for d, idx in self.local.items():
+            m = len(idx)
+            o_d, o_b = self.offsets[d]
+            D = H_flat[o_d:o_d + m * d * d].reshape(m, d, d)
+            B = H_flat[o_b:o_b + m * d * G].reshape(m, d, G)
+            D_inv = _pd_inverse(D)
+            D_inv_B = D_inv @ B
+            D_inv_r = np.einsum("mij,mj->mi", D_inv, rhs[idx])
+            S = S - np.einsum("mdg,mdh->gh", B, D_inv_B)
+            r_g -= np.einsum("mdg,md->g", B, D_inv_r)
+            parts.append((d, idx, D_inv, D_inv_B, D_inv_r))
+        S_inv = _pd_inverse(0.5 * (S + S.T))
+        delta = np.empty(self.n)
+        d_g = S_inv @ r_g
+        Sigma[self.g_offset:] = S_inv.ravel()
+        delta[self.g] = d_g
+        for d, idx, D_inv, D_inv_B, D_inv_r in parts:
+            m = len(idx)
+            o_d, o_b = self.offsets[d]
+            X = D_inv_B @ S_inv  # (m, d, g) = -Sigma_LG
+            Sigma[o_b:o_b + m * d * G] = -X.ravel()
+            Sigma[o_d:o_d + m * d * d] = (D_inv + X @ np.swapaxes(D_inv_B, 1, 2)).ravel()
+            delta[idx] = D_inv_r - np.einsum("mdg,g->md", D_inv_B, d_g)
+        return Sigma, delta
+
+
 def _arrow_inverse(H: np.ndarray, rhs: np.ndarray, local: dict, global_cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(H^-1, H^-1 rhs)`` for a normal matrix whose local variables (:func:`_arrow_split`) are
-    coupled only through the global ones: ``H = [[D, B], [B^T, G]]`` with D block diagonal. The
-    Schur complement ``S = G - B^T D^-1 B`` (global x global, a few dozen unknowns) is inverted
-    densely, the local blocks one by one (batched):
-
-        Sigma_GG = S^-1,   Sigma_LG = -D^-1 B S^-1,   Sigma_LiLi = D_i^-1 + D_i^-1 B_i S^-1 B_i^T D_i^-1.
-
-    The blocks between two different local variables are left zero: no factor touches two of them,
-    so the hat matrix never reads them. Costs O(stations) instead of the O(n^3) of a dense inverse.
-    Raises GraphcalError when H is not positive definite (a local block or S is not)."""
+    """``(H^-1, H^-1 rhs)`` of a dense normal matrix through :class:`_ArrowLayout` (the dense view
+    of what :func:`converged_scales` computes in blocks): the blocks between two different local
+    variables are left zero (no factor touches two of them, so the hat matrix never reads them).
+    Raises GraphcalError when H is not positive definite."""
     n = len(H)
-    g = global_cols
-    S = H[np.ix_(g, g)]
-    r_g = rhs[g].copy()
-    parts = []
-    for idx in local.values():
-        D = H[idx[:, :, None], idx[:, None, :]]  # (m, d, d)
-        B = H[idx[:, :, None], g[None, None, :]]  # (m, d, g)
-        D_inv = _pd_inverse(D)
-        D_inv_B = D_inv @ B
-        D_inv_r = np.einsum("mij,mj->mi", D_inv, rhs[idx])
-        S = S - np.einsum("mdg,mdh->gh", B, D_inv_B)
-        r_g -= np.einsum("mdg,md->g", B, D_inv_r)
-        parts.append((idx, D_inv, D_inv_B, D_inv_r))
-    S_inv = _pd_inverse(0.5 * (S + S.T))
-    Sigma = np.zeros((n, n))
-    delta = np.empty(n)
-    d_g = S_inv @ r_g
-    Sigma[np.ix_(g, g)] = S_inv
-    delta[g] = d_g
-    for idx, D_inv, D_inv_B, D_inv_r in parts:
-        X = D_inv_B @ S_inv  # (m, d, g) = -Sigma_LG
-        Sigma[idx[:, :, None], g[None, None, :]] = -X
-        Sigma[g[None, :, None], idx[:, None, :]] = -np.swapaxes(X, 1, 2)
-        Sigma[idx[:, :, None], idx[:, None, :]] = D_inv + X @ np.swapaxes(D_inv_B, 1, 2)
-        delta[idx] = D_inv_r - np.einsum("mdg,g->md", D_inv_B, d_g)
+    lay = _ArrowLayout(n, local, global_cols)
+    cols = np.arange(n)[None, :]
+    tgt = lay.h_target(cols)[0]
+    keep = tgt >= 0
+    H_flat = np.zeros(lay.size)
+    H_flat[tgt[keep]] = H[keep]
+    Sigma_flat, delta = lay.solve(H_flat, rhs)
+    src = lay.sigma_source(cols)[0]
+    Sigma = np.where(src >= 0, Sigma_flat[np.maximum(src, 0)], 0.0)
     return Sigma, delta
 
 
@@ -359,8 +444,8 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
     The algebra works on each factor's own block (its rows over its variables' columns, stacked
     into arrays of equal shape), never on the whole Jacobian: the normal matrix is summed from
     the blocks and inverted through the Schur complement of the station poses
-    (:func:`_arrow_inverse`, at most ``DENSE_MAX_DIM`` unknowns), and the hat matrix is read block
-    by block.
+    (:class:`_ArrowLayout`, at most ``DENSE_MAX_DIM`` unknowns; never an n x n array), and the hat
+    matrix is read block by block.
 
     Args:
         graph, values, groups, components: as :func:`group_variances`.
@@ -427,11 +512,16 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
         # without estimated parameters): (F_b, r, k_b) and (F_b, r)
         m["raw"] = {key: (m["W0_inv"][j] @ blocks[key][1][pos], np.einsum("fij,fj->fi", m["W0_inv"][j], blocks[key][2][pos]))
                     for key, (pos, j) in multi_idx[g].items()}
-    # where each block's entries land: in the normal matrix and Sigma_x (flat n * n), and in the
-    # right-hand side
+    # where each block's entries land: in the normal matrix's blocks and read from Sigma_x's
+    # (_ArrowLayout), and in the right-hand side
     order = list(blocks)
-    flat_idx = {key: C[:, :, None] * n + C[:, None, :] for key, (_, _, _, C) in blocks.items()}
-    h_idx = np.concatenate([flat_idx[key].ravel() for key in order])
+    layout = _ArrowLayout(n, local, global_cols)
+    if any(layout.two_locals(C) for (_, _, _, C) in blocks.values()):
+        raise GraphcalError("noise estimation: a factor touches two local variables")  # _arrow_split prevents it
+    h_tgt = np.concatenate([layout.h_target(blocks[key][3]).ravel() for key in order])
+    h_keep = h_tgt >= 0
+    h_tgt = h_tgt[h_keep]
+    sigma_src = {key: layout.sigma_source(C) for key, (_, _, _, C) in blocks.items()}
     g_idx = np.concatenate([blocks[key][3].ravel() for key in order])
 
     scale = {g: 1.0 for g in single}
@@ -458,16 +548,15 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
         # normal equations summed from the blocks (a factor touches a few unknowns)
         AtA = np.concatenate([(np.swapaxes(A[key], 1, 2) @ A[key]).ravel() for key in order])
         Atb = np.concatenate([np.einsum("frk,fr->fk", A[key], b[key]).ravel() for key in order])
-        H = np.bincount(h_idx, weights=AtA, minlength=n * n).reshape(n, n)
-        Sigma_x, delta = _arrow_inverse(H, np.bincount(g_idx, weights=Atb, minlength=n), local, global_cols)
-        Sigma_x = Sigma_x.ravel()
+        H_blocks = np.bincount(h_tgt, weights=AtA[h_keep], minlength=layout.size)
+        Sigma_x, delta = layout.solve(H_blocks, np.bincount(g_idx, weights=Atb, minlength=n))
         # whitened residuals at the re-weighted linear solution, and the hat matrix A Sigma_x A^T
         # of each factor (its diagonal block)
         e, hat = {}, {}
         for key, (_, _, _, C) in blocks.items():
             A_f = A[key]
             e[key] = b[key] - np.einsum("frk,fk->fr", A_f, delta[C])
-            hat[key] = A_f @ Sigma_x[flat_idx[key]] @ np.swapaxes(A_f, 1, 2)
+            hat[key] = A_f @ Sigma_x[sigma_src[key]] @ np.swapaxes(A_f, 1, 2)
         stats: dict[str, GroupVariance] = {}
         for g, d in single_idx.items():
             chi2 = red = 0.0
