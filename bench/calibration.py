@@ -1,6 +1,6 @@
 """Calibration benchmarks: ratios against baselines run side by side in this process.
 
-    .venv/bin/python bench/calibration.py [--part chai|isam|all] [--json PATH]
+    .venv/bin/python bench/calibration.py [--part chai|isam|large|all] [--json PATH]
 
 * ``chai``: Chai scale, 52 stations x 300k-point Kinect clouds in a dataset folder. graphcal end to
   end (read clouds, extract planes, calibrate) against (a) reading the same clouds plus one numpy PCA
@@ -18,6 +18,12 @@
   500 stations (target: linear). Timed twice: the bare ``ISAM2.update`` of a station's factors, and
   graphcal's whole per-station step as ``calibrate --incremental`` takes it
   (``IncrementalCalibrator.add_factors``: updates, change test, marginal covariance, sigmas).
+
+* ``large``: 1,000 stations (random program, 5 sessions, planes), the batch calibration with the
+  noise learned: the variance components' joint marginals in blocks (graphcal's path up to
+  ``DENSE_MAX_DIM`` unknowns) against GTSAM's factor-by-factor ``Marginals`` (its path beyond), side
+  by side in this process; then each once more in a fresh process for its peak memory (resident
+  set, imports and GTSAM included).
 
 Timings are medians of repeats (6 for the Chai part, with their range); every number printed is
 measured in this run. The graphcal variants rotate every repeat, so that each follows the
@@ -183,9 +189,58 @@ def bench_isam(n_stations: int = 500, checkpoints=(50, 100, 250, 500)) -> dict:
             "changes_declared": sum(len(cal.change_stations(n)) for n in cal.sensors)}
 
 
+_PEAK_CHILD = """
+import json, resource, sys, time
+import graphcal.calibration.noise_estimation as ne
+from graphcal.calibration.calibrate import calibrate
+if sys.argv[2] == "marginals":
+    ne.DENSE_MAX_DIM = 0
+t0 = time.perf_counter()
+calibrate(sys.argv[1])
+print(json.dumps({"seconds": time.perf_counter() - t0,
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+
+def bench_large(n_stations: int = 1000) -> dict:
+    import subprocess
+    import sys
+
+    import graphcal.calibration.noise_estimation as ne
+    from graphcal.calibration.calibrate import calibrate
+    from graphcal.simulation.run import write_simulation
+    from graphcal.simulation.session import SimulationConfig, simulate
+
+    folder = Path(tempfile.mkdtemp(prefix="graphcal-bench-")) / "large"
+    write_simulation(simulate(SimulationConfig(robot="octopus", program="random", n_stations=n_stations,
+                                               n_sessions=5, seed=1, cloud_stride=16)), folder, output="planes")
+    out: dict = {"stations": n_stations, "seconds": {}, "peak_rss_mb": {}, "extrinsic": {}}
+    variants = (("blocks (graphcal)", "blocks"), ("gtsam.Marginals per factor", "marginals"))
+    limit = ne.DENSE_MAX_DIM
+    for name, how in variants:  # time: side by side in this process
+        ne.DENSE_MAX_DIM = limit if how == "blocks" else 0
+        try:
+            t0 = time.perf_counter()
+            r = calibrate(folder)
+            out["seconds"][name] = time.perf_counter() - t0
+        finally:
+            ne.DENSE_MAX_DIM = limit
+        s = r.sensors["depth"]
+        out["extrinsic"][name] = (s.T_body_sensor, s.sigma_rot_deg, s.sigma_xyz_mm)
+    for name, how in variants:  # peak memory (GTSAM's included): each in a fresh process, imports counted
+        child = subprocess.run([sys.executable, "-c", _PEAK_CHILD, str(folder), how], capture_output=True,
+                               text=True, check=True)
+        out["peak_rss_mb"][name] = json.loads(child.stdout.strip().splitlines()[-1])["peak_rss_mb"]
+    (T0, r0, x0), (T1, r1, x1) = out["extrinsic"].values()
+    out["max_difference"] = {"T entries": float(np.abs(T0 - T1).max()),
+                             "sigma relative": float(max(np.abs(r0 / r1 - 1).max(), np.abs(x0 / x1 - 1).max()))}
+    out["extrinsic"] = {k: [v[0].tolist(), v[1].tolist(), v[2].tolist()] for k, v in out["extrinsic"].items()}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--part", choices=("chai", "isam", "all"), default="all")
+    ap.add_argument("--part", choices=("chai", "isam", "large", "all"), default="all")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
     out = {}
@@ -212,6 +267,14 @@ def main() -> None:
               f"whole step/batch = {100 * s['step_over_batch_at_last']:.1f} % (target <= 10 %); "
               f"log-log slope {s['log_log_slope']:.2f} (bare), {s['step_log_log_slope']:.2f} (whole step) "
               f"(1 = linear); changes declared on clean data: {s['changes_declared']}")
+    if a.part in ("large", "all"):
+        out["large"] = g = bench_large()
+        print(f"{g['stations']} stations, noise learned:")
+        base = g["seconds"]["gtsam.Marginals per factor"]
+        for k, v in g["seconds"].items():
+            print(f"  {k:28s} {v:7.2f} s ({v / base:.2f}x the Marginals path); peak memory {g['peak_rss_mb'][k]:6.0f} MB")
+        d = g["max_difference"]
+        print(f"  the two agree: extrinsic entries within {d['T entries']:.1e}, sigma within {d['sigma relative']:.1e} relative")
     if a.json:
         a.json.write_text(json.dumps(out, indent=2, default=str))
 
