@@ -254,11 +254,27 @@ def _arrow_matrix(rng, m=7, d=6, g=5):
     return A.T @ A, local, glob
 
 
+def _arrow_inverse(H, rhs, local, global_cols):
+    """``(H^-1, H^-1 rhs)`` of a dense normal matrix through ne._ArrowLayout (what converged_scales
+    computes in blocks, scattered back into n x n; the blocks between two local variables, which no
+    factor reads, stay zero)."""
+    n = len(H)
+    lay = ne._ArrowLayout(n, local, global_cols)
+    cols = np.arange(n)[None, :]
+    tgt = lay.h_target(cols)[0]
+    keep = tgt >= 0
+    H_flat = np.zeros(lay.size)
+    H_flat[tgt[keep]] = H[keep]
+    Sigma_flat, delta = lay.solve(H_flat, rhs)
+    src = lay.sigma_source(cols)[0]
+    return np.where(src >= 0, Sigma_flat[np.maximum(src, 0)], 0.0), delta
+
+
 def test_arrow_inverse_equals_the_dense_inverse_where_factors_read_it():
     rng = np.random.default_rng(11)
     H, local, glob = _arrow_matrix(rng)
     rhs = rng.normal(size=len(H))
-    Sigma, delta = ne._arrow_inverse(H, rhs, {local.shape[1]: local}, glob)
+    Sigma, delta = _arrow_inverse(H, rhs, {local.shape[1]: local}, glob)
     dense = np.linalg.inv(H)
     np.testing.assert_allclose(delta, dense @ rhs, rtol=1e-9, atol=1e-12)
     for i in range(len(local)):  # every block a factor can read: its local variable and the globals
@@ -272,7 +288,7 @@ def test_arrow_inverse_equals_the_dense_inverse_where_factors_read_it():
     assert sorted(map(tuple, by_dim[6].tolist())) == [tuple(c) for c in list(columns.values())[:7]]
     assert g.tolist() == list(range(42, 47))
     # no locals at all: the dense inverse
-    Sigma0, delta0 = ne._arrow_inverse(H, rhs, {}, np.arange(len(H)))
+    Sigma0, delta0 = _arrow_inverse(H, rhs, {}, np.arange(len(H)))
     np.testing.assert_allclose(Sigma0, dense, rtol=1e-9, atol=1e-12)
 
 
@@ -283,12 +299,12 @@ def test_arrow_inverse_refuses_an_undetermined_variable():
     c = local[2, 0]
     H[c, :] = H[:, c] = 0.0  # a local variable's direction without information
     with pytest.raises(ne.GraphcalError, match="undetermined"):
-        ne._arrow_inverse(H, np.ones(len(H)), {local.shape[1]: local}, glob)
+        _arrow_inverse(H, np.ones(len(H)), {local.shape[1]: local}, glob)
     H2, local2, glob2 = _arrow_matrix(rng)
     H2 = H2.copy()
     H2[np.ix_(glob2, glob2)] -= 1e3 * np.eye(len(glob2))  # the globals' Schur complement is not positive
     with pytest.raises(ne.GraphcalError, match="undetermined"):
-        ne._arrow_inverse(H2, np.ones(len(H2)), {local2.shape[1]: local2}, glob2)
+        _arrow_inverse(H2, np.ones(len(H2)), {local2.shape[1]: local2}, glob2)
 
 
 def test_noise_groups_report_names_how_each_sigma_was_set():

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..geometry import pose_from_xyz_quat_wxyz
+from ..io.dataset import FEET_REPLANTED_AT_EACH_STATION
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,7 +72,7 @@ def station_measurements(ds, robot) -> tuple[StationMeasurements, ...]:
         raise DatasetError(ds.root or "dataset", "stations.csv", "a stations.csv for a static calibration")
     n = len(t)
     sessions = t["session"] if t.has("session") else np.array(["default"] * n)
-    if str(ds.stance.get("feet_fixed_within", "session")) in ("station", "step"):  # FEET_FIXED_WITHIN, io/dataset.py
+    if str(ds.stance.get("feet_fixed_within", "session")) in FEET_REPLANTED_AT_EACH_STATION:
         # dataset.yaml: the feet are re-planted at every station, so each is a stance of its own
         sessions = np.array([f"station {int(s)}" for s in t["station"]])
     has_cmd = t.has("body_x")
@@ -226,8 +227,6 @@ def require_sensors(ds, command: str) -> None:
     dataset: its legs are identified by ``graphcal identify-legs``); ``command`` names what needs them."""
     if ds.sensors:
         return
-    from ..errors import DatasetError
-
     where = ds.root / "dataset.yaml" if ds.root is not None else "dataset.yaml"
     hint = " (its motion capture identifies the legs: graphcal identify-legs)" if ds.mocap is not None else ""
     raise DatasetError(where, "sensors", f"at least one sensor for {command}{hint}", "none")

@@ -134,8 +134,9 @@ def helmert_components(group: str, names: list, N: np.ndarray, q: np.ndarray, re
 #: Schur complement of the station poses (:class:`_ArrowLayout`: memory ~ unknowns x globals).
 #: Measured on 1,000 simulated Octopus stations (6,100 unknowns, 5 sessions): calibrate took 18.8 s
 #: when this inverse was dense (peak 1.2 GB; n x n arrays), 83 s with the factor-by-factor marginals
-#: (3000 before: 72,240 jointMarginalCovariance calls, 55 % of the time), and 8.7 s in blocks (13.9 s
-#: dense, side by side), the same noise model and extrinsic. Not raised since: larger graphs not measured
+#: (3000 before: 72,240 jointMarginalCovariance calls, 55 % of the time), and 8.7 s in blocks against
+#: 13.9 s dense (run one after the other), the same noise model and extrinsic. Not raised since the
+#: blocks: larger graphs were not measured
 DENSE_MAX_DIM = 8000
 
 
@@ -394,24 +395,6 @@ class _ArrowLayout:
             Sigma[o_d:o_d + m * d * d] = (D_inv + X @ np.swapaxes(D_inv_B, 1, 2)).ravel()
             delta[idx] = D_inv_r - np.einsum("mdg,g->md", D_inv_B, d_g)
         return Sigma, delta
-
-
-def _arrow_inverse(H: np.ndarray, rhs: np.ndarray, local: dict, global_cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(H^-1, H^-1 rhs)`` of a dense normal matrix through :class:`_ArrowLayout` (the dense view
-    of what :func:`converged_scales` computes in blocks): the blocks between two different local
-    variables are left zero (no factor touches two of them, so the hat matrix never reads them).
-    Raises GraphcalError when H is not positive definite."""
-    n = len(H)
-    lay = _ArrowLayout(n, local, global_cols)
-    cols = np.arange(n)[None, :]
-    tgt = lay.h_target(cols)[0]
-    keep = tgt >= 0
-    H_flat = np.zeros(lay.size)
-    H_flat[tgt[keep]] = H[keep]
-    Sigma_flat, delta = lay.solve(H_flat, rhs)
-    src = lay.sigma_source(cols)[0]
-    Sigma = np.where(src >= 0, Sigma_flat[np.maximum(src, 0)], 0.0)
-    return Sigma, delta
 
 
 class ConvergedScales(NamedTuple):

@@ -1304,6 +1304,8 @@ def _check_joint_columns(robot, parsed: Mapping[str, _Parsed]) -> None:
 #: (timeseries.csv's contact_<foot> columns say when; stations of such a dataset are read as
 #: "station": the robot stepped between them)
 FEET_FIXED_WITHIN = ("session", "station", "step")
+#: the values of it under which every station is a stance of its own
+FEET_REPLANTED_AT_EACH_STATION = ("station", "step")
 
 
 def _check_radians(p: _Parsed, joint: str, joint_type: str, lower: float, upper: float) -> None:
