@@ -1,0 +1,200 @@
+"""The layout's mechanical rules (docs/architecture.md), checked by reading the code's AST.
+
+- no module imports a private (``_name``) from another module;
+- no import cycles among graphcal's modules, counting imports inside functions;
+- no function (or method) over ``MAX_FUNCTION_LINES`` lines;
+- one installed top-level package;
+- nothing outside ``graphcal/simulation/`` imports the simulator except ``graphcal/commands/``.
+
+Run this file as a script to print every violation (``python tests/test_architecture.py``).
+"""
+from __future__ import annotations
+
+import ast
+import sys
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "graphcal"
+MAX_FUNCTION_LINES = 150
+# may import graphcal.simulation (besides the simulator itself): the command layer and the test helpers
+SIMULATION_USERS = ("graphcal.commands", "graphcal.simulation", "graphcal.testing")
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def modules() -> dict[str, Path]:
+    return {module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
+
+
+def resolve(mod: str, node: ast.ImportFrom, is_package: bool) -> str:
+    if not node.level:
+        return node.module or ""
+    base = mod.split(".") if is_package else mod.split(".")[:-1]
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def imports(mod: str, path: Path, known: dict[str, Path]):
+    """(line, imported module, imported name or None) for every import in a module, at any depth."""
+    tree = ast.parse(path.read_text(), str(path))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield node.lineno, alias.name, None
+        elif isinstance(node, ast.ImportFrom):
+            target = resolve(mod, node, path.name == "__init__.py")
+            for alias in node.names:
+                sub = f"{target}.{alias.name}"
+                if sub in known:
+                    yield node.lineno, sub, None
+                else:
+                    yield node.lineno, target, alias.name
+
+
+def import_graph() -> dict[str, set[str]]:
+    known = modules()
+    graph: dict[str, set[str]] = {m: set() for m in known}
+    for mod, path in known.items():
+        for _, target, _ in imports(mod, path, known):
+            if target in known and target != mod:
+                graph[mod].add(target)
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+    counter = [0]
+
+    def visit(root: str) -> None:
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter[0]
+        counter[0] += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = counter[0]
+                    counter[0] += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    top = stack.pop()
+                    on_stack.discard(top)
+                    component.append(top)
+                    if top == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def private_imports() -> list[str]:
+    known = modules()
+    bad = []
+    for mod, path in known.items():
+        for line, target, name in imports(mod, path, known):
+            if not target.startswith("graphcal"):
+                continue
+            parts = target.split(".") + ([name] if name else [])
+            if any(p.startswith("_") and not p.startswith("__") for p in parts):
+                bad.append(f"{path.relative_to(ROOT)}:{line}: {target}{'.' + name if name else ''}")
+    return bad
+
+
+def long_functions() -> list[str]:
+    bad = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                length = node.end_lineno - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.name} ({length} lines)")
+    return bad
+
+
+def simulator_imports() -> list[str]:
+    known = modules()
+    bad = []
+    for mod, path in known.items():
+        if mod.startswith(SIMULATION_USERS):
+            continue
+        for line, target, _ in imports(mod, path, known):
+            if target.startswith("graphcal.simulation"):
+                bad.append(f"{path.relative_to(ROOT)}:{line}: {target}")
+    return bad
+
+
+def installed_top_level() -> list[str]:
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    include = config["tool"]["setuptools"]["packages"]["find"]["include"]
+    return sorted({pattern.split(".")[0].rstrip("*") for pattern in include})
+
+
+def test_no_private_imports_across_modules():
+    assert private_imports() == []
+
+
+def test_no_import_cycles():
+    assert cycles(import_graph()) == []
+
+
+def test_no_function_over_the_limit():
+    assert long_functions() == []
+
+
+def test_one_top_level_package():
+    assert installed_top_level() == ["graphcal"]
+    assert not (ROOT / "factors").exists()
+
+
+def test_library_never_imports_the_simulator():
+    assert simulator_imports() == []
+
+
+def test_the_scan_sees_a_cycle_and_a_private_import():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert cycles(graph) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+if __name__ == "__main__":
+    report = {
+        "private imports": private_imports(),
+        "cycles": [" -> ".join(c) for c in cycles(import_graph())],
+        "long functions": long_functions(),
+        "simulator imports": simulator_imports(),
+        "top-level packages": installed_top_level(),
+    }
+    for title, rows in report.items():
+        print(f"## {title}: {len(rows)}")
+        for row in rows:
+            print("  ", row)
+    sys.exit(0)
