@@ -39,7 +39,7 @@ TARGET_RTF = 10.0
 
 def _dead_reckoning(inp) -> float:
     """Bare 1 kHz numpy loop: the machine's cost of touching every sample from Python."""
-    from graphcal.filter.ekf import _exp
+    from graphcal.locomotion.ekf import _exp
 
     t0 = time.perf_counter()
     R = np.eye(3)
@@ -64,8 +64,8 @@ def main(argv=None) -> dict:
 
     import filterpy
 
-    from graphcal.filter.estimator import TrackerConfig, inputs_from_walking, run_filter
-    from graphcal.filter.metrics import pose_errors
+    from graphcal.locomotion.estimator import TrackerConfig, inputs_from_walking, run_filter
+    from graphcal.locomotion.metrics import pose_errors
     from graphcal.simulation.walking import WalkingConfig, simulate_walking
 
     walks = {
@@ -85,7 +85,7 @@ def main(argv=None) -> dict:
 
         def run(cfg):
             if cfg == "filterpy":
-                import graphcal.filter.ekf as ekf_mod
+                import graphcal.locomotion.ekf as ekf_mod
 
                 orig = ekf_mod.LeggedEKF.__init__
 

@@ -1,8 +1,8 @@
-"""Benchmark: gait parameters per step (graphcal.gait.gait_parameters) on the simulated stairs.
+"""Benchmark: gait parameters per step (graphcal.locomotion.gait.gait_parameters) on the simulated stairs.
 
 Setup (as tests/test_gait.py): the qingzhui hexapod walks from the floor onto the three 130 x 300 mm
 steps with the alternating tripod gait, 12 steps, planned on the stairs model estimated from ten
-simulated depth clouds with pose errors (graphcal.stairs_sim, seed 3). The 12 planning states
+simulated depth clouds with pose errors (graphcal.simulation.stairs_clouds, seed 3). The 12 planning states
 (body pose, stance tripod, footholds) are recorded once; then, round-robin over states and
 repeats (so that load changes hit both alike), timed side by side in this process:
 
@@ -36,9 +36,9 @@ TARGET_MS = 100.0
 
 def record_states(robot, info, model, steps, n_steps: int = 12):
     """Planning states of the walk (as tests/test_gait.py): (T_world_body, stance, feet)."""
-    from graphcal.gait import gait_parameters
+    from graphcal.locomotion.gait import gait_parameters
     from graphcal.geometry import pose_matrix
-    from graphcal.stairs_sim import stairs_height
+    from graphcal.simulation.stairs_clouds import stairs_height
 
     T = pose_matrix(np.eye(3), [0.1, 0.0, info.default_body_height_m])
     feet = {f: T[:3, :3] @ p + T[:3, 3] for f, p in info.nominal_stance.items()}
@@ -55,8 +55,8 @@ def record_states(robot, info, model, steps, n_steps: int = 12):
 
 def configurations_of(robot, model, state):
     """The (leg, R_world_body, p_world_body, p_world_foot) configurations graphcal checks for a
-    state, captured by instrumenting graphcal.gait._shin_check."""
-    import graphcal.gait as G
+    state, captured by instrumenting graphcal.locomotion.gait._shin_check."""
+    import graphcal.locomotion.gait as G
 
     captured = []
     orig = G._shin_check
@@ -78,7 +78,7 @@ def configurations_of(robot, model, state):
 def baseline_step(captured, cfg) -> int:
     """Evaluate every captured configuration one at a time (ik_leg on one target, one shin's
     distances); returns the number of configurations."""
-    from graphcal.gait import _solid_distance, segment_distances
+    from graphcal.locomotion.gait import _solid_distance, segment_distances
     from graphcal.models.kinematics import ik_leg, joint_frames
 
     n = 0
@@ -107,11 +107,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
     args = ap.parse_args(argv)
 
-    from graphcal.gait import GaitConfig, gait_parameters
+    from graphcal.locomotion.gait import GaitConfig, gait_parameters
     from graphcal.models.builtin import builtin_info
     from graphcal.models.robot import load_robot
-    from graphcal.stairs import model_stairs
-    from graphcal.stairs_sim import simulate_stairs_clouds
+    from graphcal.locomotion.stairs import model_stairs
+    from graphcal.simulation.stairs_clouds import simulate_stairs_clouds
 
     robot, info = load_robot(model="qingzhui"), builtin_info("qingzhui")
     seq = simulate_stairs_clouds(seed=3)

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from factors.mocap_marker import mocap_marker_error
+from graphcal.factors.mocap_marker import mocap_marker_error
 from graphcal.errors import GraphcalError
 from graphcal.legs.identify import IdentifyOptions, identify_legs
 from graphcal.legs.mocap_data import MarkerTrack

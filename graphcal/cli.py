@@ -24,7 +24,7 @@ def _effect_arg(text: str):
 
 
 def _build_parser() -> argparse.ArgumentParser:
-    from . import __version__
+    from graphcal import __version__
 
     p = argparse.ArgumentParser(
         prog="graphcal",
@@ -149,7 +149,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
 
 def _cmd_simulate(args) -> int:
-    from .simulation.run import simulate_to_folder
+    from graphcal.simulation.run import simulate_to_folder
 
     summary = simulate_to_folder(
         robot=args.robot,
@@ -175,9 +175,9 @@ def _cmd_simulate(args) -> int:
 
 
 def _cmd_calibrate(args) -> int:
-    from .calibration.calibrate import run_calibrate
-    from .errors import GraphcalError
-    from .plane_table import check_max_points
+    from graphcal.calibration.calibrate import run_calibrate
+    from graphcal.errors import GraphcalError
+    from graphcal.clouds.plane_table import check_max_points
 
     if not (math.isfinite(args.ground_roughness_mm) and args.ground_roughness_mm >= 0):
         raise GraphcalError(f"--ground-roughness-mm must be a number >= 0 (mm), got {args.ground_roughness_mm}")
@@ -190,7 +190,7 @@ def _cmd_calibrate(args) -> int:
 
 
 def _cmd_suggest(args) -> int:
-    from .calibration.suggest import suggest_poses_command
+    from graphcal.calibration.suggest import suggest_poses_command
 
     print(suggest_poses_command(args.dataset, args.k, out=args.out, after_existing=args.after_existing,
                                 noise_from=args.noise_from, sigma_target_deg=args.sigma_target_deg,
@@ -199,7 +199,7 @@ def _cmd_suggest(args) -> int:
 
 
 def _cmd_validate(args) -> int:
-    from .io.dataset import validate_dataset
+    from graphcal.io.dataset import validate_dataset
 
     report = validate_dataset(args.dataset)
     print(report.summary())
@@ -207,7 +207,7 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_extract_planes(args) -> int:
-    from .plane_table import extract_planes_to_csv
+    from graphcal.clouds.plane_table import extract_planes_to_csv
 
     out = extract_planes_to_csv(args.dataset, args.out, max_planes=args.max_planes, progress=not args.quiet,
                                 max_points=args.plane_points, on_warning=lambda w: print(f"warning: {w}"))
@@ -216,14 +216,14 @@ def _cmd_extract_planes(args) -> int:
 
 
 def _cmd_diagnose(args) -> int:
-    from .diagnosis.command import run_diagnose
+    from graphcal.diagnosis.command import run_diagnose
 
     print(run_diagnose(args.dataset, args.out, progress=not args.quiet))
     return 0
 
 
 def _cmd_identify_legs(args) -> int:
-    from .legs.command import run_identify_legs
+    from graphcal.legs.command import run_identify_legs
 
     print(run_identify_legs(args.dataset, args.out, progress=not args.quiet, mocap_free=args.mocap_free,
                             origins=args.origins, sigma_marker_mm=args.sigma_marker_mm,
@@ -232,8 +232,8 @@ def _cmd_identify_legs(args) -> int:
 
 
 def _cmd_track(args) -> int:
-    from .filter.estimator import TrackerConfig
-    from .filter.track import run_track
+    from graphcal.locomotion.estimator import TrackerConfig
+    from graphcal.locomotion.track import run_track
 
     print(run_track(args.dataset, args.out, progress=not args.quiet, tum_rate_hz=args.tum_rate,
                     config=TrackerConfig(icp=not args.no_icp)))
@@ -241,7 +241,7 @@ def _cmd_track(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .errors import GraphcalError
+    from graphcal.errors import GraphcalError
 
     args = _build_parser().parse_args(argv)
     handlers = {
@@ -260,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"graphcal {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        from .io.atomic import InterruptedAfterWrite
+        from graphcal.io.atomic import InterruptedAfterWrite
 
         said = f"interrupted {exc}" if isinstance(exc, InterruptedAfterWrite) else "interrupted; nothing was written"
         print(f"graphcal {args.command}: {said}", file=sys.stderr)

@@ -91,7 +91,7 @@ def test_fixed_legs_use_the_builtin_stance_factor_and_agree_with_the_python_one(
     """With the legs held fixed the stance feet are GTSAM's C++ bearing-range factors (the Python
     factor with --legs); the whole calibration, noise learned, equals the one with the Python factor
     everywhere to a small share of the reported sigma (the two agree to first order)."""
-    import factors.stance_foot_builtin as sfb
+    import graphcal.factors.stance_foot_builtin as sfb
     from graphcal.calibration.graph import CalibrationOptions, build_problem
     from graphcal.calibration.measurements import calibration_data
     from graphcal.io.dataset import load_dataset_robot

@@ -1,4 +1,4 @@
-"""graphcal.chi2 (scipy.special) against scipy.stats.chi2, and the calibrate path free of scipy.stats
+"""graphcal.stats (scipy.special) against scipy.stats.chi2, and the calibrate path free of scipy.stats
 (importing it cost ~1 s of every `graphcal calibrate`)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2 as reference
 
-from graphcal import chi2
+from graphcal import stats as chi2
 
 
 @pytest.mark.parametrize("dof", [0.5, 1, 2.7, 3, 6, 52, 1000])

@@ -8,11 +8,11 @@ import gtsam
 import numpy as np
 import pytest
 
-from factors.keys import G, S, X
-from factors.plane_observation import plane_observation_error
-from factors.plane_prior import plane_prior_factor
-from factors.range_scale import scaled_plane_error, scaled_plane_factor, scaled_range_error, scaled_range_factor
-from factors.range_to_plane import range_to_plane_error
+from graphcal.factors.keys import G, S, X
+from graphcal.factors.plane_observation import plane_observation_error
+from graphcal.factors.plane_prior import plane_prior_factor
+from graphcal.factors.range_scale import scaled_plane_error, scaled_plane_factor, scaled_range_error, scaled_range_factor
+from graphcal.factors.range_to_plane import range_to_plane_error
 from graphcal.geometry import pose_from_xyz_rpy
 from test_factors import SPECIAL_ROTATIONS, _random_pose, _random_unit, _values, assert_jacobians
 
@@ -114,8 +114,8 @@ def test_bad_inputs_raise():
 
 @pytest.mark.parametrize("seed", range(5))
 def test_imu_tilted_jacobians_and_meaning(seed):
-    from factors.gravity_tilt import imu_attitude_tilted_error, imu_attitude_tilted_factor
-    from factors.keys import M
+    from graphcal.factors.gravity_tilt import imu_attitude_tilted_error, imu_attitude_tilted_factor
+    from graphcal.factors.keys import M
     from graphcal.geometry import matrix_from_axis_angle
     from test_factors import _random_rotation
 

@@ -1,4 +1,4 @@
-"""The legged EKF (graphcal.filter): the constructor's checks, the lean update against filterpy's,
+"""The legged EKF (graphcal.locomotion): the constructor's checks, the lean update against filterpy's,
 the IMU preintegration against a plain integration, the degeneracy-aware ICP, and the filter's
 consistency on simulated walks: Monte Carlo NEES inside its chi-square band and white innovations.
 
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from graphcal.errors import GraphcalError
-from graphcal.filter.ekf import EkfNoise, LeggedEKF, NominalState, state_dim
-from graphcal.filter.estimator import TrackerConfig, inputs_from_walking, run_filter
-from graphcal.filter.metrics import chi2_band, pose_errors, whiteness
+from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim
+from graphcal.locomotion.estimator import TrackerConfig, inputs_from_walking, run_filter
+from graphcal.locomotion.metrics import chi2_band, pose_errors, whiteness
 from graphcal.simulation.walking import WalkingConfig, simulate_walking
 
 D = state_dim(3)
@@ -77,8 +77,8 @@ def test_lean_update_equals_filterpy_update():
 
 def test_preintegration_matches_plain_integration():
     """Chunks of preintegrated IMU with bias corrections = sample-by-sample integration."""
-    from graphcal.filter.imu import preintegrate, reconstruct
-    from graphcal.filter.ekf import GRAVITY_WORLD
+    from graphcal.locomotion.imu import preintegrate, reconstruct
+    from graphcal.locomotion.ekf import GRAVITY_WORLD
     from graphcal.geometry import matrix_from_rpy
 
     rng = np.random.default_rng(0)
@@ -94,7 +94,7 @@ def test_preintegration_matches_plain_integration():
     R0 = matrix_from_rpy([0.1, -0.2, 0.3])
     p, v, R = np.array([1.0, 2.0, 0.5]), np.array([0.3, -0.1, 0.0]), R0.copy()
     P_ref, V_ref, R_ref = [p], [v], [R]
-    from graphcal.filter.imu import exp_batch
+    from graphcal.locomotion.imu import exp_batch
 
     for k in range(1, N):
         acc = R @ (a[k] - ba) + GRAVITY_WORLD
@@ -141,8 +141,8 @@ def test_icp_measures_only_what_the_floor_constrains(clouds):
     slides along the floor."""
     import open3d as o3d
 
-    from graphcal.filter.ekf import _log
-    from graphcal.filter.icp import icp_relative_pose, prepare_target, range_sigma_function
+    from graphcal.locomotion.ekf import _log
+    from graphcal.clouds.icp import icp_relative_pose, prepare_target, range_sigma_function
     from graphcal.geometry import se3_exp
 
     sig = range_sigma_function("depth_camera")
@@ -172,8 +172,8 @@ def test_icp_measures_only_what_the_floor_constrains(clouds):
 def test_icp_on_stairs_also_measures_along_the_walk(clouds):
     """Risers add the along-walk translation: more than 3 directions on some stairs pairs, and
     the errors stay consistent."""
-    from graphcal.filter.ekf import _log
-    from graphcal.filter.icp import icp_relative_pose, prepare_target, range_sigma_function
+    from graphcal.locomotion.ekf import _log
+    from graphcal.clouds.icp import icp_relative_pose, prepare_target, range_sigma_function
 
     sig = range_sigma_function("depth_camera")
     dofs, z2 = [], []
@@ -223,7 +223,7 @@ def test_initial_tilt_covariance_covers_the_accelerometer_window():
     sqrt(0.1 s) / g = 0.48 mrad per axis. Given the true bias, the tilt error normalised by P0's
     conditional covariance (2 dof) averages chi2(2M)/M over M starts. A P0 that leaves the window's
     noise out (0.2 mrad) gives ~10 here; the 20 m Monte Carlo showed its roll over-confident."""
-    from graphcal.filter.estimator import _init_window, _initial_covariance
+    from graphcal.locomotion.estimator import _init_window, _initial_covariance
 
     cfg = TrackerConfig(icp=False)
     t_idx, b_idx = [6, 7], [12, 13, 14]

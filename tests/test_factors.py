@@ -7,7 +7,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from factors import (
+from graphcal.factors import (
     FactorShapeError,
     checked_custom_factor,
     commanded_pose_prior,
@@ -33,8 +33,8 @@ from factors import (
     stance_foot_factor,
     tangent_basis,
 )
-from factors._checked import pose_adjoint
-from factors.keys import F, G, L, M, S, X
+from graphcal.factors.checked import pose_adjoint
+from graphcal.factors.keys import F, G, L, M, S, X
 from graphcal.geometry import matrix_from_rpy, pose_from_xyz_rpy, se3_exp
 from graphcal.models.builtin import R_BODY_OPTICAL
 from graphcal.models.kinematics import foot_positions, ik_leg

@@ -1,6 +1,6 @@
-"""Tests of graphcal.gait: tread zones, Zhao's shin / stair-edge cylinder test, and a tripod walk
+"""Tests of graphcal.locomotion.gait: tread zones, Zhao's shin / stair-edge cylinder test, and a tripod walk
 onto the simulated stairs planned on the stairs model *estimated from depth clouds*
-(graphcal.stairs_sim + graphcal.stairs), checked against the true stairs by an independent test
+(graphcal.simulation.stairs_clouds + graphcal.locomotion.stairs), checked against the true stairs by an independent test
 (the shin capsule against the true step boxes, legs by graphcal.models.kinematics.ik_leg).
 
 World: z up, floor z = 0, three 130 x 300 mm steps from x = 1.2 m (landing on top), robot
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from graphcal.errors import GraphcalError
-from graphcal.gait import (
+from graphcal.locomotion.gait import (
     GaitConfig,
     GaitError,
     body_path,
@@ -27,8 +27,8 @@ from graphcal.geometry import pose_matrix
 from graphcal.models.builtin import builtin_info
 from graphcal.models.kinematics import foot_positions, ik_leg, joint_frames
 from graphcal.models.robot import load_robot
-from graphcal.stairs import model_stairs, stairs_model_from_steps
-from graphcal.stairs_sim import simulate_stairs_clouds, stairs_height
+from graphcal.locomotion.stairs import model_stairs, stairs_model_from_steps
+from graphcal.simulation.stairs_clouds import simulate_stairs_clouds, stairs_height
 
 CFG = GaitConfig()
 
@@ -232,7 +232,7 @@ def test_walk_on_the_estimated_model_is_collision_free(robot, info, seq, estimat
 
 def test_naive_fixed_parameters_collide(robot, info, seq, truth):
     """The same walk with a fixed step (0.15 m long, 3 cm high) hits the stairs."""
-    from graphcal.gait import _body_after
+    from graphcal.locomotion.gait import _body_after
 
     steps = seq.terrain.stairs
     hd = np.array([1.0, 0.0, 0.0])

@@ -17,11 +17,11 @@ import gtsam
 import numpy as np
 import pytest
 
-from factors.foot_on_ground import foot_on_ground_factor
-from factors.imu_attitude import imu_attitude_factor
-from factors.keys import F, S, X
-from factors.priors import commanded_pose_prior, extrinsic_prior
-from factors.stance_foot import joint_noise_covariance
+from graphcal.factors.foot_on_ground import foot_on_ground_factor
+from graphcal.factors.imu_attitude import imu_attitude_factor
+from graphcal.factors.keys import F, S, X
+from graphcal.factors.priors import commanded_pose_prior, extrinsic_prior
+from graphcal.factors.stance_foot import joint_noise_covariance
 from graphcal.calibration.calibrate import calibrate
 from graphcal.calibration.change_detection import ChangeDetector
 from graphcal.calibration.graph import CalibrationOptions, build_problem
@@ -422,7 +422,7 @@ def _plane_factor(cal, station, plane, s_key):
 
 
 def _perp(n) -> np.ndarray:
-    from factors._checked import tangent_basis
+    from graphcal.factors.checked import tangent_basis
 
     return tangent_basis(n)
 

@@ -1,4 +1,4 @@
-"""Tests of graphcal.planes: accuracy on simulated Kinect frames (clean, 30 % clutter, stairs),
+"""Tests of graphcal.clouds.planes: accuracy on simulated Kinect frames (clean, 30 % clutter, stairs),
 covariance honesty by Monte Carlo, degenerate input.
 
 Frames come from the simulator (graphcal.simulation: Open3D ray casting, Kinect noise
@@ -20,7 +20,7 @@ from graphcal.geometry import (
     pose_matrix,
     transform_plane,
 )
-from graphcal.planes import (
+from graphcal.clouds.planes import (
     PlaneFit,
     _chai_refine,
     depth_camera_distance_sigma,
@@ -401,7 +401,7 @@ def test_watch_set_shortcut_matches_the_plain_loop(clutter_frame, weighted):
 def test_planes_rows_same_on_one_or_two_threads_and_per_cloud(floor_frame):
     """planes_rows fits clouds on threads: the rows come back in input order, the same as on one
     thread, and a cloud's plane does not depend on the other clouds (its seed is its own)."""
-    from graphcal.plane_table import planes_rows
+    from graphcal.clouds.plane_table import planes_rows
 
     P, n_true, _ = floor_frame
     clouds = {("depth", s): P[s % 3 :: 3] for s in range(1, 7)}
@@ -417,7 +417,7 @@ def test_planes_rows_same_on_one_or_two_threads_and_per_cloud(floor_frame):
     alone = planes_rows({("depth", 4): clouds[("depth", 4)]}, types, workers=1)
     assert alone["nx"][0] == pytest.approx(one["nx"][3], abs=1e-9) and alone["d"][0] == pytest.approx(one["d"][3], abs=1e-9)
     # the clouds of different stations do get different seeds (the subsamples differ)
-    from graphcal.plane_table import cloud_rng
+    from graphcal.clouds.plane_table import cloud_rng
 
     assert cloud_rng(0, "depth", 1).integers(1 << 30) != cloud_rng(0, "depth", 2).integers(1 << 30)
 
@@ -425,8 +425,8 @@ def test_planes_rows_same_on_one_or_two_threads_and_per_cloud(floor_frame):
 def test_workspace_reuse_changes_nothing_and_results_do_not_share_its_memory(floor_frame, clutter_frame, monkeypatch):
     """One PlaneWorkspace reused over frames of different sizes gives exactly the planes of fresh
     calls, and a fit returned earlier is not altered by the later fits that reuse the scratch."""
-    import graphcal.planes as planes_module
-    from graphcal.planes import PlaneWorkspace
+    import graphcal.clouds.planes as planes_module
+    from graphcal.clouds.planes import PlaneWorkspace
 
     # Open3D's RANSAC is not repeatable (planes._ransac): the same sample and seed give the same
     # starting plane here, so that only the workspace can make a difference
@@ -464,7 +464,7 @@ def test_planes_rows_reads_clouds_on_its_threads_and_passes_on_read_errors(floor
     import threading
 
     from graphcal.errors import DatasetError
-    from graphcal.plane_table import planes_rows
+    from graphcal.clouds.plane_table import planes_rows
 
     P = floor_frame[0]
     types = {"depth": "depth_camera"}
@@ -506,7 +506,7 @@ def test_planes_rows_on_worker_processes_same_rows_and_errors_reach_the_caller(f
     import os
 
     from graphcal.errors import DatasetError, GraphcalError
-    from graphcal.plane_table import _can_fork_workers, planes_rows
+    from graphcal.clouds.plane_table import _can_fork_workers, planes_rows
 
     if not _can_fork_workers():
         pytest.skip("fork is not available or other threads are running")
@@ -577,7 +577,7 @@ def test_planes_rows_falls_back_to_threads_where_fork_is_unsafe(floor_frame, mon
     import threading
 
     from graphcal.errors import GraphcalError
-    from graphcal.plane_table import _can_fork_workers, planes_rows
+    from graphcal.clouds.plane_table import _can_fork_workers, planes_rows
 
     if not sys.platform.startswith("linux"):
         pytest.skip("Linux only")
@@ -611,7 +611,7 @@ def test_planes_rows_falls_back_to_threads_where_fork_is_unsafe(floor_frame, mon
 
 def test_thin_cloud_keeps_every_kth_point_up_to_the_cap():
     from graphcal.errors import GraphcalError
-    from graphcal.plane_table import check_max_points, thin_cloud
+    from graphcal.clouds.plane_table import check_max_points, thin_cloud
 
     P = np.arange(3 * 1000, dtype=float).reshape(1000, 3)
     assert thin_cloud(P, None) is P and thin_cloud(P, 1000) is P
@@ -629,7 +629,7 @@ def test_thin_cloud_keeps_every_kth_point_up_to_the_cap():
 def test_planes_rows_max_points_fits_the_thinned_cloud(floor_frame, processes):
     """With max_points, each cloud's plane is the plane of its every-k-th points (on threads and on
     worker processes), not that of the whole cloud."""
-    from graphcal.plane_table import _can_fork_workers, planes_rows, thin_cloud
+    from graphcal.clouds.plane_table import _can_fork_workers, planes_rows, thin_cloud
 
     if processes and not _can_fork_workers():
         pytest.skip("worker processes cannot be forked here")

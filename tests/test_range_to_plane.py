@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from factors.range_to_plane import range_to_plane_error, range_to_plane_factor
+from graphcal.factors.range_to_plane import range_to_plane_error, range_to_plane_factor
 from graphcal.geometry import pose_from_xyz_rpy, rotation_angle_between, se3_exp, transform_points
 
 

@@ -13,7 +13,7 @@ from graphcal.geometry import (
     rotation_angle_between,
     transform_points,
 )
-from graphcal.planes import fit_ground_plane
+from graphcal.clouds.planes import fit_ground_plane
 from graphcal.simulation.effects import CAUSES, Effects, ExtrinsicChange, draw_effect
 from graphcal.simulation.programs import CHAI2015_TABLE_A1, station_program
 from graphcal.simulation.sensors import DepthCamera, LaserScanner, StereoCamera

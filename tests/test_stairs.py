@@ -1,6 +1,6 @@
-"""Tests of graphcal.stairs: the stairs model from simulated depth clouds with pose errors.
+"""Tests of graphcal.locomotion.stairs: the stairs model from simulated depth clouds with pose errors.
 
-Data (graphcal.stairs_sim): the ``stairs`` terrain (three 130 x 300 mm steps from x = 1.2 m, Zhao
+Data (graphcal.simulation.stairs_clouds): the ``stairs`` terrain (three 130 x 300 mm steps from x = 1.2 m, Zhao
 2020), the qingzhui depth camera (Kinect noise sigma_z = 1.425e-3 z^2, quarter resolution) at ten
 body poses approaching the stairs, the poses handed to the model perturbed by ~1.7 cm and ~0.5 deg
 (1 cm and 0.3 deg per axis). Goal of the issue: tread height and depth within 5 mm of the truth.
@@ -15,7 +15,7 @@ import pytest
 
 from graphcal.errors import GraphcalError
 from graphcal.geometry import fit_rigid_transform, transform_points
-from graphcal.stairs import (
+from graphcal.locomotion.stairs import (
     StairsError,
     StairsModel,
     model_stairs,
@@ -23,7 +23,7 @@ from graphcal.stairs import (
     stairs_to_json,
     tread_errors,
 )
-from graphcal.stairs_sim import simulate_stairs_clouds
+from graphcal.simulation.stairs_clouds import simulate_stairs_clouds
 
 GOAL_M = 0.005
 

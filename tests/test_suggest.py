@@ -147,7 +147,7 @@ def test_information_model_matches_a_simulated_calibration(chai, targeted, tmp_p
 
 def test_stance_noise_matches_the_factor(chai):
     """The batched stance-foot information uses joint_noise_covariance's formula."""
-    from factors.stance_foot import joint_noise_covariance
+    from graphcal.factors.stance_foot import joint_noise_covariance
 
     ds, _ = chai
     model = _Model(ds, None, PLAIN)

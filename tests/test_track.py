@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from graphcal.cli import main
-from graphcal.filter.metrics import chi2_band
+from graphcal.locomotion.metrics import chi2_band
 
 
 def _simulate(path, *words):
@@ -87,7 +87,7 @@ def test_stairs_drift_below_2_percent(stairs):
 
 def test_stairs_treads_within_5_mm(stairs):
     """The issue's stair accuracy through the command: on the stairs walk, track models the stairs
-    from its keyframe clouds placed with its own estimate (graphcal.stairs) and stairs.json compares
+    from its keyframe clouds placed with its own estimate (graphcal.locomotion.stairs) and stairs.json compares
     them with the truth's ascending flight (two 130 x 300 mm treads and the landing): every true
     tread found, each height within 5 mm, each complete depth within 5 mm. The landing's depth is
     its visible extent (no riser behind it), so it has no depth error; the flight down is not
@@ -139,8 +139,8 @@ def test_track_outputs(level20):
 
 
 def test_estimate_trajectory_api(short_walk):
-    from graphcal.filter.estimator import estimate_trajectory
-    from graphcal.filter.metrics import load_truth
+    from graphcal.locomotion.estimator import estimate_trajectory
+    from graphcal.locomotion.metrics import load_truth
 
     t, T = estimate_trajectory(short_walk)
     truth = load_truth(short_walk)
@@ -252,7 +252,7 @@ def test_track_output_folder_safety(short_walk, tmp_path, capsys):
 
 def test_track_refuses_a_negative_tum_rate_before_any_work(tmp_path):
     from graphcal.errors import GraphcalError
-    from graphcal.filter.track import run_track
+    from graphcal.locomotion.track import run_track
 
     with pytest.raises(GraphcalError, match="--tum-rate must be a finite number >= 0"):
         run_track(tmp_path / "no-such-dataset", tmp_path / "out", tum_rate_hz=-5.0)

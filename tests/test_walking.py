@@ -104,7 +104,7 @@ def test_imu_is_the_truth_plus_its_noise(name, request):
 def test_torques_carry_the_body_quasi_statically(level):
     """Tip forces recovered from the measured torques (Zhao Eq. 5) carry m (g + a_z) vertically:
     the error, normalised by the torque noise propagated through each leg's J^-T, is unit noise."""
-    from graphcal.filter.support import tip_forces
+    from graphcal.locomotion.support import tip_forces
     from graphcal.models.kinematics import leg_jacobian
 
     total = np.zeros((len(level.times), 3))
@@ -130,7 +130,7 @@ def test_torques_carry_the_body_quasi_statically(level):
 def test_support_detection_from_torques_matches_the_contacts(level, stairs):
     """Zhao: the tripod with the larger vertical force sum is in stance. The detected tripod's
     feet are all planted at every sample, and during single support it is the right one."""
-    from graphcal.filter.support import support_from_torques
+    from graphcal.locomotion.support import support_from_torques
 
     for walk in (level, stairs):
         sup = support_from_torques(walk.robot, walk.q_measured, walk.tau_measured, walk.groups)

@@ -13,14 +13,14 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from ..errors import GraphcalError
-from ..geometry import from_gtsam_pose
-from ..io.dataset import off_plane_scan_warning
-from .graph import (CalibrationOptions, CalibrationProblem, build_problem, extrinsic_prior_for_observability,
+from graphcal.errors import GraphcalError
+from graphcal.geometry import from_gtsam_pose
+from graphcal.io.dataset import off_plane_scan_warning
+from graphcal.calibration.graph import (CalibrationOptions, CalibrationProblem, build_problem, extrinsic_prior_for_observability,
                     predicted_plane_errors)
-from .ground_selection import ground_choice_warnings
-from .measurements import CalibrationData, calibration_data, require_sensors
-from .result import (
+from graphcal.calibration.ground_selection import ground_choice_warnings
+from graphcal.calibration.measurements import CalibrationData, calibration_data, require_sensors
+from graphcal.calibration.result import (
     CalibrationResult,
     ExtrinsicSegment,
     LegEstimate,
@@ -35,8 +35,8 @@ if TYPE_CHECKING:
 
 def _outlier_measurements(problem: CalibrationProblem, values, options: CalibrationOptions) -> tuple[set, dict]:
     """(measurements failing the chi-square test, chi2 per measurement) at ``values``."""
-    from .. import chi2 as chi2_dist
-    from ..solvers.batch import whitened_errors
+    from graphcal import stats as chi2_dist
+    from graphcal.solvers.batch import whitened_errors
 
     idx = list(problem.plane_factors)
     errs = whitened_errors(problem.graph, values, idx)
@@ -61,8 +61,8 @@ def _passing_again(ds, robot, data: CalibrationData, options: CalibrationOptions
     far less certain than the plane."""
     import gtsam
 
-    from .. import chi2 as chi2_dist
-    from .change_detection import innovation_nis, joint_covariance
+    from graphcal import stats as chi2_dist
+    from graphcal.calibration.change_detection import innovation_nis, joint_covariance
 
     full = build_problem(ds, robot, data, options, initial=values)
     try:
@@ -84,7 +84,7 @@ def solve_problem(problem: CalibrationProblem, *, progress: bool = False, stage:
     per solve goes to stderr."""
     import sys
 
-    from ..solvers.batch import solve_lm
+    from graphcal.solvers.batch import solve_lm
 
     result = solve_lm(problem.graph, problem.initial)
     if progress:
@@ -106,7 +106,7 @@ def plane_source_warnings(plane_max_points: int | None, planes_given: bool, ds, 
                    + ("given" if planes_given else "read from planes.csv, not fitted to the clouds"))
     if planes_given or ds.root is None or (ds.planes is None and fitted is None):
         return out
-    from ..plane_table import camera_clouds_without_planes, no_plane_found_warning, stations_text
+    from graphcal.clouds.plane_table import camera_clouds_without_planes, no_plane_found_warning, stations_text
 
     if ds.planes is not None:
         have = zip(ds.planes["sensor"].tolist(), ds.planes["station"].tolist())
@@ -142,7 +142,7 @@ def calibrate(
             Chai-scale clouds (258k points): 50000 took 0.5-0.6x the time, the translation error grew
             35 % (RMS over 24 datasets, docs/calibration.md).
     """
-    from ..io.dataset import Dataset, load_dataset_robot, read_dataset
+    from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
     require_sensors(ds, "calibrate")
@@ -242,7 +242,7 @@ def calibrate(
         warnings += noise_warnings
         result = dataclasses.replace(result, noise_groups=groups)
     else:
-        from .noise_check import given_noise_check
+        from graphcal.calibration.noise_check import given_noise_check
 
         sensors, groups, noise_warnings = given_noise_check(problem, values, options, result.sensors)
         warnings += noise_warnings
@@ -366,7 +366,7 @@ def noise_update(options: CalibrationOptions, problem: CalibrationProblem, value
     (:func:`~graphcal.calibration.noise_estimation.converged_scales`); False: one update."""
     import dataclasses
 
-    from .noise_estimation import converged_scales
+    from graphcal.calibration.noise_estimation import converged_scales
 
     bounds = {g: (max(VCE_SCALE_BOUNDS[0], *(VCE_FLOOR[n] / getattr(options, n) for n in names)), VCE_SCALE_BOUNDS[1])
               for g, names in _GROUP_FIELDS.items()}
@@ -433,7 +433,7 @@ def noise_groups_report(stats: dict, options: CalibrationOptions, *,
     make the covariance too small when others are conservative (the defaults' planes point to
     x1.2-x3.2 while the incremental mean NEES was 5.99 over 40 simulated sessions);
     :func:`~graphcal.calibration.noise_check.given_noise_check` scales and warns per sensor."""
-    from .. import chi2 as chi2_dist
+    from graphcal import stats as chi2_dist
 
     fields_of = dict(_GROUP_FIELDS)
     out, warnings = [], []
@@ -486,7 +486,7 @@ def noise_groups_report(stats: dict, options: CalibrationOptions, *,
 
 def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set, iterations: int,
             options: CalibrationOptions) -> CalibrationResult:
-    from ..solvers.covariance import body_axis_sigmas, marginal_covariances, unobservable_directions
+    from graphcal.solvers.covariance import body_axis_sigmas, marginal_covariances, unobservable_directions
 
     keys = list(problem.sensor_keys.values()) + [k for k, _ in problem.leg_keys.values()]
     covs = marginal_covariances(problem.graph, values, keys)
@@ -554,7 +554,7 @@ def prior_conflict(T_body_sensor: np.ndarray, T_prior: np.ndarray, sigma_m: floa
     from the calibrated extrinsic than :data:`PRIOR_CONFLICT_SIGMAS` of its own sigma, in rotation
     angle or in translation distance; empty otherwise. The data then outweighed a prior that said
     otherwise: either the prior is wrong or its sigma is too small (and it pulled the estimate)."""
-    from ..geometry import rotation_angle_between
+    from graphcal.geometry import rotation_angle_between
 
     angle = float(rotation_angle_between(T_body_sensor[:3, :3], T_prior[:3, :3]))
     dist = float(np.linalg.norm(T_body_sensor[:3, 3] - T_prior[:3, 3]))
@@ -595,7 +595,7 @@ def flipped_normal_warnings(residuals) -> list[str]:
 
 def noise_summary(options: CalibrationOptions, problem: CalibrationProblem) -> dict:
     """The noise model of the final solve, SI units (what ``--noise-from`` reads back)."""
-    from .noise_file import NOISE_KEYS, PLANE_SCALE_PREFIX
+    from graphcal.calibration.noise_file import NOISE_KEYS, PLANE_SCALE_PREFIX
 
     out = {name: float(getattr(options, name)) for name in NOISE_KEYS}
     for sensor in problem.sensor_keys:
@@ -604,7 +604,7 @@ def noise_summary(options: CalibrationOptions, problem: CalibrationProblem) -> d
 
 
 def _residuals(data, problem, values, T_world_body, sensors, outliers) -> list[StationResidual]:
-    from ..solvers.batch import whitened_errors
+    from graphcal.solvers.batch import whitened_errors
 
     index_of = {m: i for i, m in problem.plane_factors.items()}
     out = []
@@ -628,8 +628,8 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
     :func:`graphcal.calibration.graph.options_for_ground_roughness`; ``plane_max_points``: see
     :func:`calibrate`; ``noise_from``: an earlier ``calibration.yaml`` whose noise model is used
     as given, not learned (:func:`graphcal.calibration.noise_file.options_with_noise_from`)."""
-    from ..report.write import check_output_folder, write_calibration_outputs
-    from .graph import options_for_ground_roughness
+    from graphcal.report.write import check_output_folder, write_calibration_outputs
+    from graphcal.calibration.graph import options_for_ground_roughness
 
     check_output_folder(out_dir)  # refuse early, before the work (checked again when writing)
     if noise_from is not None and Path(out_dir).resolve() in Path(noise_from).resolve().parents:
@@ -638,18 +638,18 @@ def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = Fals
     options = options_for_ground_roughness(CalibrationOptions(legs=legs), ground_roughness_m)
     scaled: tuple[str, ...] = ()
     if noise_from is not None:
-        from .noise_file import options_with_noise_from
+        from graphcal.calibration.noise_file import options_with_noise_from
 
         options, scaled = options_with_noise_from(noise_from, options)
     if incremental:
-        from .incremental import calibrate_incremental
+        from graphcal.calibration.incremental import calibrate_incremental
 
         result = calibrate_incremental(dataset, options=options, progress=progress,
                                        plane_max_points=plane_max_points)
     else:
         result = calibrate(dataset, options=options, progress=progress, plane_max_points=plane_max_points)
     if noise_from is not None:
-        from .noise_file import noise_from_mismatch
+        from graphcal.calibration.noise_file import noise_from_mismatch
 
         unscaled = [name for name in result.sensors if name not in scaled]
         notes = noise_from_mismatch(noise_from, result.robot_name, result.sensors) + tuple(

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from .. import chi2
+from graphcal import stats as chi2
 
 __all__ = [
     "Decision",

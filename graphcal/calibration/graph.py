@@ -30,11 +30,11 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from factors.keys import C, F, G, L, M, S, W, X
-from ..errors import GraphcalError
-from ..geometry import pose_matrix, to_gtsam_pose
-from .kinematic_pose import ground_from_feet, initial_body_pose
-from .measurements import CalibrationData
+from graphcal.factors.keys import C, F, G, L, M, S, W, X
+from graphcal.errors import GraphcalError
+from graphcal.geometry import pose_matrix, to_gtsam_pose
+from graphcal.calibration.kinematic_pose import ground_from_feet, initial_body_pose
+from graphcal.calibration.measurements import CalibrationData
 
 
 @dataclass(frozen=True)
@@ -229,7 +229,7 @@ def leg_kinematics(data: CalibrationData, robot) -> dict:
     """(station, foot) -> (p_body_foot (3,), J (3, n) position Jacobian) of the measured joint
     angles on the nominal legs, computed once per (data, robot) and cached (graphs are rebuilt
     many times by the noise estimation and the diagnosis)."""
-    from ..models.kinematics import foot_positions, leg_jacobian
+    from graphcal.models.kinematics import foot_positions, leg_jacobian
 
     per_data = _LEG_CACHE.setdefault(data, {})
     out = per_data.get(id(robot))
@@ -286,7 +286,7 @@ def _compute_kinematic_bodies(data: CalibrationData, robot) -> tuple[dict, dict,
 def _robust_closed_form_extrinsic(u: np.ndarray, n: np.ndarray, d: np.ndarray, z: np.ndarray, T_prior: np.ndarray):
     """Closed-form extrinsic from planes, with stations whose residual is far off the rest trimmed
     (outlier stations would otherwise pull the closed form)."""
-    from ..solvers.closed_form import rotation_from_normals, translation_from_distances
+    from graphcal.solvers.closed_form import rotation_from_normals, translation_from_distances
 
     keep = np.ones(len(u), dtype=bool)
     for _ in range(4):
@@ -326,7 +326,7 @@ def floored_extrinsic_prior(key: int, T_body_sensor, sigma_m: float, sigma_rad: 
     """The prior factor of an extrinsic (or of one of its segments) at ``T_body_sensor`` (4x4 or
     gtsam.Pose3: the CAD pose, or the estimate before a change) with dataset.yaml's sigmas (m, rad);
     a zero sigma ("known exactly") enters at ``PRIOR_SIGMA_FLOOR_M`` / ``PRIOR_SIGMA_FLOOR_RAD``."""
-    from factors.priors import extrinsic_prior
+    from graphcal.factors.priors import extrinsic_prior
 
     return extrinsic_prior(key, T_body_sensor, max(sigma_m, PRIOR_SIGMA_FLOOR_M), max(sigma_rad, PRIOR_SIGMA_FLOOR_RAD))
 
@@ -355,7 +355,7 @@ def huber_loss(dim: int, options: CalibrationOptions):
 @functools.lru_cache(maxsize=64)
 def _huber_threshold(p: float, dim: int) -> float:
     """sqrt of the chi-square quantile p of dim dof (one per factor: cached)."""
-    from .. import chi2
+    from graphcal import stats as chi2
 
     return float(np.sqrt(chi2.ppf(p, dim)))
 
@@ -367,9 +367,9 @@ def measurement_factor(x_key: int, s_key: int, sensor: str, options: Calibration
     scan (range_to_plane). ``robust``: Huber loss sized to the factor's dimension. ``c_key``: the
     sensor's range-scale variable (factors/range_scale.py); ``g_key``: an estimated ground plane
     (cameras only)."""
-    from factors.plane_observation import plane_noise_model, plane_observation_factor
-    from factors.range_scale import scaled_plane_factor, scaled_range_factor
-    from factors.range_to_plane import range_to_plane_factor
+    from graphcal.factors.plane_observation import plane_noise_model, plane_observation_factor
+    from graphcal.factors.range_scale import scaled_plane_factor, scaled_range_factor
+    from graphcal.factors.range_to_plane import range_to_plane_factor
 
     scale = options.plane_scale(sensor)
     if plane is not None:
@@ -397,8 +397,8 @@ def measurement_factor(x_key: int, s_key: int, sensor: str, options: Calibration
 
 def leg_parameter_priors(robot, options: CalibrationOptions) -> list:
     """(foot, key L(l), LegParameterization, prior factor) per leg, for ``options.legs``."""
-    from factors.priors import leg_offset_prior
-    from ..models.leg_params import leg_parameterization
+    from graphcal.factors.priors import leg_offset_prior
+    from graphcal.models.leg_params import leg_parameterization
 
     out = []
     for idx, foot in enumerate(robot.feet):
@@ -422,11 +422,11 @@ def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, opti
     a stance-foot factor per planted foot (noise: joint noise through the leg plus contact noise),
     the IMU attitude, and the commanded-pose prior. ``kinematics``: :func:`leg_kinematics` when
     already computed."""
-    from factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
-    from factors.priors import commanded_pose_prior
-    from factors.stance_foot import stance_foot_factor
-    from factors.stance_foot_builtin import MIN_RANGE_M, stance_foot_builtin_factors
-    from ..models.kinematics import foot_positions, leg_jacobian
+    from graphcal.factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
+    from graphcal.factors.priors import commanded_pose_prior
+    from graphcal.factors.stance_foot import stance_foot_factor
+    from graphcal.factors.stance_foot_builtin import MIN_RANGE_M, stance_foot_builtin_factors
+    from graphcal.models.kinematics import foot_positions, leg_jacobian
 
     var_joint, var_contact = options.sigma_joint_rad**2, options.sigma_contact_m**2
     feet = []  # (foot, q, leg key, param, p_fk or None, leg position Jacobian)
@@ -460,7 +460,7 @@ def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, opti
         out.append((built[j][0], "stance_foot", built[j][1]))
     if st.imu_accel is not None and R_body_imu is not None:
         if options.estimate_imu_mounting and w_key is not None:
-            from factors.gravity_tilt import imu_attitude_tilted_factor
+            from graphcal.factors.gravity_tilt import imu_attitude_tilted_factor
 
             out.append((imu_attitude_tilted_factor(x_key, M(0), w_key, st.imu_accel, options.sigma_imu_rad), "imu", None))
         elif options.estimate_imu_mounting:
@@ -495,11 +495,11 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         initial: values to start from instead of the closed form, for every variable they hold
             (a warm start from a previous solve of a similar graph).
     """
-    from factors.plane_prior import plane_prior_factor
+    from graphcal.factors.plane_prior import plane_prior_factor
 
     ext = extensions if extensions is not None else ModelExtensions()
-    from factors.foot_on_ground import foot_on_ground_factor
-    from ..solvers.closed_form import extrinsic_from_scan_points
+    from graphcal.factors.foot_on_ground import foot_on_ground_factor
+    from graphcal.solvers.closed_form import extrinsic_from_scan_points
 
     if not data.stations:
         raise GraphcalError(f"{_stations_file(ds)}: no stations (a header without rows): nothing to calibrate")
@@ -647,7 +647,7 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
     leg_keys = {}
     leg_sigmas = dict(ext.leg_sigmas)
     if options.legs or leg_sigmas:
-        from factors.priors import leg_offset_prior
+        from graphcal.factors.priors import leg_offset_prior
 
         for foot, key, param, prior in leg_parameter_priors(robot, options):
             if foot in leg_sigmas:
@@ -723,7 +723,7 @@ def _copy_value(values: gtsam.Values, source: gtsam.Values, key: int) -> None:
 def predicted_plane_errors(T_world_body: np.ndarray, T_body_sensor: np.ndarray, n_m, d_m) -> tuple[float, float]:
     """Chai's theta (deg) and e_d (mm) of a measured plane against the ground z = 0 seen from the
     given body pose and extrinsic."""
-    from factors.plane_observation import plane_angle_distance_error
+    from graphcal.factors.plane_observation import plane_angle_distance_error
 
     ang, dist = plane_angle_distance_error(T_world_body @ T_body_sensor, n_m, d_m)
     return float(np.degrees(ang)), float(1e3 * abs(dist))

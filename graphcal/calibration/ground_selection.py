@@ -65,7 +65,7 @@ def _consensus_extrinsic(picks: list, U: np.ndarray, H: np.ndarray, T_start: np.
     """Closed-form extrinsic from the picks that agree with most others: the distances' offsets
     ``d - h - u . t_start`` of the floor's picks cluster within the gate, a tread's lie a riser
     lower; the largest cluster (ties: the lowest plane) is kept."""
-    from .graph import _robust_closed_form_extrinsic
+    from graphcal.calibration.graph import _robust_closed_form_extrinsic
 
     N = np.array([p.n for p in picks])
     D = np.array([p.d for p in picks])
@@ -163,7 +163,7 @@ def choose_ground_planes(
 def ground_choice_warnings(data) -> list[str]:
     """One warning per sensor of ``data`` (:class:`CalibrationData`) with stations where the floor
     taken is not the largest plane the camera saw (``data.ground_not_largest``)."""
-    from ..plane_table import stations_text
+    from graphcal.clouds.plane_table import stations_text
 
     moved = getattr(data, "ground_not_largest", {})
     out = []

@@ -55,15 +55,15 @@ from typing import Callable, Mapping
 import gtsam
 import numpy as np
 
-from factors.keys import F, S, X
-from ..errors import GraphcalError
-from ..geometry import from_gtsam_pose, to_gtsam_pose
-from .change_detection import ChangeDetector, Decision, innovation_nis, joint_covariance
-from .graph import (GAUGE_PRIOR_SIGMAS, CalibrationOptions, CalibrationProblem, build_problem,
+from graphcal.factors.keys import F, S, X
+from graphcal.errors import GraphcalError
+from graphcal.geometry import from_gtsam_pose, to_gtsam_pose
+from graphcal.calibration.change_detection import ChangeDetector, Decision, innovation_nis, joint_covariance
+from graphcal.calibration.graph import (GAUGE_PRIOR_SIGMAS, CalibrationOptions, CalibrationProblem, build_problem,
                     extrinsic_prior_for_observability, floored_extrinsic_prior)
-from .measurements import (CalibrationData, PlaneMeasurement, StationMeasurements, calibration_data,
+from graphcal.calibration.measurements import (CalibrationData, PlaneMeasurement, StationMeasurements, calibration_data,
                            require_sensors)
-from .result import CalibrationResult, ExtrinsicSegment, IncrementalStep, SensorEstimate
+from graphcal.calibration.result import CalibrationResult, ExtrinsicSegment, IncrementalStep, SensorEstimate
 
 __all__ = ["IncrementalCalibrator", "calibrate_incremental", "station_updates"]
 
@@ -184,7 +184,7 @@ class IncrementalCalibrator:
     # ------------------------------------------------------------------ station factors (online path)
     def _kinematic_body(self, st: StationMeasurements) -> np.ndarray:
         """T_world_body from the stance feet and the commanded pose (graph.py's initial value)."""
-        from .kinematic_pose import feet_in_body, ground_from_feet, initial_body_pose
+        from graphcal.calibration.kinematic_pose import feet_in_body, ground_from_feet, initial_body_pose
 
         if len(st.q_by_foot) >= 3:
             u, h = ground_from_feet(feet_in_body(self.robot, st.q_by_foot))
@@ -200,10 +200,10 @@ class IncrementalCalibrator:
         """Update A of the online path, built as graph.py builds the batch graph: the station's
         body pose, new feet / legs / IMU mounting / extrinsics with their priors, and its
         stance-foot, IMU and commanded-pose factors (a fresh graph and values)."""
-        from factors.foot_on_ground import foot_on_ground_factor
-        from factors.keys import M
-        from .graph import imu_mounting_prior, leg_parameter_priors, station_factors
-        from .kinematic_pose import feet_in_body
+        from graphcal.factors.foot_on_ground import foot_on_ground_factor
+        from graphcal.factors.keys import M
+        from graphcal.calibration.graph import imu_mounting_prior, leg_parameter_priors, station_factors
+        from graphcal.calibration.kinematic_pose import feet_in_body
 
         o = self.options
         known = self._in_isam
@@ -252,7 +252,7 @@ class IncrementalCalibrator:
         extrinsic key ``s_key``, built by graph.py's builder but always Gaussian: the incremental
         solver gates outliers with the change test instead of a robust loss (module docstring).
         ``g_key``: the session's ground plane variable (uneven ground, cameras only)."""
-        from .graph import measurement_factor
+        from graphcal.calibration.graph import measurement_factor
 
         return measurement_factor(X(station), s_key, sensor, self.options, plane=plane, points=points, robust=False,
                                   g_key=g_key)
@@ -333,7 +333,7 @@ class IncrementalCalibrator:
             the estimate and body-axis 1-sigma after this station, the window statistic, and
             whether a change was declared here.
         """
-        from ..solvers.covariance import body_axis_sigmas
+        from graphcal.solvers.covariance import body_axis_sigmas
 
         sid = int(station)
         x_key = X(sid)
@@ -495,7 +495,7 @@ class IncrementalCalibrator:
 
     def sigmas(self, sensor: str) -> tuple[np.ndarray, np.ndarray]:
         """(sigma_rot_deg (3,), sigma_xyz_mm (3,)) of the current segment in body axes."""
-        from ..solvers.covariance import body_axis_sigmas
+        from graphcal.solvers.covariance import body_axis_sigmas
 
         key = self._key[sensor]
         if key not in self._in_isam:
@@ -507,7 +507,7 @@ class IncrementalCalibrator:
     def estimate(self, sensor: str) -> SensorEstimate:
         """The sensor's current estimate (last segment), covariance from iSAM2's marginal, its
         earlier segments and the stations where it changed."""
-        from ..solvers.covariance import body_axis_sigmas, unobservable_directions
+        from graphcal.solvers.covariance import body_axis_sigmas, unobservable_directions
 
         if sensor not in self._priors:
             raise GraphcalError(f"unknown sensor {sensor!r}; known: {', '.join(self._priors)}")
@@ -706,11 +706,11 @@ def calibrate_incremental(
         added, ``history`` = one :class:`IncrementalStep` per station and sensor, and per sensor
         its extrinsic segments and change stations.
     """
-    from ..io.dataset import Dataset, load_dataset_robot, read_dataset
-    from ..solvers.covariance import marginal_covariances
-    from .calibrate import _residuals, _result, plane_source_warnings
-    from .ground_selection import ground_choice_warnings
-    from .noise_check import given_noise_check
+    from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
+    from graphcal.solvers.covariance import marginal_covariances
+    from graphcal.calibration.calibrate import _residuals, _result, plane_source_warnings
+    from graphcal.calibration.ground_selection import ground_choice_warnings
+    from graphcal.calibration.noise_check import given_noise_check
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
     require_sensors(ds, "calibrate --incremental")

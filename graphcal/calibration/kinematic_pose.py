@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import matrix_from_axis_angle, pose_matrix, rot_z
+from graphcal.geometry import matrix_from_axis_angle, pose_matrix, rot_z
 
 
 def feet_in_body(robot, q_by_foot: dict) -> np.ndarray:
     """(F, 3) positions p_body_foot (m) of the feet that have joint angles, in ``robot.feet`` order."""
-    from ..models.kinematics import foot_positions
+    from graphcal.models.kinematics import foot_positions
 
     return np.array([foot_positions(robot.leg(f), q) for f, q in q_by_foot.items()])
 

@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import DatasetError
-from ..geometry import pose_from_xyz_quat_wxyz
-from ..io.dataset import FEET_REPLANTED_AT_EACH_STATION
+from graphcal.errors import DatasetError
+from graphcal.geometry import pose_from_xyz_quat_wxyz
+from graphcal.io.dataset import FEET_REPLANTED_AT_EACH_STATION
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,9 +114,9 @@ def plane_candidates(ds, *, progress: bool = False, plane_max_points: int | None
     """The planes every camera saw: ((station, sensor) -> [:class:`PlaneMeasurement`, ...] largest
     first, ``refit``): from planes.csv when the dataset has it (every row; ``refit`` None),
     otherwise fitted to the clouds (the largest plane of each, on at most ``plane_max_points`` of its
-    points, see :func:`graphcal.plane_table.planes_rows`; None: all) with ``refit(key)`` fitting up
+    points, see :func:`graphcal.clouds.plane_table.planes_rows`; None: all) with ``refit(key)`` fitting up
     to ``ground_selection.REFIT_MAX_PLANES`` planes to that station's cloud."""
-    from ..plane_table import planes_rows
+    from graphcal.clouds.plane_table import planes_rows
 
     types = {name: spec.type for name, spec in ds.sensors.items()}
     if ds.planes is not None:
@@ -124,14 +124,14 @@ def plane_candidates(ds, *, progress: bool = False, plane_max_points: int | None
         rows = {c: p[c] for c in p.columns}
         count = len(p)
         if count == 0 and ds.root is not None:
-            from ..errors import DatasetError
-            from ..io.dataset import cloud_paths
+            from graphcal.errors import DatasetError
+            from graphcal.io.dataset import cloud_paths
 
             if cloud_paths(ds):
                 raise DatasetError(ds.root / "planes.csv", "rows", "at least one plane: when planes.csv exists the "
                                    "clouds are not read (delete it to fit the clouds)", "a header only")
     else:
-        from ..io.dataset import cloud_paths, load_cloud
+        from graphcal.io.dataset import cloud_paths, load_cloud
 
         cams = {k: v for k, v in cloud_paths(ds).items() if types.get(k[0]) in ("depth_camera", "stereo_camera")}
         pairs = [(key, functools.partial(load_cloud, ds, *key)) for key in sorted(cams)]  # read by the workers
@@ -144,7 +144,7 @@ def plane_candidates(ds, *, progress: bool = False, plane_max_points: int | None
     refit = None
     if ds.planes is None:
         def refit(key):
-            from .ground_selection import REFIT_MAX_PLANES
+            from graphcal.calibration.ground_selection import REFIT_MAX_PLANES
 
             station, sensor = key
             more = planes_rows([((sensor, station), functools.partial(load_cloud, ds, sensor, station))], types,
@@ -199,7 +199,7 @@ def scan_points(ds, *, max_points: int = 200, seed: int = 0, max_range_m: float 
 
     ``off_plane``: filled with sensor -> ([(cloud file, 90th percentile of |z| in m), ...] of its
     clouds off the scan plane z = 0, number of its clouds) (see :class:`CalibrationData`)."""
-    from ..io.dataset import SCAN_PLANE_MAX_Z_M, cloud_paths, load_cloud, scan_off_plane_m, shown_path
+    from graphcal.io.dataset import SCAN_PLANE_MAX_Z_M, cloud_paths, load_cloud, scan_off_plane_m, shown_path
 
     out = {}
     for (sensor, station), path in sorted(cloud_paths(ds).items()):
@@ -236,7 +236,7 @@ def calibration_data(ds, robot, *, progress: bool = False, plane_max_points: int
     """Everything the calibration graph reads from a dataset (``plane_max_points``: see
     :func:`plane_candidates`; where a camera saw several planes the floor is the one the stance
     feet and the extrinsic predict, :mod:`graphcal.calibration.ground_selection`)."""
-    from ..plane_table import check_max_points
+    from graphcal.clouds.plane_table import check_max_points
 
     plane_max_points = check_max_points(plane_max_points, "plane_max_points")
     off_plane: dict = {}
@@ -251,8 +251,8 @@ def calibration_data(ds, robot, *, progress: bool = False, plane_max_points: int
     )
     if data.planes:
         # the floor among each station's planes: the one the stance feet and the extrinsic predict
-        from .graph import _kinematic_bodies
-        from .ground_selection import choose_ground_planes
+        from graphcal.calibration.graph import _kinematic_bodies
+        from graphcal.calibration.ground_selection import choose_ground_planes
 
         u_body, height, _ = _kinematic_bodies(data, robot)  # cached on data: the graph reuses it
         priors = {name: (spec.T_body_sensor_prior.matrix, spec.T_body_sensor_prior.sigma_m,

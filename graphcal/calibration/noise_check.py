@@ -39,11 +39,11 @@ import dataclasses
 
 import numpy as np
 
-from .calibrate import (NOISE_TOO_SMALL_P, VCE_INNER_ITERATIONS, VCE_INNER_TOLERANCE, VCE_MIN_REDUNDANCY,
+from graphcal.calibration.calibrate import (NOISE_TOO_SMALL_P, VCE_INNER_ITERATIONS, VCE_INNER_TOLERANCE, VCE_MIN_REDUNDANCY,
                         noise_groups_report)
-from .graph import CalibrationOptions, CalibrationProblem
-from .noise_estimation import converged_scales
-from .result import NoiseGroupEstimate, SensorEstimate
+from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem
+from graphcal.calibration.noise_estimation import converged_scales
+from graphcal.calibration.result import NoiseGroupEstimate, SensorEstimate
 
 
 #: a covariance multiplied by more than this is warned about even when the chi-square test is not

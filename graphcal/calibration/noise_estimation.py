@@ -54,7 +54,7 @@ from typing import Callable, NamedTuple
 import gtsam
 import numpy as np
 
-from ..errors import GraphcalError
+from graphcal.errors import GraphcalError
 
 
 def whitening_matrix(factor) -> np.ndarray:

@@ -19,8 +19,8 @@ import dataclasses
 import math
 from pathlib import Path
 
-from ..errors import DatasetError
-from .graph import CalibrationOptions
+from graphcal.errors import DatasetError
+from graphcal.calibration.graph import CalibrationOptions
 
 __all__ = ["NOISE_KEYS", "PLANE_SCALE_PREFIX", "noise_from_mismatch", "options_with_noise_from"]
 
@@ -61,7 +61,7 @@ def options_with_noise_from(path: str | Path, options: CalibrationOptions) -> tu
             that is not a finite number > 0, or a key that is not a sigma or a plane scale (the
             message names the file and the key).
     """
-    from ..report.calibration_yaml import read_calibration_yaml
+    from graphcal.report.calibration_yaml import read_calibration_yaml
 
     path = Path(path)
     doc = read_calibration_yaml(path)
@@ -106,7 +106,7 @@ def noise_from_mismatch(path: str | Path, robot_name: str, sensors) -> tuple[str
         One sentence per mismatch: another robot, no robot recorded (a file written before
         calibration.yaml recorded it), a plane scale of a sensor the dataset does not have.
     """
-    from ..report.calibration_yaml import read_calibration_yaml
+    from graphcal.report.calibration_yaml import read_calibration_yaml
 
     path = Path(path)
     doc = read_calibration_yaml(path)

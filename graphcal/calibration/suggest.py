@@ -28,7 +28,7 @@ Schur complement:
   (:mod:`graphcal.simulation.sensors`): the rays of the camera's (strided) pixel grid hit the
   predicted plane, each point's noise along the normal is ``sigma_z(z) |n . u| / u_z``, and the
   plane fit's information is ``H = sum_i J_i J_i^T / sigma_i^2``, ``J_i = (t1 . x_i, t2 . x_i, 1)``
-  (graphcal/planes.py's formula). One scalar ``c`` calibrates it to the dataset: the median over the
+  (graphcal/clouds/planes.py's formula). One scalar ``c`` calibrates it to the dataset: the median over the
   dataset's stations of ``tr(H_i C_i) / 3`` with ``C_i`` the covariance the plane fit reported
   (it absorbs the cloud stride, the trimming factor and any unmodelled noise). ``cov3 = c H^-1``.
 
@@ -51,9 +51,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import GraphcalError
-from ..geometry import invert_pose, pose_from_xyz_rpy, xyz_quat_wxyz_from_pose, xyz_rpy_from_pose
-from .graph import DEFAULT_PLANE_COV, CalibrationOptions
+from graphcal.errors import GraphcalError
+from graphcal.geometry import invert_pose, pose_from_xyz_rpy, xyz_quat_wxyz_from_pose, xyz_rpy_from_pose
+from graphcal.calibration.graph import DEFAULT_PLANE_COV, CalibrationOptions
 
 __all__ = ["SuggestedPose", "suggest_poses", "predict_sigmas", "suggest_poses_command", "MIN_GROUND_RAYS"]
 
@@ -98,10 +98,10 @@ class _Model:
     """The information model of one dataset and camera (module docstring)."""
 
     def __init__(self, dataset, sensor: str | None, options: CalibrationOptions):
-        from ..io.dataset import Dataset, load_dataset_robot, read_dataset
-        from ..simulation.sensors import sensor_for_type
-        from .graph import build_problem
-        from .measurements import calibration_data
+        from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
+        from graphcal.simulation.sensors import sensor_for_type
+        from graphcal.calibration.graph import build_problem
+        from graphcal.calibration.measurements import calibration_data
 
         ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
         self.ds, self.options = ds, options
@@ -132,7 +132,7 @@ class _Model:
         self.feet = [f for f in self.robot.feet if all(f in st.q_by_foot for st in st1)]
         if len(self.feet) < 3:
             raise GraphcalError("suggest_poses: fewer than 3 legs with joint angles in the first session")
-        from .kinematic_pose import feet_in_body
+        from graphcal.calibration.kinematic_pose import feet_in_body
 
         feet_world = []
         for f in self.feet:
@@ -169,7 +169,7 @@ class _Model:
         self.rays = self.camera.ray_directions()
         # calibrate the predicted plane covariance to the dataset's own plane fits
         ratios = []
-        from factors.plane_observation import plane_cov3
+        from graphcal.factors.plane_observation import plane_cov3
 
         for (station, name), p in data.planes.items():
             if name != sensor:
@@ -196,7 +196,7 @@ class _Model:
     def _plane_information(self, T_world_sensor: np.ndarray):
         """(3, 3) information of the plane fit (unscaled) at a sensor pose, in the error's
         coordinates ``[B^T n, d]`` (B = tangent_basis(n)), or None when the ground is not seen."""
-        from factors._checked import tangent_basis
+        from graphcal.factors.checked import tangent_basis
 
         R, t = T_world_sensor[:3, :3], T_world_sensor[:3, 3]
         n = R.T @ np.array([0.0, 0.0, 1.0])  # ground normal in the sensor frame (towards the sensor)
@@ -220,7 +220,7 @@ class _Model:
 
     def reachable(self, T_world_body: np.ndarray):
         """(ok (N,), q_by_foot {foot: (N, n)}) for a batch (N, 4, 4) of body poses."""
-        from ..models.kinematics import ik_leg
+        from graphcal.models.kinematics import ik_leg
 
         T = np.asarray(T_world_body, dtype=float)
         Tinv = invert_pose(T)
@@ -243,10 +243,10 @@ class _Model:
 
     def station_informations(self, T: np.ndarray, q_by_foot: dict) -> list:
         """:meth:`station_information` for a batch: T (N, 4, 4), q_by_foot foot -> (N, n)."""
-        from factors._checked import skew3
-        from factors.imu_attitude import imu_attitude_error, imu_attitude_misaligned_error
-        from factors.plane_observation import plane_observation_error
-        from ..models.kinematics import leg_jacobian
+        from graphcal.factors.checked import skew3
+        from graphcal.factors.imu_attitude import imu_attitude_error, imu_attitude_misaligned_error
+        from graphcal.factors.plane_observation import plane_observation_error
+        from graphcal.models.kinematics import leg_jacobian
 
         o = self.options
         N = len(T)
@@ -330,7 +330,7 @@ class _Model:
 
     def sigmas(self, Lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Body-axis 1-sigma (deg, mm) of the extrinsic from an information matrix on theta."""
-        from ..solvers.covariance import body_axis_sigmas
+        from graphcal.solvers.covariance import body_axis_sigmas
 
         cov = np.linalg.inv(Lam)[:6, :6]
         s_rot, s_xyz, _, _ = body_axis_sigmas(self.T_ext, 0.5 * (cov + cov.T))
@@ -520,17 +520,17 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
                 raise GraphcalError(f"{flag} must be one or three finite numbers > 0 (body x, y, z), got {v}")
             targets.append(np.broadcast_to(a, (3,)).copy())
     if out is not None and (Path(out).exists() or Path(out).is_symlink()):
-        from ..errors import DatasetError
+        from graphcal.errors import DatasetError
 
         raise DatasetError(out, "--out", "a file that does not exist yet (graphcal never overwrites it); "
                            "give another name")
     if out is not None:
-        from ..io.atomic import check_output_location
+        from graphcal.io.atomic import check_output_location
 
         check_output_location(out)  # before the work
     options = CalibrationOptions()
     if noise_from is not None:
-        from .noise_file import options_with_noise_from
+        from graphcal.calibration.noise_file import options_with_noise_from
 
         options, _ = options_with_noise_from(noise_from, options)
         noise_line = f"noise model: learned by the calibration {noise_from}"
@@ -539,7 +539,7 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
                       "own and reports sigma for it: --noise-from ITS/calibration.yaml predicts with that")
     model = _Model(dataset, None, options)
     if noise_from is not None:
-        from .noise_file import noise_from_mismatch
+        from graphcal.calibration.noise_file import noise_from_mismatch
 
         noise_line += "".join(f"\nwarning: {w}" for w in noise_from_mismatch(noise_from, model.robot.name, model.ds.sensors))
     others = [f"{name} ({spec.type})" for name, spec in model.ds.sensors.items() if name != model.sensor]
@@ -585,8 +585,8 @@ def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, aft
                      f"{x:>7.3f} {y:>7.3f}  {' '.join(f'{v:7.3f}' for v in p.sigma_rot_deg)}  "
                      f"{' '.join(f'{v:6.2f}' for v in p.sigma_xyz_mm)}")
     if out is not None:
-        from ..io.atomic import atomic_write_text, make_parent_folder
-        from ..io.dataset import Table, table_csv_text
+        from graphcal.io.atomic import atomic_write_text, make_parent_folder
+        from graphcal.io.dataset import Table, table_csv_text
 
         cols: dict[str, list] = {"station": [p.rank for p in poses], "session": ["suggested"] * len(poses)}
         for i, c in enumerate("xyz"):

@@ -5,6 +5,6 @@ findings), scores.py (score tests of every candidate at once), heldout.py (cross
 diagnose.py (the loop), command.py (the command and its files). Method: docs/diagnosis.md.
 """
 
-from .diagnose import Diagnosis, diagnose
+from graphcal.diagnosis.diagnose import Diagnosis, diagnose
 
 __all__ = ["Diagnosis", "diagnose"]

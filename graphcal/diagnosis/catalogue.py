@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..simulation.effects import CAUSES
+from graphcal.simulation.effects import CAUSES
 
 __all__ = ["CAUSES", "Candidate", "Finding", "MIN_RELEVANT", "relevant"]
 

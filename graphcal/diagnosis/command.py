@@ -13,8 +13,8 @@ import html
 import json
 from pathlib import Path
 
-from ..io.atomic import atomic_directory, atomic_write_text, check_output_folder, previous_output_files
-from .diagnose import Diagnosis, diagnose
+from graphcal.io.atomic import atomic_directory, atomic_write_text, check_output_folder, previous_output_files
+from graphcal.diagnosis.diagnose import Diagnosis, diagnose
 
 __all__ = ["run_diagnose", "write_diagnosis", "summary_text", "DIAGNOSIS_FILES"]
 
@@ -36,8 +36,8 @@ def _fmt(v) -> str:
 
 
 def report_html(diag: Diagnosis, doc: dict, title: str) -> str:
-    from ..report.plots import figure_png
-    from .plots import diagnosis_figures
+    from graphcal.report.plots import figure_png
+    from graphcal.diagnosis.plots import diagnosis_figures
 
     e = html.escape
     out = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">', f"<title>{e(title)}</title>",

@@ -24,11 +24,11 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
-from ..errors import GraphcalError
-from ..geometry import from_gtsam_pose
-from .catalogue import Candidate, Finding, relevant
-from .model import DiagnosisModel, chi2_of, model_options
-from .scores import CandidateColumns, current_columns, evidence, linear_system, score_candidates
+from graphcal.errors import GraphcalError
+from graphcal.geometry import from_gtsam_pose
+from graphcal.diagnosis.catalogue import Candidate, Finding, relevant
+from graphcal.diagnosis.model import DiagnosisModel, chi2_of, model_options
+from graphcal.diagnosis.scores import CandidateColumns, current_columns, evidence, linear_system, score_candidates
 
 __all__ = ["Diagnosis", "diagnose", "ALPHA", "MAX_FINDINGS"]
 
@@ -90,8 +90,8 @@ class Diagnosis:
     nuisance: tuple = field(default=())
 
     def to_json(self) -> dict:
-        from ..calibration.calibrate import _result
-        from ..report.calibration_yaml import calibration_to_dict as calibration_dict
+        from graphcal.calibration.calibrate import _result
+        from graphcal.report.calibration_yaml import calibration_to_dict as calibration_dict
 
         result = _result(self.model.ds, self.model.robot, self.model.data, self.problem, self.values, set(), 0,
                          self.model.options)
@@ -117,7 +117,7 @@ def _extension_values(diag: Diagnosis) -> dict:
     """The findings that are not leg parameters (those are in ``legs``), with their values; an
     extrinsic change also gives the sensor's pose from the change on (``sensors`` holds the pose
     before it)."""
-    from ..report.calibration_yaml import pose_to_dict
+    from graphcal.report.calibration_yaml import pose_to_dict
 
     out = {}
     for f in diag.findings:
@@ -222,7 +222,7 @@ def _propagate(values, keys, cov, fn, h=1e-6):
 
 
 def _joint_cov(problem, values, keys) -> np.ndarray:
-    from ..solvers.covariance import marginal_covariances
+    from graphcal.solvers.covariance import marginal_covariances
 
     try:
         marg = gtsam.Marginals(problem.graph, values)
@@ -304,7 +304,7 @@ def _parameters(cand: Candidate, model: DiagnosisModel, problem, values) -> tupl
 
 # ---------------------------------------------------------------------------- summaries
 def _summary(model: DiagnosisModel, problem, values) -> ModelSummary:
-    from ..calibration.graph import predicted_plane_errors
+    from graphcal.calibration.graph import predicted_plane_errors
 
     ang, dist = [], []
     for i, (st, s) in problem.plane_factors.items():
@@ -323,7 +323,7 @@ def _summary(model: DiagnosisModel, problem, values) -> ModelSummary:
 
 
 def _structure_test(model: DiagnosisModel, problem, values) -> tuple | None:
-    from ..calibration.noise_estimation import group_variances
+    from graphcal.calibration.noise_estimation import group_variances
 
     with_cov = {name for (st, name), p in model.data.planes.items() if p.cov is not None}
     if not with_cov:
@@ -349,8 +349,8 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         max_findings: stop after this many findings.
         heldout: compute the held-out gain of each finding (two-fold, by station).
     """
-    from ..calibration.measurements import calibration_data, require_sensors
-    from ..io.dataset import Dataset, load_dataset_robot, read_dataset
+    from graphcal.calibration.measurements import calibration_data, require_sensors
+    from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
 
     def say(msg):
         if progress:
@@ -430,7 +430,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
             continue
         named = relevant(cand.cause, params)
         if heldout:
-            from .heldout import heldout_gain
+            from graphcal.diagnosis.heldout import heldout_gain
 
             j_cols = current_columns(system, cands)
             if cand.cause == "outlier_stations":
@@ -495,7 +495,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
                 f"(sigma {_params_text(after.sigma)})")
     findings = reread
     nuisance = [c.label() for c in model.findings if c not in {f.candidate for f in findings}]
-    from .residuals import residual_records, stance_records
+    from graphcal.diagnosis.residuals import residual_records, stance_records
 
     findings.sort(key=lambda f: f.evidence.log10_p_family)
     return Diagnosis(nominal, final, tuple(findings), unexplained, st, tuple(screening), model, values, problem,
@@ -513,8 +513,8 @@ def implausible_size(cand: Candidate, params: dict, robot) -> str:
     more than :data:`MAX_LINK_CHANGE_SHARE` of its nominal length (the joint's origin offset)."""
     if cand.cause != "link_length":
         return ""
-    from ..errors import ModelError
-    from ..models.perturb import joint_origin
+    from graphcal.errors import ModelError
+    from graphcal.models.perturb import joint_origin
 
     try:
         xyz, _ = joint_origin(robot, str(cand.get("joint")))

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .catalogue import Gain
+from graphcal.diagnosis.catalogue import Gain
 
 __all__ = ["heldout_gain", "N_FOLDS"]
 

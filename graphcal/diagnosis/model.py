@@ -20,9 +20,9 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from ..calibration.graph import CalibrationOptions, CalibrationProblem, ModelExtensions, build_problem
-from ..solvers.batch import solve_lm, whitened_errors
-from .catalogue import Candidate
+from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem, ModelExtensions, build_problem
+from graphcal.solvers.batch import solve_lm, whitened_errors
+from graphcal.diagnosis.catalogue import Candidate
 
 __all__ = ["DiagnosisModel", "TIGHT_SIGMA", "FREE_SIGMA", "model_options"]
 
@@ -103,7 +103,7 @@ class DiagnosisModel:
         return frozenset(out)
 
     def leg_params(self) -> dict:
-        from ..models.leg_params import leg_parameterization
+        from graphcal.models.leg_params import leg_parameterization
 
         return {f: leg_parameterization(self.robot, f) for f in self.robot.feet}
 
@@ -162,7 +162,7 @@ class DiagnosisModel:
 
     def learn_noise(self, values: gtsam.Values | None = None, rounds: int = VCE_ROUNDS):
         """This model with its noise re-estimated (variance components), and (problem, values)."""
-        from ..calibration.calibrate import rescaled_options
+        from graphcal.calibration.calibrate import rescaled_options
 
         model = self
         problem, values = model.solve(initial=values)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import from_gtsam_pose
+from graphcal.geometry import from_gtsam_pose
 
 __all__ = ["ResidualRecord", "StanceRecord", "residual_records", "stance_records"]
 
@@ -35,9 +35,9 @@ def _kinematic_body(model, problem, values, st) -> np.ndarray | None:
     """T_world_body the model predicts from proprioception alone: the plane through the feet (forward
     kinematics with the model's leg parameters) gives roll, pitch and height; x, y, yaw come from the
     commanded pose. None without three legs."""
-    from ..calibration.graph import leg_kinematics
-    from ..calibration.kinematic_pose import ground_from_feet, initial_body_pose
-    from ..models.leg_params import fk_with_params
+    from graphcal.calibration.graph import leg_kinematics
+    from graphcal.calibration.kinematic_pose import ground_from_feet, initial_body_pose
+    from graphcal.models.leg_params import fk_with_params
 
     if len(st.q_by_foot) < 3:
         return None
@@ -58,9 +58,9 @@ def residual_records(model, problem, values) -> tuple[ResidualRecord, ...]:
     the legs alone (the kinematic body pose, the model's extrinsic, range scale and the ground that
     station's session sees) against the measured one -- the fitted body poses would absorb most of a
     discrepancy. Scans: the fitted range residual's RMS."""
-    from factors.plane_observation import plane_angle_distance_error
+    from graphcal.factors.plane_observation import plane_angle_distance_error
 
-    from ..solvers.batch import whitened_errors
+    from graphcal.solvers.batch import whitened_errors
 
     order = {st.station: (j, st.session) for j, st in enumerate(model.data.stations)}
     by_station = {st.station: st for st in model.data.stations}
@@ -84,7 +84,7 @@ def residual_records(model, problem, values) -> tuple[ResidualRecord, ...]:
             a, d = plane_angle_distance_error(T_wb @ T_bs, p.n, p.d / scale, plane_w)
             ang, dist, rng = float(np.degrees(a)), float(1e3 * d * scale), float(p.d)
         else:
-            from factors.range_scale import scaled_range_error
+            from graphcal.factors.range_scale import scaled_range_error
 
             pts = model.data.scan_points[(st, s)]
             scale = float(values.atVector(ek[f"range_scale:{s}"])[0]) if f"range_scale:{s}" in ek else 1.0
@@ -105,11 +105,11 @@ class StanceRecord:
 
 
 def stance_records(model, problem, values) -> tuple[StanceRecord, ...]:
-    from ..solvers.batch import whitened_errors
+    from graphcal.solvers.batch import whitened_errors
 
     order = {st.station: j for j, st in enumerate(model.data.stations)}
     x_station = {int(k): st for st, k in problem.station_keys.items()}
-    from factors.keys import F
+    from graphcal.factors.keys import F
 
     foot_of = {}
     sessions = list(dict.fromkeys(st.session for st in model.data.stations))

@@ -23,7 +23,7 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2
 
-from .catalogue import Candidate, Evidence
+from graphcal.diagnosis.catalogue import Candidate, Evidence
 
 __all__ = ["LinearSystem", "linear_system", "score_candidates", "evidence"]
 
@@ -61,7 +61,7 @@ def linear_system(problem, values: gtsam.Values) -> LinearSystem:
     for k in sorted(int(k) for k in problem.graph.keyVector()):
         col[k] = (off, dims[k])
         off += dims[k]
-    from .model import TIGHT_SIGMA
+    from graphcal.diagnosis.model import TIGHT_SIGMA
 
     skip = set()
     tight = []

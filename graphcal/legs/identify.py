@@ -42,8 +42,8 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from factors.keys import K, L, V
-from factors.mocap_marker import marker_covariance, mocap_marker_error, mocap_marker_factor, sqrt_information
+from graphcal.factors.keys import K, L, V
+from graphcal.factors.mocap_marker import marker_covariance, mocap_marker_error, mocap_marker_factor, sqrt_information
 from graphcal.errors import GraphcalError
 from graphcal.geometry import fit_rigid_transform, invert_pose
 from graphcal.legs.identifiability import IdentifiabilityReport, identifiability

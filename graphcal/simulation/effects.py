@@ -27,7 +27,7 @@ from typing import Mapping
 
 import numpy as np
 
-from ..errors import GraphcalError
+from graphcal.errors import GraphcalError
 
 CAUSES = (
     "sensor_range_scale",

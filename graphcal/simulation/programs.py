@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import GraphcalError
-from ..geometry import pose_from_xyz_rpy
+from graphcal.errors import GraphcalError
+from graphcal.geometry import pose_from_xyz_rpy
 
 PROGRAMS = ("chai2015", "labecki2012", "random")
 #: the random program draws a pose the robot cannot take within its joint limits again, at most

@@ -8,9 +8,9 @@ from typing import Sequence
 
 import numpy as np
 
-from ..errors import GraphcalError
-from .effects import CAUSES, Effects, ExtrinsicChange, draw_effect, merge
-from .session import SimulationConfig, SimulationResult, leg_link_joints, simulate
+from graphcal.errors import GraphcalError
+from graphcal.simulation.effects import CAUSES, Effects, ExtrinsicChange, draw_effect, merge
+from graphcal.simulation.session import SimulationConfig, SimulationResult, leg_link_joints, simulate
 
 _PARAMS = {
     "sensor_range_scale": {"sensor", "scale"},
@@ -46,8 +46,8 @@ def effect_from_words(cause: str, params: dict, *, seed: int, config: Simulation
             f"expected {', '.join(sorted(_PARAMS[cause]))}"
         )
     if not params:
-        from .programs import station_program
-        from .session import robot_and_info
+        from graphcal.simulation.programs import station_program
+        from graphcal.simulation.session import robot_and_info
 
         robot, info = robot_and_info(config)
         cmds = station_program(config.program, default_height_m=info.default_body_height_m,
@@ -98,10 +98,10 @@ def effect_from_words(cause: str, params: dict, *, seed: int, config: Simulation
 def result_to_dataset(result: SimulationResult, *, with_planes: bool, progress: bool = False):
     """The simulated data as a contract :class:`~graphcal.io.dataset.Dataset` (planes fitted from
     the clouds when ``with_planes``)."""
-    from ..geometry import xyz_quat_wxyz_from_pose
-    from ..io.dataset import Dataset, ImuSpec, PosePrior, RobotSpec, SensorSpec, Table
-    from ..plane_table import planes_rows
-    from .session import robot_and_info
+    from graphcal.geometry import xyz_quat_wxyz_from_pose
+    from graphcal.io.dataset import Dataset, ImuSpec, PosePrior, RobotSpec, SensorSpec, Table
+    from graphcal.clouds.plane_table import planes_rows
+    from graphcal.simulation.session import robot_and_info
 
     _, info = robot_and_info(result.config)
     sensors = {
@@ -168,7 +168,7 @@ def write_simulation(result: SimulationResult, out_dir: str | Path, *, output: s
     clouds with every ``output`` (its data are the scan points; it has no planes)."""
     import yaml
 
-    from ..io.dataset import write_dataset
+    from graphcal.io.dataset import write_dataset
 
     if output not in ("clouds", "planes", "both"):
         raise GraphcalError(f"output must be clouds, planes or both, got {output!r}")
@@ -223,7 +223,7 @@ def simulate_to_folder(
     Returns:
         A one-paragraph summary of what was written.
     """
-    from .walking import WALKING_PROGRAMS
+    from graphcal.simulation.walking import WALKING_PROGRAMS
 
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise GraphcalError(f"--seed must be a whole number >= 0, got {seed}")
@@ -235,7 +235,7 @@ def simulate_to_folder(
     if overwrite:
         check_simulation_overwrite(Path(out_dir))
     if not Path(out_dir).exists():
-        from ..io.atomic import check_output_location
+        from graphcal.io.atomic import check_output_location
 
         check_output_location(out_dir)  # before the work
     if program == MOCAP_PROGRAM:
@@ -302,7 +302,7 @@ def check_simulation_overwrite(out_dir: Path) -> None:
     ``truth.yaml`` says ``graphcal-truth/`` and it holds nothing but :data:`SIMULATION_FILES`.
     ``--overwrite`` replaces a simulation, never a folder of the user's (a measured dataset has no
     truth.yaml)."""
-    from ..io.atomic import OutputExistsError, previous_output_files
+    from graphcal.io.atomic import OutputExistsError, previous_output_files
 
     if out_dir.is_symlink() or (out_dir.exists() and not out_dir.is_dir()):
         raise OutputExistsError(f"{out_dir}: exists and is not a folder; --overwrite replaces only a previous simulation")
@@ -328,10 +328,10 @@ def _mocap_to_folder(*, robot, out_dir, seed, n_stations, leg_errors, overwrite,
     """The motion-capture program: Yuan et al.'s Table I session (:func:`.mocap.simulate_yuan_session`)
     on the A1; on another robot the same session of its first leg. The leg's true errors: Table I's
     (A1), none (other robots), or with ``leg_errors`` drawn from the seed (0.5 deg, 3 mm)."""
-    from ..models.perturb import LegPerturbation, link_length_delta
-    from ..models.robot import load_robot
-    from .mocap import YUAN_FOOT, YUAN_PERTURBATION, simulate_mocap, simulate_yuan_session, write_mocap_simulation
-    from .session import draw_leg_errors
+    from graphcal.models.perturb import LegPerturbation, link_length_delta
+    from graphcal.models.robot import load_robot
+    from graphcal.simulation.mocap import YUAN_FOOT, YUAN_PERTURBATION, simulate_mocap, simulate_yuan_session, write_mocap_simulation
+    from graphcal.simulation.session import draw_leg_errors
 
     refused = [name for name, given in unsupported if given]
     if refused:
@@ -364,7 +364,7 @@ def _mocap_to_folder(*, robot, out_dir, seed, n_stations, leg_errors, overwrite,
 def _walk_to_folder(*, program, robot, out_dir, seed, output, cloud_stride, leg_errors, effects, n_stations,
                     n_sessions, sensors, overwrite, progress, distance_m, duration_s, cloud_rate_hz) -> str:
     """The walking programs: refuse the station-program options, then simulate the walk."""
-    from .walking import simulate_walking_to_folder
+    from graphcal.simulation.walking import simulate_walking_to_folder
 
     unsupported = [name for name, given in (
         ("--effect", bool(effects)), ("--leg-errors", leg_errors), ("--stations", n_stations is not None),

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import GraphcalError
-from .terrain import build_scene
+from graphcal.errors import GraphcalError
+from graphcal.simulation.terrain import build_scene
 
 SENSOR_TYPES = ("depth_camera", "laser_scanner", "stereo_camera")
 

@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import GraphcalError
-from ..geometry import (
+from graphcal.errors import GraphcalError
+from graphcal.geometry import (
     fit_rigid_transform,
     invert_pose,
     matrix_from_axis_angle,
@@ -37,10 +37,10 @@ from ..geometry import (
     xyz_quat_wxyz_from_pose,
     xyz_rpy_from_pose,
 )
-from .effects import Effects
-from .programs import station_program
-from .sensors import capture, sensor_for_type
-from .terrain import LABEL_ROBOT, Mesh, build_scene, cylinder_mesh, make_terrain, terrain_height
+from graphcal.simulation.effects import Effects
+from graphcal.simulation.programs import station_program
+from graphcal.simulation.sensors import capture, sensor_for_type
+from graphcal.simulation.terrain import LABEL_ROBOT, Mesh, build_scene, cylinder_mesh, make_terrain, terrain_height
 
 GRAVITY_M_S2 = 9.80665
 
@@ -64,7 +64,7 @@ def _reachable_within_limits(robot, info, q_nominal: dict):
     """``T_stance_body -> bool``: whether every foot, planted at its nominal stance on the ground
     (stance frame), is reached from the body pose within the joint limits (IK from the nominal
     angles, revolute joints wrapped by :func:`wrap_revolute`)."""
-    from ..models.kinematics import ik_leg
+    from graphcal.models.kinematics import ik_leg
 
     p_stance = {f: np.r_[np.asarray(info.nominal_stance[f], dtype=float)[:2], 0.0] for f in robot.feet}
 
@@ -84,7 +84,7 @@ def _nominal_q(robot, info) -> dict:
     """Joint angles of the nominal stance, per foot: IK from the zero configuration, else from the
     middle of the joint limits, else from random points inside them; the first solution that
     respects the limits wins."""
-    from ..models.kinematics import ik_leg
+    from graphcal.models.kinematics import ik_leg
 
     rng = np.random.default_rng(0)
     out = {}
@@ -114,8 +114,8 @@ class CustomRobot:
 
 def robot_and_info(config: "SimulationConfig"):
     """(RobotModel, BuiltinInfo) of the configured robot, built-in or custom."""
-    from ..models.builtin import builtin_info
-    from ..models.robot import load_robot
+    from graphcal.models.builtin import builtin_info
+    from graphcal.models.robot import load_robot
 
     if config.custom_robot is not None:
         info = config.custom_robot.info
@@ -226,7 +226,7 @@ class SimulationResult:
 
 def _chain_points_world(leg, q_leg: np.ndarray, T_world_base: np.ndarray) -> np.ndarray:
     """World positions (n + 1, 3) of every joint origin of a leg and of its foot (for the leg meshes)."""
-    from ..models.kinematics import joint_frames
+    from graphcal.models.kinematics import joint_frames
 
     _, origins_base, _, p_foot = joint_frames(leg, q_leg[None, :])
     return transform_points(T_world_base, np.vstack([origins_base[0], p_foot]))
@@ -234,8 +234,8 @@ def _chain_points_world(leg, q_leg: np.ndarray, T_world_base: np.ndarray) -> np.
 
 def _true_robot(robot, config: SimulationConfig, rng: np.random.Generator):
     """The hidden "true" robot: the URDF with drawn leg errors and the catalogue's leg effects."""
-    from ..models.perturb import LegPerturbation, apply_perturbation, link_length_delta
-    from ..models.robot import load_robot
+    from graphcal.models.perturb import LegPerturbation, apply_perturbation, link_length_delta
+    from graphcal.models.robot import load_robot
 
     joint_offsets, drawn_lengths = draw_leg_errors(robot, robot.feet, config.leg_error_sigma_rad,
                                                    config.leg_error_sigma_m, rng)
@@ -282,7 +282,7 @@ def _link_joints(robot, foot: str) -> tuple[str, ...]:
     ``delta_m`` parameters (graphcal/models/leg_params.py: every joint after the first whose origin
     has a translation, and the fixed foot joint). A joint whose origin has no translation (two axes
     through one point, e.g. the qingzhui's coxa-thigh pair) ends no link and is not a candidate."""
-    from ..models.leg_params import leg_parameterization
+    from graphcal.models.leg_params import leg_parameterization
 
     param = leg_parameterization(robot, foot)
     return tuple(j for j in param.link_urdf_joints if j is not None)
@@ -295,7 +295,7 @@ def leg_link_joints(robot) -> dict[str, tuple[str, ...]]:
 
 def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationResult:
     """Run the simulation described by ``config`` (see the module docstring for the physics)."""
-    from ..models.kinematics import foot_positions, ik_leg
+    from graphcal.models.kinematics import foot_positions, ik_leg
 
     rng = np.random.default_rng(config.seed)
     robot, info = robot_and_info(config)

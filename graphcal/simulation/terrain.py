@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import GraphcalError
-from ..geometry import matrix_from_axis_angle
+from graphcal.errors import GraphcalError
+from graphcal.geometry import matrix_from_axis_angle
 
 LABEL_GROUND = 0
 LABEL_ROBOT = 1

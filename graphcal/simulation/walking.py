@@ -49,9 +49,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import GraphcalError
-from ..geometry import matrix_from_rpy
-from .terrain import LABEL_STAIRS, Stair, Terrain, box_mesh, make_terrain
+from graphcal.errors import GraphcalError
+from graphcal.geometry import matrix_from_rpy
+from graphcal.simulation.terrain import LABEL_STAIRS, Stair, Terrain, box_mesh, make_terrain
 
 __all__ = [
     "WALKING_PROGRAMS",
@@ -308,7 +308,7 @@ def _stair_edges(stairs) -> np.ndarray:
 
 
 def _nominal_q(leg, p_body_foot) -> np.ndarray:
-    from ..models.kinematics import ik_leg
+    from graphcal.models.kinematics import ik_leg
 
     lo = np.where(np.isfinite(leg.lower), leg.lower, -np.pi)
     hi = np.where(np.isfinite(leg.upper), leg.upper, np.pi)
@@ -325,7 +325,7 @@ def _newton_ik(leg, P: np.ndarray, q: np.ndarray, *, iters: int = 4):
     """Newton refinement of a leg's IK at every sample from a close start (square 3x3 Jacobian):
     one :func:`~graphcal.models.kinematics.joint_frames` pass per iteration gives both the foot
     position and the Jacobian. Returns q (N, n), the Jacobian at q (N, 3, n) and the residual (N,) m."""
-    from ..models.kinematics import joint_frames
+    from graphcal.models.kinematics import joint_frames
 
     q = np.array(q, dtype=float)
     for it in range(iters + 1):
@@ -348,9 +348,9 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
     from scipy.interpolate import CubicSpline
     from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 
-    from ..models.builtin import builtin_info
-    from ..models.kinematics import ik_leg
-    from ..models.robot import load_robot
+    from graphcal.models.builtin import builtin_info
+    from graphcal.models.kinematics import ik_leg
+    from graphcal.models.robot import load_robot
 
     c = config.resolved()
     info = builtin_info(c.robot)
@@ -575,8 +575,8 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
     cloud_idx = np.zeros(0, dtype=np.int64)
     clouds: list[np.ndarray] = []
     if c.cloud_rate_hz > 0 and T_body_sensor is not None:
-        from .sensors import DepthCamera, capture
-        from .terrain import build_scene
+        from graphcal.simulation.sensors import DepthCamera, capture
+        from graphcal.simulation.terrain import build_scene
 
         cam = DepthCamera()
         cam = replace(cam, width_px=max(8, cam.width_px // c.cloud_stride),
@@ -606,7 +606,7 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
 
 # ----------------------------------------------------------------------------- dataset
 def _pose_yaml(T: np.ndarray) -> dict:
-    from ..geometry import xyz_quat_wxyz_from_pose, xyz_rpy_from_pose
+    from graphcal.geometry import xyz_quat_wxyz_from_pose, xyz_rpy_from_pose
 
     xyz, q = xyz_quat_wxyz_from_pose(T)
     _, rpy = xyz_rpy_from_pose(T)
@@ -659,7 +659,7 @@ def _truth_csv_text(cols: dict) -> str:
 def walking_dataset(result: WalkingResult, cloud_names: list[str] | None = None):
     """The walk as a contract :class:`~graphcal.io.dataset.Dataset` (timeseries only).
     ``cloud_names``: relative PLY path per cloud (default ``clouds/depth/<frame>.ply``)."""
-    from ..io.dataset import Dataset, ImuSpec, PosePrior, RobotSpec, SensorSpec, Table
+    from graphcal.io.dataset import Dataset, ImuSpec, PosePrior, RobotSpec, SensorSpec, Table
 
     info = result.info
     N = len(result.times)
@@ -735,7 +735,7 @@ def write_walking(result: WalkingResult, out_dir: str | Path, *, overwrite: bool
     ``truth_trajectory.csv`` beside it, atomically (:func:`graphcal.io.dataset.write_dataset`)."""
     import yaml
 
-    from ..io.dataset import write_dataset
+    from graphcal.io.dataset import write_dataset
 
     out = Path(out_dir)
     names = [f"clouds/depth/{j:05d}.ply" if len(cl) else "" for j, cl in enumerate(result.clouds)]

@@ -12,7 +12,7 @@
 
 from __future__ import annotations
 
-from .batch import (
+from graphcal.solvers.batch import (
     LMResult,
     UnderdeterminedError,
     indeterminate_key,
@@ -21,13 +21,13 @@ from .batch import (
     solve_lm,
     whitened_errors,
 )
-from .closed_form import (
+from graphcal.solvers.closed_form import (
     extrinsic_from_scan_points,
     project_to_so3,
     rotation_from_normals,
     translation_from_distances,
 )
-from .covariance import (
+from graphcal.solvers.covariance import (
     MarginalCovariances,
     body_axis_sigmas,
     marginal_covariances,

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from ..errors import GraphcalError
+from graphcal.errors import GraphcalError
 
 __all__ = [
     "LMResult",
@@ -425,7 +425,7 @@ def outlier_factors(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     Returns:
         The indices (subset of ``indices``, same order) with ``whitened error > chi2.ppf(p, dof)``.
     """
-    from .. import chi2
+    from graphcal import stats as chi2
 
     idx = list(range(graph.size())) if indices is None else [int(i) for i in indices]
     e = whitened_errors(graph, values, idx)

@@ -26,8 +26,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..errors import GraphcalError
-from ..geometry import pose_matrix, skew, so3_exp
+from graphcal.errors import GraphcalError
+from graphcal.geometry import pose_matrix, skew, so3_exp
 
 __all__ = [
     "rotation_from_normals",

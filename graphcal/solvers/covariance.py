@@ -23,7 +23,7 @@ from collections.abc import Iterable, Sequence
 import gtsam
 import numpy as np
 
-from ..errors import GraphcalError
+from graphcal.errors import GraphcalError
 
 __all__ = [
     "MarginalCovariances",
@@ -64,13 +64,13 @@ class MarginalCovariances(dict):
 
 # ----------------------------------------------------------------------------- helpers
 def _is_indeterminate(exc: BaseException) -> bool:
-    from .batch import indeterminate_key
+    from graphcal.solvers.batch import indeterminate_key
 
     return indeterminate_key(exc) is not None
 
 
 def _key_name(key: int) -> str:
-    from .batch import key_name
+    from graphcal.solvers.batch import key_name
 
     return key_name(key)
 
@@ -248,7 +248,7 @@ def _dense_marginals(lin, graph_keys, dims, keys) -> MarginalCovariances:
 
 
 def _regularised_marginals(lin, graph_keys, dims, keys, eps: float = 1e-14) -> MarginalCovariances:
-    from .batch import _diag_information
+    from graphcal.solvers.batch import _diag_information
 
     out = MarginalCovariances(method="regularised")
     keys_in = keys

@@ -1,7 +1,7 @@
 """The Gauss-Newton step of point-to-plane ICP, taken only along the directions the data constrains.
 
-Both of graphcal's registrations use it: :mod:`graphcal.filter.icp` (a new frame onto a keyframe,
-for the EKF) and the stitching of :mod:`graphcal.stairs` (a cloud onto the map of the others). They
+Both of graphcal's registrations use it: :mod:`graphcal.clouds.icp` (a new frame onto a keyframe,
+for the EKF) and the stitching of :mod:`graphcal.locomotion.stairs` (a cloud onto the map of the others). They
 differ in how correspondences are found and weighted; the linear algebra is this module's.
 
 Coordinates: the right perturbation ``T = T_hat Exp(xi)``, ``xi = [omega, v]`` (rad, m;

@@ -18,8 +18,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors._checked import checked_custom_factor
-from factors.imu_attitude import DEFAULT_SIGMA_RAD, _noise, imu_attitude_misaligned_error, imu_up_direction
+from graphcal.factors.checked import checked_custom_factor
+from graphcal.factors.imu_attitude import DEFAULT_SIGMA_RAD, _noise, imu_attitude_misaligned_error, imu_up_direction
 
 __all__ = ["imu_attitude_tilted_error", "imu_attitude_tilted_factor"]
 

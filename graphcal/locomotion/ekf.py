@@ -15,7 +15,7 @@ Error state (filterpy's ``x``, zero between updates; its covariance is filterpy'
 Models:
     IMU (``propagate``): omega = R_body_imu (gyro - b_g), a = R_body_imu (accel - b_a) (the IMU
     at the body origin: no lever arm), integrated between updates as a preintegrated chunk
-    (:mod:`graphcal.filter.imu`): R <- R dR Exp(-b_g T), v <- v + g T + R dv(b),
+    (:mod:`graphcal.locomotion.imu`): R <- R dR Exp(-b_g T), v <- v + g T + R dv(b),
     p <- p + v T + g T^2 / 2 + R dp(b); biases and feet random walks. The covariance takes one
     step per chunk: filterpy's ``predict`` with F (the chunk's error transition) and Q = Qc T.
     Stance kinematics (``update_stance``, Zhao Eqs. 6-9 as a filter measurement): each stance
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import GraphcalError
+from graphcal.errors import GraphcalError
 
 __all__ = ["GRAVITY_WORLD", "EkfNoise", "NominalState", "LeggedEKF", "state_dim", "check_covariance"]
 
@@ -290,7 +290,7 @@ class LeggedEKF:
         return self.R_body_imu @ self.bg, self.R_body_imu @ self.ba
 
     def propagate(self, dR, dpv, J, T: float) -> None:
-        """Propagate over a chunk of preintegrated IMU (see :mod:`graphcal.filter.imu`).
+        """Propagate over a chunk of preintegrated IMU (see :mod:`graphcal.locomotion.imu`).
 
         Args:
             dR: (3, 3) zero-bias preintegrated rotation of the chunk.

@@ -42,7 +42,7 @@ Method (:func:`model_stairs`)
    mean): the map keeps the estimate's world frame with the *average* of the clouds' independent
    errors (a joint fit over the points instead turned 1 cm translation errors into 0.5-0.9 deg of
    tilt, because the clouds see different parts of the stairs).
-3. **Planes.** :func:`graphcal.planes.extract_planes` (Open3D RANSAC on a subsample, then Chai's
+3. **Planes.** :func:`graphcal.clouds.planes.extract_planes` (Open3D RANSAC on a subsample, then Chai's
    2-sigma PCA loop) separately on the points with a reliable horizontal normal and on those with a
    reliable vertical normal (within ``2 max_tilt_deg``): a slanted plane through the nosings cannot
    form from either set. Horizontal planes (normal within ``max_tilt_deg`` of world z) are the
@@ -84,9 +84,9 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import GraphcalError
-from .geometry import canonical_plane, pose_matrix, se3_exp, transform_points
-from .solvers.point_to_plane import constrained_step, point_to_plane_jacobian
+from graphcal.errors import GraphcalError
+from graphcal.geometry import canonical_plane, pose_matrix, se3_exp, transform_points
+from graphcal.solvers.point_to_plane import constrained_step, point_to_plane_jacobian
 
 __all__ = [
     "StairsError",
@@ -101,7 +101,7 @@ __all__ = [
     "KINECT_NOISE_COEFF_PER_M",
 ]
 
-#: Depth noise of the Kinect, sigma_z = coeff * z^2 (m); same value as graphcal.planes.
+#: Depth noise of the Kinect, sigma_z = coeff * z^2 (m); same value as graphcal.clouds.planes.
 KINECT_NOISE_COEFF_PER_M = 1.425e-3
 
 
@@ -578,7 +578,7 @@ def model_stairs(
         max_points_per_cloud: larger clouds are randomly thinned to this many points first
             (a full 640 x 480 Kinect frame has ~300k).
         ransac_distance_m, max_planes, min_plane_points: plane extraction
-            (:func:`graphcal.planes.extract_planes`).
+            (:func:`graphcal.clouds.planes.extract_planes`).
         max_tilt_deg: a plane is horizontal (vertical) when its normal is within this angle of
             (perpendicular to) world z.
         edge_drop_fraction: fraction of each plane's points dropped near each edge (Zhao: 5 %).
@@ -668,7 +668,7 @@ def model_stairs(
 
     # 3. planes: RANSAC + Chai's loop on the points with a reliable horizontal (vertical) normal;
     # a slanted plane through the nosings cannot form from them
-    from .planes import extract_planes
+    from graphcal.clouds.planes import extract_planes
 
     z = np.array([0.0, 0.0, 1.0])
     nz = np.abs(N @ z)

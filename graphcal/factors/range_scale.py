@@ -26,9 +26,9 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors._checked import checked_custom_factor, with_robust, world_plane
-from factors.plane_observation import _check_measurement, plane_noise_model, plane_observation_error
-from factors.range_to_plane import MIN_GRAZING_COS, checked_scan_points, range_to_plane_error
+from graphcal.factors.checked import checked_custom_factor, with_robust, world_plane
+from graphcal.factors.plane_observation import _check_measurement, plane_noise_model, plane_observation_error
+from graphcal.factors.range_to_plane import MIN_GRAZING_COS, checked_scan_points, range_to_plane_error
 
 __all__ = ["scaled_plane_error", "scaled_plane_factor", "scaled_range_error", "scaled_range_factor"]
 

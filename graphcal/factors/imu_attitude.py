@@ -30,7 +30,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors._checked import checked_custom_factor, skew3, tangent_basis, with_robust
+from graphcal.factors.checked import checked_custom_factor, skew3, tangent_basis, with_robust
 
 __all__ = [
     "DEFAULT_SIGMA_RAD",

@@ -4,7 +4,7 @@ whiteness of the innovations.
 * Trajectory errors (evo 1.x: ``evo.core.trajectory``, ``evo.core.sync``, ``evo.core.metrics``):
   the estimate is associated with the truth by nearest time (within ``max_diff_s``), **without
   alignment** (the filter's world frame is defined like the simulator's: origin on the ground under
-  the start pose, x along the initial heading; see :mod:`graphcal.filter.estimator`).
+  the start pose, x along the initial heading; see :mod:`graphcal.locomotion.estimator`).
   ``ape_rmse_m``: RMS of the absolute position error; ``rpe_rmse_m``: RMS of the relative
   translation error over ``rpe_delta_m`` (1 m) of travelled distance; ``drift_percent``: final
   position error / path length of the truth x 100; ``distance_m``: path length of the truth.
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DatasetError
+from graphcal.errors import DatasetError
 
 __all__ = ["Truth", "load_truth", "trajectory_metrics", "nees_against_truth", "whiteness", "chi2_band",
            "evo_trajectory"]
@@ -77,7 +77,7 @@ def load_truth(dataset_root: str | Path) -> Truth | None:
     from scipy.spatial.transform import Rotation
 
     q = np.column_stack([col["qx"], col["qy"], col["qz"], col["qw"]])
-    from ..io.dataset import UNIT_NORM_TOL
+    from graphcal.io.dataset import UNIT_NORM_TOL
 
     norm = np.linalg.norm(q, axis=1)
     bad = ~(np.abs(norm - 1.0) <= UNIT_NORM_TOL)  # the contract's tolerance for body_q* (NaN fails too)

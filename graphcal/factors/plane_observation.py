@@ -33,7 +33,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors._checked import (
+from graphcal.factors.checked import (
     checked_custom_factor,
     pose_adjoint,
     skew3,

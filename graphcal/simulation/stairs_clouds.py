@@ -1,6 +1,6 @@
 """Simulated depth clouds of the stairs seen from a robot walking towards and up them, with pose
-errors of the size a state estimate has: the test data of :mod:`graphcal.stairs` and
-:mod:`graphcal.gait` (and a quick way to try them by hand).
+errors of the size a state estimate has: the test data of :mod:`graphcal.locomotion.stairs` and
+:mod:`graphcal.locomotion.gait` (and a quick way to try them by hand).
 
 The body follows the terrain: its height is ``body_height_m`` above the mean terrain height under
 its front and back hips (``hip_offset_m`` ahead of and behind the body origin along world x), its
@@ -21,8 +21,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import GraphcalError
-from .geometry import matrix_from_rpy, pose_matrix, se3_exp
+from graphcal.errors import GraphcalError
+from graphcal.geometry import matrix_from_rpy, pose_matrix, se3_exp
 
 __all__ = ["StairsCloudSequence", "stairs_height", "body_poses_along_x", "simulate_stairs_clouds"]
 
@@ -107,9 +107,9 @@ def simulate_stairs_clouds(
         robot, sensor: built-in robot whose sensor CAD pose ``T_body_sensor`` is used.
         y_m: lateral body position (m).
     """
-    from .models.builtin import builtin_info
-    from .simulation.sensors import DepthCamera, capture
-    from .simulation.terrain import build_scene, make_terrain
+    from graphcal.models.builtin import builtin_info
+    from graphcal.simulation.sensors import DepthCamera, capture
+    from graphcal.simulation.terrain import build_scene, make_terrain
 
     if stride < 1:
         raise GraphcalError(f"simulate_stairs_clouds: stride must be >= 1, got {stride}")

@@ -5,7 +5,7 @@ from the tread zones and the shin-cylinder / stair-edge-cylinder test (Zhao et a
 Frames and units
 ----------------
 World z up; poses ``T_world_body`` (4x4); foot positions ``p_world_<foot>`` (3,), metres. The stairs
-come as a :class:`graphcal.stairs.StairsModel`; its stairs frame (x up the stairs, z up) gives the
+come as a :class:`graphcal.locomotion.stairs.StairsModel`; its stairs frame (x up the stairs, z up) gives the
 along-stairs coordinate ``s``, the lateral ``t`` and the height ``h``. Angles in radians, lengths in
 metres; millimetres only in reports.
 
@@ -75,8 +75,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .errors import GraphcalError
-from .geometry import invert_pose, transform_points
+from graphcal.errors import GraphcalError
+from graphcal.geometry import invert_pose, transform_points
 
 __all__ = [
     "GaitError",
@@ -290,7 +290,7 @@ def swing_trajectory(p_world_lift, p_world_land, step_height_m, tau, *, lift_fra
 def body_path(T_world_body_start: np.ndarray, T_world_body_end: np.ndarray, tau) -> tuple[np.ndarray, np.ndarray]:
     """Body orientations (T, 3, 3) and origins (T, 3) (world, m) at phases ``tau``: the origin at
     constant velocity, the rotation by constant angular velocity (geodesic) from start to end."""
-    from .geometry import axis_angle_from_matrix, so3_exp
+    from graphcal.geometry import axis_angle_from_matrix, so3_exp
 
     tau = np.atleast_1d(np.asarray(tau, dtype=float))
     T0 = np.asarray(T_world_body_start, dtype=float)
@@ -449,7 +449,7 @@ def _ik_newton(leg, p_body: np.ndarray, q0: np.ndarray, *, iterations: int = 8, 
 
     Returns q (N, n), ok (N,) (residual < ok_tol), joint origins (N, n, 3), feet (N, 3) and the
     smallest singular value of the position Jacobian (N,) (m/rad; 0 for a stretched leg) at q."""
-    from .models.kinematics import joint_frames
+    from graphcal.models.kinematics import joint_frames
 
     N, n = len(p_body), leg.n_joints
     q = np.array(np.broadcast_to(q0, (N, n)), dtype=float)
@@ -515,7 +515,7 @@ def _shin_check(ctx: _LegCtx, st: _Stairs, R_world_body: np.ndarray, p_world_bod
 # ----------------------------------------------------------------------------- public API
 def feet_from_joint_angles(robot, T_world_body: np.ndarray, q_legs: Mapping[str, np.ndarray]) -> dict:
     """foot -> p_world_foot (3,) m from joint angles (foot -> (n,) rad, the leg's joint order)."""
-    from .models.kinematics import foot_positions
+    from graphcal.models.kinematics import foot_positions
 
     T = np.asarray(T_world_body, dtype=float)
     return {f: transform_points(T, foot_positions(robot.leg(f), np.asarray(q, dtype=float))[None])[0] for f, q in q_legs.items()}
@@ -523,7 +523,7 @@ def feet_from_joint_angles(robot, T_world_body: np.ndarray, q_legs: Mapping[str,
 
 def _groups_of(robot, stance_group, groups):
     if groups is None:
-        from .models.builtin import BUILTIN_MODELS, builtin_info
+        from graphcal.models.builtin import BUILTIN_MODELS, builtin_info
 
         if robot.name not in BUILTIN_MODELS or not builtin_info(robot.name).gait_groups:
             raise GaitError(f"gait: robot {robot.name!r} has no built-in tripod groups; pass groups=(group_A, group_B)")
@@ -549,7 +549,7 @@ def _groups_of(robot, stance_group, groups):
 
 def _nominal_stance(robot, feet, nominal, feet_w, T_wb) -> dict:
     if nominal is None:
-        from .models.builtin import BUILTIN_MODELS, builtin_info
+        from graphcal.models.builtin import BUILTIN_MODELS, builtin_info
 
         if robot.name in BUILTIN_MODELS:
             nominal = builtin_info(robot.name).nominal_stance
@@ -577,7 +577,7 @@ def _body_after(T_wb: np.ndarray, feet_now: np.ndarray, feet_after: np.ndarray, 
                 max_pitch_rad: float) -> np.ndarray:
     """The body pose at the end of a step (module docstring): ``L / 2`` along the heading, its
     height above the line fitted to the feet kept, pitched to that line's slope (roll, yaw kept)."""
-    from .geometry import matrix_from_rpy, rpy_from_matrix
+    from graphcal.geometry import matrix_from_rpy, rpy_from_matrix
 
     a0, b0 = _feet_line(feet_now, hd)
     o0 = T_wb[:3, 3]
@@ -612,8 +612,8 @@ def gait_parameters(
         T_world_body: (4, 4) the body pose now (start of the swing), m.
         stance_group: the tripod now in stance, ``"A"`` / ``"B"`` (Zhao: A = MF, RB, LB;
             B = MB, RF, LF) or a tuple of its feet; the other tripod steps.
-        stairs: :class:`graphcal.stairs.StairsModel` (estimated, or
-            :func:`graphcal.stairs.stairs_model_from_steps`).
+        stairs: :class:`graphcal.locomotion.stairs.StairsModel` (estimated, or
+            :func:`graphcal.locomotion.stairs.stairs_model_from_steps`).
         p_world_feet: foot -> (3,) world position now (m), every foot of both tripods (e.g.
             :func:`feet_from_joint_angles`).
         groups: the two tripods; default: the built-in model's ``gait_groups``.
@@ -815,7 +815,7 @@ def swing_collides(
         robot: the robot model. foot: the swinging foot.
         T_world_body_start, T_world_body_end: (4, 4) body poses at lift-off and touchdown.
         p_world_lift, p_world_land: (3,) footholds (m). step_height_m: H (m).
-        stairs: a :class:`graphcal.stairs.StairsModel` (e.g. the true one, to validate a plan).
+        stairs: a :class:`graphcal.locomotion.stairs.StairsModel` (e.g. the true one, to validate a plan).
         config: radii and path shape. samples: instants checked.
 
     Returns:

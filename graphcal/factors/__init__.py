@@ -3,7 +3,7 @@
 Each module holds one factor kind as (1) a pure numpy function ``<name>_error(...)`` that returns
 the error and its analytic Jacobians from plain inputs (4x4 poses, arrays) and (2) a builder
 ``<name>_factor(keys..., measurement..., noise...)`` that returns a ``gtsam.NonlinearFactor``.
-Python factors go through :func:`factors._checked.checked_custom_factor`, which checks every
+Python factors go through :func:`graphcal.factors.checked.checked_custom_factor`, which checks every
 Jacobian's type and shape (GTSAM would crash or silently mis-solve); GTSAM's built-in factors are
 used wherever they express the model exactly. Variable keys: :mod:`factors.keys`.
 
@@ -27,27 +27,27 @@ module                        variables            error
 ============================  ===================  ================================================
 """
 
-from factors._checked import FactorShapeError, checked_custom_factor, tangent_basis
-from factors.foot_on_ground import foot_on_ground_error, foot_on_ground_factor
-from factors.imu_attitude import (
+from graphcal.factors.checked import FactorShapeError, checked_custom_factor, tangent_basis
+from graphcal.factors.foot_on_ground import foot_on_ground_error, foot_on_ground_factor
+from graphcal.factors.imu_attitude import (
     imu_attitude_error,
     imu_attitude_factor,
     imu_attitude_misaligned_error,
     imu_attitude_misaligned_factor,
     imu_up_direction,
 )
-from factors.plane_observation import (
+from graphcal.factors.plane_observation import (
     plane_angle_distance_error,
     plane_cov3,
     plane_noise_model,
     plane_observation_error,
     plane_observation_factor,
 )
-from factors.point_to_plane import point_to_plane_error, point_to_plane_factor, point_to_plane_noise_model
-from factors.priors import commanded_pose_prior, extrinsic_prior, leg_offset_prior, pose_prior_sigmas
-from factors.stance_foot import stance_foot_error, stance_foot_factor
-from factors.stance_foot_builtin import stance_foot_builtin_factor, stance_foot_builtin_factors, stance_foot_error_map
-from factors.mocap_marker import mocap_marker_error, mocap_marker_factor
+from graphcal.factors.point_to_plane import point_to_plane_error, point_to_plane_factor, point_to_plane_noise_model
+from graphcal.factors.priors import commanded_pose_prior, extrinsic_prior, leg_offset_prior, pose_prior_sigmas
+from graphcal.factors.stance_foot import stance_foot_error, stance_foot_factor
+from graphcal.factors.stance_foot_builtin import stance_foot_builtin_factor, stance_foot_builtin_factors, stance_foot_error_map
+from graphcal.factors.mocap_marker import mocap_marker_error, mocap_marker_factor
 
 __all__ = [
     "FactorShapeError",

@@ -27,7 +27,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors._checked import checked_custom_factor, with_robust
+from graphcal.factors.checked import checked_custom_factor, with_robust
 from graphcal.models.kinematics import foot_positions
 from graphcal.models.leg_params import LegParameterization, fk_and_param_jacobian, fk_with_params
 from graphcal.models.robot import Leg

@@ -6,7 +6,7 @@
   ``nees_mean`` (null when the dataset has no truth), NIS, whiteness, real-time factor, ...;
 * ``trajectory.png``, ``errors.png``, ``nis.png`` -- plots;
 * ``report.md``       -- a short report;
-* ``stairs.json``     -- on a stairs dataset, the stairs model of :mod:`graphcal.stairs` from the
+* ``stairs.json``     -- on a stairs dataset, the stairs model of :mod:`graphcal.locomotion.stairs` from the
   keyframe clouds (:func:`stairs_keyframes`) placed with the estimated poses, with per-tread errors
   against the truth's ascending flight (:func:`ascending_flight`) when there is a truth.
 
@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import GraphcalError
-from ..io.atomic import atomic_directory, atomic_write_bytes, check_output_folder, previous_output_files
+from graphcal.errors import GraphcalError
+from graphcal.io.atomic import atomic_directory, atomic_write_bytes, check_output_folder, previous_output_files
 
 __all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run_track", "track", "tum_text", "stairs_keyframes", "ascending_flight"]
 
@@ -56,7 +56,7 @@ def _figures(result, truth, series, nees_t, nees, nees_dof):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from .metrics import chi2_band, pose_errors
+    from graphcal.locomotion.metrics import chi2_band, pose_errors
 
     def png(fig) -> bytes:
         import io
@@ -95,7 +95,7 @@ def _figures(result, truth, series, nees_t, nees, nees_dof):
     axp, axr = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
     labels = ("x", "y", "z")
     if truth is not None:
-        from .metrics import _interp_truth
+        from graphcal.locomotion.metrics import _interp_truth
 
         e = pose_errors(result.T_world_body[ci], _interp_truth(truth, t[ci]))
         for k in range(3):
@@ -161,7 +161,7 @@ def stairs_keyframes(
     min_turn_rad: float = float(np.radians(1.0)),
     max_clouds: int = 20,
 ) -> tuple[list[int], list[dict | None]]:
-    """The clouds for :func:`graphcal.stairs.model_stairs`: the views of a flight rising ahead.
+    """The clouds for :func:`graphcal.locomotion.stairs.model_stairs`: the views of a flight rising ahead.
     ``clouds_sensor``: an iterable of (N_k, 3) sensor-frame clouds (m; a generator is fine);
     ``T_world_sensor``: the list of their estimated 4x4 poses.
 
@@ -223,10 +223,10 @@ def ascending_flight(steps) -> tuple[list, list]:
 
 
 def _stairs_model(ds, inp, result, truth, *, max_clouds: int = 20):
-    """The stairs model (graphcal.stairs) from the keyframe clouds (:func:`stairs_keyframes`)
+    """The stairs model (graphcal.locomotion.stairs) from the keyframe clouds (:func:`stairs_keyframes`)
     placed with the estimate, compared with the truth's ascending flight when there is a truth.
     Errors of the model become {"error": ...}."""
-    from .. import stairs as stairs_mod
+    from graphcal.locomotion import stairs as stairs_mod
 
     if inp.T_body_sensor is None or not inp.clouds:
         return None
@@ -251,7 +251,7 @@ def _stairs_model(ds, inp, result, truth, *, max_clouds: int = 20):
         errors = None
         compared = None
         if truth is not None:
-            from ..simulation.terrain import Stair
+            from graphcal.simulation.terrain import Stair
 
             steps = [Stair(**s) for s in (truth.doc.get("ground", {}) or {}).get("stairs", []) or []]
             up, rest = ascending_flight(steps)
@@ -302,8 +302,8 @@ def _clean(x):
 
 def track(dataset, *, config=None, progress: bool = False):
     """Read a dataset and run the filter: returns (dataset, inputs, TrackResult)."""
-    from ..io.dataset import read_dataset
-    from .estimator import TrackerConfig, inputs_from_dataset, run_filter
+    from graphcal.io.dataset import read_dataset
+    from graphcal.locomotion.estimator import TrackerConfig, inputs_from_dataset, run_filter
 
     ds = read_dataset(dataset)
     inp = inputs_from_dataset(ds)
@@ -318,7 +318,7 @@ def run_track(dataset: str | Path, out: str | Path, progress: bool = True, *, co
         DatasetError: the dataset is malformed or lacks what the filter needs (file and field named).
         OutputExistsError: ``out`` is not empty and not a previous track output.
     """
-    from .metrics import chi2_band, load_truth, nees_against_truth, trajectory_metrics, whiteness
+    from graphcal.locomotion.metrics import chi2_band, load_truth, nees_against_truth, trajectory_metrics, whiteness
 
     out = Path(out)
     if not (np.isfinite(tum_rate_hz) and tum_rate_hz >= 0):
@@ -463,7 +463,7 @@ def _report(m: dict, stairs_doc) -> str:
         else:
             kf = stairs_doc.get("keyframes", {})
             lines.append(f"{stairs_doc.get('n_clouds_used')} of {stairs_doc.get('n_clouds_available')} clouds "
-                         f"({kf.get('method', '')}), placed with the estimate, stitched by ICP (graphcal.stairs).")
+                         f"({kf.get('method', '')}), placed with the estimate, stitched by ICP (graphcal.locomotion.stairs).")
             lines.append("")
             for t in stairs_doc.get("treads", []):
                 line = (f"- tread {t.get('index')}: height {1e3 * t['height_m']:.1f} mm, depth "

@@ -15,7 +15,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors._checked import checked_custom_factor, tangent_basis, world_plane
+from graphcal.factors.checked import checked_custom_factor, tangent_basis, world_plane
 
 __all__ = ["plane_prior_error", "plane_prior_factor"]
 

@@ -11,7 +11,7 @@ from typing import Callable, Iterable, Mapping
 
 import numpy as np
 
-from .errors import DatasetError, GraphcalError
+from graphcal.errors import DatasetError, GraphcalError
 
 PLANE_COLUMNS = ("station", "sensor", "nx", "ny", "nz", "d", "n_points", "rms") + tuple(
     f"cov_{i}{j}" for i in range(4) for j in range(4)
@@ -20,8 +20,8 @@ PLANE_COLUMNS = ("station", "sensor", "nx", "ny", "nz", "d", "n_points", "rms") 
 
 def range_noise_for(sensor_type: str):
     """The plane-extraction noise model of a sensor type (None: use the empirical rms)."""
-    from .planes import depth_camera_distance_sigma
-    from .simulation.sensors import DepthCamera, StereoCamera
+    from graphcal.clouds.planes import depth_camera_distance_sigma
+    from graphcal.simulation.sensors import DepthCamera, StereoCamera
 
     if sensor_type == "depth_camera":
         return depth_camera_distance_sigma(DepthCamera().sigma_along_axis)
@@ -66,7 +66,7 @@ def _fit_cloud(key: tuple[str, int], points, kind: str, max_planes: int, seed: i
     e.g. an unreadable file, are the caller's). ``max_points``: fit on :func:`thin_cloud` of it.
     Too few or degenerate points: no plane (``[]``).
     """
-    from .planes import extract_planes
+    from graphcal.clouds.planes import extract_planes
 
     if kind == "laser_scanner":
         return []
@@ -92,7 +92,7 @@ def _fit_in_worker(task: tuple[int, int]):
     """Worker process: fit cloud ``i`` of call ``token``; returns (i, rows, None) or (i, None,
     (exception, traceback text)) so that any error reaches the parent, which raises it."""
     global _CHILD_WORKSPACE
-    from .planes import PlaneWorkspace
+    from graphcal.clouds.planes import PlaneWorkspace
 
     token, i = task
     items, types, max_planes, seed, max_points = _FORK_JOBS[token]
@@ -174,7 +174,7 @@ def planes_rows(
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
 
-    from .planes import PlaneWorkspace
+    from graphcal.clouds.planes import PlaneWorkspace
 
     max_points = check_max_points(max_points)
     items = clouds.items() if isinstance(clouds, Mapping) else clouds
@@ -194,7 +194,7 @@ def planes_rows(
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        from .planes import import_fit_modules
+        from graphcal.clouds.planes import import_fit_modules
 
         import_fit_modules()  # here, once, not in every worker at every call
         for kind in set(sensor_types.values()):
@@ -288,7 +288,7 @@ def camera_clouds_without_planes(ds, have) -> dict[str, tuple[list[int], int]]:
     """Sensor -> (the stations whose camera cloud has no plane in ``have``, the sensor's number of
     clouds), for the cameras with such stations. ``have``: the ``(sensor, station)`` pairs with a
     plane (from planes.csv, or fitted)."""
-    from .io.dataset import cloud_paths
+    from graphcal.io.dataset import cloud_paths
 
     have = {(str(sn), int(st)) for sn, st in have}
     cameras = {n for n, spec in ds.sensors.items() if spec.type in ("depth_camera", "stereo_camera")}
@@ -323,8 +323,8 @@ def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *,
     many of its points (see :func:`planes_rows`; None: all), as ``graphcal calibrate --plane-points``
     does. ``on_warning`` receives one line per camera with clouds in which no plane was found.
     """
-    from .io.atomic import atomic_write_text, check_output_location, make_parent_folder
-    from .io.dataset import Table, cloud_paths, load_cloud, read_dataset, table_csv_text
+    from graphcal.io.atomic import atomic_write_text, check_output_location, make_parent_folder
+    from graphcal.io.dataset import Table, cloud_paths, load_cloud, read_dataset, table_csv_text
 
     max_points = check_max_points(max_points, "max_points (--plane-points)")
     if isinstance(max_planes, bool) or not isinstance(max_planes, (int, np.integer)) or max_planes < 1:

@@ -30,9 +30,9 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import GraphcalError
-from ..geometry import se3_exp
-from ..solvers.point_to_plane import constrained_step, point_to_plane_jacobian
+from graphcal.errors import GraphcalError
+from graphcal.geometry import se3_exp
+from graphcal.solvers.point_to_plane import constrained_step, point_to_plane_jacobian
 
 __all__ = ["IcpResult", "TargetCloud", "prepare_target", "icp_relative_pose", "range_sigma_function", "adjoint"]
 
@@ -67,7 +67,7 @@ def range_sigma_function(sensor_type: str) -> Callable[[np.ndarray], np.ndarray]
     """Range-noise standard deviation (m) of each point (N, 3) in the sensor frame, for the sensor
     models of :mod:`graphcal.simulation.sensors` (depth/stereo: along the optical axis, as a
     function of z; laser: constant)."""
-    from ..simulation.sensors import sensor_for_type
+    from graphcal.simulation.sensors import sensor_for_type
 
     sensor = sensor_for_type(sensor_type)
     if hasattr(sensor, "sigma_along_axis"):

@@ -36,8 +36,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors._checked import with_robust
-from factors.stance_foot import _positive_definite_3x3
+from graphcal.factors.checked import with_robust
+from graphcal.factors.stance_foot import _positive_definite_3x3
 
 __all__ = ["MIN_RANGE_M", "stance_foot_error_map", "stance_foot_builtin_factor", "stance_foot_builtin_factors"]
 

@@ -52,7 +52,7 @@ by side lose most of their gain to chunked loops of small calls). The frame-size
 live in a :class:`PlaneWorkspace`, reused by the calls of one thread (fresh multi-megabyte arrays
 per frame cost page faults: 1.85 s -> 1.45 s for the 52 Chai clouds with one workspace). The
 Python steps between the passes hold the GIL (~25 % of a frame's time), so a dataset's clouds are
-fitted on worker processes (:func:`graphcal.plane_table.planes_rows`), threads where fork is not
+fitted on worker processes (:func:`graphcal.clouds.plane_table.planes_rows`), threads where fork is not
 safe.
 
 Covariance
@@ -120,8 +120,8 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import GraphcalError
-from .geometry import canonical_plane
+from graphcal.errors import GraphcalError
+from graphcal.geometry import canonical_plane
 
 __all__ = [
     "PlaneFit",

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DatasetError, GraphcalError
-from .ekf import GRAVITY_WORLD as GRAVITY
-from .ekf import EkfNoise, LeggedEKF, NominalState, state_dim
+from graphcal.errors import DatasetError, GraphcalError
+from graphcal.locomotion.ekf import GRAVITY_WORLD as GRAVITY
+from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim
 
 __all__ = ["TrackerConfig", "TrackInputs", "TrackResult", "run_filter", "inputs_from_dataset",
            "inputs_from_walking", "estimate_trajectory"]
@@ -34,7 +34,7 @@ class TrackerConfig:
     """Filter settings (SI units).
 
     Attributes:
-        noise: :class:`~graphcal.filter.ekf.EkfNoise`.
+        noise: :class:`~graphcal.locomotion.ekf.EkfNoise`.
         stance_every: stance-kinematics update every k-th sample (1: every sample); the
             covariance is propagated once between updates, the nominal state at every sample.
         icp: fuse ICP between keyframe clouds (when the data have clouds).
@@ -173,7 +173,7 @@ def _gait_groups(ds, robot) -> tuple:
     groups = spec.get("groups") if isinstance(spec, dict) else None
     yaml_file = ds.root / "dataset.yaml" if ds.root is not None else "dataset.yaml"
     if groups is None and ds.robot is not None and ds.robot.model is not None:
-        from ..models.builtin import builtin_info
+        from graphcal.models.builtin import builtin_info
 
         groups = builtin_info(ds.robot.model).gait_groups or None
     if groups is None:
@@ -194,7 +194,7 @@ def inputs_from_dataset(ds, *, sensor: str | None = None) -> TrackInputs:
 
     Raises DatasetError naming ``timeseries.csv`` and the column when something the filter needs is
     missing (the IMU columns; torques or contacts; at least two samples)."""
-    from ..io.dataset import load_dataset_robot
+    from graphcal.io.dataset import load_dataset_robot
 
     root = ds.root
     ts_file = root / "timeseries.csv" if root is not None else "timeseries.csv"
@@ -256,7 +256,7 @@ def inputs_from_dataset(ds, *, sensor: str | None = None) -> TrackInputs:
         raise DatasetError(ts_file, f"header, column cloud_{sensor}", "the clouds of the requested sensor", "missing")
     name = sensor or (cloud_sensors[0] if cloud_sensors else None)
     if name is not None:
-        from ..io.ply import read_ply
+        from graphcal.io.ply import read_ply
 
         spec = ds.sensors[name]
         T_body_sensor = spec.T_body_sensor_prior.matrix
@@ -305,7 +305,7 @@ def _initial_state(inp: TrackInputs, pbf: np.ndarray, feet_idx: list[int], cfg: 
     a = inp.T_body_imu[:3, :3] @ inp.accel[:n0].mean(axis=0)
     roll = math.atan2(a[1], a[2])
     pitch = math.atan2(-a[0], math.hypot(a[1], a[2]))
-    from ..geometry import matrix_from_rpy
+    from graphcal.geometry import matrix_from_rpy
 
     R0 = matrix_from_rpy([roll, pitch, 0.0])
     feet_world = pbf[feet_idx, 0] @ R0.T
@@ -341,17 +341,17 @@ def _initial_covariance(cfg: TrackerConfig, n_slots: int, R_body_imu: np.ndarray
 
 def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, progress: bool = False) -> TrackResult:
     """Run the EKF over ``inp`` (see the module docstring); returns the estimate at every sample."""
-    from .support import SupportEstimate, support_from_torques
+    from graphcal.locomotion.support import SupportEstimate, support_from_torques
 
     # imports first: the processing time measures the filter, not module loading
     import filterpy.kalman  # noqa: F401
 
-    from . import imu  # noqa: F401
+    from graphcal.locomotion import imu  # noqa: F401
     if config.icp and inp.clouds:
         import open3d  # noqa: F401
         import scipy.stats  # noqa: F401
 
-        from . import icp  # noqa: F401
+        from graphcal.clouds import icp  # noqa: F401
     t_start = time.perf_counter()
     cfg = config
     robot = inp.robot
@@ -363,7 +363,7 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
 
     # -- kinematics of every foot at every sample (vectorised, one pass per leg): positions,
     # Jacobians, and the covariance of the measured foot positions
-    from ..models.kinematics import joint_frames
+    from graphcal.models.kinematics import joint_frames
 
     enc_var = cfg.noise.encoder_sigma_rad**2
     kin_cov = np.eye(3) * cfg.noise.kinematic_sigma_m**2
@@ -421,7 +421,7 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
     if use_icp:
         from scipy.stats import chi2
 
-        from .icp import adjoint, icp_relative_pose, prepare_target, range_sigma_function
+        from graphcal.clouds.icp import adjoint, icp_relative_pose, prepare_target, range_sigma_function
 
         Ad_bs = adjoint(T_bs)
         Ad_inv = np.linalg.inv(Ad_bs)
@@ -458,8 +458,8 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
     cov_pose: list[np.ndarray] = [ekf.kf.P[np.ix_(pose_idx, pose_idx)].copy()]
 
     # -- IMU: body-frame rates and specific forces held over each interval (mean of its two ends),
-    # preintegrated between events (vectorised; see graphcal.filter.imu)
-    from .imu import preintegrate, reconstruct
+    # preintegrated between events (vectorised; see graphcal.locomotion.imu)
+    from graphcal.locomotion.imu import preintegrate, reconstruct
 
     R_bi = np.asarray(inp.T_body_imu, dtype=float)[:3, :3]
     gyro = np.asarray(inp.gyro, dtype=float) @ R_bi.T
@@ -607,7 +607,7 @@ def estimate_trajectory(dataset, config: TrackerConfig = TrackerConfig()) -> tup
         times (N,) s and T_world_body (N, 4, 4) at every timeseries sample (world frame: see the
         module docstring).
     """
-    from ..io.dataset import Dataset, read_dataset
+    from graphcal.io.dataset import Dataset, read_dataset
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
     res = run_filter(inputs_from_dataset(ds), config)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors._checked import checked_custom_factor, tangent_basis, with_robust, world_plane
+from graphcal.factors.checked import checked_custom_factor, tangent_basis, with_robust, world_plane
 
 __all__ = ["DEFAULT_SIGMA_M", "foot_on_ground_error", "foot_on_ground_factor"]
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import GraphcalError
+from graphcal.errors import GraphcalError
 
 __all__ = ["SupportEstimate", "tip_forces", "detect_support", "support_from_torques"]
 
@@ -61,7 +61,7 @@ def tip_forces(leg, q: np.ndarray, tau: np.ndarray, *, jacobian: np.ndarray | No
         (N, 3) f with tau = J(q)^T f. Raises GraphcalError for a leg that is not 3-DOF or a
         singular configuration.
     """
-    from ..models.kinematics import leg_jacobian
+    from graphcal.models.kinematics import leg_jacobian
 
     if leg.n_joints != 3:
         raise GraphcalError(f"support detection needs 3-DOF legs; foot {leg.foot} has {leg.n_joints} joints")

@@ -35,7 +35,7 @@ from collections.abc import Sequence
 import gtsam
 import numpy as np
 
-from factors._checked import checked_custom_factor
+from graphcal.factors.checked import checked_custom_factor
 from graphcal.legs.params import LegModel, point_kinematics
 from graphcal.models.robot import Leg
 
