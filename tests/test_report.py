@@ -204,6 +204,25 @@ def test_yaml_has_exactly_the_contract_keys(result):
         assert type(leaf) in (str, int, float), type(leaf)
 
 
+def test_yaml_states_the_frames_of_its_numbers(result):
+    """The file says which axes each block is in (issue: sqrt(diag(covariance)) != sigma puzzled
+    readers): the covariance in sensor axes, sigma in body axes, and the two agree once rotated."""
+    doc = yaml.safe_load(calibration_yaml_text(result))
+    frames = doc["frames"]
+    assert set(frames) == {"T_body_sensor", "covariance", "sigma", "correlation"}
+    assert "SENSOR axes" in frames["covariance"] and "rad and m" in frames["covariance"]
+    assert "BODY axes" in frames["sigma"] and "deg and mm" in frames["sigma"]
+    s = doc["sensors"]["depth"]
+    T = pose_from_dict(s["T_body_sensor"])
+    C = np.asarray(s["covariance"])
+    R = T[:3, :3]
+    rot_body = np.sqrt(np.diag(R @ C[:3, :3] @ R.T))
+    xyz_body = np.sqrt(np.diag(R @ C[3:, 3:] @ R.T))
+    np.testing.assert_allclose(np.degrees(rot_body), s["sigma"]["rot_deg"], rtol=1e-9)
+    np.testing.assert_allclose(1e3 * xyz_body, s["sigma"]["xyz_mm"], rtol=1e-9)
+    assert not np.allclose(np.degrees(np.sqrt(np.diag(C[:3, :3]))), s["sigma"]["rot_deg"], rtol=1e-3)
+
+
 def test_yaml_without_legs_has_no_legs_key():
     doc = yaml.safe_load(calibration_yaml_text(make_result(legs=False)))
     assert "legs" not in doc

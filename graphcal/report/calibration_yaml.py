@@ -187,6 +187,7 @@ def calibration_to_dict(result) -> dict:
         "format": FORMAT,
         "dataset": str(result.dataset),
         "base_frame": str(result.base_frame),
+        "frames": frames_note(str(result.base_frame)),
     }
     if result.robot_name:
         doc["robot"] = str(result.robot_name)  # --noise-from tells another robot's file by it
@@ -228,6 +229,19 @@ def calibration_to_dict(result) -> dict:
             for g in groups
         }
     return doc
+
+
+def frames_note(base_frame: str) -> dict[str, str]:
+    """What each sensor entry's numbers mean, written into the file itself (docs/outputs.md)."""
+    return {
+        "T_body_sensor": f"maps sensor coordinates to {base_frame} coordinates (p_body = T_body_sensor p_sensor); "
+                         "xyz in m, rpy_deg = R = Rz(yaw) Ry(pitch) Rx(roll) in deg, quaternion (w, x, y, z)",
+        "covariance": "6x6 of the right perturbation T = T_hat Exp(xi), xi = [rx, ry, rz, x, y, z] about/along "
+                      "the SENSOR axes, in rad and m (GTSAM's tangent order [omega, v])",
+        "sigma": f"1-sigma rotation about and translation along the {base_frame.upper()} axes x, y, z, "
+                 "in deg and mm (sqrt(diag(covariance)) is in sensor axes and differs)",
+        "correlation": f"6x6 correlation of [rot x, y, z, trans x, y, z] in {base_frame} axes",
+    }
 
 
 def _header(result) -> str:
