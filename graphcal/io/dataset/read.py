@@ -1,0 +1,119 @@
+"""Reading a dataset folder: :func:`read_dataset` parses and checks everything except the points
+inside the PLY files (whose names and locations it does check)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from graphcal.errors import DatasetError
+from graphcal.io.dataset.checks import (
+    check_joint_columns,
+    check_mocap,
+    check_planes,
+    check_stations,
+    check_timeseries,
+)
+from graphcal.io.dataset.cloud_files import station_clouds
+from graphcal.io.dataset.model import FORMAT, Dataset
+from graphcal.io.dataset.paths import path_inside
+from graphcal.io.dataset.robot import load_robot_spec
+from graphcal.io.dataset.schema import parse_dataset_yaml
+from graphcal.io.dataset.tables import CSV_FILES, ParsedCsv, read_csv
+from graphcal.io.dataset.text import did_you_mean
+
+
+def _dataset_root(path: str | Path) -> Path:
+    """The dataset folder of ``path`` (the folder or its dataset.yaml), checked to hold dataset.yaml."""
+    root = Path(path)
+    if root.name == "dataset.yaml" and root.is_file():
+        root = root.parent
+    if not root.exists():
+        raise DatasetError(root, "folder", "a dataset folder containing dataset.yaml", "no such folder")
+    if not root.is_dir():
+        raise DatasetError(root, "folder", "a dataset folder containing dataset.yaml", "not a folder")
+    if not (root / "dataset.yaml").is_file():
+        raise DatasetError(root / "dataset.yaml", "file", f"dataset.yaml (required by {FORMAT})", "missing")
+    return root
+
+
+def read_dataset_parts(path: str | Path) -> tuple[Dataset, object | None, dict[str, ParsedCsv], set[Path]]:
+    """:func:`read_dataset` and what it found on the way: ``(dataset, robot, parsed, referenced)``
+    with the loaded :class:`~graphcal.models.robot.RobotModel` (None without a robot), the CSV files
+    read by kind (rows with their file lines) and the cloud files named in timeseries.csv."""
+    root = _dataset_root(path)
+    yaml_file = root / "dataset.yaml"
+    header = parse_dataset_yaml(yaml_file)
+    if header.robot is not None and header.robot.urdf is not None:
+        urdf = path_inside(root, header.robot.urdf, yaml_file, "robot.urdf")
+        if not urdf.is_file():
+            raise DatasetError(yaml_file, "robot.urdf", "an existing URDF file inside the dataset folder",
+                               f"{header.robot.urdf} (no such file)")  # fmt: skip
+
+    robot = None
+    if header.robot is not None:
+        robot = load_robot_spec(root, header.robot, yaml_file)
+        frames = set(robot.frame_names)
+        for name, m in header.mocap_markers.items():
+            if m.link not in frames:
+                raise DatasetError(yaml_file, f"mocap.markers.{name}.link", "a frame of the URDF",
+                                   f"{m.link!r}{did_you_mean(m.link, frames)}")  # fmt: skip
+
+    parsed: dict[str, ParsedCsv] = {}
+    for kind, name in CSV_FILES.items():
+        f = root / name
+        if f.exists() or f.is_symlink():
+            parsed[kind] = read_csv(f, kind)
+    if "stations" not in parsed and "timeseries" not in parsed:
+        raise DatasetError(root, "files", "stations.csv or timeseries.csv (or both)", "neither")
+    check_joint_columns(robot, parsed)
+
+    station_ids = None
+    if "stations" in parsed:
+        check_stations(parsed["stations"])
+        station_ids = parsed["stations"].table["station"]
+    referenced: set[Path] = set()
+    if "timeseries" in parsed:
+        referenced = check_timeseries(parsed["timeseries"], header, root)
+    if "planes" in parsed:
+        check_planes(parsed["planes"], header, station_ids)
+    if "mocap" in parsed:
+        times = [
+            parsed[k].table["time"] for k in ("stations", "timeseries") if k in parsed and parsed[k].table.has("time")
+        ]
+        check_mocap(parsed["mocap"], header, np.concatenate(times) if times else None)
+    station_clouds(root, header.sensors, station_ids, referenced)
+
+    ds = Dataset(
+        root=root,
+        format=header.format,
+        robot=header.robot,
+        sensors=header.sensors,
+        imu=header.imu,
+        ground=header.ground,
+        stance=header.stance,
+        extra=header.extra,
+        stations=parsed["stations"].table if "stations" in parsed else None,
+        timeseries=parsed["timeseries"].table if "timeseries" in parsed else None,
+        planes=parsed["planes"].table if "planes" in parsed else None,
+        mocap=parsed["mocap"].table if "mocap" in parsed else None,
+        mocap_markers=header.mocap_markers,
+    )
+    return ds, robot, parsed, referenced
+
+
+def read_dataset(path: str | Path) -> Dataset:
+    """Read and check a ``graphcal-dataset/1`` folder (or its ``dataset.yaml``).
+
+    Checks everything in docs/dataset.md except the points inside the PLY files (their names,
+    sensors, stations and locations are checked; :func:`~graphcal.io.dataset.validate.validate_dataset` reads them). The robot
+    is loaded to check joint columns, feet and marker links.
+
+    Returns:
+        The :class:`Dataset`, SI units.
+
+    Raises:
+        DatasetError: the first problem found, naming file, row or key, and what was expected.
+    """
+    return read_dataset_parts(path)[0]
