@@ -86,7 +86,7 @@ def leg_offset_prior(key: int, dim: int, sigmas) -> gtsam.PriorFactorVector:
         key: key of theta_leg.
         dim: number of leg parameters k.
         sigmas: scalar or (k,) sigmas in the parameters' units (rad for offsets, m for link deltas;
-            :meth:`graphcal.models.leg_params.LegParameterization.prior_sigmas` builds them).
+            :meth:`graphcal.models.legs.LegModel.prior_sigmas` builds them).
     """
     dim = int(dim)
     if dim < 1:

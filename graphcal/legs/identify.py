@@ -1,7 +1,7 @@
 """Leg kinematic identification from motion capture: graph, identifiable set, LM to convergence, covariance.
 
 Unknowns: ``T_body_mocap`` (Pose3, key ``V(0)``: the motion-capture frame, or Yuan's virtual base,
-in the body frame), per leg the parameters ``theta`` of :mod:`graphcal.legs.params` (Vector, key
+in the body frame), per leg the parameters ``theta`` of :mod:`graphcal.models.legs` (Vector, key
 ``L(l)``), per marker whose position on the foot is not given its ``p_foot_marker`` (Point3, key
 ``K(j)``). One :func:`factors.mocap_marker.mocap_marker_factor` per marker holds all its samples.
 
@@ -48,7 +48,7 @@ from graphcal.errors import GraphcalError
 from graphcal.geometry import fit_rigid_transform, invert_pose
 from graphcal.legs.identifiability import IdentifiabilityReport, identifiability
 from graphcal.legs.mocap_data import MarkerTrack, MocapData
-from graphcal.legs.params import LegModel, leg_model, point_kinematics
+from graphcal.models.legs import LegModel, leg_model, point_kinematics
 
 __all__ = [
     "MOCAP_COMPONENTS",
@@ -76,7 +76,7 @@ class IdentifyOptions:
         sigma_marker_m: marker noise per coordinate (m), a priori.
         sigma_joint_rad: joint encoder noise per joint (rad; m for prismatic), a priori.
         origins: leg model: ``"first"`` (hip position 3-D, default), ``"all"`` or ``"none"``
-            (:func:`graphcal.legs.params.leg_model`).
+            (:func:`graphcal.models.legs.leg_model`).
         link_lengths: include link-length parameters.
         joint_offsets: include joint-offset parameters (all three switched off with
             ``origins="none"``: the nominal model, only the pose and the markers are fitted).
@@ -185,7 +185,7 @@ class LegIdentificationResult:
     """What :func:`identify_legs` returns.
 
     Attributes:
-        models: foot -> :class:`~graphcal.legs.params.LegModel`.
+        models: foot -> :class:`~graphcal.models.legs.LegModel`.
         legs: foot -> tuple of :class:`ParameterEstimate` (``model.names`` order).
         theta: foot -> (k,) identified parameter vector.
         theta_covariance: foot -> (k, k) covariance (zeros on held parameters).

@@ -1,6 +1,8 @@
-"""Kinematic parameters of a leg (joint offsets, link lengths) and their analytic Jacobian.
+"""The kinematic model of a leg: its parameters ``theta`` and the forward kinematics of a point on its foot.
 
-A :class:`LegParameterization` names the calibration parameters ``theta`` (k,) of one leg:
+A :class:`LegModel` names the kinematic parameters ``theta`` (k,) of one leg, used by the
+calibration (Chai's stance feet, :mod:`graphcal.factors.stance_foot`) and by Yuan's leg
+identification (:mod:`graphcal.legs`, :mod:`graphcal.factors.mocap_marker`):
 
 * ``<joint>.offset_rad`` for each moving joint (``<joint>.offset_m`` for a prismatic one): the
   encoder zero error, ``q_true = q_measured + offset`` -- the same model as
@@ -13,23 +15,36 @@ A :class:`LegParameterization` names the calibration parameters ``theta`` (k,) o
   :func:`graphcal.models.perturb.link_length_delta`. If the foot frame is not the child of a
   URDF joint (e.g. a frame that is not a link), the parameter is called ``<foot>.delta_m`` and
   lengthens the translation of ``Leg.T_lastjoint_foot``. A joint whose origin has no translation
-  (no link ends at it, e.g. two joint axes through one point) gets no ``delta_m`` parameter.
+  (no link ends at it, e.g. two joint axes through one point) gets no ``delta_m`` parameter;
+* with ``origins="first"`` (identification's default) or ``"all"``, 3-D origin translations
+  ``<joint>.dx_m``, ``<joint>.dy_m``, ``<joint>.dz_m``: the change of a URDF joint's
+  ``<origin xyz>`` in its parent link frame. ``"first"``: only the FIRST moving joint -- the hip
+  position in the body frame, which Yuan et al. write with the body length and width ``l_b``,
+  ``w_b`` (their lateral hip offset ``omega`` is the link from the hip joint to the thigh joint,
+  i.e. the A1 ``<leg>_thigh_joint.delta_m``). ``"all"``: every moving joint (and the fixed joint
+  that carries the foot frame) gets a 3-D translation instead of its one link-length parameter, a
+  model close to a full geometric calibration (3 translations + the joint angle offset per joint;
+  the two remaining rotations per joint are not modelled). ``"none"`` (the calibration's model):
+  offsets and link lengths only.
 
-Parameter order: all offsets (base -> foot), then all link deltas (base -> foot, foot link last).
-``theta = 0`` is the nominal URDF.
+Parameter order in ``theta`` (k,): all offsets (base -> foot), then the translation parameters
+(link deltas and origin components, base -> foot, foot link last). ``theta = 0`` is the nominal URDF.
 
-Forward kinematics with parameters (:func:`fk_with_params`) and its Jacobian with respect to
-``theta`` (:func:`param_jacobian`) are vectorised over N configurations and expressed in the leg's
-base frame (usually ``body``). Jacobian columns:
+:func:`point_kinematics` is vectorised over N configurations: the position of a point fixed in the
+foot frame (e.g. a motion-capture marker ``p_foot_marker``; default the foot frame origin) in the
+leg's base frame, its Jacobian with respect to ``theta``, with respect to the measured joint
+values ``q`` (for noise propagation) and the rotation of the foot frame (the Jacobian with respect
+to the point's position in the foot frame is ``R_base_foot``). :func:`fk_with_params`,
+:func:`param_jacobian` and :func:`fk_and_param_jacobian` are its foot-origin views. Jacobian columns:
 
-* offset of joint j: the joint's Jacobian column at ``q_true`` (``axis_j x (p_foot - origin_j)``
+* offset of joint j: the joint's Jacobian column at ``q_true`` (``axis_j x (p - origin_j)``
   for a revolute joint, ``axis_j`` for a prismatic one, in the base frame);
-* delta of link j: ``R_base_parent(j) @ u_j``, the direction of the link in the base frame, where
-  ``R_base_parent(j)`` is the rotation of the frame that link's origin translation is expressed in
-  (the previous joint frame, after its motion). The foot position is linear in each link
-  translation, so this column is exact.
+* translation parameter of placement j: ``R_base_frame(j) @ u``, its direction in the base frame,
+  where ``R_base_frame(j)`` is the rotation of the frame that placement's translation is expressed
+  in (the previous joint frame, after its motion). The point is linear in each translation, so
+  this column is exact.
 
-Units: metres, radians.
+Units: metres, radians. Frames: ``base`` is the leg's base frame (``RobotModel.base_frame``).
 """
 
 from __future__ import annotations
@@ -41,18 +56,26 @@ import numpy as np
 
 from graphcal.errors import ModelError
 from graphcal.geometry import invert_pose, matrix_from_rpy
+from graphcal.models.kinematics import as_batch, chain_frames, position_jacobian
 from graphcal.models.perturb import LegPerturbation
 from graphcal.models.robot import Leg, RobotModel
 
 __all__ = [
-    "LegParameterization",
-    "leg_parameterization",
+    "ORIGIN_CHOICES",
+    "LegModel",
+    "PointKinematics",
+    "leg_model",
+    "point_kinematics",
     "fk_with_params",
     "param_jacobian",
     "fk_and_param_jacobian",
-    "perturbation_from_params",
+    "perturbation_from_theta",
+    "theta_from_perturbation",
 ]
 
+#: Which joints get a 3-D origin translation: none, the first moving joint (hip position), or all.
+ORIGIN_CHOICES = ("none", "first", "all")
+_AXES = ("dx_m", "dy_m", "dz_m")
 _ZERO_LINK_M = 1e-12
 
 
@@ -62,35 +85,41 @@ def _readonly(a) -> np.ndarray:
     return a
 
 
+
 @dataclass(frozen=True, eq=False)
-class LegParameterization:
+class LegModel:
     """Names and geometry of the kinematic parameters ``theta`` (k,) of one leg.
 
     Attributes:
-        foot: foot frame of the leg.
+        foot: foot frame of the leg (the frame a marker's position ``p_foot_marker`` is given in).
         joint_names: the leg's moving joints (base -> foot), to check that a :class:`Leg` matches.
-        names: the k parameter names, in ``theta`` order (offsets first, then link deltas).
-        offset_joints: for each offset parameter, the index of its joint in ``joint_names``.
-        link_joints: for each link-delta parameter, the index ``j`` of the moving joint whose
-            origin translation (``Leg.T_parent_joint[j]``) it changes, or ``n`` (the number of
-            moving joints) for the foot link (``Leg.T_lastjoint_foot``).
-        link_urdf_joints: for each link-delta parameter, the URDF joint whose ``<origin xyz>`` it
-            changes, or ``None`` for a ``<foot>.delta_m`` parameter without a URDF joint.
-        directions: (n_links, 3) unit link directions ``u_j`` in the frame of the :class:`Leg`
-            placement they change (the previous moving joint's frame; the base frame for j = 0).
-        directions_urdf: (n_links, 3) the same directions in the URDF joint's parent link frame
-            (equal to ``directions`` unless fixed joints sit between the moving joints); NaN
-            where ``link_urdf_joints`` is ``None``.
+        joint_types: ``"revolute"`` / ``"prismatic"`` per joint.
+        names: the k parameter names, in ``theta`` order (offsets first, then translations).
+        offset_joints: for each offset parameter, the index of its joint in ``joint_names`` (the
+            first ``n_offsets`` entries of ``theta``).
+        trans_joints: for each translation parameter, the index ``j`` of the :class:`Leg`
+            placement it changes (``T_parent_joint[j]``, or ``n``, the number of moving joints,
+            for ``T_lastjoint_foot``).
+        trans_dirs: (n_trans, 3) unit directions, in the frame that placement is expressed in
+            (the previous moving joint's frame; the base frame for j = 0).
+        trans_urdf_joints: URDF joint whose ``<origin xyz>`` each translation parameter changes
+            (None for a ``<foot>.delta_m`` without URDF joint).
+        trans_dirs_urdf: (n_trans, 3) the directions in that URDF joint's parent link frame (equal
+            to ``trans_dirs`` unless fixed joints sit between the moving joints); NaN where
+            ``trans_urdf_joints`` is None.
+        origins: ``"none"``, ``"first"`` or ``"all"`` (see module docstring).
     """
 
     foot: str
     joint_names: tuple[str, ...]
+    joint_types: tuple[str, ...]
     names: tuple[str, ...]
     offset_joints: tuple[int, ...]
-    link_joints: tuple[int, ...]
-    link_urdf_joints: tuple[str | None, ...]
-    directions: np.ndarray
-    directions_urdf: np.ndarray
+    trans_joints: tuple[int, ...]
+    trans_dirs: np.ndarray
+    trans_urdf_joints: tuple[str | None, ...]
+    trans_dirs_urdf: np.ndarray
+    origins: str = "first"
 
     @property
     def dim(self) -> int:
@@ -103,9 +132,9 @@ class LegParameterization:
         return len(self.offset_joints)
 
     @property
-    def n_links(self) -> int:
-        """Number of link-delta parameters (they follow the offsets in ``theta``)."""
-        return len(self.link_joints)
+    def n_trans(self) -> int:
+        """Number of translation parameters (they follow the offsets in ``theta``)."""
+        return len(self.trans_joints)
 
     def index(self, name: str) -> int:
         """Position of parameter ``name`` in ``theta``; ModelError if unknown."""
@@ -116,12 +145,16 @@ class LegParameterization:
                 f"{name!r} is not a parameter of the leg of {self.foot!r}; parameters: {', '.join(self.names)}"
             ) from None
 
+    def is_angle(self, i: int) -> bool:
+        """True when parameter ``i`` is in radians (a revolute joint's offset)."""
+        return self.names[i].endswith(".offset_rad")
+
     def zeros(self) -> np.ndarray:
         """The nominal parameter vector (k,) of zeros."""
         return np.zeros(self.dim)
 
     def prior_sigmas(self, sigma_offset_rad: float, sigma_delta_m: float) -> np.ndarray:
-        """(k,) prior standard deviations: ``sigma_offset_rad`` for offsets, ``sigma_delta_m`` for links.
+        """(k,) prior standard deviations: ``sigma_offset_rad`` for offsets, ``sigma_delta_m`` for lengths.
 
         A prismatic joint's offset gets ``sigma_delta_m`` (it is a length).
         """
@@ -130,19 +163,15 @@ class LegParameterization:
         )
 
     def check_leg(self, leg: Leg) -> None:
-        """ModelError unless ``leg`` is the leg this parameterization was built for."""
+        """ModelError unless ``leg`` is the leg this model was built for."""
         if leg.foot != self.foot or tuple(leg.joint_names) != self.joint_names:
             raise ModelError(
-                f"leg parameterization of foot {self.foot!r} (joints {', '.join(self.joint_names)}) used with the "
+                f"leg model of foot {self.foot!r} (joints {', '.join(self.joint_names)}) used with the "
                 f"leg of foot {leg.foot!r} (joints {', '.join(leg.joint_names)})"
             )
 
-    def as_dict(self, theta) -> dict[str, float]:
-        """name -> value of a parameter vector (k,)."""
-        theta = self._check_theta(theta)
-        return {n: float(v) for n, v in zip(self.names, theta)}
-
-    def _check_theta(self, theta) -> np.ndarray:
+    def check_theta(self, theta) -> np.ndarray:
+        """``theta`` as a (k,) float array; ModelError on a wrong shape."""
         theta = np.asarray(theta, dtype=float)
         if theta.shape != (self.dim,):
             raise ModelError(
@@ -150,6 +179,10 @@ class LegParameterization:
                 f"theta must have shape ({self.dim},), got {theta.shape}"
             )
         return theta
+
+    def as_dict(self, theta) -> dict[str, float]:
+        """name -> value of a parameter vector (k,)."""
+        return {n: float(v) for n, v in zip(self.names, self.check_theta(theta))}
 
 
 # ----------------------------------------------------------------------------- construction
@@ -174,6 +207,15 @@ def _urdf_origin(joint: ET.Element) -> np.ndarray:
     if rpy and rpy.strip():
         T[:3, :3] = matrix_from_rpy([float(x) for x in rpy.split()])
     return T
+
+
+def _foot_fixed_joint(joints: dict[str, ET.Element], foot: str) -> ET.Element | None:
+    """The FIXED URDF joint whose child link is ``foot``, else None."""
+    for j in joints.values():
+        c = j.find("child")
+        if c is not None and c.get("link") == foot and j.get("type") == "fixed":
+            return j
+    return None
 
 
 def _foot_joint(joints: dict[str, ET.Element], foot: str) -> ET.Element | None:
@@ -209,25 +251,71 @@ def _link_direction(T_leg: np.ndarray, T_origin: np.ndarray | None) -> tuple[np.
     return u / np.linalg.norm(u), u_urdf
 
 
-def leg_parameterization(
+def _link_parameters(leg: Leg, joints: dict[str, ET.Element], foot: str) -> list[tuple]:
+    """(placement j, direction, URDF joint or None, URDF direction, name) of each link-length parameter."""
+    out = []
+    for j in range(1, leg.n_joints):
+        jname = leg.joint_names[j]
+        if jname not in joints:
+            raise ModelError(f"joint {jname!r} of the leg of {foot!r} is not a URDF joint")
+        res = _link_direction(leg.T_parent_joint[j], _urdf_origin(joints[jname]))
+        if res is not None:
+            out.append((j, res[0], jname, res[1], f"{jname}.delta_m"))
+    fj = _foot_joint(joints, foot)
+    if fj is not None and fj.get("type") == "fixed":
+        res = _link_direction(leg.T_lastjoint_foot, _urdf_origin(fj))
+        pname, urdf_name = f"{fj.get('name')}.delta_m", fj.get("name")
+    elif fj is not None and fj.get("name") in leg.joint_names:
+        res = None  # the foot is the child link of the last moving joint: no link after it
+    else:
+        res = _link_direction(leg.T_lastjoint_foot, None)
+        pname, urdf_name = f"{foot}.delta_m", None
+    if res is not None:
+        out.append((leg.n_joints, res[0], urdf_name, res[1], pname))
+    return out
+
+
+def _origin_parameters(j: int, urdf_joint: ET.Element, T_leg: np.ndarray) -> list[tuple]:
+    """(placement j, direction, URDF joint, URDF direction, name) of a joint's 3-D origin translation.
+
+    ``T_leg`` (the :class:`Leg` placement) = ``T_prev_parentlink @ T_origin``: an origin change d
+    (parent link frame) changes the placement's translation by ``R_prev_parentlink @ d``.
+    """
+    R = (T_leg @ invert_pose(_urdf_origin(urdf_joint)))[:3, :3]
+    out = []
+    for a, suffix in enumerate(_AXES):
+        e = np.zeros(3)
+        e[a] = 1.0
+        out.append((j, R @ e, urdf_joint.get("name"), e, f"{urdf_joint.get('name')}.{suffix}"))
+    return out
+
+
+def leg_model(
     robot: RobotModel,
     foot: str,
     *,
+    origins: str = "first",
     joint_offsets: bool = True,
     link_lengths: bool = True,
-) -> LegParameterization:
+) -> LegModel:
     """The kinematic parameters of the leg of ``foot`` (see module docstring for names and order).
 
     Args:
         robot: the robot model (its URDF text names the joints and gives the link directions).
         foot: foot frame of the leg.
+        origins: ``"first"`` (default): a 3-D translation of the first moving joint's origin (the
+            hip position); ``"all"``: a 3-D translation of every moving joint's origin and of the
+            fixed joint carrying the foot, replacing the link lengths; ``"none"``: neither (the
+            calibration's model: offsets and link lengths).
         joint_offsets: include one offset per moving joint.
         link_lengths: include one length delta per link (moving joints after the first, and the
-            joint attaching the foot frame).
+            joint attaching the foot frame); ignored with ``origins="all"``, which contains them.
 
     Raises:
-        ModelError: ``foot`` is not a foot of ``robot``, or a joint of the leg is not in the URDF.
+        ModelError: unknown ``origins``, ``foot`` not a foot of ``robot``, a leg joint missing from the URDF.
     """
+    if origins not in ORIGIN_CHOICES:
+        raise ModelError(f"origins must be one of {', '.join(ORIGIN_CHOICES)}, got {origins!r}")
     leg = robot.leg(foot)
     joints = _urdf_joints(robot.urdf_xml)
     names: list[str] = []
@@ -236,161 +324,191 @@ def leg_parameterization(
         for j, (jname, jtype) in enumerate(zip(leg.joint_names, leg.joint_types)):
             names.append(f"{jname}.offset_m" if jtype == "prismatic" else f"{jname}.offset_rad")
             offset_joints.append(j)
-    link_joints: list[int] = []
-    link_urdf: list[str | None] = []
-    dirs: list[np.ndarray] = []
-    dirs_urdf: list[np.ndarray] = []
-    if link_lengths:
-        for j in range(1, leg.n_joints):
+    trans: list[tuple] = []
+    n = leg.n_joints
+    if origins in ("first", "all") and n > 0:
+        for j in range(n if origins == "all" else 1):
             jname = leg.joint_names[j]
             if jname not in joints:
                 raise ModelError(f"joint {jname!r} of the leg of {foot!r} is not a URDF joint")
-            res = _link_direction(leg.T_parent_joint[j], _urdf_origin(joints[jname]))
-            if res is None:
-                continue
-            names.append(f"{jname}.delta_m")
-            link_joints.append(j)
-            link_urdf.append(jname)
-            dirs.append(res[0])
-            dirs_urdf.append(res[1])
-        fj = _foot_joint(joints, foot)
-        if fj is not None and fj.get("type") == "fixed":
-            res = _link_direction(leg.T_lastjoint_foot, _urdf_origin(fj))
-            pname, urdf_name = f"{fj.get('name')}.delta_m", fj.get("name")
-        elif fj is not None and fj.get("name") in leg.joint_names:
-            res = None  # the foot is the child link of the last moving joint: no link after it
-        else:
-            res = _link_direction(leg.T_lastjoint_foot, None)
-            pname, urdf_name = f"{foot}.delta_m", None
-        if res is not None:
-            names.append(pname)
-            link_joints.append(leg.n_joints)
-            link_urdf.append(urdf_name)
-            dirs.append(res[0])
-            dirs_urdf.append(res[1])
-    return LegParameterization(
+            trans += _origin_parameters(j, joints[jname], leg.T_parent_joint[j])
+    if link_lengths and origins != "all":
+        trans += _link_parameters(leg, joints, foot)
+    if origins == "all":
+        fj = _foot_fixed_joint(joints, foot)
+        if fj is not None:
+            trans += _origin_parameters(n, fj, leg.T_lastjoint_foot)
+    trans.sort(key=lambda t: t[0])  # translation parameters base -> foot (stable within one joint)
+    names += [t[4] for t in trans]
+    return LegModel(
         foot=foot,
         joint_names=tuple(leg.joint_names),
+        joint_types=tuple(leg.joint_types),
         names=tuple(names),
         offset_joints=tuple(offset_joints),
-        link_joints=tuple(link_joints),
-        link_urdf_joints=tuple(link_urdf),
-        directions=_readonly(np.reshape(dirs, (len(dirs), 3))),
-        directions_urdf=_readonly(np.reshape(dirs_urdf, (len(dirs_urdf), 3))),
+        trans_joints=tuple(t[0] for t in trans),
+        trans_dirs=_readonly(np.reshape([t[1] for t in trans], (len(trans), 3))),
+        trans_urdf_joints=tuple(t[2] for t in trans),
+        trans_dirs_urdf=_readonly(np.reshape([t[3] for t in trans], (len(trans), 3))),
+        origins=origins,
     )
 
 
-def perturbation_from_params(param: LegParameterization, theta) -> LegPerturbation:
-    """The :class:`~graphcal.models.perturb.LegPerturbation` equal to ``theta`` (for writing a URDF).
-
-    Raises:
-        ModelError: a non-zero ``<foot>.delta_m`` parameter has no URDF joint to carry it.
-    """
-    theta = param._check_theta(theta)
-    offs = {param.joint_names[j]: float(theta[i]) for i, j in enumerate(param.offset_joints)}
-    deltas = {}
-    for i, (urdf_joint, u) in enumerate(zip(param.link_urdf_joints, param.directions_urdf)):
-        val = float(theta[param.n_offsets + i])
-        if urdf_joint is None:
-            if val != 0.0:
-                raise ModelError(
-                    f"parameter {param.names[param.n_offsets + i]!r} has no URDF joint: cannot write it as an origin delta"
-                )
-            continue
-        deltas[urdf_joint] = tuple(val * u)
-    return LegPerturbation(offs, deltas)
-
-
 # ----------------------------------------------------------------------------- kinematics
-def _prepare(leg: Leg, param: LegParameterization, q, theta) -> tuple[np.ndarray, np.ndarray, bool]:
-    from graphcal.models.kinematics import as_batch
+@dataclass(frozen=True, eq=False)
+class PointKinematics:
+    """Result of :func:`point_kinematics` for N configurations (base frame, m).
 
-    param.check_leg(leg)
-    theta = param._check_theta(theta)
-    q, single = as_batch(leg, q)
-    return q, theta, single
+    Attributes:
+        p_base_point: (N, 3) the point (marker) in the base frame.
+        J_theta: (N, 3, k) d p_base_point / d theta.
+        J_q: (N, 3, n) d p_base_point / d q (measured joint values).
+        R_base_foot: (N, 3, 3) rotation of the foot frame (= d p_base_point / d p_foot_point).
+        p_base_foot: (N, 3) the foot frame origin.
+    """
+
+    p_base_point: np.ndarray
+    J_theta: np.ndarray
+    J_q: np.ndarray
+    R_base_foot: np.ndarray
+    p_base_foot: np.ndarray
 
 
-def _fk(leg: Leg, param: LegParameterization, q: np.ndarray, theta: np.ndarray, want_jacobian: bool):
-    """p_base_foot (N, 3) and, if asked, d p / d theta (N, 3, k)."""
-    from graphcal.models.kinematics import rodrigues_batch
-
-    N, n = q.shape
+def _chain(leg: Leg, model: LegModel, q: np.ndarray, theta: np.ndarray):
+    """:func:`graphcal.models.kinematics.chain_frames` at ``q_true = q + offsets`` with the
+    translation parameters applied."""
+    n = leg.n_joints
+    no = model.n_offsets
     offsets = np.zeros(n)
-    offsets[list(param.offset_joints)] = theta[: param.n_offsets]
-    q_true = q + offsets
-    link_of = {j: i for i, j in enumerate(param.link_joints)}
-    deltas = theta[param.n_offsets :]
-
-    R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
-    p = np.zeros((N, 3))
-    axes_base = np.empty((N, n, 3))
-    origins = np.empty((N, n, 3))
-    link_cols = np.empty((N, 3, param.n_links)) if want_jacobian else None
-    for j in range(n):
-        T = leg.T_parent_joint[j]
-        t = T[:3, 3]
-        if j in link_of:
-            i = link_of[j]
-            u = param.directions[i]
-            t = t + deltas[i] * u
-            if want_jacobian:
-                link_cols[:, :, i] = R @ u
-        p = p + R @ t
-        R = R @ T[:3, :3]
-        a = leg.axes[j]
-        axes_base[:, j] = R @ a
-        origins[:, j] = p
-        if leg.joint_types[j] == "revolute":
-            R = R @ rodrigues_batch(a, q_true[:, j])
-        else:
-            p = p + q_true[:, j, None] * axes_base[:, j]
-    t = leg.T_lastjoint_foot[:3, 3]
-    if n in link_of:
-        i = link_of[n]
-        u = param.directions[i]
-        t = t + deltas[i] * u
-        if want_jacobian:
-            link_cols[:, :, i] = R @ u
-    p_foot = p + R @ t
-    if not want_jacobian:
-        return p_foot, None
-    J = np.empty((N, 3, param.dim))
-    for i, j in enumerate(param.offset_joints):
-        if leg.joint_types[j] == "revolute":
-            J[:, :, i] = np.cross(axes_base[:, j], p_foot - origins[:, j])
-        else:
-            J[:, :, i] = axes_base[:, j]
-    J[:, :, param.n_offsets :] = link_cols
-    return p_foot, J
+    offsets[list(model.offset_joints)] = theta[:no]
+    tvals = theta[no:]
+    # translation change of each placement (constant over the batch)
+    dt = np.zeros((n + 1, 3))
+    for i, j in enumerate(model.trans_joints):
+        dt[j] += tvals[i] * model.trans_dirs[i]
+    return chain_frames(leg, q + offsets, dt)
 
 
-def fk_with_params(leg: Leg, param: LegParameterization, q, theta) -> np.ndarray:
+def _theta_jacobian(model: LegModel, J_q: np.ndarray, R_frames) -> np.ndarray:
+    """d p / d theta (N, 3, k) from the point's joint Jacobian (N, 3, n) and the placement frames."""
+    no = model.n_offsets
+    J = np.empty((J_q.shape[0], 3, model.dim))
+    if no:
+        J[:, :, :no] = J_q[:, :, list(model.offset_joints)]
+    for i, j in enumerate(model.trans_joints):
+        J[:, :, no + i] = R_frames[j] @ model.trans_dirs[i]
+    return J
+
+
+def point_kinematics(leg: Leg, model: LegModel, q, theta, p_foot_point=None) -> PointKinematics:
+    """Position of a point fixed in the foot frame, and its Jacobians, for N configurations.
+
+    Args:
+        leg: the nominal leg (base frame -> foot frame).
+        model: its :class:`LegModel`.
+        q: (N, n) measured joint values (rad / m), ``leg.joint_names`` order; (n,) for one.
+        theta: (k,) parameter values (``model.names`` order).
+        p_foot_point: (3,) the point in the foot frame, m (default: the foot frame origin).
+
+    Returns:
+        :class:`PointKinematics` (arrays with a leading N axis, also for a single configuration).
+    """
+    model.check_leg(leg)
+    theta = model.check_theta(theta)
+    q, _ = as_batch(leg, q)
+    m = np.zeros(3) if p_foot_point is None else np.asarray(p_foot_point, dtype=float).reshape(3)
+    axes, origins, R_frames, R_foot, p_foot = _chain(leg, model, q, theta)
+    point = p_foot + R_foot @ m
+    J_q = position_jacobian(leg.joint_types, axes, origins, point)
+    return PointKinematics(point, _theta_jacobian(model, J_q, R_frames), J_q, R_foot, p_foot)
+
+
+def fk_with_params(leg: Leg, model: LegModel, q, theta) -> np.ndarray:
     """Foot positions of the leg with kinematic parameters ``theta``.
 
     Args:
         leg: the nominal leg.
-        param: its parameterization (built for this leg).
+        model: its :class:`LegModel` (built for this leg).
         q: (N, n) measured joint values (rad / m), :attr:`Leg.joint_names` order; (n,) for one.
-        theta: (k,) parameter values, ``param.names`` order.
+        theta: (k,) parameter values, ``model.names`` order.
 
     Returns:
         p_base_foot (N, 3), m, in the leg's base frame ((3,) for a single configuration).
     """
-    q, theta, single = _prepare(leg, param, q, theta)
-    p, _ = _fk(leg, param, q, theta, False)
+    model.check_leg(leg)
+    theta = model.check_theta(theta)
+    q, single = as_batch(leg, q)
+    p = _chain(leg, model, q, theta)[4]
     return p[0] if single else p
 
 
-def param_jacobian(leg: Leg, param: LegParameterization, q, theta) -> np.ndarray:
-    """d p_base_foot / d theta, (N, 3, k) ((3, k) for a single configuration); see module docstring."""
-    q, theta, single = _prepare(leg, param, q, theta)
-    _, J = _fk(leg, param, q, theta, True)
-    return J[0] if single else J
-
-
-def fk_and_param_jacobian(leg: Leg, param: LegParameterization, q, theta) -> tuple[np.ndarray, np.ndarray]:
+def fk_and_param_jacobian(leg: Leg, model: LegModel, q, theta) -> tuple[np.ndarray, np.ndarray]:
     """(:func:`fk_with_params`, :func:`param_jacobian`) in one pass over the chain."""
-    q, theta, single = _prepare(leg, param, q, theta)
-    p, J = _fk(leg, param, q, theta, True)
+    model.check_leg(leg)
+    theta = model.check_theta(theta)
+    q, single = as_batch(leg, q)
+    axes, origins, R_frames, _, p = _chain(leg, model, q, theta)
+    J_off = position_jacobian(leg.joint_types, axes, origins, p)
+    J = _theta_jacobian(model, J_off, R_frames)
     return (p[0], J[0]) if single else (p, J)
+
+
+def param_jacobian(leg: Leg, model: LegModel, q, theta) -> np.ndarray:
+    """d p_base_foot / d theta, (N, 3, k) ((3, k) for a single configuration); see module docstring."""
+    return fk_and_param_jacobian(leg, model, q, theta)[1]
+
+
+# ----------------------------------------------------------------------------- URDF round trip
+def perturbation_from_theta(model: LegModel, theta) -> LegPerturbation:
+    """The :class:`~graphcal.models.perturb.LegPerturbation` equal to ``theta`` (URDF writing, tests).
+
+    Raises:
+        ModelError: a non-zero translation parameter without URDF joint (``<foot>.delta_m``).
+    """
+    theta = model.check_theta(theta)
+    offs = {model.joint_names[j]: float(theta[i]) for i, j in enumerate(model.offset_joints)}
+    deltas: dict[str, np.ndarray] = {}
+    for i, (uj, u) in enumerate(zip(model.trans_urdf_joints, model.trans_dirs_urdf)):
+        v = float(theta[model.n_offsets + i])
+        if uj is None:
+            if v != 0.0:
+                raise ModelError(f"parameter {model.names[model.n_offsets + i]!r} has no URDF joint to carry it")
+            continue
+        deltas[uj] = deltas.get(uj, np.zeros(3)) + v * u
+    return LegPerturbation(offs, {j: tuple(d) for j, d in deltas.items()})
+
+
+def theta_from_perturbation(model: LegModel, pert: LegPerturbation, *, tol: float = 1e-12) -> np.ndarray:
+    """The ``theta`` (k,) that reproduces ``pert`` on this leg (e.g. a simulation's truth).
+
+    Offsets map one to one; an origin delta of a joint is projected on that joint's translation
+    parameters (least squares over their directions in the URDF parent frame).
+
+    Raises:
+        ModelError: the perturbation touches a joint of the leg that the model cannot express (an
+            offset without offset parameter, or an origin delta outside the span of the joint's
+            translation directions, e.g. a sideways shift where only a link length is modelled).
+    """
+    theta = np.zeros(model.dim)
+    joint_set = set(model.joint_names)
+    for j, v in pert.joint_offsets_rad.items():
+        if j not in joint_set:
+            continue
+        idx = [i for i, jj in enumerate(model.offset_joints) if model.joint_names[jj] == j]
+        if not idx:
+            raise ModelError(f"joint offset of {j!r} has no parameter in the leg model of {model.foot!r}")
+        theta[idx[0]] = v
+    for j, d in pert.origin_deltas_m.items():
+        idx = [i for i, uj in enumerate(model.trans_urdf_joints) if uj == j]
+        d = np.asarray(d, dtype=float)
+        if not idx:
+            if j in joint_set and np.linalg.norm(d) > tol:
+                raise ModelError(f"origin delta of {j!r} has no parameter in the leg model of {model.foot!r}")
+            continue
+        U = model.trans_dirs_urdf[idx].T  # (3, m)
+        x, *_ = np.linalg.lstsq(U, d, rcond=None)
+        if np.linalg.norm(U @ x - d) > max(tol, 1e-9 * np.linalg.norm(d)):
+            have = [model.names[model.n_offsets + i] for i in idx]
+            raise ModelError(f"origin delta {d.tolist()} of {j!r} is not expressible by {have}")
+        theta[[model.n_offsets + i for i in idx]] = x
+    return theta
