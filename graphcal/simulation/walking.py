@@ -325,14 +325,12 @@ def _newton_ik(leg, P: np.ndarray, q: np.ndarray, *, iters: int = 4):
     """Newton refinement of a leg's IK at every sample from a close start (square 3x3 Jacobian):
     one :func:`~graphcal.models.kinematics.joint_frames` pass per iteration gives both the foot
     position and the Jacobian. Returns q (N, n), the Jacobian at q (N, 3, n) and the residual (N,) m."""
-    from graphcal.models.kinematics import joint_frames
+    from graphcal.models.kinematics import joint_frames, position_jacobian
 
     q = np.array(q, dtype=float)
     for it in range(iters + 1):
         axes, origins, _, p = joint_frames(leg, q)
-        J = np.empty((len(q), 3, leg.n_joints))
-        for j, jtype in enumerate(leg.joint_types):
-            J[:, :, j] = np.cross(axes[:, j], p - origins[:, j]) if jtype == "revolute" else axes[:, j]
+        J = position_jacobian(leg.joint_types, axes, origins, p)
         r = P - p
         err = np.linalg.norm(r, axis=1)
         if it == iters or err.max() < 1e-12:
