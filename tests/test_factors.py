@@ -33,9 +33,8 @@ from graphcal.factors import (
     stance_foot_factor,
     tangent_basis,
 )
-from graphcal.factors.checked import pose_adjoint
 from graphcal.factors.keys import F, G, L, M, S, X
-from graphcal.geometry import matrix_from_rpy, pose_from_xyz_rpy, se3_exp
+from graphcal.geometry import matrix_from_rpy, pose_adjoint, pose_from_xyz_rpy, se3_exp
 from graphcal.models.builtin import R_BODY_OPTICAL
 from graphcal.models.kinematics import foot_positions, ik_leg
 from graphcal.models.legs import fk_with_params, leg_model

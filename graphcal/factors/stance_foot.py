@@ -32,13 +32,13 @@ from graphcal.models.kinematics import foot_positions
 from graphcal.models.legs import LegModel, fk_and_param_jacobian, fk_with_params
 from graphcal.models.robot import Leg
 
-__all__ = ["DEFAULT_SIGMA_M", "stance_foot_error", "stance_foot_factor"]
+__all__ = ["DEFAULT_SIGMA_M", "positive_definite_3x3", "stance_foot_error", "stance_foot_factor"]
 
 #: default isotropic sigma of the stance-foot error (m): encoder noise through the leg + foot compliance
 DEFAULT_SIGMA_M = 0.003
 
 
-def _positive_definite_3x3(C: np.ndarray) -> bool:
+def positive_definite_3x3(C: np.ndarray) -> bool:
     """Sylvester's criterion for a symmetric 3x3 matrix (its leading minors are positive), in
     scalars: one per stance factor built, where eigvalsh cost ~25 us."""
     a, b, c = float(C[0, 0]), float(C[0, 1]), float(C[0, 2])
@@ -151,7 +151,7 @@ def stance_foot_factor(
         theta = param.check_theta(theta).copy()
     if cov_m2 is not None:
         cov = np.asarray(cov_m2, dtype=float)
-        if cov.shape != (3, 3) or not np.isfinite(cov).all() or not _positive_definite_3x3((cov + cov.T) / 2):
+        if cov.shape != (3, 3) or not np.isfinite(cov).all() or not positive_definite_3x3((cov + cov.T) / 2):
             raise ValueError("cov_m2 must be a finite symmetric positive-definite 3x3 matrix")
         noise = with_robust(gtsam.noiseModel.Gaussian.Covariance((cov + cov.T) / 2), robust)
     else:

@@ -44,6 +44,7 @@ from graphcal.errors import DatasetError, ModelError
 from graphcal.geometry import pose_from_xyz_rpy
 from graphcal.io.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from graphcal.io.ply import read_ply, write_ply
+from graphcal.models.sensors import SENSOR_TYPES
 
 __all__ = [
     "FORMAT",
@@ -66,7 +67,6 @@ __all__ = [
 ]
 
 FORMAT = "graphcal-dataset/1"
-SENSOR_TYPES: tuple[str, ...] = ("depth_camera", "laser_scanner", "stereo_camera")
 
 BODY_POSE_COLUMNS = ("body_x", "body_y", "body_z", "body_qw", "body_qx", "body_qy", "body_qz")
 IMU_ACCEL_COLUMNS = ("imu_ax", "imu_ay", "imu_az")

@@ -45,7 +45,7 @@ import numpy as np
 from graphcal.factors.keys import K, L, V
 from graphcal.factors.mocap_marker import marker_covariance, mocap_marker_error, mocap_marker_factor, sqrt_information
 from graphcal.errors import GraphcalError
-from graphcal.geometry import fit_rigid_transform, invert_pose
+from graphcal.geometry import fit_rigid_transform, invert_pose, pose_log_between
 from graphcal.legs.identifiability import IdentifiabilityReport, identifiability
 from graphcal.legs.mocap_data import MarkerTrack, MocapData
 from graphcal.models.legs import LegModel, leg_model, point_kinematics
@@ -313,10 +313,6 @@ def _errors_body(tr: _Track, T, theta, marker) -> np.ndarray:
     return e @ np.asarray(T)[:3, :3].T  # mocap axes -> body axes
 
 
-def _right_log(T_ref, T) -> np.ndarray:
-    return np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T_ref)).between(gtsam.Pose3(np.asarray(T)))), dtype=float)
-
-
 # ----------------------------------------------------------------------------- main
 #: fewer residual degrees of freedom than this (or than the unknowns) and identify-legs warns that
 #: the fit is nearly exact (3 samples of the A1's leg: 9 coordinates for 9 unknowns, 0 dof, a calf
@@ -542,7 +538,7 @@ def identify_legs(
     cov_T[np.asarray(held_T), :] = 0.0
     cov_T[:, np.asarray(held_T)] = 0.0
     T_ref = np.asarray(T_body_mocap_nominal, dtype=float) if known_T else TA
-    xi = _right_log(T_ref, T_est)
+    xi = pose_log_between(T_ref, T_est)
     by_name = {p.name: p for p in report.parameters}
 
     def est(name: str, value: float, var: float, candidate: bool) -> ParameterEstimate:

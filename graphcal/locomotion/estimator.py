@@ -419,7 +419,8 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
     if use_icp:
         from scipy.stats import chi2
 
-        from graphcal.clouds.icp import adjoint, icp_relative_pose, prepare_target, range_sigma_function
+        from graphcal.clouds.icp import icp_relative_pose, prepare_target, range_sigma_function
+        from graphcal.geometry import pose_adjoint as adjoint
 
         Ad_bs = adjoint(T_bs)
         Ad_inv = np.linalg.inv(Ad_bs)

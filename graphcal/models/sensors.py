@@ -1,7 +1,8 @@
 """Exteroceptive sensor models: depth camera (Kinect), 2D laser scanner (Hokuyo URG-04LX), stereo camera.
 
-Each sensor casts rays in its own frame, intersects them with the world meshes (Open3D ray casting)
-and perturbs the range along each ray with its noise model. Points come back in the sensor frame.
+Each model gives its field of view (the unit ray directions in its own frame) and its range noise;
+the real-data path (plane extraction, ICP weights, suggest-poses) and the simulator
+(:mod:`graphcal.simulation.sensors`, which casts the rays into a scene) share them.
 
 Sensor frames:
 * cameras (depth, stereo): optical convention, z along the optical axis, x right, y down;
@@ -12,7 +13,6 @@ Noise models (1-sigma, metres):
 * depth camera: along the optical axis, sigma_z = 1.425e-3 * z**2 (Khoshelham & Elberink 2012, as Chai);
 * laser scanner: along the beam, sigma_r = 0.01 (URG-04LX, 20-4000 mm range);
 * stereo camera: along the optical axis, sigma_z = z**2 / (f_px * baseline_m) * sigma_disparity_px.
-The ``range_scale`` argument multiplies every measured range (the ``sensor_range_scale`` effect).
 """
 
 from __future__ import annotations
@@ -22,9 +22,23 @@ from dataclasses import dataclass
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.simulation.terrain import build_scene
 
-SENSOR_TYPES = ("depth_camera", "laser_scanner", "stereo_camera")
+__all__ = [
+    "SENSOR_TYPES",
+    "KINECT_NOISE_COEFF_PER_M",
+    "DepthCamera",
+    "StereoCamera",
+    "LaserScanner",
+    "Sensor",
+    "sensor_for_type",
+]
+
+#: The exteroceptive sensor types of a dataset (dataset.yaml ``sensors.<name>.type``).
+SENSOR_TYPES: tuple[str, ...] = ("depth_camera", "laser_scanner", "stereo_camera")
+
+#: Kinect depth noise: sigma_z = KINECT_NOISE_COEFF_PER_M * z**2 (m), Khoshelham & Elberink 2012,
+#: as used by Chai 2015.
+KINECT_NOISE_COEFF_PER_M = 1.425e-3
 
 
 @dataclass(frozen=True)
@@ -37,7 +51,7 @@ class DepthCamera:
     vfov_deg: float = 43.5
     min_range_m: float = 0.8
     max_range_m: float = 4.0
-    noise_coeff_per_m: float = 1.425e-3
+    noise_coeff_per_m: float = KINECT_NOISE_COEFF_PER_M
     type: str = "depth_camera"
 
     def ray_directions(self) -> np.ndarray:
@@ -118,67 +132,3 @@ def _pinhole_rays(width: int, height: int, hfov_deg: float, vfov_deg: float) -> 
     U, V = np.meshgrid(u, v)
     d = np.c_[U.ravel() / fx, V.ravel() / fy, np.ones(U.size)]
     return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-@dataclass(frozen=True)
-class Scan:
-    """One capture: ``points_sensor`` (N, 3) m in the sensor frame, ``labels`` (N,) int (see terrain),
-    ``true_points_sensor`` (N, 3) the noise-free hits (for evaluation only)."""
-
-    points_sensor: np.ndarray
-    labels: np.ndarray
-    true_points_sensor: np.ndarray
-
-
-def capture(
-    sensor: Sensor,
-    meshes,
-    T_world_sensor: np.ndarray,
-    rng: np.random.Generator,
-    *,
-    range_scale: float = 1.0,
-    scene=None,
-) -> Scan:
-    """Cast the sensor's rays into ``meshes`` from pose ``T_world_sensor`` (4x4) and add noise.
-
-    Args:
-        sensor: a sensor model.
-        meshes: world-frame meshes (ignored when ``scene`` = (RaycastingScene, labels) is given).
-        T_world_sensor: pose of the sensor frame in the world (4x4, m).
-        rng: random generator for the noise.
-        range_scale: measured range = range_scale * true range (1 = no scale error).
-    """
-    import open3d as o3d
-
-    if scene is None:
-        scene = build_scene(meshes)
-    rc_scene, labels_by_id = scene
-    dirs_sensor = sensor.ray_directions()
-    R = T_world_sensor[:3, :3]
-    dirs_world = dirs_sensor @ R.T
-    rays = np.empty((len(dirs_sensor), 6), dtype=np.float32)
-    rays[:, :3] = T_world_sensor[:3, 3]
-    rays[:, 3:] = dirs_world
-    hit = rc_scene.cast_rays(o3d.core.Tensor(rays))
-    t = hit["t_hit"].numpy().astype(float)
-    gid = hit["geometry_ids"].numpy()
-    ok = np.isfinite(t)
-    t, gid, dirs = t[ok], gid[ok], dirs_sensor[ok]
-    true_pts = dirs * t[:, None]
-    if isinstance(sensor, LaserScanner):
-        keep = (t >= sensor.min_range_m) & (t <= sensor.max_range_m)
-        t, gid, dirs, true_pts = t[keep], gid[keep], dirs[keep], true_pts[keep]
-        r = t + rng.normal(0.0, sensor.sigma_m, size=t.shape)
-        pts = dirs * (range_scale * r)[:, None]
-    else:
-        z = true_pts[:, 2]
-        keep = (z >= sensor.min_range_m) & (z <= sensor.max_range_m)
-        z, gid, dirs, true_pts = z[keep], gid[keep], dirs[keep], true_pts[keep]
-        z_meas = z + rng.normal(0.0, 1.0, size=z.shape) * sensor.sigma_along_axis(z)
-        pts = dirs * (range_scale * z_meas / dirs[:, 2])[:, None]
-    label_lut = np.full(int(gid.max()) + 1 if len(gid) else 1, -1, dtype=np.int16)
-    for k, lab in labels_by_id.items():
-        if k < len(label_lut):
-            label_lut[k] = lab
-    labels = label_lut[gid] if len(gid) else np.zeros(0, dtype=np.int16)
-    return Scan(pts, labels.astype(np.int16), true_pts)

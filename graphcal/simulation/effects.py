@@ -1,7 +1,8 @@
 """The discrepancy catalogue as simulator options.
 
-Each cause that ``graphcal diagnose`` can name is something the simulator can hide in the data.
-Names, parameters and units are those of the catalogue (SI units):
+Each cause that ``graphcal diagnose`` can name (:data:`graphcal.models.effects.CAUSES`) is
+something the simulator can hide in the data. Names, parameters and units are those of the
+catalogue (SI units):
 
 ==================== ======================================================= ==========================
 cause                physical story                                          parameters
@@ -28,17 +29,7 @@ from typing import Mapping
 import numpy as np
 
 from graphcal.errors import GraphcalError
-
-CAUSES = (
-    "sensor_range_scale",
-    "session_offset",
-    "ground_tilt",
-    "imu_misalignment",
-    "joint_offset",
-    "link_length",
-    "extrinsic_change",
-    "outlier_stations",
-)
+from graphcal.models.effects import CAUSES
 
 
 def _frozen(mapping: Mapping | None) -> Mapping:

@@ -39,7 +39,8 @@ from graphcal.geometry import (
 )
 from graphcal.simulation.effects import Effects
 from graphcal.simulation.programs import station_program
-from graphcal.simulation.sensors import capture, sensor_for_type
+from graphcal.models.sensors import sensor_for_type
+from graphcal.simulation.sensors import capture
 from graphcal.simulation.terrain import LABEL_ROBOT, Mesh, build_scene, cylinder_mesh, make_terrain, terrain_height
 
 GRAVITY_M_S2 = 9.80665
