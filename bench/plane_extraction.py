@@ -44,7 +44,8 @@ def camera_pose(height_m: float, pitch_deg: float) -> np.ndarray:
 
 def build_scene_hits(seed: int = 0):
     """Ray cast the scene once: (true points (M, 3) in the sensor frame, labels (M,), T_world_sensor)."""
-    from graphcal.simulation.sensors import DepthCamera, capture
+    from graphcal.models.sensors import DepthCamera
+    from graphcal.simulation.sensors import capture
     from graphcal.simulation.terrain import LABEL_OBSTACLE, LABEL_ROBOT, box_mesh, cylinder_mesh, make_terrain
 
     T = camera_pose(0.6, 20.0)

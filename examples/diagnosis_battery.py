@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from graphcal.simulation.effects import CAUSES  # noqa: E402
+from graphcal.models.effects import CAUSES  # noqa: E402
 
 ROBOTS = ("octopus", "qingzhui")
 N_STATIONS = 48

@@ -9,7 +9,7 @@ the PyPI package ``example-robot-data`` (optional extra ``graphcal[talos]``).
 An arm is a serial chain like a leg: ``load_robot(..., base_frame="base_link",
 feet=("gripper_left_base_link",))`` makes the chain base -> torso -> arm -> hand a "leg" of 9
 revolute joints. Unknowns: ``T_body_mocap`` (the waist rigid body in ``base_link``), the marker's
-position on the hand, and the leg model of :mod:`graphcal.legs.params` (joint offsets, link
+position on the hand, and the leg model of :mod:`graphcal.models.legs` (joint offsets, link
 lengths, 3-D position of the first joint; ``origins="all"`` gives every joint a 3-D origin change).
 
 Postures are split once: every third posture (index 2, 5, 8, ...) is for validation only, the

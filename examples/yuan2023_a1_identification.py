@@ -40,7 +40,7 @@ import numpy as np
 from graphcal.geometry import invert_pose
 from graphcal.legs.identify import IdentifyOptions, identify_legs
 from graphcal.legs.mocap_data import mocap_data_from_dataset
-from graphcal.legs.params import point_kinematics, theta_from_perturbation
+from graphcal.models.legs import point_kinematics, theta_from_perturbation
 from graphcal.models.kinematics import fk_leg
 from graphcal.models.robot import load_robot
 from graphcal.simulation.mocap import YUAN_FOOT, YUAN_PERTURBATION, simulate_yuan_session
@@ -103,7 +103,7 @@ def noise_floor_mm(robot, sim) -> float:
     configurations, sigma = amplitude / sqrt(3) for uniform noise."""
     true_robot = load_robot(urdf_xml=sim.urdf_true, base_frame="body", feet=(FOOT,))
     leg = true_robot.leg(FOOT)
-    from graphcal.legs.params import leg_model
+    from graphcal.models.legs import leg_model
 
     m = leg_model(true_robot, FOOT, origins="none")
     pk = point_kinematics(leg, m, sim.q_true[FOOT], np.zeros(m.dim))

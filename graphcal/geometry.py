@@ -53,6 +53,9 @@ __all__ = [
     "skew",
     "so3_exp",
     "se3_exp",
+    "pose_adjoint",
+    "pose_log_between",
+    "is_rotation",
     "fit_rigid_transform",
 ]
 
@@ -259,6 +262,35 @@ def se3_exp(xi) -> np.ndarray:
     return pose_matrix(R, V @ v)
 
 
+def pose_adjoint(T) -> np.ndarray:
+    """6x6 adjoint of a 4x4 pose in GTSAM's ``[omega, v]`` order: ``T Exp(xi) = Exp(Ad_T xi) T``.
+
+    ``Ad_T = [[R, 0], [[t]x R, R]]``. A right perturbation ``xi_a`` of ``T_w_a`` moves
+    ``T_w_b = T_w_a T_a_b`` by the right perturbation ``Ad(T_a_b^-1) xi_a``.
+    """
+    T = np.asarray(T, dtype=float)
+    R, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[3:, :3] = skew(t) @ R
+    return A
+
+
+def pose_log_between(T_a, T_b) -> np.ndarray:
+    """``xi = Log(T_a^-1 T_b)`` (6,), ``[omega, v]`` (rad, m): the right-perturbation error of
+    ``T_b`` from ``T_a`` (``T_b = T_a Exp(xi)``); 4x4 poses or gtsam.Pose3 (gtsam's Logmap)."""
+    import gtsam
+
+    return np.asarray(gtsam.Pose3.Logmap(to_gtsam_pose(T_a).between(to_gtsam_pose(T_b))), dtype=float)
+
+
+def is_rotation(R, tol: float = 1e-6) -> bool:
+    """True when the 3x3 ``R`` is a rotation: orthonormal within ``tol`` and ``det R > 0``."""
+    R = np.asarray(R, dtype=float)
+    return not (np.abs(R.T @ R - np.eye(3)).max() > tol or np.linalg.det(R) < 0)
+
+
 # ----------------------------------------------------------------------------- planes
 def canonical_plane(n, d) -> tuple[np.ndarray, float]:
     """Normalise (n, d) to unit n with d >= 0 (n points from the plane towards the origin)."""
@@ -306,9 +338,11 @@ def plane_from_points_pca(points) -> tuple[np.ndarray, float, np.ndarray]:
 
 # ----------------------------------------------------------------------------- library boundaries
 def to_gtsam_pose(T):
-    """gtsam.Pose3 from a 4x4 pose."""
+    """gtsam.Pose3 from a 4x4 pose (a gtsam.Pose3 is returned as it is)."""
     import gtsam
 
+    if isinstance(T, gtsam.Pose3):
+        return T
     T = np.asarray(T, dtype=float)
     return gtsam.Pose3(gtsam.Rot3(T[:3, :3]), T[:3, 3].copy())
 

@@ -396,7 +396,7 @@ def test_simulate_mocap_then_identify_legs_finds_yuans_errors_from_the_command_l
     # reading beyond a joint limit (the true angles are drawn within the limits less the noise)
     assert "warning" not in run("validate", ds, check_rc=0).stdout
     run("identify-legs", ds, "--out", out, "--mocap-free", "rz,z", "--origins", "none", "--quiet", check_rc=0)
-    from graphcal.legs.params import leg_model, theta_from_perturbation
+    from graphcal.models.legs import leg_model, theta_from_perturbation
     from graphcal.models.perturb import LegPerturbation
     from graphcal.models.robot import load_robot
 

@@ -33,12 +33,11 @@ from graphcal.factors import (
     stance_foot_factor,
     tangent_basis,
 )
-from graphcal.factors.checked import pose_adjoint
 from graphcal.factors.keys import F, G, L, M, S, X
-from graphcal.geometry import matrix_from_rpy, pose_from_xyz_rpy, se3_exp
+from graphcal.geometry import matrix_from_rpy, pose_adjoint, pose_from_xyz_rpy, se3_exp
 from graphcal.models.builtin import R_BODY_OPTICAL
 from graphcal.models.kinematics import foot_positions, ik_leg
-from graphcal.models.leg_params import fk_with_params, leg_parameterization
+from graphcal.models.legs import fk_with_params, leg_model
 from graphcal.models.robot import load_robot
 
 SEED = 4242
@@ -525,7 +524,7 @@ def robots():
 
 def _stance_factor_values(robot, foot, Xm, p_foot, q, theta=None, with_l=True):
     leg = robot.leg(foot)
-    param = leg_parameterization(robot, foot)
+    param = leg_model(robot, foot, origins="none")
     if with_l:
         theta = param.zeros() if theta is None else theta
         f = stance_foot_factor(X(0), F(0), q, leg, 0.003, param=param, l_key=L(0))
@@ -604,7 +603,7 @@ def test_stance_foot_linearize_matches_pure(robots):
 
 def test_stance_foot_input_errors(robots):
     leg = robots["a1"].leg("fl_foot")
-    param = leg_parameterization(robots["a1"], "fl_foot")
+    param = leg_model(robots["a1"], "fl_foot", origins="none")
     with pytest.raises(ValueError, match="joint values"):
         stance_foot_factor(X(0), F(0), np.zeros(2), leg)
     with pytest.raises(ValueError, match="param"):
@@ -622,7 +621,7 @@ def test_stance_foot_recovers_leg_parameters(robots):
     r = robots["a1"]
     foot = "fl_foot"
     leg = r.leg(foot)
-    param = leg_parameterization(r, foot)
+    param = leg_model(r, foot, origins="none")
     rng = np.random.default_rng(SEED + 11)
     theta_true = np.r_[rng.normal(scale=0.03, size=3), rng.normal(scale=0.005, size=3)]
     F_true = np.array([0.4, 0.2, 0.0])

@@ -16,7 +16,7 @@ from graphcal.geometry import pose_from_xyz_rpy, rot_z
 from graphcal.legs.identifiability import identifiability
 from graphcal.legs.identify import IdentifyOptions, identify_legs, identify_legs_dataset
 from graphcal.legs.mocap_data import mocap_data_from_dataset
-from graphcal.legs.params import point_kinematics, theta_from_perturbation
+from graphcal.models.legs import point_kinematics, theta_from_perturbation
 from graphcal.legs.virtual_base import (
     point_covariance_in_vbase,
     vbase_points,
@@ -289,7 +289,7 @@ def test_cli_identify_legs_writes_the_files(cli_dataset, tmp_path):
     # the URDF reproduces the identified kinematics
     robot = load_robot(model="a1")
     cal = load_robot(out / "robot_calibrated.urdf", base_frame="body", feet=(FOOT,))
-    from graphcal.legs.params import leg_model
+    from graphcal.models.legs import leg_model
 
     m = leg_model(robot, FOOT)
     theta = np.array([legs[FOOT].get(n, {"value": 0.0})["value"] for n in m.names])

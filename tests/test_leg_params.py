@@ -7,13 +7,13 @@ import pytest
 
 from graphcal.errors import ModelError
 from graphcal.models.kinematics import foot_positions, leg_jacobian
-from graphcal.models.leg_params import (
-    LegParameterization,
+from graphcal.models.legs import (
+    LegModel,
     fk_and_param_jacobian,
     fk_with_params,
-    leg_parameterization,
+    leg_model,
     param_jacobian,
-    perturbation_from_params,
+    perturbation_from_theta,
 )
 from graphcal.models.perturb import LegPerturbation, apply_perturbation, link_length_delta
 from graphcal.models.robot import load_robot
@@ -99,7 +99,7 @@ def _numerical_param_jacobian(leg, param, q, theta, h=1e-6):
 
 # ----------------------------------------------------------------------------- names and layout
 def test_names_octopus_and_a1(robots):
-    p = leg_parameterization(robots["octopus"], "lf_foot")
+    p = leg_model(robots["octopus"], "lf_foot", origins="none")
     assert p.names == (
         "lf_coxa_joint.offset_rad",
         "lf_femur_joint.offset_rad",
@@ -108,17 +108,17 @@ def test_names_octopus_and_a1(robots):
         "lf_tibia_joint.delta_m",
         "lf_foot_joint.delta_m",
     )
-    assert (p.dim, p.n_offsets, p.n_links) == (6, 3, 3)
-    assert p.link_joints == (1, 2, 3)
-    assert p.link_urdf_joints == ("lf_femur_joint", "lf_tibia_joint", "lf_foot_joint")
-    np.testing.assert_allclose(p.directions[2], [0.0, 0.0, -1.0])  # the tibia points down at q = 0
-    a = leg_parameterization(robots["a1"], "rr_foot")
+    assert (p.dim, p.n_offsets, p.n_trans) == (6, 3, 3)
+    assert p.trans_joints == (1, 2, 3)
+    assert p.trans_urdf_joints == ("lf_femur_joint", "lf_tibia_joint", "lf_foot_joint")
+    np.testing.assert_allclose(p.trans_dirs[2], [0.0, 0.0, -1.0])  # the tibia points down at q = 0
+    a = leg_model(robots["a1"], "rr_foot", origins="none")
     assert a.names[3:] == ("rr_thigh_joint.delta_m", "rr_calf_joint.delta_m", "rr_foot_joint.delta_m")
     assert a.index("rr_calf_joint.delta_m") == 4
 
 
 def test_joint_without_link_gets_no_delta(robots):
-    p = leg_parameterization(robots["qingzhui"], "lf_foot")
+    p = leg_model(robots["qingzhui"], "lf_foot", origins="none")
     # the thigh joint sits at the hip joint's origin (no translation): no link ends there
     assert "lf_thigh_joint.delta_m" not in p.names
     assert "lf_knee_joint.delta_m" in p.names and "lf_foot_joint.delta_m" in p.names
@@ -126,7 +126,7 @@ def test_joint_without_link_gets_no_delta(robots):
 
 def test_chain_names_and_directions(robots):
     r = robots["chain"]
-    p = leg_parameterization(r, "foot")
+    p = leg_model(r, "foot", origins="none")
     assert p.names == (
         "ja.offset_rad",
         "jb.offset_m",
@@ -137,22 +137,22 @@ def test_chain_names_and_directions(robots):
         "foot_fix.delta_m",
     )
     # directions in the URDF parent link frame are the unit origin translations
-    np.testing.assert_allclose(p.directions_urdf[0], np.array([0.15, 0.0, -0.02]) / np.hypot(0.15, 0.02))
+    np.testing.assert_allclose(p.trans_dirs_urdf[0], np.array([0.15, 0.0, -0.02]) / np.hypot(0.15, 0.02))
     # ... and differ from the Leg-frame directions because of the rotated fixed joints
-    assert np.abs(p.directions[0] - p.directions_urdf[0]).max() > 1e-3
-    np.testing.assert_allclose(np.linalg.norm(p.directions, axis=1), 1.0)
+    assert np.abs(p.trans_dirs[0] - p.trans_dirs_urdf[0]).max() > 1e-3
+    np.testing.assert_allclose(np.linalg.norm(p.trans_dirs, axis=1), 1.0)
 
 
 def test_flags_and_sigmas(robots):
     r = robots["octopus"]
-    only_off = leg_parameterization(r, "lf_foot", link_lengths=False)
-    only_len = leg_parameterization(r, "lf_foot", joint_offsets=False)
-    assert only_off.names == leg_parameterization(r, "lf_foot").names[:3]
-    assert only_len.names == leg_parameterization(r, "lf_foot").names[3:]
-    np.testing.assert_allclose(leg_parameterization(r, "lf_foot").prior_sigmas(0.1, 0.01), [0.1] * 3 + [0.01] * 3)
-    chain = leg_parameterization(robots["chain"], "foot")
+    only_off = leg_model(r, "lf_foot", link_lengths=False, origins="none")
+    only_len = leg_model(r, "lf_foot", joint_offsets=False, origins="none")
+    assert only_off.names == leg_model(r, "lf_foot", origins="none").names[:3]
+    assert only_len.names == leg_model(r, "lf_foot", origins="none").names[3:]
+    np.testing.assert_allclose(leg_model(r, "lf_foot", origins="none").prior_sigmas(0.1, 0.01), [0.1] * 3 + [0.01] * 3)
+    chain = leg_model(robots["chain"], "foot", origins="none")
     np.testing.assert_allclose(chain.prior_sigmas(0.1, 0.01), [0.1, 0.01, 0.1, 0.1, 0.01, 0.01, 0.01])
-    assert isinstance(only_off, LegParameterization)
+    assert isinstance(only_off, LegModel)
 
 
 # ----------------------------------------------------------------------------- FK and Jacobian
@@ -162,7 +162,7 @@ def test_zero_theta_is_nominal_fk(robots, name):
     rng = np.random.default_rng(SEED)
     for foot in r.feet:
         leg = r.leg(foot)
-        p = leg_parameterization(r, foot)
+        p = leg_model(r, foot, origins="none")
         q = _random_q(leg, rng, 50)
         np.testing.assert_allclose(fk_with_params(leg, p, q, p.zeros()), foot_positions(leg, q), atol=1e-14)
         # offset columns are the joint Jacobian at theta = 0
@@ -176,9 +176,9 @@ def test_param_jacobian_matches_central_differences(robots, name):
     rng = np.random.default_rng(SEED + 1)
     for foot in r.feet[:2]:
         leg = r.leg(foot)
-        p = leg_parameterization(r, foot)
+        p = leg_model(r, foot, origins="none")
         q = _random_q(leg, rng, 25)
-        theta = rng.normal(scale=[0.05] * p.n_offsets + [0.01] * p.n_links)
+        theta = rng.normal(scale=[0.05] * p.n_offsets + [0.01] * p.n_trans)
         J = param_jacobian(leg, p, q, theta)
         np.testing.assert_allclose(J, _numerical_param_jacobian(leg, p, q, theta), atol=1e-8)
         p1, J1 = fk_and_param_jacobian(leg, p, q, theta)
@@ -189,7 +189,7 @@ def test_param_jacobian_matches_central_differences(robots, name):
 def test_single_configuration_shapes(robots):
     r = robots["a1"]
     leg = r.leg("fl_foot")
-    p = leg_parameterization(r, "fl_foot")
+    p = leg_model(r, "fl_foot", origins="none")
     q = np.array([0.1, 0.7, -1.4])
     assert fk_with_params(leg, p, q, p.zeros()).shape == (3,)
     assert param_jacobian(leg, p, q, p.zeros()).shape == (3, p.dim)
@@ -213,9 +213,9 @@ def test_equivalent_to_apply_perturbation(robots, name, which):
     rng = np.random.default_rng(SEED + 2)
     for foot in r.feet[:3]:
         leg = r.leg(foot)
-        p = leg_parameterization(r, foot, joint_offsets=which != "links", link_lengths=which != "offsets")
+        p = leg_model(r, foot, joint_offsets=which != "links", link_lengths=which != "offsets", origins="none")
         theta = rng.normal(scale=0.03, size=p.dim)
-        pert = perturbation_from_params(p, theta)
+        pert = perturbation_from_theta(p, theta)
         q = _random_q(leg, rng, 20)
         expected, true = _perturbed_fk(r, foot, pert, q)
         np.testing.assert_allclose(fk_with_params(leg, p, q, theta), expected, atol=1e-12)
@@ -226,10 +226,10 @@ def test_equivalent_to_apply_perturbation(robots, name, which):
 def test_link_delta_is_link_length_delta(robots):
     """A ``<joint>.delta_m`` parameter is exactly perturb.link_length_delta of that joint."""
     r = robots["a1"]
-    p = leg_parameterization(r, "fl_foot", joint_offsets=False)
+    p = leg_model(r, "fl_foot", joint_offsets=False, origins="none")
     theta = np.array([0.004, -0.003, 0.006])
     pert = LegPerturbation(
-        origin_deltas_m={j: tuple(link_length_delta(r, j, v)) for j, v in zip(p.link_urdf_joints, theta)}
+        origin_deltas_m={j: tuple(link_length_delta(r, j, v)) for j, v in zip(p.trans_urdf_joints, theta)}
     )
     leg = r.leg("fl_foot")
     q = _random_q(leg, np.random.default_rng(SEED + 3), 10)
@@ -237,9 +237,9 @@ def test_link_delta_is_link_length_delta(robots):
 
 
 def test_perturbation_round_trip(robots):
-    p = leg_parameterization(robots["octopus"], "rm_foot")
+    p = leg_model(robots["octopus"], "rm_foot", origins="none")
     theta = np.arange(p.dim) * 0.01
-    pert = perturbation_from_params(p, theta)
+    pert = perturbation_from_theta(p, theta)
     assert pert.joint_offsets_rad["rm_femur_joint"] == pytest.approx(0.01)
     assert np.linalg.norm(pert.origin_deltas_m["rm_foot_joint"]) == pytest.approx(0.05)
     assert p.as_dict(theta)["rm_tibia_joint.delta_m"] == pytest.approx(0.04)
@@ -248,7 +248,7 @@ def test_perturbation_round_trip(robots):
 # ----------------------------------------------------------------------------- errors
 def test_errors(robots):
     r = robots["a1"]
-    p = leg_parameterization(r, "fl_foot")
+    p = leg_model(r, "fl_foot", origins="none")
     with pytest.raises(ModelError, match="theta must have shape"):
         fk_with_params(r.leg("fl_foot"), p, np.zeros(3), np.zeros(2))
     with pytest.raises(ModelError, match="used with the leg"):
@@ -258,4 +258,4 @@ def test_errors(robots):
     with pytest.raises(ModelError, match="not a parameter"):
         p.index("fl_knee.offset_rad")
     with pytest.raises(ModelError):
-        leg_parameterization(r, "no_such_foot")
+        leg_model(r, "no_such_foot", origins="none")

@@ -31,7 +31,8 @@ from graphcal.clouds.planes import (
     plane_tangent_basis,
     truncation_variance_ratio,
 )
-from graphcal.simulation.sensors import DepthCamera, capture
+from graphcal.models.sensors import DepthCamera
+from graphcal.simulation.sensors import capture
 from graphcal.simulation.terrain import (
     LABEL_GROUND,
     LABEL_OBSTACLE,

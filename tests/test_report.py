@@ -511,15 +511,15 @@ def test_urdf_legs_equal_perturb_and_kinematics(result):
 
 
 def test_urdf_legs_reproduce_the_calibration_model():
-    """The calibrated URDF's FK equals graphcal.models.leg_params' parameterised FK, every leg and
+    """The calibrated URDF's FK equals graphcal.models.legs' parameterised FK, every leg and
     every parameter (the model the calibration estimates theta in)."""
-    import graphcal.models.leg_params as lp  # in this repository: a broken import must fail, not skip
+    import graphcal.models.legs as lp  # in this repository: a broken import must fail, not skip
     for model in ("octopus", "a1"):
         nom = load_robot(model=model)
         rng = np.random.default_rng(11)
         legs, thetas = {}, {}
         for foot in nom.feet:
-            param = lp.leg_parameterization(nom, foot)
+            param = lp.leg_model(nom, foot, origins="none")
             theta = rng.normal(0.0, 0.01, param.dim)
             legs[foot] = dict(zip(param.names, theta.tolist()))
             thetas[foot] = (param, theta)

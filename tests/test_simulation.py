@@ -14,9 +14,10 @@ from graphcal.geometry import (
     transform_points,
 )
 from graphcal.clouds.planes import fit_ground_plane
-from graphcal.simulation.effects import CAUSES, Effects, ExtrinsicChange, draw_effect
+from graphcal.models.effects import CAUSES
+from graphcal.simulation.effects import Effects, ExtrinsicChange, draw_effect
 from graphcal.simulation.programs import CHAI2015_TABLE_A1, station_program
-from graphcal.simulation.sensors import DepthCamera, LaserScanner, StereoCamera
+from graphcal.models.sensors import DepthCamera, LaserScanner, StereoCamera
 from graphcal.simulation.session import GRAVITY_M_S2, SimulationConfig, leg_link_joints, simulate
 from graphcal.simulation.terrain import LABEL_GROUND
 

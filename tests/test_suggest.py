@@ -274,7 +274,7 @@ def test_planes_without_covariance_and_stations_outside_the_visibility_model(cha
     (an audit's floor seen at 0.2-0.98 m by a camera the Kinect model sees from 0.8 m)."""
     import shutil
 
-    from graphcal.simulation import sensors
+    from graphcal.models import sensors
 
     ds, _ = chai
     bare = tmp_path / "bare"

@@ -188,7 +188,7 @@ class CalibrationProblem:
         sensor_keys: sensor name -> key of its extrinsic.
         sensor_priors: sensor name -> (T_cad 4x4, sigma_m, sigma_rad).
         station_keys: station id -> key of its body pose.
-        leg_keys: foot -> (key, LegParameterization) with ``legs``.
+        leg_keys: foot -> (key, LegModel) with ``legs``.
         plane_factors: factor index -> (station, sensor) of every plane / scan factor.
         initial_body: station id -> (4, 4) kinematic body pose (the "before" model).
         initial_extrinsics: sensor -> (4, 4) closed-form extrinsic.
@@ -396,13 +396,13 @@ def measurement_factor(x_key: int, s_key: int, sensor: str, options: Calibration
 
 
 def leg_parameter_priors(robot, options: CalibrationOptions) -> list:
-    """(foot, key L(l), LegParameterization, prior factor) per leg, for ``options.legs``."""
+    """(foot, key L(l), LegModel, prior factor) per leg, for ``options.legs``."""
     from graphcal.factors.priors import leg_offset_prior
-    from graphcal.models.leg_params import leg_parameterization
+    from graphcal.models.legs import leg_model
 
     out = []
     for idx, foot in enumerate(robot.feet):
-        param = leg_parameterization(robot, foot)
+        param = leg_model(robot, foot, origins="none")
         sig = np.array([options.leg_offset_sigma_rad if nm.endswith(".offset_rad") else options.leg_length_sigma_m
                         for nm in param.names])
         out.append((foot, L(idx), param, leg_offset_prior(L(idx), len(param.names), sig)))

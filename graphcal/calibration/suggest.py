@@ -25,7 +25,7 @@ Schur complement:
 * the plane factor (``factors.plane_observation``): Jacobians with respect to X and S at the
   predicted ground plane ``(n, d)`` in the sensor frame (through the current extrinsic estimate),
   and the plane's measurement covariance predicted from the sensor's noise model
-  (:mod:`graphcal.simulation.sensors`): the rays of the camera's (strided) pixel grid hit the
+  (:mod:`graphcal.models.sensors`): the rays of the camera's (strided) pixel grid hit the
   predicted plane, each point's noise along the normal is ``sigma_z(z) |n . u| / u_z``, and the
   plane fit's information is ``H = sum_i J_i J_i^T / sigma_i^2``, ``J_i = (t1 . x_i, t2 . x_i, 1)``
   (graphcal/clouds/planes.py's formula). One scalar ``c`` calibrates it to the dataset: the median over the
@@ -99,7 +99,7 @@ class _Model:
 
     def __init__(self, dataset, sensor: str | None, options: CalibrationOptions):
         from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
-        from graphcal.simulation.sensors import sensor_for_type
+        from graphcal.models.sensors import sensor_for_type
         from graphcal.calibration.graph import build_problem
         from graphcal.calibration.measurements import calibration_data
 
@@ -243,7 +243,7 @@ class _Model:
 
     def station_informations(self, T: np.ndarray, q_by_foot: dict) -> list:
         """:meth:`station_information` for a batch: T (N, 4, 4), q_by_foot foot -> (N, n)."""
-        from graphcal.factors.checked import skew3
+        from graphcal.geometry import skew
         from graphcal.factors.imu_attitude import imu_attitude_error, imu_attitude_misaligned_error
         from graphcal.factors.plane_observation import plane_observation_error
         from graphcal.models.kinematics import leg_jacobian
@@ -272,7 +272,7 @@ class _Model:
             rows = []
             for k, p_b, Li in stance:
                 A = np.zeros((3, D))
-                A[:, :3] = -skew3(p_b[i])
+                A[:, :3] = -skew(p_b[i])
                 A[:, 3:6] = np.eye(3)
                 A[:, nX + 6 + 3 * k:nX + 9 + 3 * k] = -R[i].T
                 rows.append(Li[i] @ A)

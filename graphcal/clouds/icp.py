@@ -34,7 +34,7 @@ from graphcal.errors import GraphcalError
 from graphcal.geometry import se3_exp
 from graphcal.solvers.point_to_plane import constrained_step, point_to_plane_jacobian
 
-__all__ = ["IcpResult", "TargetCloud", "prepare_target", "icp_relative_pose", "range_sigma_function", "adjoint"]
+__all__ = ["IcpResult", "TargetCloud", "prepare_target", "icp_relative_pose", "range_sigma_function"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,24 +65,14 @@ class IcpResult:
 
 def range_sigma_function(sensor_type: str) -> Callable[[np.ndarray], np.ndarray]:
     """Range-noise standard deviation (m) of each point (N, 3) in the sensor frame, for the sensor
-    models of :mod:`graphcal.simulation.sensors` (depth/stereo: along the optical axis, as a
+    models of :mod:`graphcal.models.sensors` (depth/stereo: along the optical axis, as a
     function of z; laser: constant)."""
-    from graphcal.simulation.sensors import sensor_for_type
+    from graphcal.models.sensors import sensor_for_type
 
     sensor = sensor_for_type(sensor_type)
     if hasattr(sensor, "sigma_along_axis"):
         return lambda pts: sensor.sigma_along_axis(np.abs(pts[:, 2]))
     return lambda pts: np.full(len(pts), sensor.sigma_m)
-
-
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """(6, 6) adjoint of a pose for [omega, v] tangents: T Exp(xi) T^-1 = Exp(Ad_T xi)."""
-    R, t = T[:3, :3], T[:3, 3]
-    A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[3:, 3:] = R
-    A[3:, :3] = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ R
-    return A
 
 
 @dataclass(frozen=True, eq=False)

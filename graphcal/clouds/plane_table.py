@@ -21,7 +21,7 @@ PLANE_COLUMNS = ("station", "sensor", "nx", "ny", "nz", "d", "n_points", "rms") 
 def range_noise_for(sensor_type: str):
     """The plane-extraction noise model of a sensor type (None: use the empirical rms)."""
     from graphcal.clouds.planes import depth_camera_distance_sigma
-    from graphcal.simulation.sensors import DepthCamera, StereoCamera
+    from graphcal.models.sensors import DepthCamera, StereoCamera
 
     if sensor_type == "depth_camera":
         return depth_camera_distance_sigma(DepthCamera().sigma_along_axis)

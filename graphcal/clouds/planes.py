@@ -122,6 +122,7 @@ import numpy as np
 
 from graphcal.errors import GraphcalError
 from graphcal.geometry import canonical_plane
+from graphcal.models.sensors import KINECT_NOISE_COEFF_PER_M
 
 __all__ = [
     "PlaneFit",
@@ -133,12 +134,7 @@ __all__ = [
     "depth_camera_distance_sigma",
     "kinect_distance_sigma",
     "truncation_variance_ratio",
-    "KINECT_NOISE_COEFF_PER_M",
 ]
-
-#: Kinect depth noise: sigma_z = KINECT_NOISE_COEFF_PER_M * z**2 (m), Khoshelham & Elberink 2012,
-#: used by Chai 2015 (same value as ``graphcal.simulation.sensors.DepthCamera``).
-KINECT_NOISE_COEFF_PER_M = 1.425e-3
 
 #: ``range_noise(points_sensor (M, 3) m, n_sensor (3,)) -> (M,)`` std (m) of each point's
 #: distance to the plane along ``n_sensor``.

@@ -5,7 +5,7 @@ A :class:`Candidate` is one cause at one location (``joint_offset`` of ``lf_femu
 supports, with its estimated parameters, their sigma, the evidence and the held-out gain.
 
 The names and parameters (SI units) are those of the catalogue table (docs/diagnosis.md) and of
-the simulator's effects (graphcal/simulation/effects.py), so a finding can be compared with what
+the simulator's effects (the one list :data:`graphcal.models.effects.CAUSES`), so a finding can be compared with what
 the simulator hid.
 """
 
@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from graphcal.simulation.effects import CAUSES
+from graphcal.models.effects import CAUSES
 
 __all__ = ["CAUSES", "Candidate", "Finding", "MIN_RELEVANT", "relevant"]
 

@@ -13,7 +13,7 @@ import html
 import json
 from pathlib import Path
 
-from graphcal.io.atomic import atomic_directory, atomic_write_text, check_output_folder, previous_output_files
+from graphcal.io.atomic import atomic_directory, atomic_write_text, check_command_output
 from graphcal.diagnosis.diagnose import Diagnosis, diagnose
 
 __all__ = ["run_diagnose", "write_diagnosis", "summary_text", "DIAGNOSIS_FILES"]
@@ -21,10 +21,9 @@ __all__ = ["run_diagnose", "write_diagnosis", "summary_text", "DIAGNOSIS_FILES"]
 DIAGNOSIS_FILES = ("diagnosis.json", "report.html")
 
 
-def _check_out(out: Path) -> None:
+def check_diagnosis_output(out: Path) -> None:
     """The output-folder policy of graphcal.io.atomic.check_output_folder, for a diagnosis."""
-    check_output_folder(out, lambda f: previous_output_files(f, "diagnosis.json", DIAGNOSIS_FILES, "graphcal-diagnosis/"),
-                        what="graphcal diagnosis")
+    check_command_output(out, "diagnosis.json", DIAGNOSIS_FILES, "graphcal-diagnosis/", what="graphcal diagnosis")
 
 
 def _fmt(v) -> str:
@@ -113,21 +112,21 @@ def summary_text(doc: dict, out: Path | None = None) -> str:
 def write_diagnosis(diag: Diagnosis, out_dir, *, title: str | None = None) -> dict:
     """Write diagnosis.json and report.html into ``out_dir`` as one atomic set; returns the JSON."""
     out = Path(out_dir)
-    _check_out(out)
+    check_diagnosis_output(out)
     doc = diag.to_json()
     text = json.dumps(doc, indent=1, default=float)
     page = report_html(diag, doc, title or f"graphcal diagnosis of {diag.model.ds.root}")
     with atomic_directory(out, overwrite=True) as tmp:
         atomic_write_text(tmp / "diagnosis.json", text)
         atomic_write_text(tmp / "report.html", page)
-        _check_out(out)
+        check_diagnosis_output(out)
     return doc
 
 
 def run_diagnose(dataset, out_dir, *, progress: bool = True) -> str:
     """``graphcal diagnose``: diagnose ``dataset`` and write ``out_dir``; returns the summary."""
     out = Path(out_dir)
-    _check_out(out)  # refuse early, before the work
+    check_diagnosis_output(out)  # refuse early, before the work
     diag = diagnose(dataset, progress=progress)
     doc = write_diagnosis(diag, out)
     return summary_text(doc, out)

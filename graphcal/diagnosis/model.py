@@ -103,9 +103,9 @@ class DiagnosisModel:
         return frozenset(out)
 
     def leg_params(self) -> dict:
-        from graphcal.models.leg_params import leg_parameterization
+        from graphcal.models.legs import leg_model
 
-        return {f: leg_parameterization(self.robot, f) for f in self.robot.feet}
+        return {f: leg_model(self.robot, f, origins="none") for f in self.robot.feet}
 
     def extensions(self, *, screen: bool = False) -> ModelExtensions:
         """The free variables of the accepted findings; with ``screen`` also every candidate's

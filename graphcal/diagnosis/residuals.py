@@ -37,7 +37,7 @@ def _kinematic_body(model, problem, values, st) -> np.ndarray | None:
     commanded pose. None without three legs."""
     from graphcal.calibration.graph import leg_kinematics
     from graphcal.calibration.kinematic_pose import ground_from_feet, initial_body_pose
-    from graphcal.models.leg_params import fk_with_params
+    from graphcal.models.legs import fk_with_params
 
     if len(st.q_by_foot) < 3:
         return None

@@ -36,8 +36,6 @@ __all__ = [
     "checked_custom_factor",
     "KIND_DIMS",
     "tangent_basis",
-    "skew3",
-    "pose_adjoint",
     "world_plane",
     "with_robust",
 ]
@@ -216,26 +214,6 @@ def tangent_basis(n) -> np.ndarray:
     u, v, w = n1 * z - n2 * y, n2 * x - n0 * z, n0 * y - n1 * x  # n x b1
     s = math.sqrt(u * u + v * v + w * w)
     return np.array([[x, u / s], [y, v / s], [z, w / s]])
-
-
-def skew3(v) -> np.ndarray:
-    """3x3 cross-product matrix of v (3,)."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def pose_adjoint(T) -> np.ndarray:
-    """6x6 adjoint of a 4x4 pose in GTSAM's ``[omega, v]`` order: ``T Exp(xi) = Exp(Ad_T xi) T``.
-
-    ``Ad_T = [[R, 0], [[t]x R, R]]``. A right perturbation ``xi_a`` of ``T_w_a`` moves
-    ``T_w_b = T_w_a T_a_b`` by the right perturbation ``Ad(T_a_b^-1) xi_a``.
-    """
-    T = np.asarray(T, dtype=float)
-    R, t = T[:3, :3], T[:3, 3]
-    A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[3:, 3:] = R
-    A[3:, :3] = skew3(t) @ R
-    return A
 
 
 def world_plane(plane_world) -> tuple[np.ndarray, float]:

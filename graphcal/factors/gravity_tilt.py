@@ -19,7 +19,7 @@ import gtsam
 import numpy as np
 
 from graphcal.factors.checked import checked_custom_factor
-from graphcal.factors.imu_attitude import DEFAULT_SIGMA_RAD, _noise, imu_attitude_misaligned_error, imu_up_direction
+from graphcal.factors.imu_attitude import DEFAULT_SIGMA_RAD, attitude_noise_model, imu_attitude_misaligned_error, imu_up_direction
 
 __all__ = ["imu_attitude_tilted_error", "imu_attitude_tilted_factor"]
 
@@ -57,5 +57,5 @@ def imu_attitude_tilted_factor(x_key: int, m_key: int, w_key: int, f_imu, sigma_
     def error_fn(X, M, W, want):
         return imu_attitude_tilted_error(X, M, W, m, want)
 
-    return checked_custom_factor(_noise(sigma_rad, robust), [x_key, m_key, w_key], error_fn, [6, 3, 3], 2,
+    return checked_custom_factor(attitude_noise_model(sigma_rad, robust), [x_key, m_key, w_key], error_fn, [6, 3, 3], 2,
                                  kinds=["Pose3", "Rot3", "Rot3"], name="imu_attitude_tilted")

@@ -30,10 +30,12 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from graphcal.factors.checked import checked_custom_factor, skew3, tangent_basis, with_robust
+from graphcal.factors.checked import checked_custom_factor, tangent_basis, with_robust
+from graphcal.geometry import is_rotation, skew
 
 __all__ = [
     "DEFAULT_SIGMA_RAD",
+    "attitude_noise_model",
     "imu_up_direction",
     "imu_attitude_error",
     "imu_attitude_factor",
@@ -66,12 +68,18 @@ def _check_rotation(R, what: str) -> np.ndarray:
     R = np.asarray(R, dtype=float)
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         raise ValueError(f"{what} must be a finite 3x3 rotation, got shape {R.shape}")
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+    if not is_rotation(R):
         raise ValueError(f"{what} is not a rotation matrix")
     return R
 
 
-def _noise(sigma_rad: float, robust):
+def attitude_noise_model(sigma_rad: float, robust):
+    """Isotropic 2-D noise model (rad) of an attitude error (the two tilt angles), optionally robust.
+
+    Args:
+        sigma_rad: sigma of each tilt angle, rad (> 0).
+        robust: optional gtsam mEstimator (None: Gaussian).
+    """
     if not np.isfinite(sigma_rad) or sigma_rad <= 0:
         raise ValueError(f"sigma_rad must be > 0, got {sigma_rad}")
     return with_robust(gtsam.noiseModel.Isotropic.Sigma(2, float(sigma_rad)), robust)
@@ -92,7 +100,7 @@ def imu_attitude_error(T_world_body, f_imu, R_body_imu=None, want_jacobians: boo
     if not want_jacobians:
         return e, None
     H_X = np.zeros((2, 6))
-    H_X[:, :3] = -B.T @ R_x @ skew3(b)
+    H_X[:, :3] = -B.T @ R_x @ skew(b)
     return e, [H_X]
 
 
@@ -115,7 +123,7 @@ def imu_attitude_factor(
     """
     R_bi = np.eye(3) if R_body_imu is None else _check_rotation(R_body_imu, "R_body_imu")
     b = R_bi @ imu_up_direction(f_imu)
-    return gtsam.AttitudeFactorPose3(x_key, gtsam.Unit3(_UP_W.copy()), _noise(sigma_rad, robust), gtsam.Unit3(b))
+    return gtsam.AttitudeFactorPose3(x_key, gtsam.Unit3(_UP_W.copy()), attitude_noise_model(sigma_rad, robust), gtsam.Unit3(b))
 
 
 def imu_attitude_misaligned_error(T_world_body, R_body_imu, f_imu, want_jacobians: bool = True):
@@ -141,7 +149,7 @@ def _misaligned_error(X: np.ndarray, R_bi: np.ndarray, BT: np.ndarray, want_jaco
     e = BT @ u
     if not want_jacobians:
         return e, None
-    H_M = BT @ skew3(u)
+    H_M = BT @ skew(u)
     H_X = np.zeros((2, 6))
     H_X[:, :3] = H_M @ R_bi.T
     return e, [H_X, H_M]
@@ -171,5 +179,5 @@ def imu_attitude_misaligned_factor(
         return _misaligned_error(X, M, BT, want)
 
     return checked_custom_factor(
-        _noise(sigma_rad, robust), [x_key, m_key], error_fn, [6, 3], 2, kinds=["Pose3", "Rot3"], name="imu_attitude_misaligned"
+        attitude_noise_model(sigma_rad, robust), [x_key, m_key], error_fn, [6, 3], 2, kinds=["Pose3", "Rot3"], name="imu_attitude_misaligned"
     )

@@ -2,7 +2,7 @@
 
 Variables: ``V`` = T_body_mocap (Pose3: the motion-capture frame -- or Yuan's virtual base -- in
 the body frame), optional ``L`` = theta_leg (Vector: the leg's identification parameters of
-:mod:`graphcal.legs.params`, or a chosen subset of them), optional ``K`` = p_foot_marker (Point3:
+:mod:`graphcal.models.legs`, or a chosen subset of them), optional ``K`` = p_foot_marker (Point3:
 the marker's position in the foot frame).
 
 One factor holds a batch of N samples of one marker (engineering notes: one Python callback per
@@ -17,7 +17,7 @@ Jacobians (right perturbations; ``p_i`` = the predicted marker in the mocap fram
 
 * ``T_body_mocap Exp([phi, rho])``: the prediction becomes ``Exp(-xi) p_i ~ p_i + [p_i]x phi - rho``,
   so ``H_V = [-[p_i]x, I]``;
-* theta: ``H_L = -R^T d p_body_marker / d theta`` (:func:`graphcal.legs.params.point_kinematics`:
+* theta: ``H_L = -R^T d p_body_marker / d theta`` (:func:`graphcal.models.legs.point_kinematics`:
   a joint offset turns the marker about the joint axis, a translation moves it along its direction);
 * p_foot_marker: ``H_K = -R^T R_body_foot``.
 
@@ -36,7 +36,7 @@ import gtsam
 import numpy as np
 
 from graphcal.factors.checked import checked_custom_factor
-from graphcal.legs.params import LegModel, point_kinematics
+from graphcal.models.legs import LegModel, point_kinematics
 from graphcal.models.robot import Leg
 
 __all__ = ["DEFAULT_SIGMA_M", "mocap_marker_error", "mocap_marker_factor", "marker_covariance", "sqrt_information"]
@@ -111,7 +111,7 @@ def marker_covariance(J_q, sigma_marker_m: float, sigma_joint_rad: float = 0.0, 
     """(N, 3, 3) covariance of a marker error: ``sigma_marker^2 I + sigma_joint^2 J_q J_q^T (+ extra)``.
 
     Args:
-        J_q: (N, 3, n) d p_marker / d q (:attr:`graphcal.legs.params.PointKinematics.J_q`), rotated
+        J_q: (N, 3, n) d p_marker / d q (:attr:`graphcal.models.legs.PointKinematics.J_q`), rotated
             into the frame of the error (the mocap frame: ``R_body_mocap^T J_q``; isotropic terms
             do not care).
         sigma_marker_m: marker noise per coordinate, m.
@@ -148,7 +148,7 @@ def mocap_marker_factor(
         v_key: key of T_body_mocap (Pose3).
         q: (N, n) measured joint values of the leg (rad / m).
         p_mocap: (N, 3) measured marker positions in the motion-capture frame (m).
-        leg, model: the leg and its :class:`~graphcal.legs.params.LegModel`.
+        leg, model: the leg and its :class:`~graphcal.models.legs.LegModel`.
         l_key: key of the leg parameter vector, if estimated: a Vector of ``len(free)``.
         free: indices (into ``model.names``) of the parameters the L variable holds (default: all);
             the others keep their value in ``theta``.

@@ -33,20 +33,15 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from graphcal.factors.checked import (
-    checked_custom_factor,
-    pose_adjoint,
-    skew3,
-    tangent_basis,
-    with_robust,
-    world_plane,
-)
+from graphcal.factors.checked import checked_custom_factor, tangent_basis, with_robust, world_plane
+from graphcal.geometry import pose_adjoint, skew
 
 __all__ = [
     "tangent_basis",
     "plane_observation_error",
     "plane_cov3",
     "plane_noise_model",
+    "check_plane_measurement",
     "plane_observation_factor",
     "plane_angle_distance_error",
     "DEFAULT_SIGMA_ANGLE_FLOOR_RAD",
@@ -61,7 +56,9 @@ DEFAULT_SIGMA_DISTANCE_FLOOR_M = 0.0
 _UNIT_TOL = 1e-6
 
 
-def _check_measurement(n_m, d_m) -> tuple[np.ndarray, float]:
+def check_plane_measurement(n_m, d_m) -> tuple[np.ndarray, float]:
+    """A measured plane ``n_m . x = d_m`` (sensor frame; unit normal, distance m >= 0) checked and
+    renormalised: (n_m (3,), d_m); ValueError when it is not finite, not unit or not canonical."""
     n_m = np.asarray(n_m, dtype=float).reshape(-1)
     if n_m.shape != (3,) or not np.all(np.isfinite(n_m)):
         raise ValueError(f"plane normal n_m must be 3 finite numbers, got {n_m!r}")
@@ -113,7 +110,7 @@ def plane_observation_error(
     if not want_jacobians:
         return e, None
     H_T = np.zeros((3, 6))
-    H_T[:2, :3] = B.T @ skew3(n_s)
+    H_T[:2, :3] = B.T @ skew(n_s)
     H_T[2, 3:] = n_s
     S_inv = np.eye(4)
     S_inv[:3, :3] = S[:3, :3].T
@@ -207,7 +204,7 @@ def plane_observation_factor(
         sigma_angle_floor_rad, sigma_distance_floor_m: additive noise floors (default 0).
         robust: optional gtsam mEstimator (e.g. ``gtsam.noiseModel.mEstimator.Huber.Create(1.345)``).
     """
-    n_m, d_m = _check_measurement(n_m, d_m)
+    n_m, d_m = check_plane_measurement(n_m, d_m)
     if (cov4 is None) == (noise_model is None):
         raise ValueError("give exactly one of cov4 and noise_model")
     if g_key is not None and plane_world is not None:

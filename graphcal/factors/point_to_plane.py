@@ -28,7 +28,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from graphcal.factors.checked import checked_custom_factor, pose_adjoint, tangent_basis, with_robust, world_plane
+from graphcal.factors.checked import checked_custom_factor, tangent_basis, with_robust, world_plane
+from graphcal.geometry import pose_adjoint
 
 __all__ = ["point_to_plane_error", "point_to_plane_noise_model", "point_to_plane_factor"]
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from graphcal.geometry import is_rotation, to_gtsam_pose
+
 __all__ = [
     "DEFAULT_CMD_SIGMA_RAD",
     "DEFAULT_CMD_SIGMA_M",
@@ -32,10 +34,9 @@ def _as_pose3(T) -> gtsam.Pose3:
     T = np.asarray(T, dtype=float)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"pose must be a finite 4x4 matrix or a gtsam.Pose3, got shape {T.shape}")
-    R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+    if not is_rotation(T[:3, :3]):
         raise ValueError("pose rotation block is not a rotation matrix")
-    return gtsam.Pose3(gtsam.Rot3(R), T[:3, 3].copy())
+    return to_gtsam_pose(T)
 
 
 def _sigmas(x, n: int, what: str) -> np.ndarray:
@@ -86,7 +87,7 @@ def leg_offset_prior(key: int, dim: int, sigmas) -> gtsam.PriorFactorVector:
         key: key of theta_leg.
         dim: number of leg parameters k.
         sigmas: scalar or (k,) sigmas in the parameters' units (rad for offsets, m for link deltas;
-            :meth:`graphcal.models.leg_params.LegParameterization.prior_sigmas` builds them).
+            :meth:`graphcal.models.legs.LegModel.prior_sigmas` builds them).
     """
     dim = int(dim)
     if dim < 1:

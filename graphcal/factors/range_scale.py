@@ -27,7 +27,7 @@ import gtsam
 import numpy as np
 
 from graphcal.factors.checked import checked_custom_factor, with_robust, world_plane
-from graphcal.factors.plane_observation import _check_measurement, plane_noise_model, plane_observation_error
+from graphcal.factors.plane_observation import check_plane_measurement, plane_noise_model, plane_observation_error
 from graphcal.factors.range_to_plane import MIN_GRAZING_COS, checked_scan_points, range_to_plane_error
 
 __all__ = ["scaled_plane_error", "scaled_plane_factor", "scaled_range_error", "scaled_range_factor"]
@@ -78,7 +78,7 @@ def scaled_plane_factor(x_key: int, s_key: int, c_key: int, n_m, d_m, cov4=None,
         g_key: key of the world plane (OrientedPlane3) when it is estimated; else the ground z = 0.
         robust: optional gtsam mEstimator.
     """
-    n_m, d_m = _check_measurement(n_m, d_m)
+    n_m, d_m = check_plane_measurement(n_m, d_m)
     if (cov4 is None) == (noise_model is None):
         raise ValueError("give exactly one of cov4 and noise_model")
     if noise_model is None:

@@ -24,7 +24,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from graphcal.factors.checked import checked_custom_factor, pose_adjoint, with_robust, world_plane
+from graphcal.factors.checked import checked_custom_factor, with_robust, world_plane
+from graphcal.geometry import pose_adjoint
 
 __all__ = ["range_to_plane_error", "range_to_plane_factor", "checked_scan_points", "MIN_GRAZING_COS"]
 

@@ -2,10 +2,10 @@
 
 Variables: ``X`` = T_world_body (Pose3), ``F`` = p_world_foot (Point3, one per planted foot),
 optional ``L`` = theta_leg (Vector, the leg's kinematic parameters, see
-:mod:`graphcal.models.leg_params`).
+:mod:`graphcal.models.legs`).
 
 Measurement: the leg's joint angles ``q`` (n,) at the station, the :class:`~graphcal.models.robot.Leg`
-and optionally a :class:`~graphcal.models.leg_params.LegParameterization` (without ``L`` the
+and optionally a :class:`~graphcal.models.legs.LegModel` (without ``L`` the
 parameters are held at a fixed ``theta``, zero = nominal URDF).
 
 Error (3, m, body frame): ``e = FK(q; theta) - R_x^T (F - t_x)`` -- the foot position predicted by
@@ -14,7 +14,7 @@ the leg minus the foot position the body pose and the foot variable imply.
 Jacobians (right perturbations): with ``p_b = R_x^T (F - t_x)``, a perturbation ``[phi, rho]`` of
 X (``R_x Exp(phi)``, ``t_x + R_x rho``) gives ``p_b' = Exp(-phi) (p_b - rho) = p_b + [p_b]x phi - rho``
 to first order, so ``H_X = [-[p_b]x, I]``; ``H_F = -R_x^T``; ``H_L = d FK / d theta``
-(:func:`graphcal.models.leg_params.param_jacobian`).
+(:func:`graphcal.models.legs.param_jacobian`).
 
 Noise: isotropic, default ``sigma_m = 3 mm``: joint encoder noise (~0.1-0.2 deg) through a
 0.2-0.5 m leg gives ~1 mm, and the foot's compliance and rolling contact point (rubber foot pads,
@@ -29,16 +29,16 @@ import numpy as np
 
 from graphcal.factors.checked import checked_custom_factor, with_robust
 from graphcal.models.kinematics import foot_positions
-from graphcal.models.leg_params import LegParameterization, fk_and_param_jacobian, fk_with_params
+from graphcal.models.legs import LegModel, fk_and_param_jacobian, fk_with_params
 from graphcal.models.robot import Leg
 
-__all__ = ["DEFAULT_SIGMA_M", "stance_foot_error", "stance_foot_factor"]
+__all__ = ["DEFAULT_SIGMA_M", "positive_definite_3x3", "stance_foot_error", "stance_foot_factor"]
 
 #: default isotropic sigma of the stance-foot error (m): encoder noise through the leg + foot compliance
 DEFAULT_SIGMA_M = 0.003
 
 
-def _positive_definite_3x3(C: np.ndarray) -> bool:
+def positive_definite_3x3(C: np.ndarray) -> bool:
     """Sylvester's criterion for a symmetric 3x3 matrix (its leading minors are positive), in
     scalars: one per stance factor built, where eigvalsh cost ~25 us."""
     a, b, c = float(C[0, 0]), float(C[0, 1]), float(C[0, 2])
@@ -59,7 +59,7 @@ def stance_foot_error(
     p_world_foot,
     q,
     leg: Leg,
-    param: LegParameterization | None = None,
+    param: LegModel | None = None,
     theta=None,
     want_jacobians: bool = True,
 ):
@@ -110,7 +110,7 @@ def stance_foot_factor(
     leg: Leg,
     sigma_m: float = DEFAULT_SIGMA_M,
     *,
-    param: LegParameterization | None = None,
+    param: LegModel | None = None,
     l_key: int | None = None,
     theta=None,
     robust=None,
@@ -148,10 +148,10 @@ def stance_foot_factor(
     if theta is not None:
         if param is None:
             raise ValueError("theta needs the leg parameterization param")
-        theta = param._check_theta(theta).copy()
+        theta = param.check_theta(theta).copy()
     if cov_m2 is not None:
         cov = np.asarray(cov_m2, dtype=float)
-        if cov.shape != (3, 3) or not np.isfinite(cov).all() or not _positive_definite_3x3((cov + cov.T) / 2):
+        if cov.shape != (3, 3) or not np.isfinite(cov).all() or not positive_definite_3x3((cov + cov.T) / 2):
             raise ValueError("cov_m2 must be a finite symmetric positive-definite 3x3 matrix")
         noise = with_robust(gtsam.noiseModel.Gaussian.Covariance((cov + cov.T) / 2), robust)
     else:

@@ -37,7 +37,7 @@ import gtsam
 import numpy as np
 
 from graphcal.factors.checked import with_robust
-from graphcal.factors.stance_foot import _positive_definite_3x3
+from graphcal.factors.stance_foot import positive_definite_3x3
 
 __all__ = ["MIN_RANGE_M", "stance_foot_error_map", "stance_foot_builtin_factor", "stance_foot_builtin_factors"]
 
@@ -104,7 +104,7 @@ def stance_foot_builtin_factors(x_key: int, f_keys, p_body_feet, cov_components:
         M = J @ (0.5 * (C + np.swapaxes(C, 1, 2))) @ JT
         mapped[name] = 0.5 * (M + np.swapaxes(M, 1, 2))
     total = sum(mapped.values())
-    if not all(_positive_definite_3x3(C) for C in total):
+    if not all(positive_definite_3x3(C) for C in total):
         raise ValueError("the stance-foot noise must be symmetric positive definite")
     factors = [gtsam.BearingRangeFactor3D(x_key, f_key, u, float(ri),
                                           with_robust(gtsam.noiseModel.Gaussian.Covariance(cov), robust))

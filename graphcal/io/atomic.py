@@ -34,7 +34,7 @@ from typing import Callable, Iterable, Iterator
 from graphcal.errors import GraphcalError
 
 __all__ = ["OutputExistsError", "InterruptedAfterWrite", "atomic_file", "atomic_write_text", "atomic_write_bytes", "atomic_directory",
-           "fsync_directory", "check_output_folder", "previous_output_files"]
+           "fsync_directory", "check_output_folder", "check_command_output", "previous_output_files"]
 
 
 class OutputExistsError(GraphcalError, FileExistsError):
@@ -408,6 +408,15 @@ def check_output_folder(out_dir: str | Path, previous_files: Callable[[Path], It
         raise OutputExistsError(f"{out}: folder holds a previous {what} but also files graphcal did not write "
                                 f"({_shown(foreign)}); refusing to replace it: move those files or choose another "
                                 "output folder")
+
+
+def check_command_output(out_dir: str | Path, manifest: str, files: Iterable[str], format_prefix: str, *, what: str,
+                         overwrite: bool = True) -> None:
+    """:func:`check_output_folder` for a command whose previous output is recognised by its manifest
+    file ``manifest`` (``format`` starting with ``format_prefix``) and writes ``files`` (plus the
+    manifest's ``output_files``); see :func:`previous_output_files`."""
+    check_output_folder(out_dir, lambda f: previous_output_files(f, manifest, files, format_prefix), what=what,
+                        overwrite=overwrite)
 
 
 def previous_output_files(folder: Path, manifest: str, names: Iterable[str], format_prefix: str) -> set[str] | None:

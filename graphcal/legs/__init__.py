@@ -2,8 +2,8 @@
 
 Modules (docs/legs.md):
 
-* :mod:`.params`          -- the identification parameters of a leg (joint offsets, link lengths,
-  3-D joint origins) and the vectorised kinematics of a marker on the foot with analytic Jacobians;
+* the leg model (joint offsets, link lengths, 3-D joint origins; the vectorised kinematics of a
+  marker on the foot with analytic Jacobians) is :mod:`graphcal.models.legs`, shared with calibration;
 * :mod:`.virtual_base`    -- Yuan's virtual base from the four body markers (mean origin, orthonormal axes);
 * :mod:`.mocap_data`      -- ``mocap.csv`` + joint values of a dataset as marker tracks;
 * :mod:`.identifiability` -- which parameters the data determine (column-scaled SVD, pivoted QR);
@@ -11,5 +11,5 @@ Modules (docs/legs.md):
 * :mod:`.report`          -- legs.yaml, calibrated URDF, report.html;
 * :mod:`.command`         -- ``graphcal identify-legs``.
 
-Nothing is imported here, so ``import graphcal.legs.params`` stays light.
+Nothing is imported here, so ``import graphcal.legs.identify`` imports only what it needs.
 """

@@ -40,7 +40,7 @@ def run_identify_legs(dataset: str | Path, out: str | Path, progress: bool = Tru
         out: output folder (created; replaces only a previous identify-legs output).
         progress: progress bar on stderr (tqdm).
         mocap_free: components of T_body_mocap that are unknown ("rx,ry,rz,x,y,z" default; Yuan: "rz,z").
-        origins: leg model (``first``, ``all``, ``none``; :func:`graphcal.legs.params.leg_model`).
+        origins: leg model (``first``, ``all``, ``none``; :func:`graphcal.models.legs.leg_model`).
         sigma_marker_mm, sigma_joint_deg: a-priori noise (the covariance is scaled by sigma0^2).
     """
     from graphcal.legs.report import check_output_folder, write_identification_outputs

@@ -1,7 +1,7 @@
 """Leg kinematic identification from motion capture: graph, identifiable set, LM to convergence, covariance.
 
 Unknowns: ``T_body_mocap`` (Pose3, key ``V(0)``: the motion-capture frame, or Yuan's virtual base,
-in the body frame), per leg the parameters ``theta`` of :mod:`graphcal.legs.params` (Vector, key
+in the body frame), per leg the parameters ``theta`` of :mod:`graphcal.models.legs` (Vector, key
 ``L(l)``), per marker whose position on the foot is not given its ``p_foot_marker`` (Point3, key
 ``K(j)``). One :func:`factors.mocap_marker.mocap_marker_factor` per marker holds all its samples.
 
@@ -45,10 +45,10 @@ import numpy as np
 from graphcal.factors.keys import K, L, V
 from graphcal.factors.mocap_marker import marker_covariance, mocap_marker_error, mocap_marker_factor, sqrt_information
 from graphcal.errors import GraphcalError
-from graphcal.geometry import fit_rigid_transform, invert_pose
+from graphcal.geometry import fit_rigid_transform, invert_pose, pose_log_between
 from graphcal.legs.identifiability import IdentifiabilityReport, identifiability
 from graphcal.legs.mocap_data import MarkerTrack, MocapData
-from graphcal.legs.params import LegModel, leg_model, point_kinematics
+from graphcal.models.legs import LegModel, leg_model, point_kinematics
 
 __all__ = [
     "MOCAP_COMPONENTS",
@@ -76,7 +76,7 @@ class IdentifyOptions:
         sigma_marker_m: marker noise per coordinate (m), a priori.
         sigma_joint_rad: joint encoder noise per joint (rad; m for prismatic), a priori.
         origins: leg model: ``"first"`` (hip position 3-D, default), ``"all"`` or ``"none"``
-            (:func:`graphcal.legs.params.leg_model`).
+            (:func:`graphcal.models.legs.leg_model`).
         link_lengths: include link-length parameters.
         joint_offsets: include joint-offset parameters (all three switched off with
             ``origins="none"``: the nominal model, only the pose and the markers are fitted).
@@ -185,7 +185,7 @@ class LegIdentificationResult:
     """What :func:`identify_legs` returns.
 
     Attributes:
-        models: foot -> :class:`~graphcal.legs.params.LegModel`.
+        models: foot -> :class:`~graphcal.models.legs.LegModel`.
         legs: foot -> tuple of :class:`ParameterEstimate` (``model.names`` order).
         theta: foot -> (k,) identified parameter vector.
         theta_covariance: foot -> (k, k) covariance (zeros on held parameters).
@@ -313,10 +313,6 @@ def _errors_body(tr: _Track, T, theta, marker) -> np.ndarray:
     return e @ np.asarray(T)[:3, :3].T  # mocap axes -> body axes
 
 
-def _right_log(T_ref, T) -> np.ndarray:
-    return np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T_ref)).between(gtsam.Pose3(np.asarray(T)))), dtype=float)
-
-
 # ----------------------------------------------------------------------------- main
 #: fewer residual degrees of freedom than this (or than the unknowns) and identify-legs warns that
 #: the fit is nearly exact (3 samples of the A1's leg: 9 coordinates for 9 unknowns, 0 dof, a calf
@@ -353,9 +349,6 @@ def identify_legs(
         GraphcalError: no tracks, a foot that is not a foot of the robot, a graph the data do not
             determine (:class:`~graphcal.solvers.batch.UnderdeterminedError`).
     """
-    from graphcal.solvers.batch import solve_lm
-    from graphcal.solvers.covariance import marginal_covariances
-
     say = progress or (lambda s: None)
     opts = options
     if not tracks:
@@ -390,8 +383,63 @@ def identify_legs(
         held_names = ", ".join(c for c, h in zip(MOCAP_COMPONENTS, held_pose) if h)
         warnings.append(f"{pose_name} has no nominal value: its held components ({held_names}) "
                         "are held at the rigid-fit start")
+    _set_noise_models(trs, opts, T0, zero)
 
-    # noise model (fixed for the whole identification)
+    # 2. before: the pose (and the unknown markers) with the nominal legs
+    say("before: fit the pose (and markers) with the nominal legs")
+    before = _fit_before(trs, feet, opts, T0, held_pose, zero, T_body_mocap_nominal)
+
+    # 3. identifiability on the stacked whitened Jacobian at the "before" point
+    say("identifiability: SVD / pivoted QR of the identification Jacobian")
+    fs = _free_set(trs, feet, models, opts, before.T, zero, pose_name, warnings)
+
+    # 4. after: LM to convergence over the free set
+    say("after: Levenberg-Marquardt over the identifiable parameters")
+    after = _fit_after(trs, feet, models, opts, before.T, fs)
+
+    # 5. covariance, scaled by the variance factor
+    say("covariance")
+    T_ref = np.asarray(T_body_mocap_nominal, dtype=float) if known_T else before.T
+    return _result(robot, trs, feet, models, opts, fs, before, after, T_ref, frame, pose_name, source, warnings)
+
+
+@dataclass(frozen=True, eq=False)
+class _Before:
+    """The "before" fit: pose ``T`` (4, 4), markers, and body-frame errors per marker (nominal legs)."""
+
+    T: np.ndarray
+    markers: dict
+    errors: dict
+    errors_nominal_pose: dict
+
+
+@dataclass(frozen=True, eq=False)
+class _FreeSet:
+    """The identification's candidate columns, the identifiability report and what it leaves free."""
+
+    cand_names: list
+    pose_cols: list
+    theta_off: dict
+    marker_off: dict
+    report: IdentifiabilityReport
+    held_T: list
+    free_theta: dict
+    marker_held: dict
+
+
+@dataclass(frozen=True, eq=False)
+class _After:
+    """The "after" fit: its LM result and graph, the pose (4, 4) and the full parameter vectors."""
+
+    res: object
+    graph: gtsam.NonlinearFactorGraph
+    T: np.ndarray
+    theta: dict
+
+
+def _set_noise_models(trs: list[_Track], opts: IdentifyOptions, T0: np.ndarray, zero: Mapping[str, np.ndarray]) -> None:
+    """Per track, the covariance of its samples (mocap frame) and its square-root information,
+    fixed for the whole identification (joint noise propagated at the nominal legs, pose ``T0``)."""
     R_bm = T0[:3, :3]
     for tr in trs:
         extra = tr.track.cov_extra
@@ -401,33 +449,42 @@ def identify_legs(
             tr.cov = marker_covariance(Jq_m, opts.sigma_marker_m, opts.sigma_joint_rad, extra)
             tr.L = sqrt_information(tr.cov)
 
-    def build(free_theta: Mapping[str, np.ndarray] | None, held_T: Sequence[bool], T_hold, marker_held: Mapping[int, np.ndarray]):
-        g = gtsam.NonlinearFactorGraph()
-        for tr in trs:
-            f = tr.track.foot
-            kw = dict(cov_m2=tr.cov) if tr.cov is not None else dict(sigma_m=opts.sigma_marker_m)
-            if tr.k_key is None:
-                kw["p_foot_marker"] = tr.marker
-            else:
-                kw["k_key"] = tr.k_key
-            if free_theta is not None and free_theta[f].size:
-                kw.update(l_key=L(feet.index(f)), free=free_theta[f])
-            g.add(mocap_marker_factor(V(0), tr.track.q, tr.track.p_meas, tr.leg, tr.model, **kw))
-        if any(held_T):
-            g.add(_pose_prior(T_hold, held_T))
-        for key, (pos, held) in marker_held.items():
-            s = np.where(held, HELD_SIGMA, _LOOSE_SIGMA)
-            g.add(gtsam.PriorFactorPoint3(key, np.asarray(pos, dtype=float), gtsam.noiseModel.Diagonal.Sigmas(s)))
-        return g
 
-    # 2. before: nominal legs, pose and unknown markers fitted
-    say("before: fit the pose (and markers) with the nominal legs")
+def _graph(trs: list[_Track], feet: list, opts: IdentifyOptions, free_theta: Mapping[str, np.ndarray] | None,
+           held_T: Sequence[bool], T_hold, marker_held: Mapping[int, np.ndarray]) -> gtsam.NonlinearFactorGraph:
+    """The identification graph: one marker factor per track (leg parameters ``free_theta`` free
+    when given), a prior holding the ``held_T`` components of ``T_hold`` and the held marker axes."""
+    g = gtsam.NonlinearFactorGraph()
+    for tr in trs:
+        f = tr.track.foot
+        kw = dict(cov_m2=tr.cov) if tr.cov is not None else dict(sigma_m=opts.sigma_marker_m)
+        if tr.k_key is None:
+            kw["p_foot_marker"] = tr.marker
+        else:
+            kw["k_key"] = tr.k_key
+        if free_theta is not None and free_theta[f].size:
+            kw.update(l_key=L(feet.index(f)), free=free_theta[f])
+        g.add(mocap_marker_factor(V(0), tr.track.q, tr.track.p_meas, tr.leg, tr.model, **kw))
+    if any(held_T):
+        g.add(_pose_prior(T_hold, held_T))
+    for key, (pos, held) in marker_held.items():
+        s = np.where(held, HELD_SIGMA, _LOOSE_SIGMA)
+        g.add(gtsam.PriorFactorPoint3(key, np.asarray(pos, dtype=float), gtsam.noiseModel.Diagonal.Sigmas(s)))
+    return g
+
+
+def _fit_before(trs: list[_Track], feet: list, opts: IdentifyOptions, T0: np.ndarray, held_pose: list,
+                zero: Mapping[str, np.ndarray], T_body_mocap_nominal) -> _Before:
+    """Fit the pose (and the unknown markers, updated in ``trs``) with the nominal legs."""
+    from graphcal.solvers.batch import solve_lm
+
+    known_T = T_body_mocap_nominal is not None
     vals = gtsam.Values()
     vals.insert(V(0), gtsam.Pose3(T0))
     for tr in trs:
         if tr.k_key is not None:
             vals.insertPoint3(tr.k_key, tr.marker)
-    gA = build(None, held_pose, T0, {})
+    gA = _graph(trs, feet, opts, None, held_pose, T0, {})
     resA = solve_lm(gA, vals, max_iterations=opts.max_iterations)
     TA = np.asarray(resA.values.atPose3(V(0)).matrix())
     for tr in trs:
@@ -441,9 +498,13 @@ def identify_legs(
         nominal = {tr.track.marker: _errors_body(tr, T0, zero[tr.track.foot], tr.marker) for tr in trs}
         for tr in trs:
             tr.marker = markerA[tr.track.marker]
+    return _Before(TA, markerA, before, nominal)
 
-    # 3. identifiability on the stacked whitened Jacobian at the "before" point
-    say("identifiability: SVD / pivoted QR of the identification Jacobian")
+
+def _free_set(trs: list[_Track], feet: list, models: Mapping[str, LegModel], opts: IdentifyOptions, TA: np.ndarray,
+              zero: Mapping[str, np.ndarray], pose_name: str, warnings: list) -> _FreeSet:
+    """Identifiability of every candidate (pose components, leg parameters, unknown markers) on the
+    stacked whitened Jacobian at the "before" point ``TA``; appends a warning per leg left without one."""
     cand_names: list[str] = []
     scales: list[float] = []
     pose_cols = [i for i, c in enumerate(MOCAP_COMPONENTS) if c in opts.mocap_free]
@@ -494,9 +555,16 @@ def identify_legs(
     for f in feet:
         if free_theta[f].size == 0 and models[f].dim:
             warnings.append(f"no kinematic parameter of the leg of {f!r} is identifiable from these data")
+    return _FreeSet(cand_names, pose_cols, theta_off, marker_off, report, held_T, free_theta, marker_held)
 
-    # 4. after: LM to convergence over the free set
-    say("after: Levenberg-Marquardt over the identifiable parameters")
+
+def _fit_after(trs: list[_Track], feet: list, models: Mapping[str, LegModel], opts: IdentifyOptions, TA: np.ndarray,
+               fs: _FreeSet) -> _After:
+    """Levenberg-Marquardt to convergence over the free set, from the "before" point (markers
+    updated in ``trs``)."""
+    from graphcal.solvers.batch import solve_lm
+
+    free_theta = fs.free_theta
     vals = gtsam.Values()
     vals.insert(V(0), gtsam.Pose3(TA))
     for tr in trs:
@@ -505,7 +573,7 @@ def identify_legs(
     for f in feet:
         if free_theta[f].size:
             vals.insert(L(feet.index(f)), np.zeros(free_theta[f].size))
-    gB = build(free_theta, held_T, TA, marker_held)
+    gB = _graph(trs, feet, opts, free_theta, fs.held_T, TA, fs.marker_held)
     resB = solve_lm(gB, vals, max_iterations=opts.max_iterations)
     v = resB.values
     T_est = np.asarray(v.atPose3(V(0)).matrix())
@@ -518,9 +586,17 @@ def identify_legs(
     for tr in trs:
         if tr.k_key is not None:
             tr.marker = np.asarray(v.atPoint3(tr.k_key), dtype=float)
+    return _After(resB, gB, T_est, theta)
 
-    # 5. covariance, scaled by the variance factor
-    say("covariance")
+
+def _result(robot, trs: list[_Track], feet: list, models: Mapping[str, LegModel], opts: IdentifyOptions,
+            fs: _FreeSet, before: _Before, after: _After, T_ref: np.ndarray, frame: str, pose_name: str, source: str,
+            warnings: list) -> LegIdentificationResult:
+    """Covariance (scaled by the variance factor), the estimates with their sigmas, the residuals."""
+    from graphcal.solvers.covariance import marginal_covariances
+
+    free_theta, held_T, marker_held, cand_names = fs.free_theta, fs.held_T, fs.marker_held, fs.cand_names
+    gB, v, resB, T_est, theta = after.graph, after.res.values, after.res, after.T, after.theta
     m_rows = sum(3 * len(tr.track) for tr in trs)
     u = sum(not h for h in held_T) + sum(int(free_theta[f].size) for f in feet) + sum(int((~h).sum()) for _, h in marker_held.values())
     dof = m_rows - u
@@ -541,9 +617,8 @@ def identify_legs(
     cov_T = np.asarray(covs[V(0)]) * factor
     cov_T[np.asarray(held_T), :] = 0.0
     cov_T[:, np.asarray(held_T)] = 0.0
-    T_ref = np.asarray(T_body_mocap_nominal, dtype=float) if known_T else TA
-    xi = _right_log(T_ref, T_est)
-    by_name = {p.name: p for p in report.parameters}
+    xi = pose_log_between(T_ref, T_est)
+    by_name = {p.name: p for p in fs.report.parameters}
 
     def est(name: str, value: float, var: float, candidate: bool) -> ParameterEstimate:
         if not candidate:
@@ -562,7 +637,7 @@ def identify_legs(
             Cf = np.asarray(covs[L(feet.index(f))]) * factor
             Ck[np.ix_(free_theta[f], free_theta[f])] = Cf
         theta_cov[f] = Ck
-        ests = (est(cand_names[theta_off[f] + i], float(theta[f][i]), float(Ck[i, i]), True) for i in range(k))
+        ests = (est(cand_names[fs.theta_off[f] + i], float(theta[f][i]), float(Ck[i, i]), True) for i in range(k))
         # plain parameter names in the per-leg output (the report may prefix a shared joint with its foot)
         legs_out[f] = tuple(ParameterEstimate(n, p.value, p.sigma, p.status, p.free, p.note)
                             for n, p in zip(models[f].names, ests))
@@ -572,20 +647,20 @@ def identify_legs(
         if tr.k_key is None:
             continue
         Cm = np.asarray(covs[tr.k_key]) * factor
-        o = marker_off[tr.track.marker]
+        o = fs.marker_off[tr.track.marker]
         markers_out[tr.track.marker] = tuple(
             est(cand_names[o + a], float(tr.marker[a]), float(Cm[a, a]), True) for a in range(3))
     residuals = tuple(
-        TrackResiduals(tr.track.marker, tr.track.foot, tr.track.time, before[tr.track.marker],
-                       _errors_body(tr, T_est, theta[tr.track.foot], tr.marker), nominal.get(tr.track.marker))
+        TrackResiduals(tr.track.marker, tr.track.foot, tr.track.time, before.errors[tr.track.marker],
+                       _errors_body(tr, T_est, theta[tr.track.foot], tr.marker), before.errors_nominal_pose.get(tr.track.marker))
         for tr in trs)
     if not resB.converged:
         warnings.append(f"Levenberg-Marquardt did not converge: {resB.message}")
     return LegIdentificationResult(
         models=models, legs=legs_out, theta=theta, theta_covariance=theta_cov, T_body_mocap=T_est,
-        T_body_mocap_covariance=cov_T, T_body_mocap_reference=T_ref, T_body_mocap_before=TA,
-        marker_positions_before=markerA, mocap=mocap, markers=markers_out,
-        marker_positions=marker_pos, identifiability=report, residuals=residuals, sigma0=sigma0, dof=dof,
+        T_body_mocap_covariance=cov_T, T_body_mocap_reference=T_ref, T_body_mocap_before=before.T,
+        marker_positions_before=before.markers, mocap=mocap, markers=markers_out,
+        marker_positions=marker_pos, identifiability=fs.report, residuals=residuals, sigma0=sigma0, dof=dof,
         iterations=resB.iterations, converged=resB.converged, frame=frame, pose_name=pose_name,
         base_frame=robot.base_frame, robot_name=robot.name, urdf_xml=robot.urdf_xml, source=source,
         options=opts, warnings=tuple(warnings))

@@ -363,7 +363,7 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
 
     # -- kinematics of every foot at every sample (vectorised, one pass per leg): positions,
     # Jacobians, and the covariance of the measured foot positions
-    from graphcal.models.kinematics import joint_frames
+    from graphcal.models.kinematics import joint_frames, position_jacobian
 
     enc_var = cfg.noise.encoder_sigma_rad**2
     kin_cov = np.eye(3) * cfg.noise.kinematic_sigma_m**2
@@ -374,9 +374,7 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
         leg = robot.leg(f)
         q = np.column_stack([inp.q[j] for j in leg.joint_names])
         axes, origins, _, p_foot = joint_frames(leg, q)
-        J = np.empty((N, 3, leg.n_joints))
-        for j, jtype in enumerate(leg.joint_types):
-            J[:, :, j] = np.cross(axes[:, j], p_foot - origins[:, j]) if jtype == "revolute" else axes[:, j]
+        J = position_jacobian(leg.joint_types, axes, origins, p_foot)
         pbf[i] = p_foot
         jac[f] = J
         Rf[i] = enc_var * (J @ np.swapaxes(J, 1, 2)) + kin_cov
@@ -421,7 +419,8 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
     if use_icp:
         from scipy.stats import chi2
 
-        from graphcal.clouds.icp import adjoint, icp_relative_pose, prepare_target, range_sigma_function
+        from graphcal.clouds.icp import icp_relative_pose, prepare_target, range_sigma_function
+        from graphcal.geometry import pose_adjoint as adjoint
 
         Ad_bs = adjoint(T_bs)
         Ad_inv = np.linalg.inv(Ad_bs)

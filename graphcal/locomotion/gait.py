@@ -449,17 +449,16 @@ def _ik_newton(leg, p_body: np.ndarray, q0: np.ndarray, *, iterations: int = 8, 
 
     Returns q (N, n), ok (N,) (residual < ok_tol), joint origins (N, n, 3), feet (N, 3) and the
     smallest singular value of the position Jacobian (N,) (m/rad; 0 for a stretched leg) at q."""
-    from graphcal.models.kinematics import joint_frames
+    from graphcal.models.kinematics import joint_frames, position_jacobian
 
     N, n = len(p_body), leg.n_joints
     q = np.array(np.broadcast_to(q0, (N, n)), dtype=float)
-    revolute = np.array([t == "revolute" for t in leg.joint_types])
     eye = 1e-6 * np.eye(n)
     for it in range(iterations + 1):
         axes, origins, _, p = joint_frames(leg, q)
         r = p_body - p
         err = np.linalg.norm(r, axis=1)
-        J = np.where(revolute[None, None, :], np.cross(axes, p[:, None, :] - origins).transpose(0, 2, 1), axes.transpose(0, 2, 1))
+        J = position_jacobian(leg.joint_types, axes, origins, p)
         if it == iterations or np.all(err < 0.1 * ok_tol):
             break
         JT = J.transpose(0, 2, 1)

@@ -86,6 +86,7 @@ import numpy as np
 
 from graphcal.errors import GraphcalError
 from graphcal.geometry import canonical_plane, pose_matrix, se3_exp, transform_points
+from graphcal.models.sensors import KINECT_NOISE_COEFF_PER_M
 from graphcal.solvers.point_to_plane import constrained_step, point_to_plane_jacobian
 
 __all__ = [
@@ -101,8 +102,6 @@ __all__ = [
     "KINECT_NOISE_COEFF_PER_M",
 ]
 
-#: Depth noise of the Kinect, sigma_z = coeff * z^2 (m); same value as graphcal.clouds.planes.
-KINECT_NOISE_COEFF_PER_M = 1.425e-3
 
 
 class StairsError(GraphcalError):

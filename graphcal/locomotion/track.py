@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.io.atomic import atomic_directory, atomic_write_bytes, check_output_folder, previous_output_files
+from graphcal.io.atomic import atomic_directory, atomic_write_bytes, check_command_output
 
 __all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run_track", "track", "tum_text", "stairs_keyframes", "ascending_flight"]
 
@@ -45,10 +45,9 @@ def tum_text(times: np.ndarray, T_world_body: np.ndarray) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _check_out(out: Path, overwrite: bool) -> None:
+def check_track_output(out: Path, overwrite: bool) -> None:
     """The output-folder policy of graphcal.io.atomic.check_output_folder, for a track output."""
-    check_output_folder(out, lambda f: previous_output_files(f, "metrics.json", OUTPUT_FILES, TRACK_FORMAT),
-                        what="graphcal track output", overwrite=overwrite)
+    check_command_output(out, "metrics.json", OUTPUT_FILES, TRACK_FORMAT, what="graphcal track output", overwrite=overwrite)
 
 
 # ----------------------------------------------------------------------------- plots
@@ -323,7 +322,7 @@ def run_track(dataset: str | Path, out: str | Path, progress: bool = True, *, co
     out = Path(out)
     if not (np.isfinite(tum_rate_hz) and tum_rate_hz >= 0):
         raise GraphcalError(f"--tum-rate must be a finite number >= 0 (Hz; 0 = every sample), got {tum_rate_hz}")
-    _check_out(out, overwrite)
+    check_track_output(out, overwrite)
     ds, inp, res = track(dataset, config=config, progress=progress)
     truth = load_truth(ds.root) if ds.root is not None else None
 
@@ -401,7 +400,7 @@ def run_track(dataset: str | Path, out: str | Path, progress: bool = True, *, co
     with atomic_directory(out, overwrite=True) as tmp:
         for name, data in files.items():
             atomic_write_bytes(tmp / name, data)
-        _check_out(out, overwrite)
+        check_track_output(out, overwrite)
     lines = [f"tracked {dataset}: {m['n_samples']} samples, {m['duration_s']:.1f} s in {m['processing_s']:.1f} s "
              f"({m['real_time_factor']:.1f}x real time); wrote {out}"]
     if m["truth"]:

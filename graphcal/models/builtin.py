@@ -36,7 +36,6 @@ from graphcal.geometry import pose_matrix, rot_x, rot_y, rot_z, rpy_from_matrix
 
 __all__ = [
     "BUILTIN_MODELS",
-    "SENSOR_TYPES",
     "R_BODY_OPTICAL",
     "SensorCAD",
     "BuiltinInfo",
@@ -50,7 +49,6 @@ __all__ = [
 ]
 
 BUILTIN_MODELS: tuple[str, ...] = ("octopus", "qingzhui", "messor", "a1")
-SENSOR_TYPES: tuple[str, ...] = ("depth_camera", "laser_scanner", "stereo_camera")
 
 #: Rotation of a forward-looking camera's optical frame (z forward, x right, y down) in the body.
 R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])

@@ -15,7 +15,17 @@ import numpy as np
 from graphcal.errors import ModelError
 from graphcal.models.robot import Leg
 
-__all__ = ["fk_leg", "foot_positions", "leg_jacobian", "ik_leg", "joint_frames", "as_batch", "rodrigues_batch"]
+__all__ = [
+    "fk_leg",
+    "foot_positions",
+    "leg_jacobian",
+    "ik_leg",
+    "joint_frames",
+    "chain_frames",
+    "position_jacobian",
+    "as_batch",
+    "rodrigues_batch",
+]
 
 
 def as_batch(leg: Leg, q) -> tuple[np.ndarray, bool]:
@@ -40,6 +50,51 @@ def rodrigues_batch(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
     return np.eye(3) + s * K + (1.0 - c) * (K @ K)
 
 
+def chain_frames(leg: Leg, q: np.ndarray, dt: np.ndarray | None = None):
+    """The one pass over a leg's chain: joint axes and origins, the frames its placements are
+    expressed in, and the foot pose, for a batch of configurations.
+
+    Args:
+        leg: the leg.
+        q: (N, n) joint values (rad / m), :attr:`Leg.joint_names` order (already a batch).
+        dt: optional (n + 1, 3) change of each placement's translation, m: row ``j < n`` is added
+            to ``T_parent_joint[j]``'s translation, row ``n`` to ``T_lastjoint_foot``'s, each in the
+            frame that placement is expressed in (a leg model's link/origin parameters).
+
+    Returns:
+        axes_base (N, n, 3): unit joint axes in the base frame;
+        origins_base (N, n, 3): joint frame origins in the base frame, m (for a prismatic joint:
+            the origin before its own motion);
+        R_frames: list of n + 1 (N, 3, 3) rotations (base frame) of the frame each placement's
+            translation is expressed in (the previous joint frame after its motion; identity for j = 0);
+        R_base_foot (N, 3, 3), p_base_foot (N, 3) (m).
+    """
+    N = q.shape[0]
+    n = leg.n_joints
+    R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
+    p = np.zeros((N, 3))
+    axes_base = np.empty((N, n, 3))
+    origins_base = np.empty((N, n, 3))
+    R_frames = []
+    for j in range(n):
+        T = leg.T_parent_joint[j]
+        R_frames.append(R)
+        p = p + R @ (T[:3, 3] if dt is None else T[:3, 3] + dt[j])
+        R = R @ T[:3, :3]
+        a = leg.axes[j]
+        axes_base[:, j] = R @ a
+        origins_base[:, j] = p
+        if leg.joint_types[j] == "revolute":
+            R = R @ rodrigues_batch(a, q[:, j])
+        else:  # prismatic
+            p = p + q[:, j, None] * axes_base[:, j]
+    Tf = leg.T_lastjoint_foot
+    R_frames.append(R)
+    p_foot = p + R @ (Tf[:3, 3] if dt is None else Tf[:3, 3] + dt[n])
+    R_foot = R @ Tf[:3, :3]
+    return axes_base, origins_base, R_frames, R_foot, p_foot
+
+
 def joint_frames(leg: Leg, q) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Joint axes and origins in the base frame, and the foot pose, for a batch of configurations.
 
@@ -54,27 +109,29 @@ def joint_frames(leg: Leg, q) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
         R_base_foot (N, 3, 3), p_base_foot (N, 3) (m).
     """
     q, _ = as_batch(leg, q)
-    N = q.shape[0]
-    n = leg.n_joints
-    R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
-    p = np.zeros((N, 3))
-    axes_base = np.empty((N, n, 3))
-    origins_base = np.empty((N, n, 3))
-    for j in range(n):
-        T = leg.T_parent_joint[j]
-        p = p + R @ T[:3, 3]
-        R = R @ T[:3, :3]
-        a = leg.axes[j]
-        axes_base[:, j] = R @ a
-        origins_base[:, j] = p
-        if leg.joint_types[j] == "revolute":
-            R = R @ rodrigues_batch(a, q[:, j])
-        else:  # prismatic
-            p = p + q[:, j, None] * axes_base[:, j]
-    Tf = leg.T_lastjoint_foot
-    p_foot = p + R @ Tf[:3, 3]
-    R_foot = R @ Tf[:3, :3]
+    axes_base, origins_base, _, R_foot, p_foot = chain_frames(leg, q)
     return axes_base, origins_base, R_foot, p_foot
+
+
+def position_jacobian(joint_types, axes_base: np.ndarray, origins_base: np.ndarray, p_base: np.ndarray) -> np.ndarray:
+    """d p_base / d q (N, 3, n) of a point ``p_base`` (N, 3) moved by the chain, base frame.
+
+    The one geometric Jacobian of graphcal's legs: revolute joint j contributes
+    ``axis_base_j x (p - origin_j)`` (m/rad), prismatic joint j ``axis_base_j`` (m/m).
+
+    Args:
+        joint_types: ``"revolute"`` / ``"prismatic"`` per joint (n).
+        axes_base: (N, n, 3) unit joint axes in the base frame (:func:`chain_frames`).
+        origins_base: (N, n, 3) joint origins in the base frame, m.
+        p_base: (N, 3) the point (e.g. the foot), m, base frame.
+    """
+    J = np.empty((axes_base.shape[0], 3, len(joint_types)))
+    for j, jtype in enumerate(joint_types):
+        if jtype == "revolute":
+            J[:, :, j] = np.cross(axes_base[:, j], p_base - origins_base[:, j])
+        else:
+            J[:, :, j] = axes_base[:, j]
+    return J
 
 
 def fk_leg(leg: Leg, q) -> np.ndarray:
@@ -113,12 +170,7 @@ def leg_jacobian(leg: Leg, q) -> np.ndarray:
     """
     _, single = as_batch(leg, q)
     axes, origins, _, p = joint_frames(leg, q)
-    J = np.empty((axes.shape[0], 3, leg.n_joints))
-    for j, jtype in enumerate(leg.joint_types):
-        if jtype == "revolute":
-            J[:, :, j] = np.cross(axes[:, j], p - origins[:, j])
-        else:
-            J[:, :, j] = axes[:, j]
+    J = position_jacobian(leg.joint_types, axes, origins, p)
     return J[0] if single else J
 
 

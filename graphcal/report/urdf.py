@@ -5,12 +5,12 @@
   and ``T_base_parent`` the (fixed) placement of the joint's parent link relative to the base frame,
   taken from Pinocchio. A sensor without a link in the URDF gets a new link ``<s>`` and a fixed
   joint ``<s>_joint`` from the base frame.
-* Leg parameters (named as in :mod:`graphcal.models.leg_params`, model of
+* Leg parameters (named as in :mod:`graphcal.models.legs`, model of
   :mod:`graphcal.models.perturb`): ``<joint>.offset_rad`` is an encoder zero offset
   (``origin_R <- origin_R Rot(axis, offset)``; ``<joint>.offset_m`` on a prismatic joint moves the
   origin along the axis), ``<joint>.delta_m`` a link-length change (``origin_xyz += delta
   xyz / |xyz|``), ``<joint>.dx_m`` / ``.dy_m`` / ``.dz_m`` a change of one component of the origin
-  (parent link frame; :mod:`graphcal.legs.params`, e.g. the hip position). All are applied by
+  (parent link frame; :mod:`graphcal.models.legs`, e.g. the hip position). All are applied by
   :func:`graphcal.models.perturb.apply_perturbation`.
 
 The rest of the URDF (and its comments) is left as it was. Angles written with ``repr`` precision.
@@ -30,7 +30,7 @@ from graphcal.models.urdf_xml import parse_urdf, urdf_to_text
 
 __all__ = ["calibrated_urdf", "leg_perturbation_from_parameters", "LEG_PARAMETER_KINDS"]
 
-#: Supported leg parameter suffixes (``<joint>.<kind>``), as named by graphcal.models.leg_params.
+#: Supported leg parameter suffixes (``<joint>.<kind>``), as named by graphcal.models.legs.
 LEG_PARAMETER_KINDS = ("offset_rad", "offset_m", "delta_m", "dx_m", "dy_m", "dz_m")
 _ORIGIN_AXIS = {"dx_m": 0, "dy_m": 1, "dz_m": 2}
 
@@ -49,7 +49,7 @@ def leg_perturbation_from_parameters(urdf_xml: str, legs: Mapping[str, Mapping[s
 
     Args:
         urdf_xml: the nominal URDF (``delta_m`` is along its origin translation).
-        legs: foot -> {parameter name: value (SI)}, names as in :mod:`graphcal.models.leg_params`:
+        legs: foot -> {parameter name: value (SI)}, names as in :mod:`graphcal.models.legs`:
             ``<joint>.offset_rad`` (revolute/continuous joint), ``<joint>.offset_m`` (prismatic
             joint), ``<joint>.delta_m`` (link ending at the joint). ``<foot>.delta_m`` of a foot frame
             that is no URDF joint has nothing to carry it: accepted only when it is 0.

@@ -1,22 +1,9 @@
 """The discrepancy catalogue as simulator options.
 
-Each cause that ``graphcal diagnose`` can name is something the simulator can hide in the data.
-Names, parameters and units are those of the catalogue (SI units):
-
-==================== ======================================================= ==========================
-cause                physical story                                          parameters
-==================== ======================================================= ==========================
-sensor_range_scale   range/depth scale error of one sensor                   scale (measured = scale*true)
-session_offset       one session's body height differs (foot sinkage)        offset_m (feet sink by it)
-ground_tilt          the floor is not level                                  tilt_rad, axis_rad
-imu_misalignment     the IMU is mounted rotated                              angle_rad, axis_rad
-joint_offset         an encoder zero is off                                  offset_rad at (leg, joint)
-link_length          a link is longer/shorter than the URDF                  delta_m at (leg, joint)
-extrinsic_change     the sensor was knocked during the run                   angle_rad, translation_m
-                                                                             from station, sensor
-outlier_stations     a few stations are wrong (sensor data under the wrong   stations
-                     station label)
-==================== ======================================================= ==========================
+Each cause that ``graphcal diagnose`` can name (:data:`graphcal.models.effects.CAUSES`, whose
+docstring tables the physical story and parameters of each) is something the simulator can hide
+in the data. Names, parameters and units are those of the catalogue (SI units); :class:`Effects`
+holds one value per cause.
 """
 
 from __future__ import annotations
@@ -28,17 +15,7 @@ from typing import Mapping
 import numpy as np
 
 from graphcal.errors import GraphcalError
-
-CAUSES = (
-    "sensor_range_scale",
-    "session_offset",
-    "ground_tilt",
-    "imu_misalignment",
-    "joint_offset",
-    "link_length",
-    "extrinsic_change",
-    "outlier_stations",
-)
+from graphcal.models.effects import CAUSES
 
 
 def _frozen(mapping: Mapping | None) -> Mapping:

@@ -9,7 +9,8 @@ from typing import Sequence
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.simulation.effects import CAUSES, Effects, ExtrinsicChange, draw_effect, merge
+from graphcal.models.effects import CAUSES
+from graphcal.simulation.effects import Effects, ExtrinsicChange, draw_effect, merge
 from graphcal.simulation.session import SimulationConfig, SimulationResult, leg_link_joints, simulate
 
 _PARAMS = {

@@ -39,7 +39,8 @@ from graphcal.geometry import (
 )
 from graphcal.simulation.effects import Effects
 from graphcal.simulation.programs import station_program
-from graphcal.simulation.sensors import capture, sensor_for_type
+from graphcal.models.sensors import sensor_for_type
+from graphcal.simulation.sensors import capture
 from graphcal.simulation.terrain import LABEL_ROBOT, Mesh, build_scene, cylinder_mesh, make_terrain, terrain_height
 
 GRAVITY_M_S2 = 9.80665
@@ -279,13 +280,13 @@ def draw_leg_errors(robot, feet, sigma_rad: float, sigma_m: float,
 
 def _link_joints(robot, foot: str) -> tuple[str, ...]:
     """Joints of a leg whose origin translation is a link length: the URDF joints of the leg's
-    ``delta_m`` parameters (graphcal/models/leg_params.py: every joint after the first whose origin
+    ``delta_m`` parameters (graphcal/models/legs.py: every joint after the first whose origin
     has a translation, and the fixed foot joint). A joint whose origin has no translation (two axes
     through one point, e.g. the qingzhui's coxa-thigh pair) ends no link and is not a candidate."""
-    from graphcal.models.leg_params import leg_parameterization
+    from graphcal.models.legs import leg_model
 
-    param = leg_parameterization(robot, foot)
-    return tuple(j for j in param.link_urdf_joints if j is not None)
+    param = leg_model(robot, foot, origins="none")
+    return tuple(j for j in param.trans_urdf_joints if j is not None)
 
 
 def leg_link_joints(robot) -> dict[str, tuple[str, ...]]:

@@ -108,7 +108,8 @@ def simulate_stairs_clouds(
         y_m: lateral body position (m).
     """
     from graphcal.models.builtin import builtin_info
-    from graphcal.simulation.sensors import DepthCamera, capture
+    from graphcal.models.sensors import DepthCamera
+    from graphcal.simulation.sensors import capture
     from graphcal.simulation.terrain import build_scene, make_terrain
 
     if stride < 1:

@@ -30,7 +30,7 @@ What is simulated, all vectorised over the samples (numpy, one loop over the leg
   noise; biases start from a random draw and follow a random walk. Continuous-time densities:
   white noise sigma per sample = density * sqrt(rate); random walk step = density * sqrt(dt).
 * **Depth clouds** at ``cloud_rate_hz`` from the robot's depth camera (Kinect model of
-  :mod:`graphcal.simulation.sensors`, every ``cloud_stride``-th pixel row and column), ray cast
+  :mod:`graphcal.models.sensors`, every ``cloud_stride``-th pixel row and column), ray cast
   into the terrain (not the robot's own legs) from ``T_world_body @ T_body_sensor`` (the CAD
   extrinsic is the true one here). Default stride 16 on level ground, 8 on the stairs.
 
@@ -325,14 +325,12 @@ def _newton_ik(leg, P: np.ndarray, q: np.ndarray, *, iters: int = 4):
     """Newton refinement of a leg's IK at every sample from a close start (square 3x3 Jacobian):
     one :func:`~graphcal.models.kinematics.joint_frames` pass per iteration gives both the foot
     position and the Jacobian. Returns q (N, n), the Jacobian at q (N, 3, n) and the residual (N,) m."""
-    from graphcal.models.kinematics import joint_frames
+    from graphcal.models.kinematics import joint_frames, position_jacobian
 
     q = np.array(q, dtype=float)
     for it in range(iters + 1):
         axes, origins, _, p = joint_frames(leg, q)
-        J = np.empty((len(q), 3, leg.n_joints))
-        for j, jtype in enumerate(leg.joint_types):
-            J[:, :, j] = np.cross(axes[:, j], p - origins[:, j]) if jtype == "revolute" else axes[:, j]
+        J = position_jacobian(leg.joint_types, axes, origins, p)
         r = P - p
         err = np.linalg.norm(r, axis=1)
         if it == iters or err.max() < 1e-12:
@@ -575,7 +573,8 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
     cloud_idx = np.zeros(0, dtype=np.int64)
     clouds: list[np.ndarray] = []
     if c.cloud_rate_hz > 0 and T_body_sensor is not None:
-        from graphcal.simulation.sensors import DepthCamera, capture
+        from graphcal.models.sensors import DepthCamera
+        from graphcal.simulation.sensors import capture
         from graphcal.simulation.terrain import build_scene
 
         cam = DepthCamera()

@@ -24,6 +24,8 @@ import gtsam
 import numpy as np
 
 from graphcal.errors import GraphcalError
+from graphcal.geometry import pose_log_between
+from graphcal.solvers.batch import diag_information, indeterminate_key, key_name
 
 __all__ = [
     "MarginalCovariances",
@@ -64,15 +66,7 @@ class MarginalCovariances(dict):
 
 # ----------------------------------------------------------------------------- helpers
 def _is_indeterminate(exc: BaseException) -> bool:
-    from graphcal.solvers.batch import indeterminate_key
-
     return indeterminate_key(exc) is not None
-
-
-def _key_name(key: int) -> str:
-    from graphcal.solvers.batch import key_name
-
-    return key_name(key)
 
 
 def _inverse_with_null(info: np.ndarray, rcond: float = NULL_RCOND) -> tuple[np.ndarray, np.ndarray]:
@@ -115,7 +109,7 @@ def _mark_inf(cov: np.ndarray, null: np.ndarray, tol: float = 1e-6) -> None:
 
 
 def _null_warning(key: int, null: np.ndarray) -> str:
-    return (f"{_key_name(key)}: the graph does not determine {null.shape[1]} direction(s) of it "
+    return (f"{key_name(key)}: the graph does not determine {null.shape[1]} direction(s) of it "
             "(covariance set to inf along them)")
 
 
@@ -159,7 +153,7 @@ def marginal_covariances(
     keys = [int(k) for k in keys]
     for k in keys:
         if not values.exists(k):
-            raise GraphcalError(f"marginal_covariances: {_key_name(k)} is not in the values")
+            raise GraphcalError(f"marginal_covariances: {key_name(k)} is not in the values")
     dims = {int(k): int(d) for k, d in values.dims().items()}
     graph_keys = {int(k) for k in graph.keyVector()}  # (iterating a temporary KeySet segfaults)
     free = [k for k in keys if k not in graph_keys]
@@ -248,11 +242,9 @@ def _dense_marginals(lin, graph_keys, dims, keys) -> MarginalCovariances:
 
 
 def _regularised_marginals(lin, graph_keys, dims, keys, eps: float = 1e-14) -> MarginalCovariances:
-    from graphcal.solvers.batch import _diag_information
-
     out = MarginalCovariances(method="regularised")
     keys_in = keys
-    diag = _diag_information(lin, {k: dims[k] for k in graph_keys})
+    diag = diag_information(lin, {k: dims[k] for k in graph_keys})
     reg = gtsam.GaussianFactorGraph()
     reg.push_back(lin)
     scale = {}
@@ -505,20 +497,17 @@ def unobservable_directions(
 
 
 # ----------------------------------------------------------------------------- NEES
-def _pose3(T) -> gtsam.Pose3:
-    if isinstance(T, gtsam.Pose3):
-        return T
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4):
-        raise GraphcalError(f"expected a 4x4 pose or gtsam.Pose3, got shape {T.shape}")
-    return gtsam.Pose3(gtsam.Rot3(T[:3, :3]), T[:3, 3].copy())
+def _check_pose(T):
+    if not isinstance(T, gtsam.Pose3) and np.shape(T) != (4, 4):
+        raise GraphcalError(f"expected a 4x4 pose or gtsam.Pose3, got shape {np.shape(T)}")
+    return T
 
 
 def nees(T_true, T_est, cov6) -> float:
     """Normalised estimation error squared ``xi^T inv(cov6) xi`` with
     ``xi = Log(T_est^-1 T_true)`` (the right-perturbation error, [omega, v]). Averages 6 over
     many runs when ``cov6`` is honest (chi-square, 6 dof)."""
-    xi = np.asarray(gtsam.Pose3.Logmap(_pose3(T_est).between(_pose3(T_true))), dtype=float)
+    xi = pose_log_between(_check_pose(T_est), _check_pose(T_true))
     C = np.asarray(cov6, dtype=float)
     if C.shape != (6, 6):
         raise GraphcalError(f"expected a 6x6 covariance, got shape {C.shape}")

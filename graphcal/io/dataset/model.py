@@ -12,9 +12,9 @@ import numpy as np
 
 from graphcal.geometry import pose_from_xyz_rpy
 from graphcal.io.dataset.text import did_you_mean
+from graphcal.models.sensors import SENSOR_TYPES  # defined once, with the sensor models
 
 FORMAT = "graphcal-dataset/1"
-SENSOR_TYPES: tuple[str, ...] = ("depth_camera", "laser_scanner", "stereo_camera")
 
 BODY_POSE_COLUMNS = ("body_x", "body_y", "body_z", "body_qw", "body_qx", "body_qy", "body_qz")
 IMU_ACCEL_COLUMNS = ("imu_ax", "imu_ay", "imu_az")

@@ -1,0 +1,134 @@
+"""Exteroceptive sensor models: depth camera (Kinect), 2D laser scanner (Hokuyo URG-04LX), stereo camera.
+
+Each model gives its field of view (the unit ray directions in its own frame) and its range noise;
+the real-data path (plane extraction, ICP weights, suggest-poses) and the simulator
+(:mod:`graphcal.simulation.sensors`, which casts the rays into a scene) share them.
+
+Sensor frames:
+* cameras (depth, stereo): optical convention, z along the optical axis, x right, y down;
+* laser scanner: the scan plane is the x-y plane, x along the centre beam, angles counter-clockwise
+  about z.
+
+Noise models (1-sigma, metres):
+* depth camera: along the optical axis, sigma_z = 1.425e-3 * z**2 (Khoshelham & Elberink 2012, as Chai);
+* laser scanner: along the beam, sigma_r = 0.01 (URG-04LX, 20-4000 mm range);
+* stereo camera: along the optical axis, sigma_z = z**2 / (f_px * baseline_m) * sigma_disparity_px.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from graphcal.errors import GraphcalError
+
+__all__ = [
+    "SENSOR_TYPES",
+    "KINECT_NOISE_COEFF_PER_M",
+    "DepthCamera",
+    "StereoCamera",
+    "LaserScanner",
+    "Sensor",
+    "sensor_for_type",
+]
+
+#: The exteroceptive sensor types of a dataset (dataset.yaml ``sensors.<name>.type``).
+SENSOR_TYPES: tuple[str, ...] = ("depth_camera", "laser_scanner", "stereo_camera")
+
+#: Kinect depth noise: sigma_z = KINECT_NOISE_COEFF_PER_M * z**2 (m), Khoshelham & Elberink 2012,
+#: as used by Chai 2015.
+KINECT_NOISE_COEFF_PER_M = 1.425e-3
+
+
+@dataclass(frozen=True)
+class DepthCamera:
+    """Pinhole depth camera; defaults are the Kinect of Chai 2015 (57.5 x 43.5 deg, 0.8-4 m)."""
+
+    width_px: int = 640
+    height_px: int = 480
+    hfov_deg: float = 57.5
+    vfov_deg: float = 43.5
+    min_range_m: float = 0.8
+    max_range_m: float = 4.0
+    noise_coeff_per_m: float = KINECT_NOISE_COEFF_PER_M
+    type: str = "depth_camera"
+
+    def ray_directions(self) -> np.ndarray:
+        """Unit ray directions (H*W, 3) in the optical frame."""
+        return _pinhole_rays(self.width_px, self.height_px, self.hfov_deg, self.vfov_deg)
+
+    def sigma_along_axis(self, z_m: np.ndarray) -> np.ndarray:
+        """Depth noise sigma (m) at depth ``z_m`` (m)."""
+        return self.noise_coeff_per_m * np.asarray(z_m) ** 2
+
+
+@dataclass(frozen=True)
+class StereoCamera:
+    """Stereo camera (STOC-like): depth noise grows with z**2 / baseline."""
+
+    width_px: int = 320
+    height_px: int = 240
+    hfov_deg: float = 65.0
+    vfov_deg: float = 50.0
+    baseline_m: float = 0.09
+    sigma_disparity_px: float = 0.15
+    min_range_m: float = 0.4
+    max_range_m: float = 4.0
+    noise_focal_px: float | None = None
+    type: str = "stereo_camera"
+
+    @property
+    def focal_px(self) -> float:
+        """Focal length (px) that sets the disparity noise: that of the full-resolution sensor, kept
+        when the simulator casts fewer rays (``noise_focal_px``)."""
+        if self.noise_focal_px is not None:
+            return self.noise_focal_px
+        return self.width_px / 2.0 / np.tan(np.radians(self.hfov_deg) / 2.0)
+
+    def ray_directions(self) -> np.ndarray:
+        return _pinhole_rays(self.width_px, self.height_px, self.hfov_deg, self.vfov_deg)
+
+    def sigma_along_axis(self, z_m: np.ndarray) -> np.ndarray:
+        return np.asarray(z_m) ** 2 / (self.focal_px * self.baseline_m) * self.sigma_disparity_px
+
+
+@dataclass(frozen=True)
+class LaserScanner:
+    """2D laser scanner, Hokuyo URG-04LX-like: 240 deg field, 0.36 deg step, 0.02-4 m, sigma 10 mm."""
+
+    fov_deg: float = 240.0
+    step_deg: float = 0.36
+    min_range_m: float = 0.02
+    max_range_m: float = 4.0
+    sigma_m: float = 0.01
+    type: str = "laser_scanner"
+
+    def ray_directions(self) -> np.ndarray:
+        n = int(round(self.fov_deg / self.step_deg)) + 1
+        ang = np.radians(np.linspace(-self.fov_deg / 2, self.fov_deg / 2, n))
+        return np.c_[np.cos(ang), np.sin(ang), np.zeros(n)]
+
+
+Sensor = DepthCamera | StereoCamera | LaserScanner
+
+
+def sensor_for_type(sensor_type: str) -> Sensor:
+    """Default sensor model for a dataset sensor type."""
+    if sensor_type == "depth_camera":
+        return DepthCamera()
+    if sensor_type == "laser_scanner":
+        return LaserScanner()
+    if sensor_type == "stereo_camera":
+        return StereoCamera()
+    raise GraphcalError(f"unknown sensor type {sensor_type!r}; expected one of {', '.join(SENSOR_TYPES)}")
+
+
+def _pinhole_rays(width: int, height: int, hfov_deg: float, vfov_deg: float) -> np.ndarray:
+    fx = width / 2.0 / np.tan(np.radians(hfov_deg) / 2.0)
+    fy = height / 2.0 / np.tan(np.radians(vfov_deg) / 2.0)
+    u = np.arange(width) + 0.5 - width / 2.0
+    v = np.arange(height) + 0.5 - height / 2.0
+    U, V = np.meshgrid(u, v)
+    d = np.c_[U.ravel() / fx, V.ravel() / fy, np.ones(U.size)]
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
