@@ -28,8 +28,8 @@ import numpy as np
 
 from graphcal.errors import DatasetError
 
-__all__ = ["Truth", "load_truth", "trajectory_metrics", "nees_against_truth", "whiteness", "chi2_band",
-           "evo_trajectory"]
+__all__ = ["Truth", "load_truth", "trajectory_metrics", "interp_truth", "pose_errors", "nees_against_truth",
+           "whiteness", "chi2_band", "evo_trajectory"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,7 +157,9 @@ def trajectory_metrics(times, T_est, truth: Truth, *, max_diff_s: float = 0.002,
     return out
 
 
-def _interp_truth(truth: Truth, t: np.ndarray) -> np.ndarray:
+def interp_truth(truth: Truth, t: np.ndarray) -> np.ndarray:
+    """(M, 4, 4) true T_world_body at times ``t`` (M,) s: position linear, rotation slerped between
+    the truth's samples; times outside the truth's span are clamped to its ends."""
     from scipy.spatial.transform import Rotation, Slerp
 
     t = np.clip(t, truth.times[0], truth.times[-1])
@@ -188,7 +190,7 @@ def nees_against_truth(result, truth: Truth) -> tuple[np.ndarray, np.ndarray]:
     t = result.times[idx]
     inside = (t >= truth.times[0]) & (t <= truth.times[-1])
     idx, t = idx[inside], t[inside]
-    e = pose_errors(result.T_world_body[idx], _interp_truth(truth, t))
+    e = pose_errors(result.T_world_body[idx], interp_truth(truth, t))
     P = result.cov_pose[inside]
     nees = np.einsum("ni,ni->n", e, np.linalg.solve(P, e[:, :, None])[:, :, 0])
     return t, nees

@@ -90,6 +90,7 @@ from graphcal.solvers.point_to_plane import constrained_step, point_to_plane_jac
 
 __all__ = [
     "StairsError",
+    "StairStep",
     "Tread",
     "Riser",
     "StairsModel",
@@ -110,6 +111,25 @@ class StairsError(GraphcalError):
 
 
 # ----------------------------------------------------------------------------- results
+@dataclass(frozen=True)
+class StairStep:
+    """One true step of an untilted staircase rising along world +x (the records that
+    :func:`stairs_model_from_steps` and :func:`tread_errors` read; the ``stairs`` list of a
+    ``truth.yaml`` ``ground`` section has these keys).
+
+    Attributes:
+        x_start_m: world x of the step's nosing (front edge), m.
+        depth_m: tread depth along world +x, m.
+        height_m: height of the tread's top above the floor, m.
+        width_m: tread width along world y, m.
+    """
+
+    x_start_m: float
+    depth_m: float
+    height_m: float
+    width_m: float
+
+
 @dataclass(frozen=True, eq=False)
 class Tread:
     """One tread (the top of a step, or the landing).
