@@ -94,13 +94,13 @@ def test_preintegration_matches_plain_integration():
     R0 = matrix_from_rpy([0.1, -0.2, 0.3])
     p, v, R = np.array([1.0, 2.0, 0.5]), np.array([0.3, -0.1, 0.0]), R0.copy()
     P_ref, V_ref, R_ref = [p], [v], [R]
-    from graphcal.locomotion.imu import exp_batch
+    from graphcal.geometry import so3_exp_batch
 
     for k in range(1, N):
         acc = R @ (a[k] - ba) + GRAVITY_WORLD
         p = p + v * dt[k] + 0.5 * acc * dt[k] ** 2
         v = v + acc * dt[k]
-        R = R @ exp_batch(((w[k] - bg) * dt[k])[None])[0]
+        R = R @ so3_exp_batch(((w[k] - bg) * dt[k])[None])[0]
         P_ref.append(p), V_ref.append(v), R_ref.append(R)
     # chunk-start states from the reference (what the filter would hold without updates)
     chunk = np.searchsorted(events, np.arange(N), side="left")
@@ -141,7 +141,7 @@ def test_icp_measures_only_what_the_floor_constrains(clouds):
     slides along the floor."""
     import open3d as o3d
 
-    from graphcal.locomotion.ekf import _log
+    from graphcal.geometry import so3_log as _log
     from graphcal.clouds.icp import icp_relative_pose, prepare_target, range_sigma_function
     from graphcal.geometry import se3_exp
 
@@ -172,7 +172,7 @@ def test_icp_measures_only_what_the_floor_constrains(clouds):
 def test_icp_on_stairs_also_measures_along_the_walk(clouds):
     """Risers add the along-walk translation: more than 3 directions on some stairs pairs, and
     the errors stay consistent."""
-    from graphcal.locomotion.ekf import _log
+    from graphcal.geometry import so3_log as _log
     from graphcal.clouds.icp import icp_relative_pose, prepare_target, range_sigma_function
 
     sig = range_sigma_function("depth_camera")

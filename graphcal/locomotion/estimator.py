@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from graphcal.errors import DatasetError, GraphcalError
+from graphcal.geometry import matrix_from_rpy, rotation_angle_between
 from graphcal.locomotion.ekf import GRAVITY_WORLD as GRAVITY
 from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim
 
@@ -305,8 +306,6 @@ def _initial_state(inp: TrackInputs, pbf: np.ndarray, feet_idx: list[int], cfg: 
     a = inp.T_body_imu[:3, :3] @ inp.accel[:n0].mean(axis=0)
     roll = math.atan2(a[1], a[2])
     pitch = math.atan2(-a[0], math.hypot(a[1], a[2]))
-    from graphcal.geometry import matrix_from_rpy
-
     R0 = matrix_from_rpy([roll, pitch, 0.0])
     feet_world = pbf[feet_idx, 0] @ R0.T
     z0 = -float(feet_world[:, 2].mean())
@@ -518,7 +517,7 @@ def _needs_keyframe(ekf: LeggedEKF, t_k: float, kf_time: float, cfg: TrackerConf
     """Whether the body moved (distance, angle or time) enough since the keyframe clone."""
     return ekf.has_clone and (
         np.linalg.norm(ekf.p - ekf.p_c) >= cfg.keyframe_distance_m
-        or np.arccos(np.clip((np.trace(ekf.R_c.T @ ekf.R) - 1) / 2, -1, 1)) >= cfg.keyframe_angle_rad
+        or rotation_angle_between(ekf.R_c, ekf.R) >= cfg.keyframe_angle_rad
         or t_k - kf_time >= cfg.keyframe_max_s
     )
 

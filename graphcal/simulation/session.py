@@ -32,6 +32,7 @@ from graphcal.geometry import (
     matrix_from_axis_angle,
     pose_matrix,
     rot_z,
+    rotation_angle_between,
     se3_exp,
     transform_points,
     xyz_quat_wxyz_from_pose,
@@ -520,7 +521,7 @@ def _swap_outlier_stations(config: SimulationConfig, records: list, real_poses: 
         for st in config.effects.outlier_stations:
             R_st = real_poses[st][:3, :3]
             others = [r.station for r in records if r.station != st]
-            angles = [np.arccos(np.clip((np.trace(R_st.T @ real_poses[o][:3, :3]) - 1) / 2, -1, 1)) for o in others]
+            angles = [rotation_angle_between(R_st, real_poses[o][:3, :3]) for o in others]
             src = others[int(np.argmax(angles))]
             swapped[st] = src
             for s in sensor_names:

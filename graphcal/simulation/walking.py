@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.geometry import matrix_from_rpy
+from graphcal.geometry import body_rates_from_rpy_rates, matrix_from_rpy, quat_wxyz_from_matrix_batch, skew_batch
 from graphcal.simulation.terrain import LABEL_STAIRS, Stair, Terrain, box_mesh, make_terrain
 
 __all__ = [
@@ -614,14 +614,8 @@ class _ImuData:
 
 def _body_rates(body: _BodyPath, dt: float) -> np.ndarray:
     """(N, 3) body-frame angular rates (rad/s) from central differences of roll, pitch, yaw."""
-    roll, pitch = body.roll, body.pitch
-    rpy_dot = np.gradient(np.c_[roll, pitch, body.yaw], dt, axis=0)
-    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
-    return np.c_[
-        rpy_dot[:, 0] - rpy_dot[:, 2] * sp,
-        rpy_dot[:, 1] * cr + rpy_dot[:, 2] * sr * cp,
-        -rpy_dot[:, 1] * sr + rpy_dot[:, 2] * cr * cp,
-    ]
+    rpy = np.c_[body.roll, body.pitch, body.yaw]
+    return body_rates_from_rpy_rates(rpy, np.gradient(rpy, dt, axis=0))
 
 
 def _second_difference(p: np.ndarray, dt: float) -> np.ndarray:
@@ -666,9 +660,7 @@ def _quasi_static_forces(c: WalkingConfig, body: _BodyPath, p_body_foot: np.ndar
     F_body = c.body_mass_kg * np.einsum("nji,nj->ni", R, a_body - _G_WORLD)  # ground reaction sum, body frame
     P = np.swapaxes(p_body_foot, 0, 1)  # (N, nf, 3)
     W = weight.T  # (N, nf)
-    Px = np.zeros((N, nf, 3, 3))
-    Px[..., 0, 1], Px[..., 0, 2], Px[..., 1, 2] = -P[..., 2], P[..., 1], -P[..., 0]
-    Px[..., 1, 0], Px[..., 2, 0], Px[..., 2, 1] = P[..., 2], -P[..., 1], P[..., 0]
+    Px = skew_batch(P)  # (N, nf, 3, 3)
     M = np.zeros((N, 6, 6))
     M[:, :3, :3] = W.sum(axis=1)[:, None, None] * np.eye(3)
     S1 = np.einsum("nf,nfij->nij", W, Px)
@@ -775,15 +767,6 @@ def _pose_yaml(T: np.ndarray) -> dict:
             "rpy_deg": [float(v) for v in np.degrees(rpy)]}
 
 
-def _quat_wxyz_batch(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
-    q = np.c_[q[:, 3], q[:, :3]]
-    q[q[:, 0] < 0] *= -1
-    return q
-
-
 def truth_table(result: WalkingResult):
     """The truth trajectory at ``truth_rate_hz``: a :class:`~graphcal.io.dataset.Table`-like dict of
     columns time, x, y, z, qw, qx, qy, qz (T_world_body), vx, vy, vz (world), gyro/accel biases."""
@@ -791,7 +774,7 @@ def truth_table(result: WalkingResult):
     step = max(1, int(round(c.rate_hz / c.truth_rate_hz)))
     idx = np.arange(0, len(result.times), step)
     T = result.T_world_body[idx]
-    q = _quat_wxyz_batch(T[:, :3, :3])
+    q = quat_wxyz_from_matrix_batch(T[:, :3, :3])
     cols = {"time": result.times[idx]}
     for k, n in enumerate("xyz"):
         cols[n] = T[:, k, 3]
