@@ -217,6 +217,30 @@ def test_nees_monte_carlo_inside_its_chi_square_band(monte_carlo):
     assert (nees.mean(axis=0) > lo3).all() and (nees.mean(axis=0) < hi3).all()
 
 
+def test_cov_pose_tangent_is_the_conventions_order_with_the_same_nees(monte_carlo):
+    """cov_pose is in the filter's order [dp world, dtheta body]; cov_pose_tangent() is the
+    [omega, v] right perturbation of docs/conventions.md (omega = dtheta, v = R^T dp): the rotation
+    block is the same, the position block rotated into the body frame, and the NEES of the
+    correspondingly mapped errors equals the one in the filter's order."""
+    from graphcal.geometry import so3_log
+
+    walk, res = monte_carlo[0]
+    C = res.cov_pose_tangent()
+    k = res.cov_index
+    R = res.T_world_body[k, :3, :3]
+    assert C.shape == res.cov_pose.shape
+    assert np.allclose(C[:, 0:3, 0:3], res.cov_pose[:, 3:6, 3:6], rtol=0, atol=0)
+    Rt = np.swapaxes(R, 1, 2)
+    assert np.allclose(C[:, 3:6, 3:6], Rt @ res.cov_pose[:, 0:3, 0:3] @ R, rtol=1e-12, atol=1e-18)
+    e = pose_errors(res.T_world_body[k], walk.T_world_body[k])
+    nees = np.einsum("ni,ni->n", e, np.linalg.solve(res.cov_pose, e[:, :, None])[:, :, 0])
+    xi = np.c_[e[:, 3:], np.einsum("nji,nj->ni", R, e[:, :3])]
+    nees_xi = np.einsum("ni,ni->n", xi, np.linalg.solve(C, xi[:, :, None])[:, :, 0])
+    assert np.allclose(nees_xi, nees, rtol=1e-8)
+    # omega is the rotation part of the right perturbation T_true = T_est Exp(xi) itself
+    assert np.allclose(xi[:, :3], [so3_log(a.T @ b) for a, b in zip(R, walk.T_world_body[k, :3, :3])], atol=1e-12)
+
+
 def test_initial_tilt_covariance_covers_the_accelerometer_window():
     """The initial roll and pitch come from the mean accelerometer over init_window_s (0.1 s): their
     error is the bias seen as a tilt plus the white noise of that mean, accel_noise_density /

@@ -43,7 +43,8 @@ import numpy as np
 from graphcal.errors import GraphcalError
 from graphcal.geometry import skew, so3_exp, so3_log
 
-__all__ = ["GRAVITY_WORLD", "EkfNoise", "NominalState", "LeggedEKF", "state_dim", "check_covariance"]
+__all__ = ["GRAVITY_WORLD", "EkfNoise", "NominalState", "LeggedEKF", "state_dim", "check_covariance",
+           "tangent_pose_covariance"]
 
 GRAVITY_WORLD = np.array([0.0, 0.0, -9.80665])
 
@@ -143,6 +144,30 @@ def check_covariance(name: str, M, n: int, *, definite: bool = False) -> np.ndar
     if w.min() < -tol:
         raise GraphcalError(f"{name} must be positive semi-definite (smallest eigenvalue {w.min():.3g})")
     return 0.5 * (A + A.T)
+
+
+def tangent_pose_covariance(R_world_body: np.ndarray, cov_dp_dtheta: np.ndarray) -> np.ndarray:
+    """The filter's pose covariance in the SE(3) order of docs/conventions.md.
+
+    The filter's pose error is ``e = [dp, dtheta]``: ``p = p_hat + dp`` (dp in the world frame, m)
+    and ``R = R_hat Exp(dtheta)`` (dtheta in the body frame, rad). The right perturbation
+    ``T = T_hat Exp(xi)``, ``xi = [omega, v]``, is to first order ``omega = dtheta``,
+    ``v = R_hat^T dp`` (body frame), i.e. ``xi = J e`` with ``J = [[0, I], [R_hat^T, 0]]``.
+
+    Args:
+        R_world_body: (..., 3, 3) the estimated orientations R_hat.
+        cov_dp_dtheta: (..., 6, 6) covariances of ``[dp, dtheta]`` (m^2, m rad, rad^2), e.g.
+            :meth:`LeggedEKF.pose_covariance` or ``TrackResult.cov_pose``.
+
+    Returns:
+        (..., 6, 6) covariances of ``xi = [omega, v]`` (rad^2, rad m, m^2): ``J cov J^T``.
+    """
+    R = np.asarray(R_world_body, dtype=float)
+    C = np.asarray(cov_dp_dtheta, dtype=float)
+    J = np.zeros(R.shape[:-2] + (6, 6))
+    J[..., 0:3, 3:6] = np.eye(3)
+    J[..., 3:6, 0:3] = np.swapaxes(R, -1, -2)
+    return J @ C @ np.swapaxes(J, -1, -2)
 
 
 class LeggedEKF:
@@ -249,7 +274,9 @@ class LeggedEKF:
         return T
 
     def pose_covariance(self) -> np.ndarray:
-        """(6, 6) covariance of (dp (world), dtheta (body))."""
+        """(6, 6) covariance of the filter's pose error (dp (world, m), dtheta (body, rad)): position
+        first and in the world frame, unlike the ``[omega, v]`` right-perturbation order of
+        docs/conventions.md; :func:`tangent_pose_covariance` converts."""
         idx = np.r_[0:3, 6:9]
         return self.kf.P[np.ix_(idx, idx)].copy()
 

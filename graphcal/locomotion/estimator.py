@@ -24,7 +24,7 @@ import numpy as np
 from graphcal.errors import DatasetError, GraphcalError
 from graphcal.geometry import matrix_from_rpy, rotation_angle_between
 from graphcal.locomotion.ekf import GRAVITY_WORLD as GRAVITY
-from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim
+from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim, tangent_pose_covariance
 
 __all__ = ["TrackerConfig", "TrackInputs", "TrackResult", "run_filter", "inputs_from_dataset",
            "inputs_from_walking", "estimate_trajectory"]
@@ -125,7 +125,14 @@ class TrackResult:
 
     Attributes:
         times: (N,) s. T_world_body: (N, 4, 4). v_world_body, gyro_bias, accel_bias: (N, 3).
-        cov_index: (M,) sample indices of ``cov_pose`` (M, 6, 6): covariance of (dp world, dtheta body).
+        cov_index: (M,) sample indices of ``cov_pose``.
+        cov_pose: (M, 6, 6) covariance of the filter's pose error at those samples, in the filter's
+            order ``[dp, dtheta]``: ``dp = p_true - p_est`` in the world frame (m), then ``dtheta``
+            with ``R_true = R_est Exp(dtheta)`` in the body frame (rad). This is NOT the
+            ``[omega, v]`` right-perturbation order of docs/conventions.md (position first, and in
+            the world frame); it matches :func:`graphcal.locomotion.metrics.pose_errors` (NEES) and
+            the report's per-axis world position sigmas. :meth:`cov_pose_tangent` gives the
+            ``[omega, v]`` form.
         stance_nis: (K,) NIS of the stance updates (dof ``stance_dof``); stance_times (K,);
         stance_innovations: (K, stance_dof) innovations whitened by their covariance (Cholesky).
         icp_nis, icp_dof, icp_times: NIS and number of fused directions of each ICP update.
@@ -154,6 +161,12 @@ class TrackResult:
     groups: tuple
     processing_s: float
     duration_s: float
+
+    def cov_pose_tangent(self) -> np.ndarray:
+        """(M, 6, 6) ``cov_pose`` converted to docs/conventions.md's order: covariance of
+        ``xi = [omega, v]`` with ``T_true = T_est Exp(xi)`` (body frame; rad, m), by
+        :func:`graphcal.locomotion.ekf.tangent_pose_covariance` at the estimated orientations."""
+        return tangent_pose_covariance(self.T_world_body[self.cov_index, :3, :3], self.cov_pose)
 
     @property
     def real_time_factor(self) -> float:

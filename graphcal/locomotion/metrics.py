@@ -8,9 +8,10 @@ whiteness of the innovations.
   ``ape_rmse_m``: RMS of the absolute position error; ``rpe_rmse_m``: RMS of the relative
   translation error over ``rpe_delta_m`` (1 m) of travelled distance; ``drift_percent``: final
   position error / path length of the truth x 100; ``distance_m``: path length of the truth.
-* NEES of the pose (position world, orientation body: 6 dof) against the truth at the samples where
-  the filter kept its covariance: ``e^T P^-1 e``; a consistent filter has mean 6 and each sample
-  inside the chi-square(6) 95 % band [1.24, 14.45] 95 % of the time.
+* NEES of the pose (position world, orientation body: 6 dof, the order of ``TrackResult.cov_pose``)
+  against the truth at the samples where the filter kept its covariance: ``e^T P^-1 e``; a
+  consistent filter has mean 6 and each sample inside the chi-square(6) 95 % band [1.24, 14.45]
+  95 % of the time.
 * NIS of every update (stance kinematics: 3 x stance feet dof; ICP: the directions fused).
 * Whiteness: autocorrelation of each whitened innovation component (lags 1..``lags``): the
   fraction inside the 95 % band +-1.96/sqrt(n) of white noise, and the Ljung-Box statistic.
@@ -172,8 +173,9 @@ def interp_truth(truth: Truth, t: np.ndarray) -> np.ndarray:
 
 
 def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
-    """(N, 6) errors in the filter's error-state convention: [p_true - p_est (world), Log(R_est^T
-    R_true) (body)]."""
+    """(N, 6) errors of the poses T_est (N, 4, 4) against T_true (N, 4, 4) in the filter's
+    error-state order (that of ``TrackResult.cov_pose``, not docs/conventions.md's ``[omega, v]``):
+    [p_true - p_est (world frame, m), Log(R_est^T R_true) (body frame, rad)]."""
     from scipy.spatial.transform import Rotation
 
     e = np.empty((len(T_est), 6))
@@ -185,7 +187,9 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
 
 def nees_against_truth(result, truth: Truth) -> tuple[np.ndarray, np.ndarray]:
     """(times (M,), NEES (M,)) of the pose (6 dof) at the samples where the filter kept its
-    covariance (``result.cov_index``), truth interpolated at those times."""
+    covariance (``result.cov_index``), truth interpolated at those times: ``e^T P^-1 e`` with ``e``
+    from :func:`pose_errors` and ``P = result.cov_pose``, both in the filter's order [dp world,
+    dtheta body] (the NEES is the same in the ``[omega, v]`` order: ``xi = J e``, ``P_xi = J P J^T``)."""
     idx = result.cov_index
     t = result.times[idx]
     inside = (t >= truth.times[0]) & (t <= truth.times[-1])
