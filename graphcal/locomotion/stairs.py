@@ -1007,8 +1007,8 @@ def stairs_model_from_steps(
     floor_z_m: float = 0.0,
     y_center_m: float = 0.0,
 ) -> StairsModel:
-    """The exact model of an untilted staircase rising along world +x (e.g.
-    ``graphcal.simulation.terrain.Terrain.stairs``): records with ``x_start_m`` (nosing x),
+    """The exact model of an untilted staircase rising along world +x: :class:`StairStep` records
+    (or any with their fields, e.g. the simulator's terrain steps) with ``x_start_m`` (nosing x),
     ``depth_m``, ``height_m`` (top above the floor), ``width_m`` (centred on ``y_center_m``), lowest
     first; the floor is ``z = floor_z_m``. Every depth is complete (the last one too)."""
     steps = sorted(steps, key=lambda s: s.height_m)
