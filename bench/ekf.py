@@ -39,7 +39,7 @@ TARGET_RTF = 10.0
 
 def _dead_reckoning(inp) -> float:
     """Bare 1 kHz numpy loop: the machine's cost of touching every sample from Python."""
-    from graphcal.locomotion.ekf import _exp
+    from graphcal.geometry import so3_exp as _exp
 
     t0 = time.perf_counter()
     R = np.eye(3)

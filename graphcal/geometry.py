@@ -21,6 +21,8 @@ Everything here is plain numpy and vectorised where a batch is natural.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -51,11 +53,16 @@ __all__ = [
     "tangent_from_pinocchio",
     "tangent_to_pinocchio",
     "skew",
+    "skew_batch",
     "so3_exp",
+    "so3_exp_batch",
+    "so3_log",
     "se3_exp",
     "pose_adjoint",
     "pose_log_between",
     "is_rotation",
+    "quat_wxyz_from_matrix_batch",
+    "body_rates_from_rpy_rates",
     "fit_rigid_transform",
 ]
 
@@ -154,6 +161,29 @@ def quat_wxyz_from_matrix(R) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
+def quat_wxyz_from_matrix_batch(R: np.ndarray) -> np.ndarray:
+    """(N, 4) unit quaternions (w, x, y, z), w >= 0, of rotation matrices (N, 3, 3) (scipy's
+    ``Rotation``; the batch form of :func:`quat_wxyz_from_matrix`, equal to rounding)."""
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
+    q = np.c_[q[:, 3], q[:, :3]]
+    q[q[:, 0] < 0] *= -1
+    return q
+
+
+def body_rates_from_rpy_rates(rpy_rad: np.ndarray, rpy_dot_rad_s: np.ndarray) -> np.ndarray:
+    """(N, 3) angular velocity in the body frame (rad/s) of ``R = Rz(yaw) Ry(pitch) Rx(roll)`` from
+    roll, pitch, yaw (N, 3) rad and their time derivatives (N, 3) rad/s."""
+    roll, pitch = rpy_rad[:, 0], rpy_rad[:, 1]
+    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+    return np.c_[
+        rpy_dot_rad_s[:, 0] - rpy_dot_rad_s[:, 2] * sp,
+        rpy_dot_rad_s[:, 1] * cr + rpy_dot_rad_s[:, 2] * sr * cp,
+        -rpy_dot_rad_s[:, 1] * sr + rpy_dot_rad_s[:, 2] * cr * cp,
+    ]
+
+
 def skew(v) -> np.ndarray:
     """3x3 cross-product matrix: ``skew(a) @ b == np.cross(a, b)``."""
     x, y, z = np.asarray(v, dtype=float)
@@ -168,6 +198,38 @@ def so3_exp(omega) -> np.ndarray:
     if theta < 1e-9:
         return np.eye(3) + K + 0.5 * K @ K
     return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * K @ K
+
+
+def skew_batch(v: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) cross-product matrices of (..., 3) vectors (:func:`skew` of each)."""
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return S
+
+
+def so3_exp_batch(phi: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) Exp of rotation vectors (N, 3), rad (Rodrigues; Taylor near zero)."""
+    phi = np.asarray(phi, dtype=float)
+    th2 = np.einsum("ij,ij->i", phi, phi)
+    small = th2 < 1e-12
+    th = np.sqrt(th2)
+    safe = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / safe)
+    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
+    K = skew_batch(phi)
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
+def so3_log(R) -> np.ndarray:
+    """Rotation vector (3,) rad of a rotation matrix, Log(R) (inverse of :func:`so3_exp`); the
+    angle must be below pi (near pi the axis is lost to rounding)."""
+    c = max(-1.0, min(1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
+    th = math.acos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if th < 1e-7:
+        return 0.5 * v
+    return v * (th / (2.0 * math.sin(th)))
 
 
 def matrix_from_axis_angle(axis, angle_rad: float) -> np.ndarray:

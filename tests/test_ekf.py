@@ -94,13 +94,13 @@ def test_preintegration_matches_plain_integration():
     R0 = matrix_from_rpy([0.1, -0.2, 0.3])
     p, v, R = np.array([1.0, 2.0, 0.5]), np.array([0.3, -0.1, 0.0]), R0.copy()
     P_ref, V_ref, R_ref = [p], [v], [R]
-    from graphcal.locomotion.imu import exp_batch
+    from graphcal.geometry import so3_exp_batch
 
     for k in range(1, N):
         acc = R @ (a[k] - ba) + GRAVITY_WORLD
         p = p + v * dt[k] + 0.5 * acc * dt[k] ** 2
         v = v + acc * dt[k]
-        R = R @ exp_batch(((w[k] - bg) * dt[k])[None])[0]
+        R = R @ so3_exp_batch(((w[k] - bg) * dt[k])[None])[0]
         P_ref.append(p), V_ref.append(v), R_ref.append(R)
     # chunk-start states from the reference (what the filter would hold without updates)
     chunk = np.searchsorted(events, np.arange(N), side="left")
@@ -141,7 +141,7 @@ def test_icp_measures_only_what_the_floor_constrains(clouds):
     slides along the floor."""
     import open3d as o3d
 
-    from graphcal.locomotion.ekf import _log
+    from graphcal.geometry import so3_log as _log
     from graphcal.clouds.icp import icp_relative_pose, prepare_target, range_sigma_function
     from graphcal.geometry import se3_exp
 
@@ -172,7 +172,7 @@ def test_icp_measures_only_what_the_floor_constrains(clouds):
 def test_icp_on_stairs_also_measures_along_the_walk(clouds):
     """Risers add the along-walk translation: more than 3 directions on some stairs pairs, and
     the errors stay consistent."""
-    from graphcal.locomotion.ekf import _log
+    from graphcal.geometry import so3_log as _log
     from graphcal.clouds.icp import icp_relative_pose, prepare_target, range_sigma_function
 
     sig = range_sigma_function("depth_camera")
@@ -215,6 +215,30 @@ def test_nees_monte_carlo_inside_its_chi_square_band(monte_carlo):
     # and no single time is wildly off (each instant's run average inside the 99.9 % band)
     lo3, hi3 = chi2_band(6, n=len(monte_carlo), prob=0.999)
     assert (nees.mean(axis=0) > lo3).all() and (nees.mean(axis=0) < hi3).all()
+
+
+def test_cov_pose_tangent_is_the_conventions_order_with_the_same_nees(monte_carlo):
+    """cov_pose is in the filter's order [dp world, dtheta body]; cov_pose_tangent() is the
+    [omega, v] right perturbation of docs/conventions.md (omega = dtheta, v = R^T dp): the rotation
+    block is the same, the position block rotated into the body frame, and the NEES of the
+    correspondingly mapped errors equals the one in the filter's order."""
+    from graphcal.geometry import so3_log
+
+    walk, res = monte_carlo[0]
+    C = res.cov_pose_tangent()
+    k = res.cov_index
+    R = res.T_world_body[k, :3, :3]
+    assert C.shape == res.cov_pose.shape
+    assert np.allclose(C[:, 0:3, 0:3], res.cov_pose[:, 3:6, 3:6], rtol=0, atol=0)
+    Rt = np.swapaxes(R, 1, 2)
+    assert np.allclose(C[:, 3:6, 3:6], Rt @ res.cov_pose[:, 0:3, 0:3] @ R, rtol=1e-12, atol=1e-18)
+    e = pose_errors(res.T_world_body[k], walk.T_world_body[k])
+    nees = np.einsum("ni,ni->n", e, np.linalg.solve(res.cov_pose, e[:, :, None])[:, :, 0])
+    xi = np.c_[e[:, 3:], np.einsum("nji,nj->ni", R, e[:, :3])]
+    nees_xi = np.einsum("ni,ni->n", xi, np.linalg.solve(C, xi[:, :, None])[:, :, 0])
+    assert np.allclose(nees_xi, nees, rtol=1e-8)
+    # omega is the rotation part of the right perturbation T_true = T_est Exp(xi) itself
+    assert np.allclose(xi[:, :3], [so3_log(a.T @ b) for a, b in zip(R, walk.T_world_body[k, :3, :3])], atol=1e-12)
 
 
 def test_initial_tilt_covariance_covers_the_accelerometer_window():

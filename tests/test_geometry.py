@@ -159,3 +159,30 @@ def test_plane_from_points_pca_equals_the_centred_pca(rng, offset_m):
     assert np.allclose(w, w_ref, rtol=1e-6, atol=1e-15)
     # the plane found is the true one (noise 1 mm over 20k points)
     assert np.degrees(np.arccos(min(1.0, abs(n @ n_true)))) < 0.01
+
+
+def test_so3_log_batch_exp_and_skew_agree_with_gtsam(rng):
+    phis = np.vstack([rng.normal(0, 1.0, (20, 3)), rng.normal(0, 1e-7, (5, 3)), np.zeros((1, 3))])
+    Rb = g.so3_exp_batch(phis)
+    for phi, R in zip(phis, Rb):
+        assert np.allclose(R, gtsam.Rot3.Expmap(phi).matrix(), atol=1e-14)
+        assert np.allclose(R, g.so3_exp(phi), atol=1e-14)
+        if np.linalg.norm(phi) < 3.0:
+            assert np.allclose(g.so3_log(R), gtsam.Rot3.Logmap(gtsam.Rot3(R)), atol=1e-12)
+            assert np.allclose(g.so3_log(R), phi, atol=1e-12)
+    S = g.skew_batch(phis.reshape(2, 13, 3))
+    assert np.array_equal(S.reshape(26, 3, 3), np.stack([g.skew(p) for p in phis]))
+
+
+def test_batch_quaternions_and_body_rates_from_rpy_rates(rng):
+    rpy = rng.uniform([-np.pi, -1.4, -np.pi], [np.pi, 1.4, np.pi], (30, 3))
+    R = g.matrix_from_rpy(rpy)
+    q = g.quat_wxyz_from_matrix_batch(R)
+    assert np.allclose(q, np.stack([g.quat_wxyz_from_matrix(r) for r in R]), atol=1e-12)
+    # body rates: R^T dR/dt = [w]x, by central differences of R(rpy + t rpy_dot)
+    rpy_dot = rng.normal(0, 1.0, (30, 3))
+    h = 1e-6
+    dR = (g.matrix_from_rpy(rpy + h * rpy_dot) - g.matrix_from_rpy(rpy - h * rpy_dot)) / (2 * h)
+    W = np.swapaxes(R, 1, 2) @ dR
+    w_num = np.c_[W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]]
+    assert np.allclose(g.body_rates_from_rpy_rates(rpy, rpy_dot), w_num, atol=1e-8)

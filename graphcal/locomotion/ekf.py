@@ -41,8 +41,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from graphcal.errors import GraphcalError
+from graphcal.geometry import skew, so3_exp, so3_log
 
-__all__ = ["GRAVITY_WORLD", "EkfNoise", "NominalState", "LeggedEKF", "state_dim", "check_covariance"]
+__all__ = ["GRAVITY_WORLD", "EkfNoise", "NominalState", "LeggedEKF", "state_dim", "check_covariance",
+           "tangent_pose_covariance"]
 
 GRAVITY_WORLD = np.array([0.0, 0.0, -9.80665])
 
@@ -144,34 +146,28 @@ def check_covariance(name: str, M, n: int, *, definite: bool = False) -> np.ndar
     return 0.5 * (A + A.T)
 
 
-def _skew(v) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+def tangent_pose_covariance(R_world_body: np.ndarray, cov_dp_dtheta: np.ndarray) -> np.ndarray:
+    """The filter's pose covariance in the SE(3) order of docs/conventions.md.
 
+    The filter's pose error is ``e = [dp, dtheta]``: ``p = p_hat + dp`` (dp in the world frame, m)
+    and ``R = R_hat Exp(dtheta)`` (dtheta in the body frame, rad). The right perturbation
+    ``T = T_hat Exp(xi)``, ``xi = [omega, v]``, is to first order ``omega = dtheta``,
+    ``v = R_hat^T dp`` (body frame), i.e. ``xi = J e`` with ``J = [[0, I], [R_hat^T, 0]]``.
 
-def _exp(w) -> np.ndarray:
-    """Rodrigues: Exp of a rotation vector (3,), rad."""
-    x, y, z = float(w[0]), float(w[1]), float(w[2])
-    th2 = x * x + y * y + z * z
-    if th2 < 1e-16:
-        a, b = 1.0, 0.5
-    else:
-        th = math.sqrt(th2)
-        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
-    return np.array([
-        [1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
-        [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
-        [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)],
-    ])
+    Args:
+        R_world_body: (..., 3, 3) the estimated orientations R_hat.
+        cov_dp_dtheta: (..., 6, 6) covariances of ``[dp, dtheta]`` (m^2, m rad, rad^2), e.g.
+            :meth:`LeggedEKF.pose_covariance` or ``TrackResult.cov_pose``.
 
-
-def _log(R) -> np.ndarray:
-    """Rotation vector (3,) of a rotation matrix (angle < pi)."""
-    c = max(-1.0, min(1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
-    th = math.acos(c)
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if th < 1e-7:
-        return 0.5 * v
-    return v * (th / (2.0 * math.sin(th)))
+    Returns:
+        (..., 6, 6) covariances of ``xi = [omega, v]`` (rad^2, rad m, m^2): ``J cov J^T``.
+    """
+    R = np.asarray(R_world_body, dtype=float)
+    C = np.asarray(cov_dp_dtheta, dtype=float)
+    J = np.zeros(R.shape[:-2] + (6, 6))
+    J[..., 0:3, 3:6] = np.eye(3)
+    J[..., 3:6, 0:3] = np.swapaxes(R, -1, -2)
+    return J @ C @ np.swapaxes(J, -1, -2)
 
 
 class LeggedEKF:
@@ -278,7 +274,9 @@ class LeggedEKF:
         return T
 
     def pose_covariance(self) -> np.ndarray:
-        """(6, 6) covariance of (dp (world), dtheta (body))."""
+        """(6, 6) covariance of the filter's pose error (dp (world, m), dtheta (body, rad)): position
+        first and in the world frame, unlike the ``[omega, v]`` right-perturbation order of
+        docs/conventions.md; :func:`tangent_pose_covariance` converts."""
         idx = np.r_[0:3, 6:9]
         return self.kf.P[np.ix_(idx, idx)].copy()
 
@@ -310,7 +308,7 @@ class LeggedEKF:
         g = GRAVITY_WORLD
         xn[0:3] += self.v * T + (0.5 * T * T) * g + RD[:, 0]
         xn[3:6] += g * T + RD[:, 1]
-        dRc = dR @ _exp(-T * b[:3])
+        dRc = dR @ so3_exp(-T * b[:3])
         R = self.R
         self.R = R @ dRc
         F = self._F
@@ -351,7 +349,7 @@ class LeggedEKF:
             z = p_body_foot[i]
             self.p_feet[i] = self.p + self.R @ z
             G[3 * i : 3 * i + 3, 0:3] = np.eye(3)
-            G[3 * i : 3 * i + 3, 6:9] = -self.R @ _skew(z)
+            G[3 * i : 3 * i + 3, 6:9] = -self.R @ skew(z)
         GP = G @ P
         Gz = np.kron(np.eye(n), self.R)
         Rz = Gz @ R_meas @ Gz.T
@@ -418,14 +416,14 @@ class LeggedEKF:
         cov = check_covariance("relative-pose covariance", cov, k, definite=True)
         dR_hat = self.R_c.T @ self.R
         dt_hat = self.R_c.T @ (self.p - self.p_c)
-        xi = np.r_[_log(dR_hat.T @ T_meas[:3, :3]), dR_hat.T @ (T_meas[:3, 3] - dt_hat)]
+        xi = np.r_[so3_log(dR_hat.T @ T_meas[:3, :3]), dR_hat.T @ (T_meas[:3, 3] - dt_hat)]
         c = self._c
         Hx = np.zeros((6, self.dim))
         Hx[0:3, 6:9] = np.eye(3)
         Hx[0:3, c + 3 : c + 6] = -dR_hat.T
         Hx[3:6, 0:3] = dR_hat.T @ self.R_c.T
         Hx[3:6, c : c + 3] = -dR_hat.T @ self.R_c.T
-        Hx[3:6, c + 3 : c + 6] = dR_hat.T @ _skew(dt_hat)
+        Hx[3:6, c + 3 : c + 6] = dR_hat.T @ skew(dt_hat)
         return self._update(A @ xi, np.zeros(k), A @ Hx, cov, gate_chi2=gate_chi2)
 
     # ------------------------------------------------------------------ common
@@ -471,12 +469,12 @@ class LeggedEKF:
 
     def _inject(self, dx: np.ndarray) -> None:
         self._xn += dx[self._xn_idx]
-        self.R = self.R @ _exp(dx[6:9])
+        self.R = self.R @ so3_exp(dx[6:9])
         self.p_feet += dx[self._fs].reshape(self.n_slots, 3)
         if self.has_clone:
             c = self._c
             self.p_c = self.p_c + dx[c : c + 3]
-            self.R_c = self.R_c @ _exp(dx[c + 3 : c + 6])
+            self.R_c = self.R_c @ so3_exp(dx[c + 3 : c + 6])
 
     def renormalize(self) -> None:
         """Re-orthonormalise R (call now and then: rounding accumulates over many steps)."""

@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from graphcal.errors import DatasetError, GraphcalError
+from graphcal.geometry import matrix_from_rpy, rotation_angle_between
 from graphcal.locomotion.ekf import GRAVITY_WORLD as GRAVITY
-from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim
+from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim, tangent_pose_covariance
 
 __all__ = ["TrackerConfig", "TrackInputs", "TrackResult", "run_filter", "inputs_from_dataset",
            "inputs_from_walking", "estimate_trajectory"]
@@ -124,7 +125,14 @@ class TrackResult:
 
     Attributes:
         times: (N,) s. T_world_body: (N, 4, 4). v_world_body, gyro_bias, accel_bias: (N, 3).
-        cov_index: (M,) sample indices of ``cov_pose`` (M, 6, 6): covariance of (dp world, dtheta body).
+        cov_index: (M,) sample indices of ``cov_pose``.
+        cov_pose: (M, 6, 6) covariance of the filter's pose error at those samples, in the filter's
+            order ``[dp, dtheta]``: ``dp = p_true - p_est`` in the world frame (m), then ``dtheta``
+            with ``R_true = R_est Exp(dtheta)`` in the body frame (rad). This is NOT the
+            ``[omega, v]`` right-perturbation order of docs/conventions.md (position first, and in
+            the world frame); it matches :func:`graphcal.locomotion.metrics.pose_errors` (NEES) and
+            the report's per-axis world position sigmas. :meth:`cov_pose_tangent` gives the
+            ``[omega, v]`` form.
         stance_nis: (K,) NIS of the stance updates (dof ``stance_dof``); stance_times (K,);
         stance_innovations: (K, stance_dof) innovations whitened by their covariance (Cholesky).
         icp_nis, icp_dof, icp_times: NIS and number of fused directions of each ICP update.
@@ -153,6 +161,12 @@ class TrackResult:
     groups: tuple
     processing_s: float
     duration_s: float
+
+    def cov_pose_tangent(self) -> np.ndarray:
+        """(M, 6, 6) ``cov_pose`` converted to docs/conventions.md's order: covariance of
+        ``xi = [omega, v]`` with ``T_true = T_est Exp(xi)`` (body frame; rad, m), by
+        :func:`graphcal.locomotion.ekf.tangent_pose_covariance` at the estimated orientations."""
+        return tangent_pose_covariance(self.T_world_body[self.cov_index, :3, :3], self.cov_pose)
 
     @property
     def real_time_factor(self) -> float:
@@ -305,8 +319,6 @@ def _initial_state(inp: TrackInputs, pbf: np.ndarray, feet_idx: list[int], cfg: 
     a = inp.T_body_imu[:3, :3] @ inp.accel[:n0].mean(axis=0)
     roll = math.atan2(a[1], a[2])
     pitch = math.atan2(-a[0], math.hypot(a[1], a[2]))
-    from graphcal.geometry import matrix_from_rpy
-
     R0 = matrix_from_rpy([roll, pitch, 0.0])
     feet_world = pbf[feet_idx, 0] @ R0.T
     z0 = -float(feet_world[:, 2].mean())
@@ -339,14 +351,349 @@ def _initial_covariance(cfg: TrackerConfig, n_slots: int, R_body_imu: np.ndarray
     return P + cfg.sigma_init_accel_bias**2 * (G @ G.T)
 
 
+@dataclass(frozen=True, eq=False)
+class _FootKinematics:
+    """Forward kinematics of every foot at every sample: ``p_body_foot`` (n_feet, N, 3) m,
+    ``cov`` (n_feet, N, 3, 3) m^2 the covariance of each measured foot position (encoders and
+    model), ``jacobians`` foot -> (N, 3, n_joints) m/rad (body frame)."""
+
+    p_body_foot: np.ndarray
+    cov: np.ndarray
+    jacobians: dict
+
+
+def _foot_kinematics(inp: TrackInputs, feet: tuple, cfg: TrackerConfig, N: int) -> _FootKinematics:
+    """Kinematics of every foot at every sample (vectorised, one pass per leg): positions,
+    Jacobians, and the covariance of the measured foot positions."""
+    from graphcal.models.kinematics import joint_frames, position_jacobian
+
+    enc_var = cfg.noise.encoder_sigma_rad**2
+    kin_cov = np.eye(3) * cfg.noise.kinematic_sigma_m**2
+    pbf = np.empty((len(feet), N, 3))
+    Rf = np.empty((len(feet), N, 3, 3))
+    jac = {}
+    for i, f in enumerate(feet):
+        leg = inp.robot.leg(f)
+        q = np.column_stack([inp.q[j] for j in leg.joint_names])
+        axes, origins, _, p_foot = joint_frames(leg, q)
+        J = position_jacobian(leg.joint_types, axes, origins, p_foot)
+        pbf[i] = p_foot
+        jac[f] = J
+        Rf[i] = enc_var * (J @ np.swapaxes(J, 1, 2)) + kin_cov
+    return _FootKinematics(pbf, Rf, jac)
+
+
+def _support_group(inp: TrackInputs, feet: tuple, groups: tuple, jacobians: dict, cfg: TrackerConfig) -> np.ndarray:
+    """(N,) index into ``groups`` of the tripod in stance at each sample: from the joint torques
+    when there are any, else from the contacts (ties, all feet down, keep the previous tripod)."""
+    from graphcal.locomotion.support import support_from_torques
+
+    if inp.tau is not None:
+        sup = support_from_torques(inp.robot, inp.q, inp.tau, groups, hysteresis_n=cfg.hysteresis_n,
+                                   jacobians=jacobians)
+        return sup.group
+    cont = np.asarray(inp.contact, dtype=bool)
+    load = np.stack([cont[:, [feet.index(f) for f in g]].sum(axis=1) for g in groups], axis=1).astype(float)
+    group = np.where(load[:, 1] > load[:, 0], 1, 0)
+    for k in range(1, len(group)):  # ties (all feet down) keep the previous tripod
+        if load[k, 1] == load[k, 0]:
+            group[k] = group[k - 1]
+    return group
+
+
+def _stance_measurement(kin: _FootKinematics, feet_idx: list[int], k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(p_body_foot (n_slots, 3) m, block-diagonal covariance (3 n_slots, 3 n_slots) m^2) of the
+    feet ``feet_idx`` at sample k."""
+    n_slots = len(feet_idx)
+    Rm = np.zeros((3 * n_slots, 3 * n_slots))
+    for s, i in enumerate(feet_idx):
+        Rm[3 * s : 3 * s + 3, 3 * s : 3 * s + 3] = kin.cov[i, k]
+    return kin.p_body_foot[feet_idx, k], Rm
+
+
+@dataclass(frozen=True, eq=False)
+class _IcpSetup:
+    """The ICP stage: ``use`` (clouds, a sensor pose and ``cfg.icp``), ``T_body_sensor`` (4, 4)
+    and its inverse, ``Ad_inv`` (6, 6) the inverse adjoint of T_body_sensor ([omega, v]) and the
+    sensor's range-noise function (None when unused)."""
+
+    use: bool
+    T_body_sensor: np.ndarray
+    T_sensor_body: np.ndarray
+    Ad_inv: np.ndarray | None
+    sigma_fn: object
+
+
+def _icp_setup(inp: TrackInputs, cfg: TrackerConfig) -> _IcpSetup:
+    use_icp = cfg.icp and bool(inp.clouds) and inp.T_body_sensor is not None
+    T_bs = inp.T_body_sensor if inp.T_body_sensor is not None else np.eye(4)
+    T_sb = np.linalg.inv(T_bs)
+    Ad_inv = None
+    sigma_fn = None
+    if use_icp:
+        from graphcal.clouds.icp import range_sigma_function
+        from graphcal.geometry import pose_adjoint as adjoint
+
+        Ad_bs = adjoint(T_bs)
+        Ad_inv = np.linalg.inv(Ad_bs)
+        sigma_fn = range_sigma_function(inp.sensor_type)
+    return _IcpSetup(use_icp, T_bs, T_sb, Ad_inv, sigma_fn)
+
+
+def _events(N: int, every: int, group: np.ndarray, cloud_samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(events, switches): the samples that end an IMU chunk (every ``every``-th sample, support
+    switches, clouds and the last sample; increasing, > 0) and the support switches."""
+    switches = np.flatnonzero(np.diff(group) != 0) + 1
+    events = np.union1d(np.union1d(np.arange(every, N, every), switches), cloud_samples)
+    events = np.union1d(events[(events > 0) & (events < N)], [N - 1]).astype(np.int64)
+    return events, switches
+
+
+def _preintegrated_imu(inp: TrackInputs, times: np.ndarray, events: np.ndarray):
+    """IMU: body-frame rates and specific forces held over each interval (mean of its two ends),
+    preintegrated between ``events`` (vectorised; see graphcal.locomotion.imu)."""
+    from graphcal.locomotion.imu import preintegrate
+
+    R_bi = np.asarray(inp.T_body_imu, dtype=float)[:3, :3]
+    gyro = np.asarray(inp.gyro, dtype=float) @ R_bi.T
+    accel = np.asarray(inp.accel, dtype=float) @ R_bi.T
+    w_mid = np.empty_like(gyro)
+    a_mid = np.empty_like(accel)
+    w_mid[0], a_mid[0] = gyro[0], accel[0]
+    w_mid[1:] = 0.5 * (gyro[1:] + gyro[:-1])
+    a_mid[1:] = 0.5 * (accel[1:] + accel[:-1])
+    dts = np.diff(times, prepend=times[0])
+    return preintegrate(w_mid, a_mid, dts, events)
+
+
+@dataclass(frozen=True, eq=False)
+class _EventInputs:
+    """Per event (n_ev of them): the chunk's preintegration stacked as the filter takes it
+    (``dR`` (n_ev, 3, 3), ``dpv`` (n_ev, 6) m and m/s, ``J`` (n_ev, 6, 6), ``T`` (n_ev,) s), the
+    stance tripod ``group`` (n_ev,), its measured feet ``z`` (n_ev, n_slots, 3) m (body frame) and
+    their block-diagonal covariance ``R`` (n_ev, 3 n_slots, 3 n_slots) m^2."""
+
+    dR: np.ndarray
+    dpv: np.ndarray
+    J: np.ndarray
+    T: np.ndarray
+    group: np.ndarray
+    z: np.ndarray
+    R: np.ndarray
+
+
+def _event_inputs(pre, events: np.ndarray, group: np.ndarray, group_idx: list, kin: _FootKinematics,
+                  n_slots: int) -> _EventInputs:
+    ev_dR = pre.dR[events]
+    ev_dpv = np.concatenate([pre.dp[events], pre.dv[events]], axis=1)
+    ev_J = np.concatenate([np.concatenate([pre.Jpg[events], pre.Jpa[events]], axis=2),
+                           np.concatenate([pre.Jvg[events], pre.Jva[events]], axis=2)], axis=1)
+    ev_T = pre.tau[events]
+    # the stance tripod's measured feet and their block-diagonal covariance (vectorised)
+    ev_group = np.asarray(group)[events]
+    ev_feet = np.asarray(group_idx)[ev_group]  # (n_ev, n_slots) foot indices
+    ev_z = kin.p_body_foot[ev_feet, events[:, None]]  # (n_ev, n_slots, 3)
+    ev_R = np.zeros((len(events), 3 * n_slots, 3 * n_slots))
+    for s_ in range(n_slots):
+        ev_R[:, 3 * s_ : 3 * s_ + 3, 3 * s_ : 3 * s_ + 3] = kin.cov[ev_feet[:, s_], events]
+    return _EventInputs(ev_dR, ev_dpv, ev_J, ev_T, ev_group, ev_z, ev_R)
+
+
+def _fuse_icp(ekf: LeggedEKF, pts: np.ndarray, kf_cloud, icp: _IcpSetup, cfg: TrackerConfig) -> tuple[float, int] | None:
+    """ICP of the cloud ``pts`` (M, 3) (sensor frame, m) against the keyframe's and its fusion as a
+    relative-pose update: (NIS, fused directions), or None when not fused (ICP failed, too few
+    inliers, or gated out)."""
+    from scipy.stats import chi2
+
+    from graphcal.clouds.icp import icp_relative_pose
+
+    T_bs, T_sb = icp.T_body_sensor, icp.T_sensor_body
+    T_pred = T_sb @ ekf.predicted_relative_pose() @ T_bs  # T_kfcam_cam
+    try:
+        res = icp_relative_pose(pts, kf_cloud, T_pred, icp.sigma_fn,
+                                max_correspondence_m=cfg.icp_max_correspondence_m,
+                                degenerate_ratio=cfg.icp_degenerate_ratio)
+    except GraphcalError:
+        res = None
+    if res is None or res.fitness < cfg.icp_min_fitness:
+        return None
+    T_meas = T_bs @ res.T_target_source @ T_sb
+    A_body = res.A @ icp.Ad_inv  # z = A xi_cam, xi_cam = Ad(T_bs)^-1 xi_body
+    dof = A_body.shape[0]
+    nis, fused = ekf.update_relative_pose(T_meas, A_body, res.cov * cfg.noise.icp_cov_scale,
+                                          gate_chi2=float(chi2.ppf(cfg.icp_gate_prob, dof)))
+    return (nis, dof) if fused else None
+
+
+def _needs_keyframe(ekf: LeggedEKF, t_k: float, kf_time: float, cfg: TrackerConfig) -> bool:
+    """Whether the body moved (distance, angle or time) enough since the keyframe clone."""
+    return ekf.has_clone and (
+        np.linalg.norm(ekf.p - ekf.p_c) >= cfg.keyframe_distance_m
+        or rotation_angle_between(ekf.R_c, ekf.R) >= cfg.keyframe_angle_rad
+        or t_k - kf_time >= cfg.keyframe_max_s
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class _LoopOutput:
+    """What the event loop leaves: the filter state after each event (row 0: the initial state;
+    p, v (n_ev + 1, 3), R (n_ev + 1, 3, 3), body-frame biases bg, ba (n_ev + 1, 3)); the stance
+    updates' innovations (K, 3 n_slots), their covariances, NIS and times; the ICP updates' NIS,
+    dof and times and the number not fused; the sample indices and (6, 6) pose covariances kept."""
+
+    S_p: np.ndarray
+    S_v: np.ndarray
+    S_R: np.ndarray
+    S_bg: np.ndarray
+    S_ba: np.ndarray
+    st_y: np.ndarray
+    st_S: np.ndarray
+    st_nis: np.ndarray
+    st_t: np.ndarray
+    icp_nis: list
+    icp_dof: list
+    icp_times: list
+    n_rejected: int
+    cov_index: list
+    cov_pose: list
+
+
+def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.ndarray, switches: np.ndarray,
+                cloud_samples: np.ndarray, ev: _EventInputs, groups: tuple, icp: _IcpSetup, cfg: TrackerConfig, *,
+                progress: bool) -> _LoopOutput:
+    """The filter over the events (sample indices): propagate over each chunk, then at a support
+    switch take the new feet, else a stance update (every ``stance_every``-th sample), and at a
+    cloud sample (``cloud_samples``) a keyframe and an ICP update."""
+    if icp.use:
+        from graphcal.clouds.icp import prepare_target
+
+    N = len(times)
+    n_slots = ekf.n_slots
+    pose_idx = np.r_[0:3, 6:9]
+    st_dof = 3 * n_slots
+    every = cfg.stance_every
+    is_switch = np.zeros(N, dtype=bool)
+    is_switch[switches] = True
+    is_cloud = np.zeros(N, dtype=bool)
+    is_cloud[cloud_samples] = True
+    max_st = len(events)
+    st_y = np.empty((max_st, st_dof))
+    st_S = np.empty((max_st, st_dof, st_dof))
+    st_nis = np.empty(max_st)
+    st_t = np.empty(max_st)
+    n_st = 0
+    cov_index: list[int] = [0]
+    cov_pose: list[np.ndarray] = [ekf.kf.P[np.ix_(pose_idx, pose_idx)].copy()]
+    kf_cloud = None
+    kf_time = -np.inf
+    icp_nis, icp_dof, icp_times = [], [], []
+    n_rejected = 0
+    # chunk-start states (for the per-sample reconstruction afterwards)
+    n_ev = len(events)
+    S_p = np.empty((n_ev + 1, 3))
+    S_v = np.empty((n_ev + 1, 3))
+    S_R = np.empty((n_ev + 1, 3, 3))
+    S_bg = np.empty((n_ev + 1, 3))
+    S_ba = np.empty((n_ev + 1, 3))
+    S_p[0], S_v[0], S_R[0] = ekf.p, ekf.v, ekf.R
+    S_bg[0], S_ba[0] = ekf.body_biases()
+    it = range(n_ev)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc="track: EKF", unit="update", mininterval=0.5)
+    next_cov = cfg.record_cov_every
+    pose_r, pose_c = np.meshgrid(pose_idx, pose_idx, indexing="ij")
+    for e in it:
+        k = int(events[e])
+        ekf.propagate(ev.dR[e], ev.dpv[e], ev.J[e], ev.T[e])
+        g = int(ev.group[e])
+        if is_switch[k]:
+            ekf.reset_feet(groups[g], ev.z[e], ev.R[e])
+        elif k % every == 0:
+            st_nis[n_st] = ekf.update_stance(ev.z[e], ev.R[e])
+            st_y[n_st] = ekf.last_innovation
+            st_S[n_st] = ekf.last_S
+            st_t[n_st] = times[k]
+            n_st += 1
+        if is_cloud[k]:
+            moved = _needs_keyframe(ekf, times[k], kf_time, cfg)
+            if not ekf.has_clone or moved:
+                pts = np.asarray(inp.clouds[k](), dtype=float)
+                if len(pts) > cfg.icp_max_points:  # evenly thinned (deterministic): ICP cost bounded
+                    pts = pts[np.linspace(0, len(pts) - 1, cfg.icp_max_points).astype(np.int64)]
+                if moved and kf_cloud is not None and len(pts) >= 10:
+                    fused = _fuse_icp(ekf, pts, kf_cloud, icp, cfg)
+                    if fused is None:
+                        n_rejected += 1
+                    else:
+                        icp_nis.append(fused[0])
+                        icp_dof.append(fused[1])
+                        icp_times.append(times[k])
+                if len(pts) >= 10:
+                    try:
+                        kf_cloud = prepare_target(pts, icp.sigma_fn, k=cfg.icp_neighbours)
+                        ekf.clone_pose()
+                        kf_time = times[k]
+                    except GraphcalError:
+                        pass
+        if e % 200 == 199:
+            ekf.renormalize()
+        if k >= next_cov:
+            cov_index.append(k)
+            cov_pose.append(ekf.kf.P[pose_r, pose_c])
+            next_cov = k + cfg.record_cov_every
+        S_p[e + 1], S_v[e + 1], S_R[e + 1] = ekf.p, ekf.v, ekf.R
+        S_bg[e + 1], S_ba[e + 1] = ekf.body_biases()
+    return _LoopOutput(S_p, S_v, S_R, S_bg, S_ba, st_y[:n_st], st_S[:n_st], st_nis[:n_st], st_t[:n_st],
+                       icp_nis, icp_dof, icp_times, n_rejected, cov_index, cov_pose)
+
+
+def _states_at_samples(pre, events: np.ndarray, out: _LoopOutput, R_bi: np.ndarray, N: int):
+    """The state at every sample: chunk-start state + bias-corrected partial preintegration; event
+    samples get their post-update state. Returns p, v (N, 3), R (N, 3, 3) and the IMU-frame biases
+    bg, ba (N, 3)."""
+    from graphcal.locomotion.imu import reconstruct
+
+    S_p, S_v, S_R, S_bg, S_ba = out.S_p, out.S_v, out.S_R, out.S_bg, out.S_ba
+    P_out = np.empty((N, 3))
+    R_out = np.empty((N, 3, 3))
+    V_out = np.empty((N, 3))
+    BG_out = np.empty((N, 3))
+    BA_out = np.empty((N, 3))
+    chunk = np.searchsorted(events, np.arange(N), side="left")  # sample k in chunk (events[c-1], events[c]]
+    row = np.where(np.arange(N) == 0, 0, chunk)  # index into the kept states (0 = the initial state)
+    p_all, v_all, R_all = reconstruct(pre, S_p[row], S_v[row], S_R[row], S_bg[row], S_ba[row], GRAVITY)
+    P_out[:], V_out[:], R_out[:] = p_all, v_all, R_all
+    BG_out[:] = np.asarray(S_bg[row]) @ R_bi  # back to the IMU frame
+    BA_out[:] = np.asarray(S_ba[row]) @ R_bi
+    P_out[0], V_out[0], R_out[0] = S_p[0], S_v[0], S_R[0]
+    P_out[events], V_out[events], R_out[events] = S_p[1:], S_v[1:], S_R[1:]
+    BG_out[events], BA_out[events] = S_bg[1:] @ R_bi, S_ba[1:] @ R_bi
+    return P_out, V_out, R_out, BG_out, BA_out
+
+
+def _whitened_innovations(st_y: np.ndarray, st_S: np.ndarray) -> np.ndarray:
+    """Innovations (K, m) whitened by their covariances (K, m, m) (Cholesky, batched); NaN when one
+    is not positive definite."""
+    n_st, st_dof = st_y.shape
+    st_w = np.full((n_st, st_dof), np.nan)
+    if n_st:
+        try:
+            L = np.linalg.cholesky(st_S)
+            st_w = np.linalg.solve(L, st_y[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:  # pragma: no cover
+            pass
+    return st_w
+
+
 def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, progress: bool = False) -> TrackResult:
     """Run the EKF over ``inp`` (see the module docstring); returns the estimate at every sample."""
-    from graphcal.locomotion.support import SupportEstimate, support_from_torques
-
     # imports first: the processing time measures the filter, not module loading
     import filterpy.kalman  # noqa: F401
 
-    from graphcal.locomotion import imu  # noqa: F401
+    from graphcal.locomotion import imu, support  # noqa: F401
+    from graphcal.models import kinematics  # noqa: F401
     if config.icp and inp.clouds:
         import open3d  # noqa: F401
         import scipy.stats  # noqa: F401
@@ -361,228 +708,29 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
     groups = tuple(tuple(g) for g in inp.groups)
     n_slots = len(groups[0])
 
-    # -- kinematics of every foot at every sample (vectorised, one pass per leg): positions,
-    # Jacobians, and the covariance of the measured foot positions
-    from graphcal.models.kinematics import joint_frames, position_jacobian
-
-    enc_var = cfg.noise.encoder_sigma_rad**2
-    kin_cov = np.eye(3) * cfg.noise.kinematic_sigma_m**2
-    pbf = np.empty((len(feet), N, 3))
-    Rf = np.empty((len(feet), N, 3, 3))
-    jac = {}
-    for i, f in enumerate(feet):
-        leg = robot.leg(f)
-        q = np.column_stack([inp.q[j] for j in leg.joint_names])
-        axes, origins, _, p_foot = joint_frames(leg, q)
-        J = position_jacobian(leg.joint_types, axes, origins, p_foot)
-        pbf[i] = p_foot
-        jac[f] = J
-        Rf[i] = enc_var * (J @ np.swapaxes(J, 1, 2)) + kin_cov
-
-    # -- support: which tripod is in stance
-    if inp.tau is not None:
-        sup = support_from_torques(robot, inp.q, inp.tau, groups, hysteresis_n=cfg.hysteresis_n, jacobians=jac)
-        group = sup.group
-    else:
-        cont = np.asarray(inp.contact, dtype=bool)
-        load = np.stack([cont[:, [feet.index(f) for f in g]].sum(axis=1) for g in groups], axis=1).astype(float)
-        group = np.where(load[:, 1] > load[:, 0], 1, 0)
-        for k in range(1, N):  # ties (all feet down) keep the previous tripod
-            if load[k, 1] == load[k, 0]:
-                group[k] = group[k - 1]
-        sup = SupportEstimate(group, groups, np.zeros((N, 0)), ())
+    kin = _foot_kinematics(inp, feet, cfg, N)
+    group = _support_group(inp, feet, groups, kin.jacobians, cfg)
     n_joints = robot.leg(feet[0]).n_joints
     group_idx = [[feet.index(f) for f in g] for g in groups]
 
-    x0 = _initial_state(inp, pbf, group_idx[group[0]], cfg)
+    x0 = _initial_state(inp, kin.p_body_foot, group_idx[group[0]], cfg)
     P0 = _initial_covariance(cfg, n_slots, np.asarray(inp.T_body_imu, dtype=float)[:3, :3],
                              _init_window(times, cfg)[1])
-    ekf = LeggedEKF(x0, P0, cfg.noise.process_density(n_slots), np.eye(n_joints) * enc_var, kin_cov,
-                    n_slots=n_slots, T_body_imu=inp.T_body_imu)
-
-    def meas(gi: int, k: int):
-        idx = group_idx[gi]
-        Rm = np.zeros((3 * n_slots, 3 * n_slots))
-        for s, i in enumerate(idx):
-            Rm[3 * s : 3 * s + 3, 3 * s : 3 * s + 3] = Rf[i, k]
-        return pbf[idx, k], Rm
-
-    z, Rm = meas(group[0], 0)
+    ekf = LeggedEKF(x0, P0, cfg.noise.process_density(n_slots), np.eye(n_joints) * cfg.noise.encoder_sigma_rad**2,
+                    np.eye(3) * cfg.noise.kinematic_sigma_m**2, n_slots=n_slots, T_body_imu=inp.T_body_imu)
+    z, Rm = _stance_measurement(kin, group_idx[group[0]], 0)
     ekf.reset_feet(groups[group[0]], z, Rm)
 
-    # -- ICP stage
-    use_icp = cfg.icp and bool(inp.clouds) and inp.T_body_sensor is not None
-    T_bs = inp.T_body_sensor if inp.T_body_sensor is not None else np.eye(4)
-    T_sb = np.linalg.inv(T_bs)
-    Ad_bs = None
-    sigma_fn = None
-    if use_icp:
-        from scipy.stats import chi2
-
-        from graphcal.clouds.icp import icp_relative_pose, prepare_target, range_sigma_function
-        from graphcal.geometry import pose_adjoint as adjoint
-
-        Ad_bs = adjoint(T_bs)
-        Ad_inv = np.linalg.inv(Ad_bs)
-        sigma_fn = range_sigma_function(inp.sensor_type)
-    kf_cloud = None
-    kf_time = -np.inf
-    icp_nis, icp_dof, icp_times = [], [], []
-    n_rejected = 0
-
-    # -- outputs
-    P_out = np.empty((N, 3))
-    R_out = np.empty((N, 3, 3))
-    V_out = np.empty((N, 3))
-    BG_out = np.empty((N, 3))
-    BA_out = np.empty((N, 3))
-    pose_idx = np.r_[0:3, 6:9]
-    st_dof = 3 * n_slots
-    every = cfg.stance_every
-    switches = np.flatnonzero(np.diff(group) != 0) + 1
-    cloud_samples = np.array(sorted(inp.clouds), dtype=np.int64) if use_icp else np.zeros(0, dtype=np.int64)
-    events = np.union1d(np.union1d(np.arange(every, N, every), switches), cloud_samples)
-    events = np.union1d(events[(events > 0) & (events < N)], [N - 1]).astype(np.int64)
-    is_switch = np.zeros(N, dtype=bool)
-    is_switch[switches] = True
-    is_cloud = np.zeros(N, dtype=bool)
-    is_cloud[cloud_samples] = True
-    max_st = len(events)
-    st_y = np.empty((max_st, st_dof))
-    st_S = np.empty((max_st, st_dof, st_dof))
-    st_nis = np.empty(max_st)
-    st_t = np.empty(max_st)
-    n_st = 0
-    cov_index: list[int] = [0]
-    cov_pose: list[np.ndarray] = [ekf.kf.P[np.ix_(pose_idx, pose_idx)].copy()]
-
-    # -- IMU: body-frame rates and specific forces held over each interval (mean of its two ends),
-    # preintegrated between events (vectorised; see graphcal.locomotion.imu)
-    from graphcal.locomotion.imu import preintegrate, reconstruct
+    icp = _icp_setup(inp, cfg)
+    cloud_samples = np.array(sorted(inp.clouds), dtype=np.int64) if icp.use else np.zeros(0, dtype=np.int64)
+    events, switches = _events(N, cfg.stance_every, group, cloud_samples)
+    pre = _preintegrated_imu(inp, times, events)
+    ev = _event_inputs(pre, events, group, group_idx, kin, n_slots)
+    out = _run_events(ekf, inp, times, events, switches, cloud_samples, ev, groups, icp, cfg, progress=progress)
 
     R_bi = np.asarray(inp.T_body_imu, dtype=float)[:3, :3]
-    gyro = np.asarray(inp.gyro, dtype=float) @ R_bi.T
-    accel = np.asarray(inp.accel, dtype=float) @ R_bi.T
-    w_mid = np.empty_like(gyro)
-    a_mid = np.empty_like(accel)
-    w_mid[0], a_mid[0] = gyro[0], accel[0]
-    w_mid[1:] = 0.5 * (gyro[1:] + gyro[:-1])
-    a_mid[1:] = 0.5 * (accel[1:] + accel[:-1])
-    dts = np.diff(times, prepend=times[0])
-    pre = preintegrate(w_mid, a_mid, dts, events)
-
-    # chunk-start states (for the per-sample reconstruction afterwards)
-    n_ev = len(events)
-    S_p = np.empty((n_ev + 1, 3))
-    S_v = np.empty((n_ev + 1, 3))
-    S_R = np.empty((n_ev + 1, 3, 3))
-    S_bg = np.empty((n_ev + 1, 3))
-    S_ba = np.empty((n_ev + 1, 3))
-
-    def keep_state(i):
-        S_p[i], S_v[i], S_R[i] = ekf.p, ekf.v, ekf.R
-        S_bg[i], S_ba[i] = ekf.body_biases()
-
-    keep_state(0)
-    it = range(n_ev)
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, desc="track: EKF", unit="update", mininterval=0.5)
-    next_cov = cfg.record_cov_every
-    # per event: the chunk's preintegration, stacked as the filter takes it
-    ev_dR = pre.dR[events]
-    ev_dpv = np.concatenate([pre.dp[events], pre.dv[events]], axis=1)
-    ev_J = np.concatenate([np.concatenate([pre.Jpg[events], pre.Jpa[events]], axis=2),
-                           np.concatenate([pre.Jvg[events], pre.Jva[events]], axis=2)], axis=1)
-    ev_T = pre.tau[events]
-    # per event: the stance tripod's measured feet and their block-diagonal covariance (vectorised)
-    ev_group = np.asarray(group)[events]
-    ev_feet = np.asarray(group_idx)[ev_group]  # (n_ev, n_slots) foot indices
-    ev_z = pbf[ev_feet, events[:, None]]  # (n_ev, n_slots, 3)
-    ev_R = np.zeros((n_ev, 3 * n_slots, 3 * n_slots))
-    for s_ in range(n_slots):
-        ev_R[:, 3 * s_ : 3 * s_ + 3, 3 * s_ : 3 * s_ + 3] = Rf[ev_feet[:, s_], events]
-    pose_r, pose_c = np.meshgrid(pose_idx, pose_idx, indexing="ij")
-    for e in it:
-        k = int(events[e])
-        ekf.propagate(ev_dR[e], ev_dpv[e], ev_J[e], ev_T[e])
-        g = int(ev_group[e])
-        if is_switch[k]:
-            ekf.reset_feet(groups[g], ev_z[e], ev_R[e])
-        elif k % every == 0:
-            st_nis[n_st] = ekf.update_stance(ev_z[e], ev_R[e])
-            st_y[n_st] = ekf.last_innovation
-            st_S[n_st] = ekf.last_S
-            st_t[n_st] = times[k]
-            n_st += 1
-        if is_cloud[k]:
-            moved = ekf.has_clone and (
-                np.linalg.norm(ekf.p - ekf.p_c) >= cfg.keyframe_distance_m
-                or np.arccos(np.clip((np.trace(ekf.R_c.T @ ekf.R) - 1) / 2, -1, 1)) >= cfg.keyframe_angle_rad
-                or times[k] - kf_time >= cfg.keyframe_max_s
-            )
-            if not ekf.has_clone or moved:
-                pts = np.asarray(inp.clouds[k](), dtype=float)
-                if len(pts) > cfg.icp_max_points:  # evenly thinned (deterministic): ICP cost bounded
-                    pts = pts[np.linspace(0, len(pts) - 1, cfg.icp_max_points).astype(np.int64)]
-                if moved and kf_cloud is not None and len(pts) >= 10:
-                    T_pred = T_sb @ ekf.predicted_relative_pose() @ T_bs  # T_kfcam_cam
-                    try:
-                        res = icp_relative_pose(pts, kf_cloud, T_pred, sigma_fn,
-                                                max_correspondence_m=cfg.icp_max_correspondence_m,
-                                                degenerate_ratio=cfg.icp_degenerate_ratio)
-                    except GraphcalError:
-                        res = None
-                    if res is None or res.fitness < cfg.icp_min_fitness:
-                        n_rejected += 1
-                    else:
-                        T_meas = T_bs @ res.T_target_source @ T_sb
-                        A_body = res.A @ Ad_inv  # z = A xi_cam, xi_cam = Ad(T_bs)^-1 xi_body
-                        dof = A_body.shape[0]
-                        nis, fused = ekf.update_relative_pose(T_meas, A_body, res.cov * cfg.noise.icp_cov_scale,
-                                                              gate_chi2=float(chi2.ppf(cfg.icp_gate_prob, dof)))
-                        if fused:
-                            icp_nis.append(nis)
-                            icp_dof.append(dof)
-                            icp_times.append(times[k])
-                        else:
-                            n_rejected += 1
-                if len(pts) >= 10:
-                    try:
-                        kf_cloud = prepare_target(pts, sigma_fn, k=cfg.icp_neighbours)
-                        ekf.clone_pose()
-                        kf_time = times[k]
-                    except GraphcalError:
-                        pass
-        if e % 200 == 199:
-            ekf.renormalize()
-        if k >= next_cov:
-            cov_index.append(k)
-            cov_pose.append(ekf.kf.P[pose_r, pose_c])
-            next_cov = k + cfg.record_cov_every
-        keep_state(e + 1)
-
-    # -- the state at every sample: chunk-start state + bias-corrected partial preintegration;
-    # event samples get their post-update state
-    chunk = np.searchsorted(events, np.arange(N), side="left")  # sample k in chunk (events[c-1], events[c]]
-    row = np.where(np.arange(N) == 0, 0, chunk)  # index into the kept states (0 = the initial state)
-    p_all, v_all, R_all = reconstruct(pre, S_p[row], S_v[row], S_R[row], S_bg[row], S_ba[row], GRAVITY)
-    P_out[:], V_out[:], R_out[:] = p_all, v_all, R_all
-    BG_out[:] = np.asarray(S_bg[row]) @ R_bi  # back to the IMU frame
-    BA_out[:] = np.asarray(S_ba[row]) @ R_bi
-    P_out[0], V_out[0], R_out[0] = S_p[0], S_v[0], S_R[0]
-    P_out[events], V_out[events], R_out[events] = S_p[1:], S_v[1:], S_R[1:]
-    BG_out[events], BA_out[events] = S_bg[1:] @ R_bi, S_ba[1:] @ R_bi
-
-    # innovations whitened by their covariance (after the loop, batched)
-    st_w = np.full((n_st, st_dof), np.nan)
-    if n_st:
-        try:
-            L = np.linalg.cholesky(st_S[:n_st])
-            st_w = np.linalg.solve(L, st_y[:n_st, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:  # pragma: no cover
-            pass
+    P_out, V_out, R_out, BG_out, BA_out = _states_at_samples(pre, events, out, R_bi, N)
+    st_w = _whitened_innovations(out.st_y, out.st_S)
     T = np.zeros((N, 4, 4))
     T[:, :3, :3] = R_out
     T[:, :3, 3] = P_out
@@ -590,11 +738,11 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
     elapsed = time.perf_counter() - t_start
     return TrackResult(
         times=times, T_world_body=T, v_world_body=V_out, gyro_bias=BG_out, accel_bias=BA_out,
-        cov_index=np.asarray(cov_index, dtype=np.int64), cov_pose=np.asarray(cov_pose),
-        stance_nis=st_nis[:n_st], stance_times=st_t[:n_st], stance_innovations=st_w, stance_dof=st_dof,
-        icp_nis=np.asarray(icp_nis),
-        icp_dof=np.asarray(icp_dof, dtype=np.int64), icp_times=np.asarray(icp_times), n_icp_rejected=n_rejected,
-        support_group=np.asarray(group), groups=groups, processing_s=elapsed,
+        cov_index=np.asarray(out.cov_index, dtype=np.int64), cov_pose=np.asarray(out.cov_pose),
+        stance_nis=out.st_nis, stance_times=out.st_t, stance_innovations=st_w, stance_dof=3 * n_slots,
+        icp_nis=np.asarray(out.icp_nis),
+        icp_dof=np.asarray(out.icp_dof, dtype=np.int64), icp_times=np.asarray(out.icp_times),
+        n_icp_rejected=out.n_rejected, support_group=np.asarray(group), groups=groups, processing_s=elapsed,
         duration_s=float(times[-1] - times[0]),
     )
 

@@ -592,6 +592,71 @@ def _body_after(T_wb: np.ndarray, feet_now: np.ndarray, feet_after: np.ndarray, 
     return T
 
 
+def _feet_on_model(st, feet: tuple, p_world_feet: Mapping[str, np.ndarray], cfg: GaitConfig) -> dict:
+    """foot -> (3,) world position (m) of each of ``feet``, checked; the feet stand on the model's
+    surfaces: heights within ``cfg.foot_snap_m`` of one are set to it (the model and the feet come
+    from estimates with errors of their own)."""
+    feet_w = {}
+    for f in feet:
+        if f not in p_world_feet:
+            raise GaitError(f"gait: p_world_feet has no position for foot {f!r}")
+        p = np.asarray(p_world_feet[f], dtype=float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise GaitError(f"gait: p_world_feet[{f!r}] must be a finite 3-vector, got {p_world_feet[f]!r}")
+        feet_w[f] = p
+    for f, p in feet_w.items():
+        s_f, t_f, h_f = (st.T_stairs_world @ np.r_[p, 1.0])[:3]
+        h_model, _ = _surface_height(st, np.array([s_f]), np.array([t_f]))
+        if np.isfinite(h_model[0]) and abs(h_model[0] - h_f) <= cfg.foot_snap_m:
+            feet_w[f] = st.T_world_stairs[:3, :3] @ np.array([s_f, t_f, h_model[0]]) + st.T_world_stairs[:3, 3]
+    return feet_w
+
+
+def _horizontal_heading(T_wb: np.ndarray, heading_world) -> np.ndarray:
+    """(3,) unit horizontal walking direction (world): ``heading_world`` or the body's x axis, made
+    horizontal."""
+    hd = T_wb[:3, 0] if heading_world is None else np.asarray(heading_world, dtype=float)
+    hd = np.array([hd[0], hd[1], 0.0])
+    if np.linalg.norm(hd) < 1e-9:
+        raise GaitError("gait: the heading is vertical or zero")
+    return hd / np.linalg.norm(hd)
+
+
+def _foothold(st, p_world_foot: np.ndarray, ds: float, dt: float, L) -> np.ndarray:
+    """World footholds (.., 3) m of a swing foot now at ``p_world_foot`` after a step ``L`` (m):
+    ``ds``, ``dt`` the along-stairs and lateral change per metre of step; height from the model
+    (NaN off it)."""
+    L = np.asarray(L, dtype=float)
+    s0, t0 = (st.T_stairs_world @ np.r_[p_world_foot, 1.0])[:2]
+    h, _ = _surface_height(st, s0 + L * ds, t0 + L * dt)
+    X = np.stack([s0 + L * ds, t0 + L * dt, h], axis=-1)
+    return X @ st.T_world_stairs[:3, :3].T + st.T_world_stairs[:3, 3]
+
+
+def _bodies_per_length(T_wb: np.ndarray, feet_w: dict, land: dict, stance: tuple, all_feet: tuple,
+                       L_grid: np.ndarray, known: np.ndarray, hd: np.ndarray, max_pitch: float):
+    """The body at the end of the swing (R_end (nL, 3, 3), o_end (nL, 3) m) and its origin at the
+    end of the following stance (o_next (nL, 3) m), per step length of ``L_grid`` (the start pose
+    where a foothold is ``known`` to be off the model). ``land``: swing foot -> (nL, 3) footholds."""
+    nL = len(L_grid)
+    R0 = T_wb[:3, :3]
+    o0 = T_wb[:3, 3]
+    feet_now = np.array([feet_w[f] for f in all_feet])
+    R_end = np.empty((nL, 3, 3))
+    o_end = np.empty((nL, 3))
+    o_next = np.empty((nL, 3))
+    for i, L in enumerate(L_grid):
+        if not known[i]:
+            R_end[i], o_end[i], o_next[i] = R0, o0, o0
+            continue
+        after = np.array([feet_w[f] if f in stance else land[f][i] for f in all_feet])
+        T1 = _body_after(T_wb, feet_now, after, L, hd, max_pitch)
+        R_end[i], o_end[i] = T1[:3, :3], T1[:3, 3]
+        _, b1 = _feet_line(after, hd)
+        o_next[i] = o_end[i] + 0.5 * L * hd + np.array([0.0, 0.0, b1 * 0.5 * L])
+    return R_end, o_end, o_next
+
+
 def gait_parameters(
     robot,
     T_world_body: np.ndarray,
@@ -634,27 +699,9 @@ def gait_parameters(
     if T_wb.shape != (4, 4) or not np.all(np.isfinite(T_wb)):
         raise GaitError(f"gait: T_world_body must be a finite 4x4 pose, got shape {T_wb.shape}")
     stance, swing = _groups_of(robot, stance_group, groups)
-    feet_w = {}
-    for f in stance + swing:
-        if f not in p_world_feet:
-            raise GaitError(f"gait: p_world_feet has no position for foot {f!r}")
-        p = np.asarray(p_world_feet[f], dtype=float)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise GaitError(f"gait: p_world_feet[{f!r}] must be a finite 3-vector, got {p_world_feet[f]!r}")
-        feet_w[f] = p
     st = _stairs_boxes(stairs)
-    # the feet stand on the model's surfaces: heights within foot_snap_m of one are set to it (the
-    # model and the feet come from estimates with errors of their own)
-    for f, p in feet_w.items():
-        s_f, t_f, h_f = (st.T_stairs_world @ np.r_[p, 1.0])[:3]
-        h_model, _ = _surface_height(st, np.array([s_f]), np.array([t_f]))
-        if np.isfinite(h_model[0]) and abs(h_model[0] - h_f) <= cfg.foot_snap_m:
-            feet_w[f] = st.T_world_stairs[:3, :3] @ np.array([s_f, t_f, h_model[0]]) + st.T_world_stairs[:3, 3]
-    hd = T_wb[:3, 0] if heading_world is None else np.asarray(heading_world, dtype=float)
-    hd = np.array([hd[0], hd[1], 0.0])
-    if np.linalg.norm(hd) < 1e-9:
-        raise GaitError("gait: the heading is vertical or zero")
-    hd = hd / np.linalg.norm(hd)
+    feet_w = _feet_on_model(st, stance + swing, p_world_feet, cfg)
+    hd = _horizontal_heading(T_wb, heading_world)
     ds = float(hd @ st.T_world_stairs[:3, 0])  # along-stairs change per metre of step
     dt = float(hd @ st.T_world_stairs[:3, 1])
     R0 = T_wb[:3, :3]
@@ -668,36 +715,15 @@ def gait_parameters(
     L_grid = np.arange(0.0, cfg.max_step_length_m + 1e-9, cfg.length_grid_m)
     nL = len(L_grid)
 
-    def foothold(f: str, L):
-        """World footholds (.., 3) of swing foot f after a step L (height from the model; NaN off it)."""
-        L = np.asarray(L, dtype=float)
-        s0, t0 = (st.T_stairs_world @ np.r_[feet_w[f], 1.0])[:2]
-        h, _ = _surface_height(st, s0 + L * ds, t0 + L * dt)
-        X = np.stack([s0 + L * ds, t0 + L * dt, h], axis=-1)
-        return X @ st.T_world_stairs[:3, :3].T + st.T_world_stairs[:3, 3]
-
     zone = {}
     land = {}
     for f in swing:
         s0, t0 = (st.T_stairs_world @ np.r_[feet_w[f], 1.0])[:2]
         zone[f] = _zone_intervals(st, s0, t0, ds, dt, cfg, cfg.max_step_length_m)
-        land[f] = foothold(f, L_grid)  # (nL, 3)
+        land[f] = _foothold(st, feet_w[f], ds, dt, L_grid)  # (nL, 3)
     known = np.all([np.isfinite(land[f][:, 2]) for f in swing], axis=0)
 
-    # body at the end of the swing and at the end of the following stance, per L
-    R_end = np.empty((nL, 3, 3))
-    o_end = np.empty((nL, 3))
-    o_next = np.empty((nL, 3))
-    for i, L in enumerate(L_grid):
-        if not known[i]:
-            R_end[i], o_end[i], o_next[i] = R0, o0, o0
-            continue
-        after = np.array([feet_w[f] if f in stance else land[f][i] for f in all_feet])
-        T1 = _body_after(T_wb, feet_now, after, L, hd, max_pitch)
-        R_end[i], o_end[i] = T1[:3, :3], T1[:3, 3]
-        _, b1 = _feet_line(after, hd)
-        o_next[i] = o_end[i] + 0.5 * L * hd + np.array([0.0, 0.0, b1 * 0.5 * L])
-
+    R_end, o_end, o_next = _bodies_per_length(T_wb, feet_w, land, stance, all_feet, L_grid, known, hd, max_pitch)
     feas_L = {}
     for f in swing:
         P = np.nan_to_num(np.vstack([land[f], land[f]]))
@@ -735,7 +761,7 @@ def gait_parameters(
     tau = np.linspace(0.0, 1.0, cfg.swing_samples + 2)
     H_coarse = np.arange(0.0, cfg.max_step_height_m + 1e-9, cfg.height_grid_m)
     for n_try, L in enumerate(cands, start=1):
-        p_land = {f: foothold(f, L) for f in swing}
+        p_land = {f: _foothold(st, feet_w[f], ds, dt, L) for f in swing}
         after = np.array([feet_w[f] if f in stance else p_land[f] for f in all_feet])
         T_end = _body_after(T_wb, feet_now, after, L, hd, max_pitch)
         R_path, o_path = body_path(T_wb, T_end, tau)

@@ -29,28 +29,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Preintegration", "preintegrate", "skew_batch", "exp_batch", "reconstruct"]
+from graphcal.geometry import skew_batch, so3_exp_batch
 
-
-def skew_batch(v: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) cross-product matrices of (N, 3) vectors."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return S
-
-
-def exp_batch(phi: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) Exp of rotation vectors (N, 3), rad (Rodrigues; Taylor near zero)."""
-    phi = np.asarray(phi, dtype=float)
-    th2 = np.einsum("ij,ij->i", phi, phi)
-    small = th2 < 1e-12
-    th = np.sqrt(th2)
-    safe = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / safe)
-    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
-    K = skew_batch(phi)
-    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+__all__ = ["Preintegration", "preintegrate", "reconstruct"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,7 +84,7 @@ def preintegrate(w_body: np.ndarray, a_body: np.ndarray, dts: np.ndarray, events
     Jpg = np.zeros((N, 3, 3))
     Jpa = np.zeros((N, 3, 3))
     tau = np.zeros(N)
-    inc = exp_batch(w_body * dts[:, None])
+    inc = so3_exp_batch(w_body * dts[:, None])
     ax = skew_batch(a_body)
     for j in range(1, int(pos.max()) + 1 if N else 1):
         k = np.flatnonzero(pos == j)
@@ -149,7 +130,7 @@ def reconstruct(pre: Preintegration, p0: np.ndarray, v0: np.ndarray, R0: np.ndar
         at that sample).
     """
     tau = pre.tau[:, None]
-    dRc = pre.dR @ exp_batch(-bg * tau)
+    dRc = pre.dR @ so3_exp_batch(-bg * tau)
     dv = pre.dv + np.einsum("nij,nj->ni", pre.Jvg, bg) + np.einsum("nij,nj->ni", pre.Jva, ba)
     dp = pre.dp + np.einsum("nij,nj->ni", pre.Jpg, bg) + np.einsum("nij,nj->ni", pre.Jpa, ba)
     R = R0 @ dRc

@@ -8,9 +8,10 @@ whiteness of the innovations.
   ``ape_rmse_m``: RMS of the absolute position error; ``rpe_rmse_m``: RMS of the relative
   translation error over ``rpe_delta_m`` (1 m) of travelled distance; ``drift_percent``: final
   position error / path length of the truth x 100; ``distance_m``: path length of the truth.
-* NEES of the pose (position world, orientation body: 6 dof) against the truth at the samples where
-  the filter kept its covariance: ``e^T P^-1 e``; a consistent filter has mean 6 and each sample
-  inside the chi-square(6) 95 % band [1.24, 14.45] 95 % of the time.
+* NEES of the pose (position world, orientation body: 6 dof, the order of ``TrackResult.cov_pose``)
+  against the truth at the samples where the filter kept its covariance: ``e^T P^-1 e``; a
+  consistent filter has mean 6 and each sample inside the chi-square(6) 95 % band [1.24, 14.45]
+  95 % of the time.
 * NIS of every update (stance kinematics: 3 x stance feet dof; ICP: the directions fused).
 * Whiteness: autocorrelation of each whitened innovation component (lags 1..``lags``): the
   fraction inside the 95 % band +-1.96/sqrt(n) of white noise, and the Ljung-Box statistic.
@@ -28,8 +29,8 @@ import numpy as np
 
 from graphcal.errors import DatasetError
 
-__all__ = ["Truth", "load_truth", "trajectory_metrics", "nees_against_truth", "whiteness", "chi2_band",
-           "evo_trajectory"]
+__all__ = ["Truth", "load_truth", "trajectory_metrics", "interp_truth", "pose_errors", "nees_against_truth",
+           "whiteness", "chi2_band", "evo_trajectory"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,7 +158,9 @@ def trajectory_metrics(times, T_est, truth: Truth, *, max_diff_s: float = 0.002,
     return out
 
 
-def _interp_truth(truth: Truth, t: np.ndarray) -> np.ndarray:
+def interp_truth(truth: Truth, t: np.ndarray) -> np.ndarray:
+    """(M, 4, 4) true T_world_body at times ``t`` (M,) s: position linear, rotation slerped between
+    the truth's samples; times outside the truth's span are clamped to its ends."""
     from scipy.spatial.transform import Rotation, Slerp
 
     t = np.clip(t, truth.times[0], truth.times[-1])
@@ -170,8 +173,9 @@ def _interp_truth(truth: Truth, t: np.ndarray) -> np.ndarray:
 
 
 def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
-    """(N, 6) errors in the filter's error-state convention: [p_true - p_est (world), Log(R_est^T
-    R_true) (body)]."""
+    """(N, 6) errors of the poses T_est (N, 4, 4) against T_true (N, 4, 4) in the filter's
+    error-state order (that of ``TrackResult.cov_pose``, not docs/conventions.md's ``[omega, v]``):
+    [p_true - p_est (world frame, m), Log(R_est^T R_true) (body frame, rad)]."""
     from scipy.spatial.transform import Rotation
 
     e = np.empty((len(T_est), 6))
@@ -183,12 +187,14 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
 
 def nees_against_truth(result, truth: Truth) -> tuple[np.ndarray, np.ndarray]:
     """(times (M,), NEES (M,)) of the pose (6 dof) at the samples where the filter kept its
-    covariance (``result.cov_index``), truth interpolated at those times."""
+    covariance (``result.cov_index``), truth interpolated at those times: ``e^T P^-1 e`` with ``e``
+    from :func:`pose_errors` and ``P = result.cov_pose``, both in the filter's order [dp world,
+    dtheta body] (the NEES is the same in the ``[omega, v]`` order: ``xi = J e``, ``P_xi = J P J^T``)."""
     idx = result.cov_index
     t = result.times[idx]
     inside = (t >= truth.times[0]) & (t <= truth.times[-1])
     idx, t = idx[inside], t[inside]
-    e = pose_errors(result.T_world_body[idx], _interp_truth(truth, t))
+    e = pose_errors(result.T_world_body[idx], interp_truth(truth, t))
     P = result.cov_pose[inside]
     nees = np.einsum("ni,ni->n", e, np.linalg.solve(P, e[:, :, None])[:, :, 0])
     return t, nees

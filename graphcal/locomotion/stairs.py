@@ -91,6 +91,7 @@ from graphcal.solvers.point_to_plane import constrained_step, point_to_plane_jac
 
 __all__ = [
     "StairsError",
+    "StairStep",
     "Tread",
     "Riser",
     "StairsModel",
@@ -109,6 +110,25 @@ class StairsError(GraphcalError):
 
 
 # ----------------------------------------------------------------------------- results
+@dataclass(frozen=True)
+class StairStep:
+    """One true step of an untilted staircase rising along world +x (the records that
+    :func:`stairs_model_from_steps` and :func:`tread_errors` read; the ``stairs`` list of a
+    ``truth.yaml`` ``ground`` section has these keys).
+
+    Attributes:
+        x_start_m: world x of the step's nosing (front edge), m.
+        depth_m: tread depth along world +x, m.
+        height_m: height of the tread's top above the floor, m.
+        width_m: tread width along world y, m.
+    """
+
+    x_start_m: float
+    depth_m: float
+    height_m: float
+    width_m: float
+
+
 @dataclass(frozen=True, eq=False)
 class Tread:
     """One tread (the top of a step, or the landing).
@@ -517,6 +537,318 @@ def _edge_line(tread: _Patch, riser: _Patch) -> tuple[np.ndarray, np.ndarray]:
     return np.linalg.solve(A, b), e
 
 
+# ----------------------------------------------------------------------------- model_stairs, stage by stage
+@dataclass(frozen=True, eq=False)
+class _CloudNormals:
+    """Per cloud (sensor frame): voxel-downsampled points (M_k, 3) m, their ICP-scale normals and
+    reliability, and the classification-scale normals and reliability (module docstring, step 1)."""
+
+    down: list
+    normals: list
+    reliable: list
+    normals_class: list
+    reliable_class: list
+
+
+@dataclass(frozen=True, eq=False)
+class _PointMap:
+    """The stitched map (world frame): points P (N, 3) m, their noise std sig (N,) m, normals N
+    (N, 3) and whether each normal is reliable for classification (N,)."""
+
+    P: np.ndarray
+    sig: np.ndarray
+    N: np.ndarray
+    reliable: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class _TreadInfo:
+    """A tread patch, the index of its front riser in the riser patches (None: no riser found),
+    the 0.5 % quantile of its visible points along the walking direction (m, world origin) and the
+    mask of the map points on its plane."""
+
+    patch: _Patch
+    riser: int | None
+    s_min: float
+    support: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class _FrontEdge:
+    """A tread's front edge (nosing): a world point on it (3,) m, its unit direction (3,) towards
+    stairs +y, and whether it is the tread/riser intersection."""
+
+    point: np.ndarray
+    direction: np.ndarray
+    from_riser: bool
+
+
+def _prepare_clouds(clouds: list[np.ndarray], max_depth_m: float, max_points_per_cloud: int,
+                    min_plane_points: int, gen: np.random.Generator) -> list[np.ndarray]:
+    """Sensor-frame clouds (N_k, 3) m cut at ``max_depth_m`` along the optical axis and randomly
+    thinned to ``max_points_per_cloud``; StairsError when fewer than 3 ``min_plane_points`` remain."""
+    clouds = [c[(c[:, 2] > 0) & (c[:, 2] <= max_depth_m)] for c in clouds]
+    clouds = [c[np.sort(gen.choice(len(c), max_points_per_cloud, replace=False))] if len(c) > max_points_per_cloud else c
+              for c in clouds]
+    n_total = sum(len(c) for c in clouds)
+    if n_total < 3 * min_plane_points:
+        raise StairsError(f"model_stairs: only {n_total} points within {max_depth_m} m in the clouds")
+    return clouds
+
+
+def _cloud_normals(clouds: list[np.ndarray], voxel_m: float, normal_radius_m: float, class_radius_m: float,
+                   max_normal_tilt_rad: float, class_max_normal_tilt_rad: float) -> _CloudNormals:
+    """Per cloud: voxel-downsampled points with normals (sensor frame) and their reliability."""
+    down, nrm, rel, nrm_c, rel_c = [], [], [], [], []
+    for c in clouds:
+        d = _voxel_down(c, voxel_m) if len(c) else np.zeros((0, 3))
+        if len(d) >= 10:
+            n, v, n_c, v_c = _map_normals(d, normal_radius_m, class_radius_m)
+            r = v < max_normal_tilt_rad**2  # strict: for the ICP
+            # loose: horizontal / vertical pools; the small scale where it has the neighbours
+            # (up to the edges), else the large one (sparse far points)
+            small_ok = v_c < class_max_normal_tilt_rad**2
+            n_c = np.where(small_ok[:, None], n_c, n)
+            r_c = small_ok | (v < class_max_normal_tilt_rad**2)
+        else:
+            n, r = np.zeros((len(d), 3)), np.zeros(len(d), dtype=bool)
+            n_c, r_c = n, r
+        down.append(d)
+        nrm.append(n)
+        rel.append(r)
+        nrm_c.append(n_c)
+        rel_c.append(r_c)
+    return _CloudNormals(down, nrm, rel, nrm_c, rel_c)
+
+
+def _point_map(clouds: list[np.ndarray], used: list[int], corrected: list[np.ndarray], normals: _CloudNormals,
+               noise_coeff_per_m: float, max_points: int, gen: np.random.Generator) -> _PointMap:
+    """World points of the ``used`` clouds at their ``corrected`` sensor poses (4x4), their noise std
+    and normals (from the nearest downsampled point), randomly thinned to ``max_points``."""
+    from scipy.spatial import cKDTree
+
+    Ps, sigs, Ns, Rs = [], [], [], []
+    for k in used:
+        c = clouds[k]
+        if len(c) == 0 or len(normals.down[k]) == 0:
+            continue
+        _, j = cKDTree(normals.down[k]).query(c, k=1)
+        R = corrected[k][:3, :3]
+        Ps.append(transform_points(corrected[k], c))
+        sigs.append(np.hypot(noise_coeff_per_m * c[:, 2] ** 2, 1e-4))
+        Ns.append(normals.normals_class[k][j] @ R.T)
+        Rs.append(normals.reliable_class[k][j])
+    if not Ps:
+        raise StairsError("model_stairs: no cloud could be used (the first cloud is empty?)")
+    P, sig, N, reliable = np.vstack(Ps), np.concatenate(sigs), np.vstack(Ns), np.concatenate(Rs)
+    if len(P) > max_points:
+        pick = gen.choice(len(P), size=max_points, replace=False)
+        P, sig, N, reliable = P[pick], sig[pick], N[pick], reliable[pick]
+    return _PointMap(P, sig, N, reliable)
+
+
+def _planes_of(P: np.ndarray, pool: np.ndarray, *, max_planes: int, ransac_distance_m: float,
+               min_plane_points: int, gen: np.random.Generator) -> list:
+    """Planes among the map points ``P[pool]`` (:func:`graphcal.clouds.planes.extract_planes`, up to
+    three draws): (fit, mask over all of P) pairs."""
+    from graphcal.clouds.planes import extract_planes
+
+    if len(pool) < min_plane_points:
+        return []
+    for attempt in range(3):
+        try:
+            fits = extract_planes(P[pool], max_planes=max_planes, ransac_distance_m=ransac_distance_m,
+                                  min_inliers=min_plane_points, rng=gen)
+            break
+        except GraphcalError:  # a degenerate candidate set in the 2-sigma loop: new draw
+            fits = []
+    out = []
+    for f in fits:
+        mask = np.zeros(len(P), dtype=bool)
+        mask[pool[f.inlier_mask]] = True
+        out.append((f, mask))
+    return out
+
+
+def _initial_walking_direction(walking_direction_world, corrected: list[np.ndarray], z: np.ndarray) -> np.ndarray:
+    """Unit horizontal walking direction (3,): the given one, else the mean horizontal viewing
+    direction of the clouds (refined by the risers later)."""
+    if walking_direction_world is not None:
+        w0 = np.asarray(walking_direction_world, dtype=float)
+        if w0.shape != (3,) or not np.all(np.isfinite(w0)):
+            raise StairsError(f"model_stairs: walking_direction_world must be a finite 3-vector, got {walking_direction_world!r}")
+    else:
+        w0 = np.sum([T[:3, 2] for T in corrected], axis=0)
+    w0 = w0 - (w0 @ z) * z
+    if np.linalg.norm(w0) < 1e-6:
+        raise StairsError("model_stairs: the walking direction is vertical or zero")
+    w0 /= np.linalg.norm(w0)
+    return w0
+
+
+def _horizontal_patches(horiz: list, pm: _PointMap, w0: np.ndarray, z: np.ndarray, min_step_height_m: float,
+                        edge_drop_fraction: float) -> list[_Patch]:
+    """Horizontal patches, lowest first: oriented up, refined centrally; planes at the same height merged."""
+    P, sig = pm.P, pm.sig
+    lat0 = np.cross(z, w0)
+    patches_h: list[_Patch] = []
+    for f, mask in sorted(horiz, key=lambda fm: -fm[0].n_points):
+        n = f.n if f.n @ z > 0 else -f.n
+        Pin = P[mask]
+        h_c = float(np.median(Pin @ n))
+        if any(abs(h_c - float(np.median(p.all_points @ p.n))) < min_step_height_m / 2 for p in patches_h):
+            continue  # a second fit of an already found level
+        nn, dd, c, sel = _refine_central(Pin, sig[mask], w0, lat0, edge_drop_fraction)
+        if nn @ z < 0:
+            nn, dd = -nn, -dd
+        patches_h.append(_Patch(nn, dd, c, Pin[sel], Pin, int(sel.sum())))
+    patches_h.sort(key=lambda p: p.centroid @ z)
+    return patches_h
+
+
+def _riser_patches(vert: list, pm: _PointMap, w0: np.ndarray, up: np.ndarray, refine_direction: bool,
+                   edge_drop_fraction: float) -> tuple[np.ndarray, np.ndarray, list[_Patch]]:
+    """(walking direction w, lateral direction up x w, riser patches): vertical planes facing along
+    the walking direction (normal within 30 deg of -+w0), oriented towards the approaching robot;
+    with ``refine_direction`` the walking direction is their point-weighted mean normal."""
+    risers_raw = [(f, m) for f, m in vert if abs(f.n @ w0) >= np.cos(np.radians(30.0))]
+    if refine_direction and risers_raw:
+        wsum = np.zeros(3)
+        for f, _ in risers_raw:
+            nf = -f.n if f.n @ w0 > 0 else f.n  # faces the robot: -w
+            wsum -= f.n_points * nf
+        w0 = wsum - (wsum @ up) * up
+        w0 /= np.linalg.norm(w0)
+    w = w0 - (w0 @ up) * up
+    w /= np.linalg.norm(w)
+    lat = np.cross(up, w)
+    patches_r: list[_Patch] = []
+    for f, mask in risers_raw:
+        Pin = pm.P[mask]
+        nn, dd, c, sel = _refine_central(Pin, pm.sig[mask], up, lat, edge_drop_fraction)
+        if nn @ w > 0:  # towards the approaching robot
+            nn, dd = -nn, -dd
+        patches_r.append(_Patch(nn, dd, c, Pin[sel], Pin, int(sel.sum())))
+    return w, lat, patches_r
+
+
+def _height(floor: _Patch, x) -> np.ndarray:
+    """Height (m) of world point(s) ``x`` above the floor plane."""
+    return np.asarray(x) @ floor.n + floor.d
+
+
+def _match_risers(steps_h: list[_Patch], floor: _Patch, patches_r: list[_Patch], pm: _PointMap,
+                  s_all: np.ndarray, w: np.ndarray, lat: np.ndarray) -> list[_TreadInfo]:
+    """Riser k of each tread k: between the level below tread k and tread k, the nearest one in
+    front of the tread's visible points (its front may be hidden: the landing is seen at grazing
+    angles). ``s_all``: the map points along ``w`` (m, world origin)."""
+    levels = [floor] + steps_h
+    band = np.maximum(2.5 * pm.sig, 0.003)
+    tread_info = []
+    used_risers: set[int] = set()
+    s_prev = -np.inf
+    for k, tp in enumerate(steps_h):
+        h_low, h_high = _height(floor, levels[k].centroid), _height(floor, tp.centroid)
+        # every map point on the patch's plane (within 2.5 sigma_i, at least 3 mm)
+        sup = (np.abs(pm.P @ tp.n + tp.d) <= band) & (s_all > s_prev + 0.02)
+        s_min = float(np.quantile(s_all[sup], 0.005)) if sup.any() else float(tp.centroid @ w)
+        best, best_s = None, -np.inf
+        for i, rp in enumerate(patches_r):
+            s_r = float(rp.centroid @ w)
+            if i in used_risers or not (h_low < _height(floor, rp.centroid) < h_high):
+                continue
+            if s_prev + 0.02 < s_r <= s_min + 0.02 and s_r > best_s:
+                best, best_s = i, s_r
+        if best is not None:
+            used_risers.add(best)
+        tread_info.append(_TreadInfo(tp, best, s_min, sup))
+        s_prev = best_s if best is not None else s_min
+    return tread_info
+
+
+def _front_edges(tread_info: list[_TreadInfo], patches_r: list[_Patch], t_all: np.ndarray, w: np.ndarray,
+                 lat: np.ndarray, up: np.ndarray) -> list[_FrontEdge]:
+    """Front edges (nosings): tread/riser intersections, else from the tread's points (its
+    ``s_min`` along ``w`` at the median lateral position ``t_all`` of its support, onto its plane)."""
+    fronts = []
+    for ti in tread_info:
+        tp, ri, s_min, sup = ti.patch, ti.riser, ti.s_min, ti.support
+        if ri is not None:
+            p_e, e = _edge_line(tp, patches_r[ri])
+            if e @ lat < 0:
+                e = -e
+            fronts.append(_FrontEdge(p_e, e, True))
+        else:
+            t_mid = float(np.median(t_all[sup])) if sup.any() else float(tp.centroid @ lat)
+            p_e = s_min * w + t_mid * lat
+            p_e = p_e - (tp.n @ p_e + tp.d) / (tp.n @ up) * up  # onto the tread plane
+            fronts.append(_FrontEdge(p_e, lat.copy(), False))
+    return fronts
+
+
+def _treads(tread_info: list[_TreadInfo], fronts: list[_FrontEdge], floor: _Patch, T_world_stairs: np.ndarray,
+            s_all: np.ndarray, t_all: np.ndarray) -> list[Tread]:
+    """The treads from their patches and front edges; ``s_all``, ``t_all``: the map points along the
+    stairs x and y axes (m, stairs origin)."""
+    w, lat, origin = T_world_stairs[:3, 0], T_world_stairs[:3, 1], T_world_stairs[:3, 3]
+    treads = []
+    for k, (ti, fe) in enumerate(zip(tread_info, fronts)):
+        tp, sup = ti.patch, ti.support
+        p_e, e, from_riser = fe.point, fe.direction, fe.from_riser
+        s_front = float((p_e - origin) @ w)
+        if k + 1 < len(fronts) and fronts[k + 1].from_riser and from_riser:
+            perp = np.cross(tp.n, e)
+            perp /= np.linalg.norm(perp)
+            depth = abs(float((fronts[k + 1].point - p_e) @ perp))
+            complete = True
+            s_back = s_front + depth
+        else:
+            beyond = sup & (s_all > s_front)
+            s_back = float(np.quantile(s_all[beyond], 0.995)) if beyond.any() else s_front
+            depth = s_back - s_front
+            complete = False
+        on = sup & (s_all > s_front + 0.01) & (s_all < s_back - 0.01)
+        if on.sum() >= 10:
+            t_lo, t_hi = (float(v) for v in np.quantile(t_all[on], [0.002, 0.998]))
+        else:
+            t_lo = t_hi = float((tp.centroid - origin) @ lat)
+        # the edge point at the tread's lateral middle
+        t_e = float((p_e - origin) @ lat)
+        p_e = p_e + ((t_lo + t_hi) / 2 - t_e) / (e @ lat) * e
+        treads.append(
+            Tread(
+                index=k,
+                height_m=float(_height(floor, tp.centroid)),
+                depth_m=float(depth),
+                depth_complete=complete,
+                width_m=t_hi - t_lo,
+                p_world_edge=p_e,
+                edge_direction_world=e,
+                edge_from_riser=from_riser,
+                plane_world=canonical_plane(tp.n, tp.d),
+                n_inliers=tp.n_inliers,
+                s_front_m=s_front,
+                s_back_m=float(s_back),
+                t_min_m=t_lo,
+                t_max_m=t_hi,
+            )
+        )
+    return treads
+
+
+def _risers(patches_r: list[_Patch], floor: _Patch, T_world_stairs: np.ndarray) -> list[Riser]:
+    """The risers, lowest first."""
+    w, origin = T_world_stairs[:3, 0], T_world_stairs[:3, 3]
+    risers = []
+    for rp in sorted(patches_r, key=lambda r: _height(floor, r.centroid)):
+        hs = _height(floor, rp.all_points)
+        # position along s at the stairs' lateral middle: the plane's point with t = 0, h = its centroid height
+        c = rp.centroid
+        s_c = float((c - origin) @ w)
+        risers.append(Riser(canonical_plane(rp.n, rp.d), s_c, float(np.quantile(hs, 0.01)), float(np.quantile(hs, 0.99)), rp.n_inliers))
+    return risers
+
+
 # ----------------------------------------------------------------------------- public API
 def model_stairs(
     clouds_sensor: Sequence[np.ndarray],
@@ -598,38 +930,14 @@ def model_stairs(
     if not max_depth_m > 0:
         raise StairsError(f"model_stairs: max_depth_m must be > 0, got {max_depth_m}")
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-    clouds = [c[(c[:, 2] > 0) & (c[:, 2] <= max_depth_m)] for c in clouds]
-    clouds = [c[np.sort(gen.choice(len(c), max_points_per_cloud, replace=False))] if len(c) > max_points_per_cloud else c
-              for c in clouds]
-    n_total = sum(len(c) for c in clouds)
-    if n_total < 3 * min_plane_points:
-        raise StairsError(f"model_stairs: only {n_total} points within {max_depth_m} m in the clouds")
-
-    # per cloud: voxel-downsampled points with normals (sensor frame) and their reliability
-    down, nrm, rel, nrm_c, rel_c = [], [], [], [], []
-    for c in clouds:
-        d = _voxel_down(c, icp_voxel_m) if len(c) else np.zeros((0, 3))
-        if len(d) >= 10:
-            n, v, n_c, v_c = _map_normals(d, icp_normal_radius_m, class_normal_radius_m)
-            r = v < icp_max_normal_tilt_rad**2  # strict: for the ICP
-            # loose: horizontal / vertical pools; the small scale where it has the neighbours
-            # (up to the edges), else the large one (sparse far points)
-            small_ok = v_c < class_max_normal_tilt_rad**2
-            n_c = np.where(small_ok[:, None], n_c, n)
-            r_c = small_ok | (v < class_max_normal_tilt_rad**2)
-        else:
-            n, r = np.zeros((len(d), 3)), np.zeros(len(d), dtype=bool)
-            n_c, r_c = n, r
-        down.append(d)
-        nrm.append(n)
-        rel.append(r)
-        nrm_c.append(n_c)
-        rel_c.append(r_c)
+    clouds = _prepare_clouds(clouds, max_depth_m, max_points_per_cloud, min_plane_points, gen)
+    normals = _cloud_normals(clouds, icp_voxel_m, icp_normal_radius_m, class_normal_radius_m,
+                             icp_max_normal_tilt_rad, class_max_normal_tilt_rad)
 
     # 2. stitching
     if icp and len(clouds) > 1:
         corrected, fitness, accepted = _stitch(
-            clouds, poses, down, nrm, rel, noise_coeff_per_m,
+            clouds, poses, normals.down, normals.normals, normals.reliable, noise_coeff_per_m,
             voxel_m=icp_voxel_m, gates_m=tuple(icp_gates_m),
             prior_sigma_m=icp_prior_sigma_m, prior_sigma_rad=icp_prior_sigma_rad,
             min_fitness=icp_min_fitness, max_iterations=icp_max_iterations,
@@ -644,220 +952,51 @@ def model_stairs(
         accepted[0] = True
         used = list(range(len(clouds)))
 
-    # 1. + map: world points, their noise std and normals (from the nearest downsampled point)
-    from scipy.spatial import cKDTree
-
-    Ps, sigs, Ns, Rs = [], [], [], []
-    for k in used:
-        c = clouds[k]
-        if len(c) == 0 or len(down[k]) == 0:
-            continue
-        _, j = cKDTree(down[k]).query(c, k=1)
-        R = corrected[k][:3, :3]
-        Ps.append(transform_points(corrected[k], c))
-        sigs.append(np.hypot(noise_coeff_per_m * c[:, 2] ** 2, 1e-4))
-        Ns.append(nrm_c[k][j] @ R.T)
-        Rs.append(rel_c[k][j])
-    if not Ps:
-        raise StairsError("model_stairs: no cloud could be used (the first cloud is empty?)")
-    P, sig, N, reliable = np.vstack(Ps), np.concatenate(sigs), np.vstack(Ns), np.concatenate(Rs)
-    if len(P) > max_points:
-        pick = gen.choice(len(P), size=max_points, replace=False)
-        P, sig, N, reliable = P[pick], sig[pick], N[pick], reliable[pick]
+    # 1. + map: world points, their noise std and normals
+    pm = _point_map(clouds, used, corrected, normals, noise_coeff_per_m, max_points, gen)
 
     # 3. planes: RANSAC + Chai's loop on the points with a reliable horizontal (vertical) normal;
     # a slanted plane through the nosings cannot form from them
-    from graphcal.clouds.planes import extract_planes
-
     z = np.array([0.0, 0.0, 1.0])
-    nz = np.abs(N @ z)
-    pool_h = np.flatnonzero(reliable & (nz >= np.cos(np.radians(2 * max_tilt_deg))))
-    pool_v = np.flatnonzero(reliable & (nz <= np.sin(np.radians(2 * max_tilt_deg))))
-
-    def planes_of(pool):
-        if len(pool) < min_plane_points:
-            return []
-        for attempt in range(3):
-            try:
-                fits = extract_planes(P[pool], max_planes=max_planes, ransac_distance_m=ransac_distance_m,
-                                      min_inliers=min_plane_points, rng=gen)
-                break
-            except GraphcalError:  # a degenerate candidate set in the 2-sigma loop: new draw
-                fits = []
-        out = []
-        for f in fits:
-            mask = np.zeros(len(P), dtype=bool)
-            mask[pool[f.inlier_mask]] = True
-            out.append((f, mask))
-        return out
-
-    fits_h, fits_v = planes_of(pool_h), planes_of(pool_v)
+    nz = np.abs(pm.N @ z)
+    pool_h = np.flatnonzero(pm.reliable & (nz >= np.cos(np.radians(2 * max_tilt_deg))))
+    pool_v = np.flatnonzero(pm.reliable & (nz <= np.sin(np.radians(2 * max_tilt_deg))))
+    plane_kw = dict(max_planes=max_planes, ransac_distance_m=ransac_distance_m, min_plane_points=min_plane_points,
+                    gen=gen)
+    fits_h, fits_v = _planes_of(pm.P, pool_h, **plane_kw), _planes_of(pm.P, pool_v, **plane_kw)
     cos_t = np.cos(np.radians(max_tilt_deg))
     horiz = [(f, m) for f, m in fits_h if abs(f.n @ z) >= cos_t]
     vert = [(f, m) for f, m in fits_v if abs(f.n @ z) <= np.sin(np.radians(max_tilt_deg))]
     if not horiz:
         raise StairsError("model_stairs: no horizontal plane found in the clouds")
 
-    # walking direction: given, else mean horizontal viewing direction (refined by the risers below)
-    if walking_direction_world is not None:
-        w0 = np.asarray(walking_direction_world, dtype=float)
-        if w0.shape != (3,) or not np.all(np.isfinite(w0)):
-            raise StairsError(f"model_stairs: walking_direction_world must be a finite 3-vector, got {walking_direction_world!r}")
-    else:
-        w0 = np.sum([T[:3, 2] for T in corrected], axis=0)
-    w0 = w0 - (w0 @ z) * z
-    if np.linalg.norm(w0) < 1e-6:
-        raise StairsError("model_stairs: the walking direction is vertical or zero")
-    w0 /= np.linalg.norm(w0)
-
-    # horizontal patches: orient up, refine centrally; merge planes at the same height
-    lat0 = np.cross(z, w0)
-    patches_h: list[_Patch] = []
-    for f, mask in sorted(horiz, key=lambda fm: -fm[0].n_points):
-        n = f.n if f.n @ z > 0 else -f.n
-        Pin = P[mask]
-        h_c = float(np.median(Pin @ n))
-        if any(abs(h_c - float(np.median(p.all_points @ p.n))) < min_step_height_m / 2 for p in patches_h):
-            continue  # a second fit of an already found level
-        nn, dd, c, sel = _refine_central(Pin, sig[mask], w0, lat0, edge_drop_fraction)
-        if nn @ z < 0:
-            nn, dd = -nn, -dd
-        patches_h.append(_Patch(nn, dd, c, Pin[sel], Pin, int(sel.sum())))
-    patches_h.sort(key=lambda p: p.centroid @ z)
+    w0 = _initial_walking_direction(walking_direction_world, corrected, z)
+    patches_h = _horizontal_patches(horiz, pm, w0, z, min_step_height_m, edge_drop_fraction)
     floor = patches_h[0]
     up = floor.n
     steps_h = [p for p in patches_h[1:] if floor.n @ p.centroid + floor.d >= min_step_height_m]
+    w, lat, patches_r = _riser_patches(vert, pm, w0, up, walking_direction_world is None, edge_drop_fraction)
 
-    # risers: vertical planes facing along the walking direction (normal within 30 deg of -+w0)
-    risers_raw = [(f, m) for f, m in vert if abs(f.n @ w0) >= np.cos(np.radians(30.0))]
-    if walking_direction_world is None and risers_raw:
-        wsum = np.zeros(3)
-        for f, _ in risers_raw:
-            nf = -f.n if f.n @ w0 > 0 else f.n  # faces the robot: -w
-            wsum -= f.n_points * nf
-        w0 = wsum - (wsum @ up) * up
-        w0 /= np.linalg.norm(w0)
-    w = w0 - (w0 @ up) * up
-    w /= np.linalg.norm(w)
-    lat = np.cross(up, w)
-    patches_r: list[_Patch] = []
-    for f, mask in risers_raw:
-        Pin = P[mask]
-        nn, dd, c, sel = _refine_central(Pin, sig[mask], up, lat, edge_drop_fraction)
-        if nn @ w > 0:  # towards the approaching robot
-            nn, dd = -nn, -dd
-        patches_r.append(_Patch(nn, dd, c, Pin[sel], Pin, int(sel.sum())))
-
-    def height(x):  # above the floor plane
-        return np.asarray(x) @ floor.n + floor.d
-
-    steps_h.sort(key=lambda p: height(p.centroid))
-    levels = [floor] + steps_h
-    s_all, t_all = P @ w, P @ lat  # along-stairs and lateral coordinates (world origin for now)
-    band = np.maximum(2.5 * sig, 0.003)
-
-    def support(patch: _Patch) -> np.ndarray:
-        """Every map point on the patch's plane (within 2.5 sigma_i, at least 3 mm)."""
-        return np.abs(P @ patch.n + patch.d) <= band
-
-    # riser k: between the level below tread k and tread k, the nearest one in front of the
-    # tread's visible points (its front may be hidden: the landing is seen at grazing angles)
-    tread_info = []
-    used_risers: set[int] = set()
-    s_prev = -np.inf
-    for k, tp in enumerate(steps_h):
-        h_low, h_high = height(levels[k].centroid), height(tp.centroid)
-        sup = support(tp) & (s_all > s_prev + 0.02)
-        s_min = float(np.quantile(s_all[sup], 0.005)) if sup.any() else float(tp.centroid @ w)
-        best, best_s = None, -np.inf
-        for i, rp in enumerate(patches_r):
-            s_r = float(rp.centroid @ w)
-            if i in used_risers or not (h_low < height(rp.centroid) < h_high):
-                continue
-            if s_prev + 0.02 < s_r <= s_min + 0.02 and s_r > best_s:
-                best, best_s = i, s_r
-        if best is not None:
-            used_risers.add(best)
-        tread_info.append((tp, best, s_min, sup))
-        s_prev = best_s if best is not None else s_min
-
-    # front edges (nosings)
-    fronts = []
-    for tp, ri, s_min, sup in tread_info:
-        if ri is not None:
-            p_e, e = _edge_line(tp, patches_r[ri])
-            if e @ lat < 0:
-                e = -e
-            fronts.append((p_e, e, True))
-        else:
-            t_mid = float(np.median(t_all[sup])) if sup.any() else float(tp.centroid @ lat)
-            p_e = s_min * w + t_mid * lat
-            p_e = p_e - (tp.n @ p_e + tp.d) / (tp.n @ up) * up  # onto the tread plane
-            fronts.append((p_e, lat.copy(), False))
+    steps_h.sort(key=lambda p: _height(floor, p.centroid))
+    s_all, t_all = pm.P @ w, pm.P @ lat  # along-stairs and lateral coordinates (world origin for now)
+    tread_info = _match_risers(steps_h, floor, patches_r, pm, s_all, w, lat)
+    fronts = _front_edges(tread_info, patches_r, t_all, w, lat, up)
     # the stairs frame: origin on the floor below the lowest nosing
-    p0 = fronts[0][0] if fronts else floor.centroid
-    origin = p0 - height(p0) * up
+    p0 = fronts[0].point if fronts else floor.centroid
+    origin = p0 - _height(floor, p0) * up
     T_world_stairs = pose_matrix(np.column_stack([w, lat, up]), origin)
     s_all = s_all - origin @ w
     t_all = t_all - origin @ lat
-
-    treads = []
-    for k, ((tp, ri, _, sup), (p_e, e, from_riser)) in enumerate(zip(tread_info, fronts)):
-        s_front = float((p_e - origin) @ w)
-        if k + 1 < len(fronts) and fronts[k + 1][2] and from_riser:
-            perp = np.cross(tp.n, e)
-            perp /= np.linalg.norm(perp)
-            depth = abs(float((fronts[k + 1][0] - p_e) @ perp))
-            complete = True
-            s_back = s_front + depth
-        else:
-            beyond = sup & (s_all > s_front)
-            s_back = float(np.quantile(s_all[beyond], 0.995)) if beyond.any() else s_front
-            depth = s_back - s_front
-            complete = False
-        on = sup & (s_all > s_front + 0.01) & (s_all < s_back - 0.01)
-        if on.sum() >= 10:
-            t_lo, t_hi = (float(v) for v in np.quantile(t_all[on], [0.002, 0.998]))
-        else:
-            t_lo = t_hi = float((tp.centroid - origin) @ lat)
-        # the edge point at the tread's lateral middle
-        t_e = float((p_e - origin) @ lat)
-        p_e = p_e + ((t_lo + t_hi) / 2 - t_e) / (e @ lat) * e
-        treads.append(
-            Tread(
-                index=k,
-                height_m=float(height(tp.centroid)),
-                depth_m=float(depth),
-                depth_complete=complete,
-                width_m=t_hi - t_lo,
-                p_world_edge=p_e,
-                edge_direction_world=e,
-                edge_from_riser=from_riser,
-                plane_world=canonical_plane(tp.n, tp.d),
-                n_inliers=tp.n_inliers,
-                s_front_m=s_front,
-                s_back_m=float(s_back),
-                t_min_m=t_lo,
-                t_max_m=t_hi,
-            )
-        )
-    risers = []
-    for rp in sorted(patches_r, key=lambda r: height(r.centroid)):
-        hs = height(rp.all_points)
-        # position along s at the stairs' lateral middle: the plane's point with t = 0, h = its centroid height
-        c = rp.centroid
-        s_c = float((c - origin) @ w)
-        risers.append(Riser(canonical_plane(rp.n, rp.d), s_c, float(np.quantile(hs, 0.01)), float(np.quantile(hs, 0.99)), rp.n_inliers))
     return StairsModel(
-        treads=tuple(treads),
-        risers=tuple(risers),
+        treads=tuple(_treads(tread_info, fronts, floor, T_world_stairs, s_all, t_all)),
+        risers=tuple(_risers(patches_r, floor, T_world_stairs)),
         floor_plane_world=canonical_plane(floor.n, floor.d),
         floor_n_inliers=floor.n_inliers,
         T_world_stairs=T_world_stairs,
         T_world_sensor_corrected=tuple(corrected),
         icp_fitness=tuple(float(f) for f in fitness),
         icp_accepted=tuple(bool(a) for a in accepted),
-        n_points=int(len(P)),
+        n_points=int(len(pm.P)),
     )
 
 
@@ -867,8 +1006,8 @@ def stairs_model_from_steps(
     floor_z_m: float = 0.0,
     y_center_m: float = 0.0,
 ) -> StairsModel:
-    """The exact model of an untilted staircase rising along world +x (e.g.
-    ``graphcal.simulation.terrain.Terrain.stairs``): records with ``x_start_m`` (nosing x),
+    """The exact model of an untilted staircase rising along world +x: :class:`StairStep` records
+    (or any with their fields, e.g. the simulator's terrain steps) with ``x_start_m`` (nosing x),
     ``depth_m``, ``height_m`` (top above the floor), ``width_m`` (centred on ``y_center_m``), lowest
     first; the floor is ``z = floor_z_m``. Every depth is complete (the last one too)."""
     steps = sorted(steps, key=lambda s: s.height_m)

@@ -94,9 +94,9 @@ def _figures(result, truth, series, nees_t, nees, nees_dof):
     axp, axr = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
     labels = ("x", "y", "z")
     if truth is not None:
-        from graphcal.locomotion.metrics import _interp_truth
+        from graphcal.locomotion.metrics import interp_truth
 
-        e = pose_errors(result.T_world_body[ci], _interp_truth(truth, t[ci]))
+        e = pose_errors(result.T_world_body[ci], interp_truth(truth, t[ci]))
         for k in range(3):
             axp.plot(t[ci], 1e3 * e[:, k], f"C{k}-", lw=0.8, label=f"{labels[k]} error")
             axr.plot(t[ci], np.degrees(e[:, 3 + k]), f"C{k}-", lw=0.8, label=f"rot {labels[k]} error")
@@ -250,9 +250,7 @@ def _stairs_model(ds, inp, result, truth, *, max_clouds: int = 20):
         errors = None
         compared = None
         if truth is not None:
-            from graphcal.simulation.terrain import Stair
-
-            steps = [Stair(**s) for s in (truth.doc.get("ground", {}) or {}).get("stairs", []) or []]
+            steps = [stairs_mod.StairStep(**s) for s in (truth.doc.get("ground", {}) or {}).get("stairs", []) or []]
             up, rest = ascending_flight(steps)
             if up:
                 errors = stairs_mod.tread_errors(model, up)

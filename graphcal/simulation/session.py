@@ -32,6 +32,7 @@ from graphcal.geometry import (
     matrix_from_axis_angle,
     pose_matrix,
     rot_z,
+    rotation_angle_between,
     se3_exp,
     transform_points,
     xyz_quat_wxyz_from_pose,
@@ -294,14 +295,9 @@ def leg_link_joints(robot) -> dict[str, tuple[str, ...]]:
     return {foot: _link_joints(robot, foot) for foot in robot.feet}
 
 
-def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationResult:
-    """Run the simulation described by ``config`` (see the module docstring for the physics)."""
-    from graphcal.models.kinematics import foot_positions, ik_leg
-
-    rng = np.random.default_rng(config.seed)
-    robot, info = robot_and_info(config)
-    h0 = info.default_body_height_m
-    tilt_scale = config.tilt_scale if config.tilt_scale is not None else DEFAULT_TILT_SCALE.get(config.robot, 1.0)
+def _simulated_sensors(config: SimulationConfig, info) -> tuple[str, ...]:
+    """The names of the simulated sensors (default: all the robot's), checked against the robot and
+    the effects that name sensors."""
     sensor_names = tuple(config.sensors) if config.sensors is not None else tuple(info.sensors)
     for s in sensor_names:
         if s not in info.sensors:
@@ -311,36 +307,24 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
     for s in config.effects.sensor_range_scale:
         if s not in sensor_names:
             raise GraphcalError(f"sensor_range_scale names sensor {s!r}, which is not simulated")
+    return sensor_names
 
-    # -- hidden truth: sensor extrinsics, legs, IMU
+
+def _true_extrinsics(config: SimulationConfig, info, sensor_names: tuple, rng: np.random.Generator) -> dict:
+    """sensor -> true T_body_sensor (4, 4): the CAD pose times Exp of a drawn [omega, v] (rad, m),
+    from ``rng`` or, with ``config.extrinsic_seed``, from a generator of its own."""
     T_body_sensor_true = {}
     ext_rng = rng if config.extrinsic_seed is None else np.random.default_rng(config.extrinsic_seed)
     for s in sensor_names:
         cad = info.sensors[s]
         xi = np.r_[ext_rng.normal(0, config.extrinsic_sigma_rad, 3), ext_rng.normal(0, config.extrinsic_sigma_m, 3)]
         T_body_sensor_true[s] = cad.T_body_sensor @ se3_exp(xi)
-    true_robot, joint_offsets, link_changes = _true_robot(robot, config, rng)
-    R_body_imu_true = info.T_body_imu[:3, :3].copy()
-    if config.effects.imu_misalignment is not None:
-        ang, az = config.effects.imu_misalignment
-        R_body_imu_true = matrix_from_axis_angle([np.cos(az), np.sin(az), 0.0], ang) @ R_body_imu_true
-    accel_bias = rng.normal(0, config.imu_accel_bias_sigma_m_s2, 3)
-    gyro_bias = rng.normal(0, config.imu_gyro_bias_sigma_rad_s, 3)
+    return T_body_sensor_true
 
-    tilt = config.effects.ground_tilt or (0.0, 0.0)
-    terrain = make_terrain(config.ground, seed=config.seed, tilt_rad=tilt[0], tilt_axis_rad=tilt[1])
-    terrain_scene = build_scene(terrain.meshes)
 
-    q_nominal = _nominal_q(robot, info)
-    commands = station_program(
-        config.program,
-        default_height_m=h0,
-        n_stations=config.n_stations,
-        n_sessions=config.n_sessions,
-        seed=config.seed,
-        tilt_scale=tilt_scale,
-        reachable=_reachable_within_limits(robot, info, q_nominal),
-    )
+def _check_program(config: SimulationConfig, commands, sensor_names: tuple) -> list:
+    """The program's sessions, in order; GraphcalError when an effect names a session, station or
+    sensor the simulation does not have."""
     sessions = list(dict.fromkeys(c.session for c in commands))
     for s in config.effects.session_offset:
         if s not in sessions:
@@ -354,8 +338,21 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
     for st in config.effects.outlier_stations:
         if st not in {c.station for c in commands}:
             raise GraphcalError(f"outlier_stations names station {st}, which the program does not have")
+    return sessions
 
-    # -- stances: where each session's feet are planted
+
+@dataclass(frozen=True, eq=False)
+class _Stances:
+    """Where each session's feet are planted: session -> ``T_world_stance`` (4, 4), and the feet's
+    world positions (n_feet, 3) m as the program assumes them (on z = 0) and as they really are
+    (on the terrain, less the session's offset)."""
+
+    T_world_stance: dict
+    feet_world_assumed: dict
+    feet_world_real: dict
+
+
+def _stances(config: SimulationConfig, robot, info, sessions: list, terrain, terrain_scene, h0: float) -> _Stances:
     T_world_stance = {}
     feet_world_assumed = {}
     feet_world_real = {}
@@ -371,8 +368,62 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
         p_real[:, 2] -= config.effects.session_offset.get(s, 0.0)
         feet_world_assumed[s] = p_assumed
         feet_world_real[s] = p_real
+    return _Stances(T_world_stance, feet_world_assumed, feet_world_real)
 
-    # -- stations
+
+def _commanded_q(leg, p_body_foot: np.ndarray, q_prev: np.ndarray, q_nominal: np.ndarray, station: int, foot: str) -> np.ndarray:
+    """Joint angles (n,) rad that put the foot at ``p_body_foot`` (3,) m (body frame): IK from the
+    previous station's angles, or from the nominal stance when that lands outside fewer limits."""
+    from graphcal.models.kinematics import ik_leg
+
+    q_ik, ok = ik_leg(leg, p_body_foot[None, :], q_prev[None, :])
+    if not ok[0]:
+        raise GraphcalError(
+            f"station {station}: foot {foot} cannot reach its planted position in the commanded pose"
+        )
+    q_ik[0] = wrap_revolute(leg, q_ik[0])
+    if leg.outside_limits(q_ik[0]).any():  # another branch (a flipped knee): from the nominal stance
+        q_nom, ok_nom = ik_leg(leg, p_body_foot[None, :], q_nominal[None, :])
+        q_nom[0] = wrap_revolute(leg, q_nom[0])
+        if ok_nom[0] and leg.outside_limits(q_nom[0]).sum() < leg.outside_limits(q_ik[0]).sum():
+            q_ik = q_nom
+    return q_ik[0]
+
+
+def _complied_q(config: SimulationConfig, true_leg, p_body_planted: np.ndarray, q_act: np.ndarray, station: int,
+                foot: str) -> np.ndarray:
+    """The leg complies: its joints settle where the true leg reaches its planted foot
+    ``p_body_planted`` (3,) m from the real body pose (the chain closes exactly), from ``q_act``."""
+    from graphcal.models.kinematics import ik_leg
+
+    q_c, ok = ik_leg(true_leg, p_body_planted[None, :], q_act[None, :])
+    if not ok[0]:
+        hint = ""
+        if config.effects.active() or config.leg_error_sigma_m > 0 or config.leg_error_sigma_rad > 0:
+            hint = ("; hidden here: " + (", ".join(config.effects.active()) or "leg errors")
+                    + ". Is a magnitude more than this leg can take? (--effect CAUSE:key=value sets it)")
+        raise GraphcalError(f"station {station}: foot {foot} cannot stay planted (IK of the true leg "
+                            f"failed){hint}")
+    return wrap_revolute(true_leg, q_c[0])
+
+
+@dataclass(frozen=True, eq=False)
+class _HiddenImu:
+    """The true IMU: R_body_imu (3, 3), accelerometer bias (3,) m/s^2 and gyro bias (3,) rad/s."""
+
+    R_body_imu: np.ndarray
+    accel_bias: np.ndarray
+    gyro_bias: np.ndarray
+
+
+def _stations(config: SimulationConfig, robot, true_robot, commands, stances: _Stances, q_nominal: dict,
+              imu: _HiddenImu, rng: np.random.Generator, progress: bool) -> tuple[list, dict, dict]:
+    """At each commanded station: the joint angles that reach the planted feet, tracking errors, the
+    real body pose (the true legs' feet fitted to the planted ones), the complied joint angles,
+    the encoder and IMU readings. Returns (records, station -> real T_world_body, station ->
+    foot -> true joint angles)."""
+    from graphcal.models.kinematics import foot_positions
+
     q_prev = dict(q_nominal)
     records: list[StationRecord] = []
     real_poses = {}
@@ -383,42 +434,22 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
 
         it = tqdm(commands, desc="simulate: stations", unit="station")
     for i, cmd in enumerate(it):
-        T_cmd = T_world_stance[cmd.session] @ cmd.T_stance_body
-        p_body_cmd = transform_points(invert_pose(T_cmd), feet_world_assumed[cmd.session])
+        T_cmd = stances.T_world_stance[cmd.session] @ cmd.T_stance_body
+        p_body_cmd = transform_points(invert_pose(T_cmd), stances.feet_world_assumed[cmd.session])
         q_act = {}
         p_body_true = []
         for k, f in enumerate(robot.feet):
             leg = robot.leg(f)
-            q_ik, ok = ik_leg(leg, p_body_cmd[k][None, :], q_prev[f][None, :])
-            if not ok[0]:
-                raise GraphcalError(
-                    f"station {cmd.station}: foot {f} cannot reach its planted position in the commanded pose"
-                )
-            q_ik[0] = wrap_revolute(leg, q_ik[0])
-            if leg.outside_limits(q_ik[0]).any():  # another branch (a flipped knee): from the nominal stance
-                q_nom, ok_nom = ik_leg(leg, p_body_cmd[k][None, :], q_nominal[f][None, :])
-                q_nom[0] = wrap_revolute(leg, q_nom[0])
-                if ok_nom[0] and leg.outside_limits(q_nom[0]).sum() < leg.outside_limits(q_ik[0]).sum():
-                    q_ik = q_nom
-            q_prev[f] = q_ik[0]
-            qa = q_ik[0] + rng.normal(0.0, config.tracking_sigma_rad, leg.n_joints)
+            q_prev[f] = _commanded_q(leg, p_body_cmd[k], q_prev[f], q_nominal[f], cmd.station, f)
+            qa = q_prev[f] + rng.normal(0.0, config.tracking_sigma_rad, leg.n_joints)
             q_act[f] = qa
             p_body_true.append(foot_positions(true_robot.leg(f), qa[None, :])[0])
-        T_real = fit_rigid_transform(np.array(p_body_true), feet_world_real[cmd.session])
+        T_real = fit_rigid_transform(np.array(p_body_true), stances.feet_world_real[cmd.session])
         real_poses[cmd.station] = T_real
-        # the legs comply: every joint settles where the true leg reaches its planted foot from the
-        # real body pose (the chain closes exactly); the encoders read these angles
-        p_body_planted = transform_points(invert_pose(T_real), feet_world_real[cmd.session])
+        # the encoders read the complied angles
+        p_body_planted = transform_points(invert_pose(T_real), stances.feet_world_real[cmd.session])
         for k, f in enumerate(robot.feet):
-            q_c, ok = ik_leg(true_robot.leg(f), p_body_planted[k][None, :], q_act[f][None, :])
-            if not ok[0]:
-                hint = ""
-                if config.effects.active() or config.leg_error_sigma_m > 0 or config.leg_error_sigma_rad > 0:
-                    hint = ("; hidden here: " + (", ".join(config.effects.active()) or "leg errors")
-                            + ". Is a magnitude more than this leg can take? (--effect CAUSE:key=value sets it)")
-                raise GraphcalError(f"station {cmd.station}: foot {f} cannot stay planted (IK of the true leg "
-                                    f"failed){hint}")
-            q_act[f] = wrap_revolute(true_robot.leg(f), q_c[0])
+            q_act[f] = _complied_q(config, true_robot.leg(f), p_body_planted[k], q_act[f], cmd.station, f)
         leg_q_true[cmd.station] = q_act
         q_meas = {}
         for f in robot.feet:
@@ -427,12 +458,20 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
             noisy = q_act[f] - flex + rng.normal(0.0, config.encoder_sigma_rad, leg.n_joints)
             for name, val in zip(leg.joint_names, noisy):
                 q_meas[name] = float(val)
-        R_world_imu = T_real[:3, :3] @ R_body_imu_true
-        accel = R_world_imu.T @ np.array([0.0, 0.0, GRAVITY_M_S2]) + accel_bias + rng.normal(0, config.imu_accel_sigma_m_s2, 3)
-        gyro = gyro_bias + rng.normal(0, config.imu_gyro_sigma_rad_s, 3)
+        R_world_imu = T_real[:3, :3] @ imu.R_body_imu
+        accel = (R_world_imu.T @ np.array([0.0, 0.0, GRAVITY_M_S2]) + imu.accel_bias
+                 + rng.normal(0, config.imu_accel_sigma_m_s2, 3))
+        gyro = imu.gyro_bias + rng.normal(0, config.imu_gyro_sigma_rad_s, 3)
         records.append(StationRecord(cmd.station, cmd.session, 10.0 * i, T_cmd, T_real, q_meas, accel, gyro))
+    return records, real_poses, leg_q_true
 
-    # -- sensors
+
+def _sensor_clouds(config: SimulationConfig, robot, true_robot, info, records: list, leg_q_true: dict, terrain,
+                   sensor_names: tuple, T_body_sensor_true: dict, h0: float,
+                   rng: np.random.Generator) -> tuple[dict, dict, dict]:
+    """Every sensor's cloud at every station, of the terrain and the robot's own legs (cylinders),
+    the extrinsic knocked from ``config.effects.extrinsic_change``'s station on. Returns
+    ((sensor, station) -> points (N, 3) sensor frame m, -> labels (N,), -> T_body_sensor (4, 4))."""
     clouds, labels = {}, {}
     ext_by_station: dict[tuple[str, int], np.ndarray] = {}
     change = config.effects.extrinsic_change
@@ -467,26 +506,75 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
             )
             clouds[(s, rec.station)] = scan.points_sensor
             labels[(s, rec.station)] = scan.labels
+    return clouds, labels, ext_by_station
 
-    # -- outlier stations: their sensor data are those of the most different other station
+
+def _swap_outlier_stations(config: SimulationConfig, records: list, real_poses: dict, sensor_names: tuple,
+                           clouds: dict, labels: dict) -> tuple[dict, dict, dict]:
+    """Outlier stations: their sensor data are those of the most different other station (by the
+    angle between the real body orientations). Returns (clouds, labels, outlier station -> source
+    station)."""
     swapped = {}
+    clouds, labels = dict(clouds), dict(labels)
     if config.effects.outlier_stations:
         originals = {k: v for k, v in clouds.items()}
         original_labels = dict(labels)
         for st in config.effects.outlier_stations:
             R_st = real_poses[st][:3, :3]
             others = [r.station for r in records if r.station != st]
-            angles = [np.arccos(np.clip((np.trace(R_st.T @ real_poses[o][:3, :3]) - 1) / 2, -1, 1)) for o in others]
+            angles = [rotation_angle_between(R_st, real_poses[o][:3, :3]) for o in others]
             src = others[int(np.argmax(angles))]
             swapped[st] = src
             for s in sensor_names:
                 clouds[(s, st)] = originals[(s, src)]
                 labels[(s, st)] = original_labels[(s, src)]
+    return clouds, labels, swapped
+
+
+def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationResult:
+    """Run the simulation described by ``config`` (see the module docstring for the physics)."""
+    rng = np.random.default_rng(config.seed)
+    robot, info = robot_and_info(config)
+    h0 = info.default_body_height_m
+    tilt_scale = config.tilt_scale if config.tilt_scale is not None else DEFAULT_TILT_SCALE.get(config.robot, 1.0)
+    sensor_names = _simulated_sensors(config, info)
+
+    # -- hidden truth: sensor extrinsics, legs, IMU
+    T_body_sensor_true = _true_extrinsics(config, info, sensor_names, rng)
+    true_robot, joint_offsets, link_changes = _true_robot(robot, config, rng)
+    R_body_imu_true = info.T_body_imu[:3, :3].copy()
+    if config.effects.imu_misalignment is not None:
+        ang, az = config.effects.imu_misalignment
+        R_body_imu_true = matrix_from_axis_angle([np.cos(az), np.sin(az), 0.0], ang) @ R_body_imu_true
+    accel_bias = rng.normal(0, config.imu_accel_bias_sigma_m_s2, 3)
+    gyro_bias = rng.normal(0, config.imu_gyro_bias_sigma_rad_s, 3)
+
+    tilt = config.effects.ground_tilt or (0.0, 0.0)
+    terrain = make_terrain(config.ground, seed=config.seed, tilt_rad=tilt[0], tilt_axis_rad=tilt[1])
+    terrain_scene = build_scene(terrain.meshes)
+
+    q_nominal = _nominal_q(robot, info)
+    commands = station_program(
+        config.program,
+        default_height_m=h0,
+        n_stations=config.n_stations,
+        n_sessions=config.n_sessions,
+        seed=config.seed,
+        tilt_scale=tilt_scale,
+        reachable=_reachable_within_limits(robot, info, q_nominal),
+    )
+    sessions = _check_program(config, commands, sensor_names)
+    stances = _stances(config, robot, info, sessions, terrain, terrain_scene, h0)
+    records, real_poses, leg_q_true = _stations(config, robot, true_robot, commands, stances, q_nominal,
+                                                _HiddenImu(R_body_imu_true, accel_bias, gyro_bias), rng, progress)
+    clouds, labels, ext_by_station = _sensor_clouds(config, robot, true_robot, info, records, leg_q_true, terrain,
+                                                    sensor_names, T_body_sensor_true, h0, rng)
+    clouds, labels, swapped = _swap_outlier_stations(config, records, real_poses, sensor_names, clouds, labels)
 
     sensor_cad = {s: info.sensors[s] for s in sensor_names}
     truth = _truth_dict(
         config, info, sensor_names, T_body_sensor_true, ext_by_station, records, joint_offsets, link_changes,
-        R_body_imu_true, accel_bias, gyro_bias, terrain, swapped, T_world_stance, feet_world_real,
+        R_body_imu_true, accel_bias, gyro_bias, terrain, swapped, stances.T_world_stance, stances.feet_world_real,
     )
     return SimulationResult(config, config.robot, tuple(records), clouds, labels, sensor_cad, truth)
 

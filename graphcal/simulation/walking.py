@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.geometry import matrix_from_rpy
+from graphcal.geometry import body_rates_from_rpy_rates, matrix_from_rpy, quat_wxyz_from_matrix_batch, skew_batch
 from graphcal.simulation.terrain import LABEL_STAIRS, Stair, Terrain, box_mesh, make_terrain
 
 __all__ = [
@@ -339,31 +339,29 @@ def _newton_ik(leg, P: np.ndarray, q: np.ndarray, *, iters: int = 4):
     return q, J, err
 
 
-# ----------------------------------------------------------------------------- the walk
-def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool = False) -> WalkingResult:
-    """Simulate a walk (see the module docstring). Raises GraphcalError if the walk is infeasible
-    (a foot out of reach or past a joint limit), naming the foot and the time."""
-    from scipy.interpolate import CubicSpline
-    from scipy.ndimage import gaussian_filter1d, maximum_filter1d
+# ----------------------------------------------------------------------------- the walk, stage by stage
+@dataclass(frozen=True, eq=False)
+class _Timeline:
+    """Still, ramp up, cruise, ramp down, (gait finishes), still: the sample times ``t`` (N,) s at
+    interval ``dt`` s, the gait's start and end ``t_g0``, ``t_g1`` s, the forward speed ``v`` (N,)
+    m/s, the distance walked ``s`` (N,) m, ``gain`` = v / the cruise speed and the gait ``phase``
+    (N,) in cycles; ``h0`` the nominal body height, m."""
 
-    from graphcal.models.builtin import builtin_info
-    from graphcal.models.kinematics import ik_leg
-    from graphcal.models.robot import load_robot
+    t: np.ndarray
+    dt: float
+    t_g0: float
+    t_g1: float
+    v: np.ndarray
+    s: np.ndarray
+    gain: np.ndarray
+    phase: np.ndarray
+    h0: float
 
-    c = config.resolved()
-    info = builtin_info(c.robot)
-    if len(info.gait_groups) != 2:
-        raise GraphcalError(f"robot {c.robot!r} has no tripod gait groups (the walking programs need two)")
-    robot = load_robot(model=c.robot)
-    rng = np.random.default_rng(c.seed)
-    feet = tuple(robot.feet)
-    groups = tuple(tuple(g) for g in info.gait_groups)
-    group_of = {f: gi for gi, g in enumerate(groups) for f in g}
+
+def _timeline(c: WalkingConfig, info) -> _Timeline:
     h0 = c.body_height_m if c.body_height_m is not None else info.default_body_height_m - (0.03 if c.stairs else 0.0)
     v_max, Tc, beta = c.speed_m_s, c.cycle_s, c.duty_factor
     dt = 1.0 / c.rate_hz
-
-    # -- timeline: still, ramp up, cruise, ramp down, (gait finishes), still
     t_cruise = c.distance_m / v_max - c.ramp_s
     t_g0 = c.still_s
     t_stop = t_g0 + 2 * c.ramp_s + t_cruise
@@ -376,55 +374,149 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
     s = _cumtrapz(v, t)
     gain = v / v_max
     phase = (t - t_g0) / Tc
+    return _Timeline(t, dt, t_g0, t_g1, v, s, gain, phase, h0)
 
-    # -- body trajectory
-    roll = c.sway_rad * gain * np.sin(2 * np.pi * phase)
-    nod = c.nod_rad * gain * np.sin(4 * np.pi * phase + 0.3)
-    bob = c.bob_m * gain * np.sin(4 * np.pi * phase)
+
+@dataclass(frozen=True, eq=False)
+class _BodyPath:
+    """The true body trajectory: ``roll``, ``pitch``, ``yaw`` (N,) rad, ``p`` (N, 3) m and ``R``
+    (N, 3, 3) of T_world_body, the ``terrain`` and ``ground_stairs`` (the steps under the walk; empty
+    on level ground)."""
+
+    roll: np.ndarray
+    pitch: np.ndarray
+    yaw: np.ndarray
+    p: np.ndarray
+    R: np.ndarray
+    terrain: Terrain
+    ground_stairs: tuple
+
+    @property
+    def T_world_body(self) -> np.ndarray:
+        """(N, 4, 4) body poses."""
+        T_world_body = np.zeros((len(self.p), 4, 4))
+        T_world_body[:, :3, :3] = self.R
+        T_world_body[:, :3, 3] = self.p
+        T_world_body[:, 3, 3] = 1.0
+        return T_world_body
+
+
+def _ground_height(stairs: tuple, xy: np.ndarray) -> np.ndarray:
+    """Ground height (m) under world points ``xy`` (..., >= 2): the stairs' profile along x, 0 on
+    level ground (no ``stairs``)."""
+    if stairs:
+        return stair_profile(stairs, xy[..., 0])
+    return np.zeros(xy.shape[:-1])
+
+
+def _stairs_height_and_pitch(c: WalkingConfig, info, feet: tuple, terrain: Terrain, x: np.ndarray, h0: float):
+    """(z (N,) m without the bob, pitch (N,) rad without the nod) of the body walking up the stairs
+    at world x (N,) m: the ground line under the nominal feet (least squares over their x offsets),
+    smoothed: body pitch parallel to it, body height h0 above it (perpendicular), less the depth
+    of the lowest foot's ground below the line."""
+    from scipy.interpolate import CubicSpline
+    from scipy.ndimage import gaussian_filter1d, maximum_filter1d
+
+    res = 0.005
+    xg = np.arange(-3.0, c.distance_m + 3.0, res)
+    dxs = np.array([info.nominal_stance[f][0] for f in feet])
+    dxs = dxs - dxs.mean()
+    hg = stair_profile(terrain.stairs, xg[:, None] + dxs[None, :])
+    a_raw = hg.mean(axis=1)
+    b_raw = hg @ dxs / (dxs @ dxs)
+    # lower the body by as much as a foot's ground lies below that line (no leg over-extends)
+    below = np.max(a_raw[:, None] + b_raw[:, None] * dxs[None, :] - hg, axis=1)
+    below = gaussian_filter1d(maximum_filter1d(below, size=int(0.3 / res)), 0.1 / res)
+    a_g = gaussian_filter1d(a_raw, 0.1 / res)
+    b_g = gaussian_filter1d(b_raw, 0.1 / res)
+    A_s, B_s, D_s = CubicSpline(xg, a_g), CubicSpline(xg, b_g), CubicSpline(xg, below)
+    slope = np.arctan(B_s(x))
+    return A_s(x) + (h0 - _K_BELOW * D_s(x)) / np.cos(slope), -slope
+
+
+def _body_path(c: WalkingConfig, info, feet: tuple, tl: _Timeline) -> _BodyPath:
+    """The body trajectory: sway (roll), nod (pitch) and bob (z) with the gait; on stairs along x,
+    following the ground line; on level ground weaving (yaw) along a sine."""
+    N = len(tl.t)
+    roll = c.sway_rad * tl.gain * np.sin(2 * np.pi * tl.phase)
+    nod = c.nod_rad * tl.gain * np.sin(4 * np.pi * tl.phase + 0.3)
+    bob = c.bob_m * tl.gain * np.sin(4 * np.pi * tl.phase)
     if c.stairs:
         terrain = _stairs_terrain(c, extent_m=max(12.0, c.distance_m + 8.0))
-        x = s.copy()
+        x = tl.s.copy()
         y = np.zeros(N)
         yaw = np.zeros(N)
-        # the ground line under the nominal feet (least squares over their x offsets), smoothed:
-        # body pitch parallel to it, body height h0 above it (perpendicular), less the depth of the
-        # lowest foot's ground below the line
-        res = 0.005
-        xg = np.arange(-3.0, c.distance_m + 3.0, res)
-        dxs = np.array([info.nominal_stance[f][0] for f in feet])
-        dxs = dxs - dxs.mean()
-        hg = stair_profile(terrain.stairs, xg[:, None] + dxs[None, :])
-        a_raw = hg.mean(axis=1)
-        b_raw = hg @ dxs / (dxs @ dxs)
-        # lower the body by as much as a foot's ground lies below that line (no leg over-extends)
-        below = np.max(a_raw[:, None] + b_raw[:, None] * dxs[None, :] - hg, axis=1)
-        below = gaussian_filter1d(maximum_filter1d(below, size=int(0.3 / res)), 0.1 / res)
-        a_g = gaussian_filter1d(a_raw, 0.1 / res)
-        b_g = gaussian_filter1d(b_raw, 0.1 / res)
-        A_s, B_s, D_s = CubicSpline(xg, a_g), CubicSpline(xg, b_g), CubicSpline(xg, below)
-        slope = np.arctan(B_s(x))
-        z = A_s(x) + (h0 - _K_BELOW * D_s(x)) / np.cos(slope) + bob
-        pitch = -slope + nod
-        ground = lambda xy: stair_profile(terrain.stairs, xy[..., 0])  # noqa: E731
+        z, pitch = _stairs_height_and_pitch(c, info, feet, terrain, x, tl.h0)
+        z = z + bob
+        pitch = pitch + nod
+        ground_stairs = tuple(terrain.stairs)
     else:
         terrain = make_terrain("level", extent_m=max(12.0, c.distance_m + 8.0))
-        yaw = c.weave_amplitude_rad * np.sin(2 * np.pi * s / c.weave_wavelength_m)
-        x = _cumtrapz(np.cos(yaw), s)
-        y = _cumtrapz(np.sin(yaw), s)
-        z = h0 + bob
+        yaw = c.weave_amplitude_rad * np.sin(2 * np.pi * tl.s / c.weave_wavelength_m)
+        x = _cumtrapz(np.cos(yaw), tl.s)
+        y = _cumtrapz(np.sin(yaw), tl.s)
+        z = tl.h0 + bob
         pitch = nod
-        ground = lambda xy: np.zeros(xy.shape[:-1])  # noqa: E731
+        ground_stairs = ()
     R = matrix_from_rpy(np.column_stack(np.broadcast_arrays(roll, pitch, yaw)))
-    p = np.c_[x, y, z]
-    T_world_body = np.zeros((N, 4, 4))
-    T_world_body[:, :3, :3] = R
-    T_world_body[:, :3, 3] = p
-    T_world_body[:, 3, 3] = 1.0
+    return _BodyPath(roll, pitch, yaw, np.c_[x, y, z], R, terrain, ground_stairs)
 
-    # -- contacts and footholds
-    in_gait = (t >= t_g0) & (t < t_g1)
-    swing_group = [in_gait & (np.mod(phase, 1.0) < 1.0 - beta), in_gait & (np.mod(phase + 0.5, 1.0) < 1.0 - beta)]
-    edges = _stair_edges(terrain.stairs) if c.stairs else np.zeros(0)
+
+@dataclass(frozen=True, eq=False)
+class _FootPlan:
+    """Contacts and feet: ``contact`` (N, n_feet) bool, the feet's share of the body's weight
+    ``weight`` (n_feet, N) (smooth ramps at touchdown and lift-off) and the true foot positions
+    ``p_world_foot`` (n_feet, N, 3) m."""
+
+    contact: np.ndarray
+    weight: np.ndarray
+    p_world_foot: np.ndarray
+
+
+def _foothold_xy(c: WalkingConfig, body: _BodyPath, edges: np.ndarray, foot: str, xy: np.ndarray, z_nominal: float) -> np.ndarray:
+    """Stairs: the foothold (x, y) m within +-8 cm along x of the nominal ``xy``, at least
+    edge_margin_m from every edge, whose ground is nearest the nominal foot height (then nearest
+    the nominal x)."""
+    xy = xy.copy()
+    cand = xy[0] + np.linspace(-0.08, 0.08, 33)
+    ok = np.min(np.abs(cand[:, None] - edges[None, :]), axis=1) >= c.edge_margin_m - 1e-12
+    if not ok.any():  # pragma: no cover - treads are 0.3 m deep
+        raise GraphcalError(f"walking simulation: no foothold for {foot} near x = {xy[0]:.3f} m")
+    cand = cand[ok]
+    cost = np.abs(stair_profile(body.terrain.stairs, cand) - z_nominal) + 0.5 * np.abs(cand - xy[0])
+    xy[0] = cand[int(np.argmin(cost))]
+    return xy
+
+
+def _swing_path(c: WalkingConfig, body: _BodyPath, t: np.ndarray, lo: int, td: int, A: np.ndarray,
+                B: np.ndarray) -> np.ndarray:
+    """(td - lo - 1, 3) world positions (m) of a foot swinging from hold A (lift-off after sample
+    ``lo``) to hold B (touchdown at sample ``td``): lift, transfer, lower (quintic smoothsteps)
+    ``swing_clearance_m`` above the holds and the ground between them."""
+    ks = np.arange(lo + 1, td)
+    u = (t[ks] - t[lo]) / (t[td] - t[lo])
+    xs = np.linspace(0.0, 1.0, 25)[:, None] * (B[:2] - A[:2]) + A[:2]
+    z_top = max(A[2], B[2], float(np.max(_ground_height(body.ground_stairs, xs)))) + c.swing_clearance_m
+    up = _smoothstep(u / _LIFT)
+    across = _smoothstep((u - _ACROSS0) / (1 - 2 * _ACROSS0))
+    down = _smoothstep((u - 1 + _LIFT) / _LIFT)
+    out = np.empty((len(ks), 3))
+    out[:, :2] = A[:2] + across[:, None] * (B[:2] - A[:2])
+    out[:, 2] = A[2] + up * (z_top - A[2]) + down * (B[2] - z_top)
+    return out
+
+
+def _foot_plan(c: WalkingConfig, info, feet: tuple, groups: tuple, tl: _Timeline, body: _BodyPath) -> _FootPlan:
+    """Contacts (alternating tripods, duty factor ``c.duty_factor``), footholds (under the nominal
+    stance at mid-stance; on stairs away from the edges) and swing paths between them."""
+    t, h0 = tl.t, tl.h0
+    N = len(t)
+    Tc, beta = c.cycle_s, c.duty_factor
+    p, R = body.p, body.R
+    group_of = {f: gi for gi, g in enumerate(groups) for f in g}
+    in_gait = (t >= tl.t_g0) & (t < tl.t_g1)
+    swing_group = [in_gait & (np.mod(tl.phase, 1.0) < 1.0 - beta), in_gait & (np.mod(tl.phase + 0.5, 1.0) < 1.0 - beta)]
+    edges = _stair_edges(body.terrain.stairs) if c.stairs else np.zeros(0)
     nf = len(feet)
     contact = np.zeros((N, nf), dtype=bool)
     weight = np.zeros((nf, N))
@@ -442,16 +534,8 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
             p_nom = p[k] + R[k] @ nominal
             xy = p_nom[:2].copy()
             if a > 0 and len(edges):
-                # stairs: the foothold within +-8 cm along x, at least edge_margin_m from every
-                # edge, whose ground is nearest the nominal foot height (then nearest the nominal x)
-                cand = xy[0] + np.linspace(-0.08, 0.08, 33)
-                ok = np.min(np.abs(cand[:, None] - edges[None, :]), axis=1) >= c.edge_margin_m - 1e-12
-                if not ok.any():  # pragma: no cover - treads are 0.3 m deep
-                    raise GraphcalError(f"walking simulation: no foothold for {f} near x = {xy[0]:.3f} m")
-                cand = cand[ok]
-                cost = np.abs(stair_profile(terrain.stairs, cand) - p_nom[2]) + 0.5 * np.abs(cand - xy[0])
-                xy[0] = cand[int(np.argmin(cost))]
-            hold = np.r_[xy, float(ground(xy[None])[0])]
+                xy = _foothold_xy(c, body, edges, f, xy, p_nom[2])
+            hold = np.r_[xy, float(_ground_height(body.ground_stairs, xy[None])[0])]
             holds.append(hold)
             p_world_foot[i, a:b] = hold
             w = np.ones(b - a)
@@ -463,28 +547,28 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
             weight[i, a:b] = w
         for j in range(len(runs) - 1):
             lo, td = runs[j][1] - 1, runs[j + 1][0]
-            A, B = holds[j], holds[j + 1]
-            ks = np.arange(lo + 1, td)
-            u = (t[ks] - t[lo]) / (t[td] - t[lo])
-            xs = np.linspace(0.0, 1.0, 25)[:, None] * (B[:2] - A[:2]) + A[:2]
-            z_top = max(A[2], B[2], float(np.max(ground(xs)))) + c.swing_clearance_m
-            up = _smoothstep(u / _LIFT)
-            across = _smoothstep((u - _ACROSS0) / (1 - 2 * _ACROSS0))
-            down = _smoothstep((u - 1 + _LIFT) / _LIFT)
-            p_world_foot[i, ks, :2] = A[:2] + across[:, None] * (B[:2] - A[:2])
-            p_world_foot[i, ks, 2] = A[2] + up * (z_top - A[2]) + down * (B[2] - z_top)
-
+            p_world_foot[i, lo + 1 : td] = _swing_path(c, body, t, lo, td, holds[j], holds[j + 1])
     # the swinging feet stay above the ground (stairs: also while crossing an edge)
     for i, f in enumerate(feet):
         sw = ~contact[:, i]
         if sw.any():
-            gap = p_world_foot[i, sw, 2] - ground(p_world_foot[i, sw])
+            gap = p_world_foot[i, sw, 2] - _ground_height(body.ground_stairs, p_world_foot[i, sw])
             if gap.min() < -1e-9:  # pragma: no cover - the swing profile is built to clear
                 k = np.flatnonzero(sw)[int(np.argmin(gap))]
                 raise GraphcalError(f"walking simulation: foot {f} swings through the ground at t = {t[k]:.3f} s")
+    return _FootPlan(contact, weight, p_world_foot)
 
-    # -- joint angles: IK every 10th sample (ik_leg), spline, Newton-refined at every sample
-    p_body_foot = np.einsum("nji,fnj->fni", R, p_world_foot - p[None])
+
+def _joint_angles(robot, info, feet: tuple, t: np.ndarray, p_body_foot: np.ndarray, h0: float):
+    """Joint angles of every leg reaching its planned foot positions ``p_body_foot`` (n_feet, N, 3)
+    m (body frame): IK every 10th sample (ik_leg), spline, Newton-refined at every sample. Returns
+    (joint name -> (N,) rad, foot -> (N, n) rad, foot -> (N, 3, n) Jacobians); GraphcalError when a
+    foot cannot reach or a joint leaves its limits."""
+    from scipy.interpolate import CubicSpline
+
+    from graphcal.models.kinematics import ik_leg
+
+    N = len(t)
     q_true: dict[str, np.ndarray] = {}
     q_leg: dict[str, np.ndarray] = {}
     jac: dict[str, np.ndarray] = {}
@@ -510,24 +594,45 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
         q_leg[f] = q
         for jj, name in enumerate(leg.joint_names):
             q_true[name] = q[:, jj]
+    return q_true, q_leg, jac
 
-    # -- velocities, accelerations, angular rates (central differences of the smooth trajectory)
-    v_world = np.gradient(p, dt, axis=0)
-    rpy_dot = np.gradient(np.c_[roll, pitch, yaw], dt, axis=0)
-    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
-    w_body = np.c_[
-        rpy_dot[:, 0] - rpy_dot[:, 2] * sp,
-        rpy_dot[:, 1] * cr + rpy_dot[:, 2] * sr * cp,
-        -rpy_dot[:, 1] * sr + rpy_dot[:, 2] * cr * cp,
-    ]
+
+@dataclass(frozen=True, eq=False)
+class _ImuData:
+    """The IMU: its pose in the body frame ``T_body_imu`` (4, 4), measured ``gyro`` (N, 3) rad/s
+    and ``accel`` (N, 3) m/s^2 (IMU frame, rounded like a driver's output) and the true biases
+    ``gyro_bias``, ``accel_bias`` (N, 3) (random walks)."""
+
+    T_body_imu: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+
+
+def _body_rates(body: _BodyPath, dt: float) -> np.ndarray:
+    """(N, 3) body-frame angular rates (rad/s) from central differences of roll, pitch, yaw."""
+    rpy = np.c_[body.roll, body.pitch, body.yaw]
+    return body_rates_from_rpy_rates(rpy, np.gradient(rpy, dt, axis=0))
+
+
+def _second_difference(p: np.ndarray, dt: float) -> np.ndarray:
+    """(N, 3) accelerations of positions p (N, 3) by central second differences (ends repeated)."""
+    a = np.zeros_like(p)
+    a[1:-1] = (p[2:] - 2 * p[1:-1] + p[:-2]) / dt**2
+    a[0], a[-1] = a[1], a[-2]
+    return a
+
+
+def _imu(c: WalkingConfig, info, body: _BodyPath, dt: float, rng: np.random.Generator) -> _ImuData:
+    """The IMU's true rate and specific force (the smooth trajectory differentiated) plus biases
+    (initial offset + random walk) and white noise, drawn from ``rng`` in that order."""
+    p, R = body.p, body.R
+    N = len(p)
+    w_body = _body_rates(body, dt)
     T_body_imu = np.asarray(info.T_body_imu, dtype=float)
     p_imu = p + np.einsum("nij,j->ni", R, T_body_imu[:3, 3])
-    a_imu = np.zeros_like(p_imu)
-    a_imu[1:-1] = (p_imu[2:] - 2 * p_imu[1:-1] + p_imu[:-2]) / dt**2
-    a_imu[0], a_imu[-1] = a_imu[1], a_imu[-2]
-    a_body = np.zeros_like(p)
-    a_body[1:-1] = (p[2:] - 2 * p[1:-1] + p[:-2]) / dt**2
-    a_body[0], a_body[-1] = a_body[1], a_body[-2]
+    a_imu = _second_difference(p_imu, dt)
     R_world_imu = R @ T_body_imu[:3, :3]
     f_imu = np.einsum("nji,nj->ni", R_world_imu, a_imu - _G_WORLD)
     w_imu = w_body @ T_body_imu[:3, :3]
@@ -538,14 +643,22 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
         rng.normal(0, c.accel_bias_rw * math.sqrt(dt), (N, 3)), axis=0)
     imu_gyro = np.round(w_imu + gyro_bias + rng.normal(0, c.gyro_noise_density * sq, (N, 3)), 7)
     imu_accel = np.round(f_imu + accel_bias + rng.normal(0, c.accel_noise_density * sq, (N, 3)), 6)
+    return _ImuData(T_body_imu, imu_gyro, imu_accel, gyro_bias, accel_bias)
 
-    # -- quasi-static force distribution and joint torques
+
+def _quasi_static_forces(c: WalkingConfig, body: _BodyPath, p_body_foot: np.ndarray, weight: np.ndarray,
+                         dt: float) -> np.ndarray:
+    """(n_feet, N, 3) force (N) each foot exerts on the ground, body frame: the ground reaction that
+    carries the body's mass and acceleration, spread over the feet by their ``weight`` (n_feet, N)
+    with zero moment about the body origin (weighted least norm)."""
+    R = body.R
+    N = len(R)
+    nf = len(p_body_foot)
+    a_body = _second_difference(body.p, dt)
     F_body = c.body_mass_kg * np.einsum("nji,nj->ni", R, a_body - _G_WORLD)  # ground reaction sum, body frame
     P = np.swapaxes(p_body_foot, 0, 1)  # (N, nf, 3)
     W = weight.T  # (N, nf)
-    Px = np.zeros((N, nf, 3, 3))
-    Px[..., 0, 1], Px[..., 0, 2], Px[..., 1, 2] = -P[..., 2], P[..., 1], -P[..., 0]
-    Px[..., 1, 0], Px[..., 2, 0], Px[..., 2, 1] = P[..., 2], -P[..., 1], P[..., 0]
+    Px = skew_batch(P)  # (N, nf, 3, 3)
     M = np.zeros((N, 6, 6))
     M[:, :3, :3] = W.sum(axis=1)[:, None, None] * np.eye(3)
     S1 = np.einsum("nf,nfij->nij", W, Px)
@@ -556,7 +669,13 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
     yv = np.linalg.solve(M, b[:, :, None])[:, :, 0]
     # f_i = w_i (y_F + y_M x p_i): the ground's force on foot i
     f_ground = W[:, :, None] * (yv[:, None, :3] + np.cross(yv[:, None, 3:], P))
-    force_body_foot = -np.swapaxes(f_ground, 0, 1)  # what each foot exerts on the ground
+    return -np.swapaxes(f_ground, 0, 1)  # what each foot exerts on the ground
+
+
+def _joint_measurements(c: WalkingConfig, robot, feet: tuple, q_leg: dict, jac: dict, force_body_foot: np.ndarray,
+                        rng: np.random.Generator) -> tuple[dict, dict]:
+    """(joint name -> measured angle (N,) rad, joint name -> measured torque (N,) N m): the true
+    angles and the torques that hold the feet's forces, plus encoder and torque noise, rounded."""
     tau_measured: dict[str, np.ndarray] = {}
     q_measured: dict[str, np.ndarray] = {}
     for i, f in enumerate(feet):
@@ -567,9 +686,14 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
         for jj, name in enumerate(leg.joint_names):
             q_measured[name] = np.round(noisy_q[:, jj], 8)
             tau_measured[name] = np.round(noisy_tau[:, jj], 4)
+    return q_measured, tau_measured
 
-    # -- depth clouds
-    T_body_sensor = np.asarray(info.sensors["depth"].T_body_sensor, dtype=float) if "depth" in info.sensors else None
+
+def _depth_clouds(c: WalkingConfig, T_body_sensor: np.ndarray | None, t: np.ndarray, T_world_body: np.ndarray,
+                  terrain: Terrain, rng: np.random.Generator, progress: bool) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(sample index (M,) of each cloud, M clouds (K, 3) in the sensor frame, m) of the depth camera
+    at ``T_body_sensor`` (4, 4) every 1 / ``c.cloud_rate_hz`` s; none without a camera."""
+    N = len(t)
     cloud_idx = np.zeros(0, dtype=np.int64)
     clouds: list[np.ndarray] = []
     if c.cloud_rate_hz > 0 and T_body_sensor is not None:
@@ -592,14 +716,43 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
         for k in it:
             scan = capture(cam, None, T_world_body[k] @ T_body_sensor, rng, scene=scene)
             clouds.append(scan.points_sensor)
+    return cloud_idx, clouds
 
+
+def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool = False) -> WalkingResult:
+    """Simulate a walk (see the module docstring). Raises GraphcalError if the walk is infeasible
+    (a foot out of reach or past a joint limit), naming the foot and the time."""
+    from graphcal.models.builtin import builtin_info
+    from graphcal.models.robot import load_robot
+
+    c = config.resolved()
+    info = builtin_info(c.robot)
+    if len(info.gait_groups) != 2:
+        raise GraphcalError(f"robot {c.robot!r} has no tripod gait groups (the walking programs need two)")
+    robot = load_robot(model=c.robot)
+    rng = np.random.default_rng(c.seed)
+    feet = tuple(robot.feet)
+    groups = tuple(tuple(g) for g in info.gait_groups)
+    tl = _timeline(c, info)
+    t = tl.t
+    body = _body_path(c, info, feet, tl)
+    T_world_body = body.T_world_body
+    plan = _foot_plan(c, info, feet, groups, tl, body)
+    p_body_foot = np.einsum("nji,fnj->fni", body.R, plan.p_world_foot - body.p[None])
+    q_true, q_leg, jac = _joint_angles(robot, info, feet, t, p_body_foot, tl.h0)
+    v_world = np.gradient(body.p, tl.dt, axis=0)
+    imu = _imu(c, info, body, tl.dt, rng)
+    force_body_foot = _quasi_static_forces(c, body, p_body_foot, plan.weight, tl.dt)
+    q_measured, tau_measured = _joint_measurements(c, robot, feet, q_leg, jac, force_body_foot, rng)
+    T_body_sensor = np.asarray(info.sensors["depth"].T_body_sensor, dtype=float) if "depth" in info.sensors else None
+    cloud_idx, clouds = _depth_clouds(c, T_body_sensor, t, T_world_body, body.terrain, rng, progress)
     return WalkingResult(
         config=c, robot=robot, info=info, times=t, T_world_body=T_world_body, v_world_body=v_world,
-        feet=feet, groups=groups, p_world_foot=p_world_foot, contact=contact, q_true=q_true,
+        feet=feet, groups=groups, p_world_foot=plan.p_world_foot, contact=plan.contact, q_true=q_true,
         q_measured=q_measured, tau_measured=tau_measured, force_body_foot=force_body_foot,
-        imu_accel=imu_accel, imu_gyro=imu_gyro, accel_bias=accel_bias, gyro_bias=gyro_bias,
-        T_body_imu=T_body_imu, T_body_sensor=T_body_sensor if T_body_sensor is not None else np.eye(4),
-        cloud_indices=cloud_idx, clouds=clouds, terrain=terrain,
+        imu_accel=imu.accel, imu_gyro=imu.gyro, accel_bias=imu.accel_bias, gyro_bias=imu.gyro_bias,
+        T_body_imu=imu.T_body_imu, T_body_sensor=T_body_sensor if T_body_sensor is not None else np.eye(4),
+        cloud_indices=cloud_idx, clouds=clouds, terrain=body.terrain,
     )
 
 
@@ -613,15 +766,6 @@ def _pose_yaml(T: np.ndarray) -> dict:
             "rpy_deg": [float(v) for v in np.degrees(rpy)]}
 
 
-def _quat_wxyz_batch(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
-    q = np.c_[q[:, 3], q[:, :3]]
-    q[q[:, 0] < 0] *= -1
-    return q
-
-
 def truth_table(result: WalkingResult):
     """The truth trajectory at ``truth_rate_hz``: a :class:`~graphcal.io.dataset.Table`-like dict of
     columns time, x, y, z, qw, qx, qy, qz (T_world_body), vx, vy, vz (world), gyro/accel biases."""
@@ -629,7 +773,7 @@ def truth_table(result: WalkingResult):
     step = max(1, int(round(c.rate_hz / c.truth_rate_hz)))
     idx = np.arange(0, len(result.times), step)
     T = result.T_world_body[idx]
-    q = _quat_wxyz_batch(T[:, :3, :3])
+    q = quat_wxyz_from_matrix_batch(T[:, :3, :3])
     cols = {"time": result.times[idx]}
     for k, n in enumerate("xyz"):
         cols[n] = T[:, k, 3]
