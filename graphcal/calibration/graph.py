@@ -24,7 +24,6 @@ least squares), laser scanners from their points (linear) — see graphcal/solve
 from __future__ import annotations
 
 import functools
-import weakref
 from dataclasses import dataclass, field
 
 import gtsam
@@ -32,8 +31,8 @@ import numpy as np
 
 from graphcal.factors.keys import C, F, G, L, M, S, W, X
 from graphcal.errors import GraphcalError
-from graphcal.geometry import pose_matrix, to_gtsam_pose
-from graphcal.calibration.kinematic_pose import ground_from_feet, initial_body_pose
+from graphcal.geometry import to_gtsam_pose
+from graphcal.calibration.kinematic_pose import kinematic_bodies, leg_kinematics
 from graphcal.calibration.measurements import CalibrationData
 
 
@@ -220,87 +219,6 @@ class CalibrationProblem:
     extension_keys: dict = field(default_factory=dict)
     extension_priors: dict = field(default_factory=dict)
     measurement_keys: dict = field(default_factory=dict)
-
-
-_LEG_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-
-
-def leg_kinematics(data: CalibrationData, robot) -> dict:
-    """(station, foot) -> (p_body_foot (3,), J (3, n) position Jacobian) of the measured joint
-    angles on the nominal legs, computed once per (data, robot) and cached (graphs are rebuilt
-    many times by the noise estimation and the diagnosis)."""
-    from graphcal.models.kinematics import foot_positions, leg_jacobian
-
-    per_data = _LEG_CACHE.setdefault(data, {})
-    out = per_data.get(id(robot))
-    if out is None or out[0] is not robot:
-        by_foot: dict = {}
-        for st in data.stations:
-            for f, q in st.q_by_foot.items():
-                by_foot.setdefault(f, []).append((st.station, q))
-        table = {}
-        for f, items in by_foot.items():  # one batch per leg (the kinematics is vectorised)
-            leg = robot.leg(f)
-            Q = np.array([np.asarray(q, dtype=float) for _, q in items])
-            P, J = foot_positions(leg, Q), leg_jacobian(leg, Q)
-            P.flags.writeable = J.flags.writeable = False  # shared by every graph built from the cache
-            for k, (station, _) in enumerate(items):
-                table[(station, f)] = (P[k], J[k])
-        out = (robot, table)
-        per_data[id(robot)] = out
-    return out[1]
-
-
-def _kinematic_bodies(data: CalibrationData, robot) -> tuple[dict, dict, dict]:
-    """station -> (u_body, height, T_world_body initial) from the stance feet (or the commanded pose);
-    cached with :func:`leg_kinematics` (new dicts each call, the arrays read-only)."""
-    per_data = _LEG_CACHE.setdefault(data, {})
-    out = per_data.get(("bodies", id(robot)))
-    if out is None or out[0] is not robot:
-        out = (robot, _compute_kinematic_bodies(data, robot))
-        per_data[("bodies", id(robot))] = out
-    return tuple(dict(d) for d in out[1])
-
-
-def _compute_kinematic_bodies(data: CalibrationData, robot) -> tuple[dict, dict, dict]:
-    out_u, out_h, out_T = {}, {}, {}
-    kin = leg_kinematics(data, robot)
-    for st in data.stations:
-        if len(st.q_by_foot) >= 3:
-            u, h = ground_from_feet(np.array([kin[(st.station, f)][0] for f in st.q_by_foot]))
-            T = initial_body_pose(u, h, st.T_world_body_cmd)
-        elif st.T_world_body_cmd is not None:
-            T = st.T_world_body_cmd
-            u, h = T[:3, :3].T @ np.array([0.0, 0.0, 1.0]), float(T[2, 3])
-        else:
-            raise GraphcalError(
-                f"station {st.station}: fewer than 3 legs with joint angles and no commanded pose; "
-                "the body pose cannot be known"
-            )
-        u, T = np.array(u, dtype=float), np.array(T, dtype=float)
-        u.flags.writeable = T.flags.writeable = False
-        out_u[st.station], out_h[st.station], out_T[st.station] = u, float(h), T
-    return out_u, out_h, out_T
-
-
-def _robust_closed_form_extrinsic(u: np.ndarray, n: np.ndarray, d: np.ndarray, z: np.ndarray, T_prior: np.ndarray):
-    """Closed-form extrinsic from planes, with stations whose residual is far off the rest trimmed
-    (outlier stations would otherwise pull the closed form)."""
-    from graphcal.solvers.closed_form import rotation_from_normals, translation_from_distances
-
-    keep = np.ones(len(u), dtype=bool)
-    for _ in range(4):
-        R, _ = rotation_from_normals(u[keep], n[keep], R_prior=T_prior[:3, :3])
-        ang = np.arccos(np.clip(np.einsum("ij,ij->i", (n @ R.T), u), -1.0, 1.0))
-        t, _ = translation_from_distances(u[keep], d[keep], z[keep], t_prior=T_prior[:3, 3])
-        res = d - z - u @ t
-        a_med = np.median(ang[keep])
-        r_mad = np.median(np.abs(res[keep] - np.median(res[keep]))) + 1e-6
-        new_keep = (ang < max(6 * a_med, np.radians(0.3))) & (np.abs(res - np.median(res[keep])) < max(8 * r_mad, 0.005))
-        if new_keep.sum() < 3 or np.array_equal(new_keep, keep):
-            break
-        keep = new_keep
-    return pose_matrix(R, t)
 
 
 #: prior pinning x, y and yaw of a session's first body pose when the dataset has no commanded
@@ -499,7 +417,7 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
 
     ext = extensions if extensions is not None else ModelExtensions()
     from graphcal.factors.foot_on_ground import foot_on_ground_factor
-    from graphcal.solvers.closed_form import extrinsic_from_scan_points
+    from graphcal.solvers.closed_form import extrinsic_from_scan_points, robust_closed_form_extrinsic
 
     if not data.stations:
         raise GraphcalError(f"{_stations_file(ds)}: no stations (a header without rows): nothing to calibrate")
@@ -517,7 +435,7 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
             groups[graph.size()] = group
         graph.add(factor)
 
-    u_body, height, T_body0 = _kinematic_bodies(data, robot)
+    u_body, height, T_body0 = kinematic_bodies(data, robot)
     kin = leg_kinematics(data, robot)
     station_keys = {st.station: X(st.station) for st in data.stations}
     for st in data.stations:
@@ -536,7 +454,7 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
             continue  # a sensor with no data at the stations: nothing to calibrate
         if planes:
             ids = [s for s, _ in planes]
-            T0 = _robust_closed_form_extrinsic(
+            T0 = robust_closed_form_extrinsic(
                 np.array([u_body[s] for s in ids]), np.array([p.n for _, p in planes]),
                 np.array([p.d for _, p in planes]), np.array([height[s] for s in ids]), T_cad)
         else:

@@ -55,6 +55,8 @@ import gtsam
 import numpy as np
 
 from graphcal.errors import GraphcalError
+from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem
+from graphcal.calibration.result import NoiseGroupEstimate
 
 
 def whitening_matrix(factor) -> np.ndarray:
@@ -589,3 +591,172 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
 def _clip(s: float, bound) -> float:
     lo, hi = bound if bound is not None else (0.02, 50.0)
     return float(min(max(s, lo), hi))
+
+
+# ----------------------------------------------------------------------------- the calibration's noise groups
+#: re-solves of the calibration graph with re-estimated noise (calibrate's outer loop)
+VCE_ROUNDS = 8
+#: iterations of the variance components on one linearisation, and their stopping tolerance
+VCE_INNER_ITERATIONS = 60
+VCE_INNER_TOLERANCE = 1e-3
+#: stop once every scale is within this of 1
+VCE_TOLERANCE = 0.02
+#: a group's sigma is re-estimated only with at least this much redundancy (dof), and this share
+#: of its rows: below it the residuals say little about the noise (e.g. the planes, whose errors the
+#: body poses can absorb almost entirely)
+VCE_MIN_REDUNDANCY = 3.0
+VCE_MIN_REDUNDANCY_SHARE = 0.05
+#: bounds on a re-estimated sigma relative to its default, and absolute floors (SI)
+VCE_SCALE_BOUNDS = (0.02, 50.0)
+VCE_FLOOR = {"sigma_joint_rad": 1e-6, "sigma_contact_m": 1e-6, "sigma_ground_m": 1e-6, "sigma_imu_rad": 1e-5,
+             "sigma_commanded_rad": 1e-5, "sigma_commanded_m": 5e-5}
+
+
+#: option fields scaled by each noise group's variance component
+_GROUP_FIELDS = {"stance_foot/joint": ("sigma_joint_rad",), "stance_foot/contact": ("sigma_contact_m",),
+                 "foot_on_ground": ("sigma_ground_m",), "imu": ("sigma_imu_rad",),
+                 "commanded": ("sigma_commanded_rad", "sigma_commanded_m")}
+
+
+class NoiseUpdate(NamedTuple):
+    """One variance-component update at a solution (:func:`noise_update`)."""
+
+    #: options with every eligible group's sigma multiplied by its converged scale
+    options: CalibrationOptions
+    #: False once every eligible scale is within ``VCE_TOLERANCE`` of 1 (a scale held at its bound
+    #: is no change)
+    changed: bool
+    #: the linear step from the solution with the new weights (None on the large-graph path)
+    step: "gtsam.VectorValues | None"
+    #: group -> :class:`~graphcal.calibration.noise_estimation.GroupVariance` at the solution with
+    #: the options given (the statistics a report on the noise model reads)
+    stats: dict
+
+
+def _vce_eligible(v) -> bool:
+    """Whether a group's residuals carry enough redundancy for its sigma to be re-estimated."""
+    return v.redundancy >= max(VCE_MIN_REDUNDANCY, VCE_MIN_REDUNDANCY_SHARE * v.rows)
+
+
+def noise_update(options: CalibrationOptions, problem: CalibrationProblem, values, *,
+                 converge: bool = True) -> NoiseUpdate:
+    """Every noise group's sigma multiplied by its variance-component scale
+    (noise_estimation.py) at ``values``. ``converge``: iterate the scales to their fixed point on
+    the graph linearised at ``values``
+    (:func:`~graphcal.calibration.noise_estimation.converged_scales`); False: one update."""
+    import dataclasses
+
+    bounds = {g: (max(VCE_SCALE_BOUNDS[0], *(VCE_FLOOR[n] / getattr(options, n) for n in names)), VCE_SCALE_BOUNDS[1])
+              for g, names in _GROUP_FIELDS.items()}
+
+    def changes(stats: dict) -> bool:
+        # a scale held at its bound (a sigma at its floor) is no change
+        return any(abs(float(np.clip(v.scale, *bounds.get(g, VCE_SCALE_BOUNDS))) - 1.0) > VCE_TOLERANCE
+                   for g, v in stats.items() if _vce_eligible(v))
+
+    # converging, a first update that changes nothing ends the call: calibrate then keeps its noise
+    # and reads only the statistics (with converge=False the one update is returned as it is)
+    first, scale, step = converged_scales(problem.graph, values, problem.factor_groups, problem.factor_components,
+                                          eligible=_vce_eligible, bounds=bounds, tolerance=VCE_INNER_TOLERANCE,
+                                          max_iterations=VCE_INNER_ITERATIONS if converge else 1,
+                                          settled=(lambda stats: not changes(stats)) if converge else None)
+    changed = changes(first)
+    update = {}
+    for group, names in _GROUP_FIELDS.items():
+        if group in scale:
+            for name in names:
+                update[name] = max(getattr(options, name) * scale[group], VCE_FLOOR[name])
+    planes = dict(options.plane_sigma_scales)
+    for group, s in scale.items():
+        if group.startswith("plane:"):
+            sensor = group.split(":", 1)[1]
+            planes[sensor] = planes.get(sensor, 1.0) * s
+    update["plane_sigma_scales"] = tuple(sorted(planes.items()))
+    return NoiseUpdate(dataclasses.replace(options, **update), changed, step, first)
+
+
+def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, values, *,
+                     converge: bool = True) -> tuple[CalibrationOptions, bool, "gtsam.VectorValues | None"]:
+    """(options, changed, step) of :func:`noise_update`."""
+    u = noise_update(options, problem, values, converge=converge)
+    return u.options, u.changed, u.step
+
+
+#: a held group whose residuals are this improbable under its sigma (chi-square upper tail) makes
+#: calibrate warn that the covariance may be too small
+NOISE_TOO_SMALL_P = 0.01
+
+
+#: a learned plane noise scale above this makes calibrate warn (measured: 0.86-1.01 on flat simulated
+#: floors, 1.7-18 on Chai's little bumpiness, 3 mm RMS, docs/calibration.md)
+PLANE_SCALE_WARN = 1.5
+
+
+def noise_groups_report(stats: dict, options: CalibrationOptions, *,
+                        given: bool = False) -> tuple[tuple[NoiseGroupEstimate, ...], list[str]]:
+    """How each noise group's sigma was set, from the variance-component statistics ``stats`` at
+    the final solution with the final ``options`` (:class:`NoiseUpdate` ``stats``), and a warning
+    for every group whose residuals say its sigma is too small (chi-square upper tail below
+    :data:`NOISE_TOO_SMALL_P`) but which the estimation could not correct (too few dof, or the
+    rounds ran out): then the reported covariance may be too small.
+
+    A group held with residuals *below* its sigma (``data_scale`` < 1, e.g. the feet's height
+    above a perfectly flat simulated floor: 6 rows, under 3 dof) only makes the covariance
+    conservative; it is reported, not warned about (docs/calibration.md measures its effect). A
+    learned plane noise scale above :data:`PLANE_SCALE_WARN` is warned about: it is what uneven
+    ground looks like to this model (and a sensor noisier than its noise model).
+
+    ``given``: the noise was not learned (``--noise-from``, or the defaults): every group's status
+    is ``given``, and nothing is warned about here: one group's residuals above its sigma does not
+    make the covariance too small when others are conservative (the defaults' planes point to
+    x1.2-x3.2 while the incremental mean NEES was 5.99 over 40 simulated sessions);
+    :func:`~graphcal.calibration.noise_check.given_noise_check` scales and warns per sensor."""
+    from graphcal import stats as chi2_dist
+
+    fields_of = dict(_GROUP_FIELDS)
+    out, warnings = [], []
+    for key, v in sorted(stats.items()):
+        if key in fields_of:
+            names = fields_of[key]
+            fields = tuple((n, float(getattr(options, n))) for n in names)
+        elif key.startswith("plane:"):
+            sensor = key.split(":", 1)[1]
+            names = ()
+            fields = ((f"plane_scale:{sensor}", float(options.plane_scale(sensor))),)
+        else:  # not a group whose sigma calibrate re-estimates
+            continue
+        dof = float(v.redundancy)
+        scale = float(v.scale)
+        # chi2 / dof = scale^2 for a single group; for one component of a sum, Helmert's theta = scale^2
+        # times its dof is the same test to first order
+        p_high = float(chi2_dist.sf(scale * scale * dof, dof)) if dof > 1e-9 else float("nan")
+        at_floor = bool(names) and all(getattr(options, n) <= VCE_FLOOR[n] * (1 + 1e-9) for n in names)
+        if given:
+            status = "given"
+        elif not _vce_eligible(v):
+            status = "too few dof"
+        elif abs(scale - 1.0) <= VCE_TOLERANCE:
+            status = "learned"
+        elif at_floor and scale < 1.0:
+            status = "at floor"
+        else:
+            status = "not converged"
+        out.append(NoiseGroupEstimate(key, fields, status, dof, int(v.rows), scale, p_high,
+                                      tuple(getattr(v, "shared_with", ()))))
+        if given:
+            continue
+        if key.startswith("plane:") and fields[0][1] > PLANE_SCALE_WARN:
+            warnings.append(
+                f"{key.split(':', 1)[1]}: the planes scatter {fields[0][1]:.2g} times more than the point noise of "
+                "their fits predicts (learned plane noise scale): the sensor is noisier than its noise model, "
+                "or the ground is not one plane (bumps: give --ground-roughness-mm; an offset per session or a "
+                "tilted floor: graphcal diagnose). On uneven ground the reported covariance is too small: the "
+                "scale treats the unevenness as independent noise per station")
+        # only residuals above their sigma make the covariance too small (with ~0 dof the chi-square
+        # puts all its mass at 0 and any positive statistic has a tiny p: 1 station gave 'residuals
+        # 0.058 times its sigma ... may be too small')
+        if status != "learned" and scale > 1.0 and p_high < NOISE_TOO_SMALL_P:
+            warnings.append(
+                f"noise group {key} ({status}, {dof:.1f} dof): its residuals are {scale:.2g} times its sigma "
+                f"(chi-square p = {p_high:.2g}); the reported covariance may be too small")
+    return tuple(out), warnings

@@ -90,11 +90,11 @@ class Diagnosis:
     nuisance: tuple = field(default=())
 
     def to_json(self) -> dict:
-        from graphcal.calibration.calibrate import _result
+        from graphcal.calibration.result import calibration_result
         from graphcal.report.calibration_yaml import calibration_to_dict as calibration_dict
 
-        result = _result(self.model.ds, self.model.robot, self.model.data, self.problem, self.values, set(), 0,
-                         self.model.options)
+        result = calibration_result(self.model.ds, self.model.robot, self.model.data, self.problem, self.values,
+                                    set(), 0, self.model.options)
         cal = calibration_dict(result)
         return {
             "format": "graphcal-diagnosis/1",

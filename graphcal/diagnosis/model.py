@@ -162,7 +162,7 @@ class DiagnosisModel:
 
     def learn_noise(self, values: gtsam.Values | None = None, rounds: int = VCE_ROUNDS):
         """This model with its noise re-estimated (variance components), and (problem, values)."""
-        from graphcal.calibration.calibrate import rescaled_options
+        from graphcal.calibration.noise_estimation import rescaled_options
 
         model = self
         problem, values = model.solve(initial=values)

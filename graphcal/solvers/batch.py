@@ -154,8 +154,11 @@ def _ordering(lin: gtsam.GaussianFactorGraph) -> gtsam.Ordering:
     return gtsam.Ordering.ColamdGaussianFactorGraph(lin)
 
 
-def _diag_information(lin: gtsam.GaussianFactorGraph, dims: dict[int, int]) -> dict[int, np.ndarray]:
-    """Per variable, the diagonal of A^T A of the whitened linear system (column norms squared)."""
+def diag_information(lin: gtsam.GaussianFactorGraph, dims: dict[int, int]) -> dict[int, np.ndarray]:
+    """Per variable, the diagonal of A^T A of the whitened linear system (column norms squared).
+
+    ``lin``: a graph linearised at a solution (whitened rows); ``dims``: key -> its tangent
+    dimension. Returns key -> (dim,) in the units of the whitened information (1 / tangent unit^2)."""
     out = {k: np.zeros(d) for k, d in dims.items()}
     for i in range(lin.size()):
         f = lin.at(i)
@@ -182,7 +185,7 @@ def _qr_rank_test(lin: gtsam.GaussianFactorGraph, ordering: gtsam.Ordering, dims
             raise
         raise _underdetermined(k, "elimination found no information left for it (a free variable, or a "
                                   "free combination with its neighbours such as a missing prior)") from None
-    colnorm = {k: np.sqrt(v) for k, v in _diag_information(lin, dims).items()}
+    colnorm = {k: np.sqrt(v) for k, v in diag_information(lin, dims).items()}
     for i in range(bn.size()):
         c = bn.at(i)
         R = np.asarray(c.R())

@@ -34,6 +34,7 @@ __all__ = [
     "translation_from_distances",
     "extrinsic_from_scan_points",
     "project_to_so3",
+    "robust_closed_form_extrinsic",
 ]
 
 #: Default threshold of "tilt variation": directions whose spread (RMS angle of the up vectors
@@ -471,3 +472,27 @@ def extrinsic_from_scan_points(
     best = _gauss_newton_points(U, z, P, R, t, scale, spread_rcond, gauss_newton_iterations, robust=True)
     R, t, _, rank = best
     return pose_matrix(R, t), rank
+
+
+def robust_closed_form_extrinsic(u: np.ndarray, n: np.ndarray, d: np.ndarray, z: np.ndarray, T_prior: np.ndarray):
+    """Closed-form extrinsic ``T_body_sensor`` (4x4, m) from planes, with stations whose residual is
+    far off the rest trimmed (outlier stations would otherwise pull the closed form).
+
+    Args: per station, ``u`` (N, 3) the ground's up direction in the body frame, ``n`` (N, 3) and
+    ``d`` (N,) the plane measured in the sensor frame (unit normal towards the sensor, distance m),
+    ``z`` (N,) the body origin's height above the ground (m); ``T_prior`` (4x4) the CAD extrinsic
+    (it fixes directions the planes do not determine).
+    """
+    keep = np.ones(len(u), dtype=bool)
+    for _ in range(4):
+        R, _ = rotation_from_normals(u[keep], n[keep], R_prior=T_prior[:3, :3])
+        ang = np.arccos(np.clip(np.einsum("ij,ij->i", (n @ R.T), u), -1.0, 1.0))
+        t, _ = translation_from_distances(u[keep], d[keep], z[keep], t_prior=T_prior[:3, 3])
+        res = d - z - u @ t
+        a_med = np.median(ang[keep])
+        r_mad = np.median(np.abs(res[keep] - np.median(res[keep]))) + 1e-6
+        new_keep = (ang < max(6 * a_med, np.radians(0.3))) & (np.abs(res - np.median(res[keep])) < max(8 * r_mad, 0.005))
+        if new_keep.sum() < 3 or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    return pose_matrix(R, t)

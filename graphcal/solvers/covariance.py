@@ -248,11 +248,11 @@ def _dense_marginals(lin, graph_keys, dims, keys) -> MarginalCovariances:
 
 
 def _regularised_marginals(lin, graph_keys, dims, keys, eps: float = 1e-14) -> MarginalCovariances:
-    from graphcal.solvers.batch import _diag_information
+    from graphcal.solvers.batch import diag_information
 
     out = MarginalCovariances(method="regularised")
     keys_in = keys
-    diag = _diag_information(lin, {k: dims[k] for k in graph_keys})
+    diag = diag_information(lin, {k: dims[k] for k in graph_keys})
     reg = gtsam.GaussianFactorGraph()
     reg.push_back(lin)
     scale = {}
