@@ -47,7 +47,7 @@ def test_a_group_over_factors_of_different_variables(dataset, monkeypatch):
     """One leg's parameters estimated, the others fixed: the stance-foot group holds Python factors
     on (X, F, L) and built-in ones on (X, F). The per-block algebra of converged_scales gives the
     factor-by-factor (gtsam.Marginals) path's statistics, and its iterated scales are finite."""
-    from graphcal.calibration.graph import ModelExtensions
+    from graphcal.diagnosis.extensions import ModelExtensions
 
     ds, robot, data = dataset
     ext = ModelExtensions(leg_sigmas=((robot.feet[0], (0.01,) * 6),))
