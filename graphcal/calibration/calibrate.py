@@ -8,6 +8,7 @@ and solve again without them, then read the marginal covariances (solvers/covari
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +83,98 @@ def solve_problem(problem: CalibrationProblem, *, progress: bool = False, stage:
     return result
 
 
+@dataclass(frozen=True, eq=False)
+class BatchInputs:
+    """What every solve of one batch calibration reads: the dataset ``ds``, its ``robot``, the
+    measurements ``data`` (:class:`CalibrationData`), and ``progress`` (one line per solve to stderr)."""
+
+    ds: object
+    robot: object
+    data: CalibrationData
+    progress: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class BatchState:
+    """Where a batch calibration stands after a solve.
+
+    Attributes:
+        problem, values: the graph last solved and its solution (gtsam.Values).
+        iterations: LM iterations so far, over every solve.
+        outliers: the (station, sensor) measurements left out.
+        noise_stats: noise group -> variance components at this solution and options (read by
+            :func:`estimate_noise`; empty after a new solve, until read again).
+    """
+
+    problem: CalibrationProblem
+    values: object
+    iterations: int
+    outliers: frozenset = frozenset()
+    noise_stats: dict = field(default_factory=dict)
+
+
+def resolve(inputs: BatchInputs, state: BatchState, options: CalibrationOptions, stage: str,
+            start=None) -> BatchState:
+    """The graph built again under ``options`` without ``state.outliers`` and solved, warm started
+    from the last solution (or ``start``, the caller's prediction of the new optimum, gtsam.Values):
+    the graph differs only in noise or left-out measurements. ``stage`` names the solve in the
+    progress line."""
+    problem = build_problem(inputs.ds, inputs.robot, inputs.data, options, exclude=frozenset(state.outliers),
+                            initial=state.values if start is None else start)
+    lm = solve_problem(problem, progress=inputs.progress, stage=stage)
+    # the noise statistics were read at the previous solution
+    return dataclasses.replace(state, problem=problem, values=lm.values, iterations=state.iterations + lm.iterations,
+                               noise_stats={})
+
+
+def estimate_noise(inputs: BatchInputs, state: BatchState,
+                   options: CalibrationOptions) -> tuple[BatchState, CalibrationOptions]:
+    """Variance-component estimation under the Huber loss (outliers are down-weighted): up to
+    :data:`~graphcal.calibration.noise_estimation.VCE_ROUNDS` updates of the noise, each followed by
+    a solve; returns the state and the options with the learned noise."""
+    for _ in range(VCE_ROUNDS):
+        u = noise_update(options, state.problem, state.values)
+        state = dataclasses.replace(state, noise_stats={**state.noise_stats, **u.stats})
+        if not u.changed:
+            break
+        options, step = u.options, u.step
+        # start at the variance estimation's linear solution with the new weights: the
+        # re-weighted optimum to first order (fewer LM iterations)
+        state = resolve(inputs, state, options, "noise re-estimated",
+                        start=None if step is None else state.values.retract(step))
+    return state, options
+
+
+def leave_out_outliers(inputs: BatchInputs, state: BatchState, options: CalibrationOptions, per_sensor: dict, *,
+                       screen: bool) -> tuple[BatchState, list[str]]:
+    """Data snooping: leave out the worst measurements (within 10x of the worst chi-square), solve
+    again, repeat until every measurement passes; one gross outlier left in biases the estimate
+    enough to make good stations fail the test. At most :data:`MAX_OUTLIER_SHARE` of a sensor's
+    measurements (``per_sensor``: sensor -> number of its measurements) are left out; beyond it a
+    warning says so, unless ``screen`` (the screen at the default noise). Returns the state and the
+    warnings."""
+    warnings = []
+    for _ in range(MAX_OUTLIER_ROUNDS):
+        bad, stats = _outlier_measurements(state.problem, state.values, options)
+        if not bad:
+            break
+        worst = max(stats[m] for m in bad)
+        new = {m for m in bad if stats[m] >= 0.1 * worst}
+        over = [sn for sn in per_sensor
+                if sum(1 for m in state.outliers | new if m[1] == sn) > MAX_OUTLIER_SHARE * per_sensor[sn]]
+        if over:
+            if not screen:
+                warnings.append(
+                    f"more than {MAX_OUTLIER_SHARE:.0%} of the measurements of {', '.join(over)} fail the "
+                    "chi-square test: the model does not fit these data (see graphcal diagnose); none more "
+                    "were left out")
+            break
+        state = dataclasses.replace(state, outliers=state.outliers | new)
+        stage = "screened at the default noise" if screen else "left out"
+        state = resolve(inputs, state, options, f"{len(state.outliers)} outlier measurement(s) {stage}")
+    return state, warnings
+
+
 def calibrate(
     dataset,
     *,
@@ -110,94 +203,47 @@ def calibrate(
     planes_given = data is not None
     if data is None:
         data = calibration_data(ds, robot, progress=progress, plane_max_points=plane_max_points)
+    inputs = BatchInputs(ds, robot, data, progress)
     problem = build_problem(ds, robot, data, options)
     lm = solve_problem(problem, progress=progress, stage="first solve (closed-form start, default noise)")
-    values, iterations = lm.values, lm.iterations
-    outliers: set = set()
+    state = BatchState(problem, lm.values, lm.iterations)
     # a laser scanner's clouds that are not scans first: what follows from them is its consequence
     warnings: list[str] = [off_plane_scan_warning(sensor, off, n)
                            for sensor, (off, n) in sorted(getattr(data, "scans_off_plane", {}).items())]
     warnings += plane_source_warnings(plane_max_points, planes_given, ds, data.planes)
     warnings += ground_choice_warnings(data)
 
-    def resolve(opts, excluded, stage, start=None):
-        nonlocal problem, values, iterations
-        # warm start from the last solution (or the caller's prediction of the new optimum): the
-        # graph differs only in noise or left-out measurements
-        problem = build_problem(ds, robot, data, opts, exclude=frozenset(excluded),
-                                initial=values if start is None else start)
-        lm = solve_problem(problem, progress=progress, stage=stage)
-        values = lm.values
-        iterations += lm.iterations
-        noise_stats.clear()  # read at the previous solution
-
-    noise_stats: dict = {}  # the variance components at the current solution and options
-
-    def estimate_noise(opts):
-        # variance-component estimation under the Huber loss (outliers are down-weighted)
-        for _ in range(VCE_ROUNDS):
-            u = noise_update(opts, problem, values)
-            noise_stats.update(u.stats)
-            if not u.changed:
-                break
-            opts, step = u.options, u.step
-            # start at the variance estimation's linear solution with the new weights: the
-            # re-weighted optimum to first order (fewer LM iterations)
-            resolve(opts, outliers, "noise re-estimated", start=None if step is None else values.retract(step))
-        return opts
-
     per_sensor: dict = {}
     for m in problem.plane_factors.values():
         per_sensor[m[1]] = per_sensor.get(m[1], 0) + 1
-
-    def leave_out_outliers(opts, *, screen: bool) -> None:
-        # data snooping: leave out the worst measurements (within 10x of the worst chi-square),
-        # solve again, repeat until every measurement passes; one gross outlier left in biases the
-        # estimate enough to make good stations fail the test
-        nonlocal outliers
-        for _ in range(MAX_OUTLIER_ROUNDS):
-            bad, stats = _outlier_measurements(problem, values, opts)
-            if not bad:
-                break
-            worst = max(stats[m] for m in bad)
-            new = {m for m in bad if stats[m] >= 0.1 * worst}
-            over = [sn for sn in per_sensor
-                    if sum(1 for m in outliers | new if m[1] == sn) > MAX_OUTLIER_SHARE * per_sensor[sn]]
-            if over:
-                if not screen:
-                    warnings.append(
-                        f"more than {MAX_OUTLIER_SHARE:.0%} of the measurements of {', '.join(over)} fail the "
-                        "chi-square test: the model does not fit these data (see graphcal diagnose); none more "
-                        "were left out")
-                break
-            outliers |= new
-            stage = "screened at the default noise" if screen else "left out"
-            resolve(opts, outliers, f"{len(outliers)} outlier measurement(s) {stage}")
 
     if options.robust and options.estimate_noise:
         # gross outliers out before the noise is learned: left in, the variance components absorb
         # them (measured: two stations with another station's clouds learned a contact noise of
         # 11 mm and hid both); at the default noise the screen may also take good measurements,
         # which are tested again below with the learned noise
-        leave_out_outliers(options, screen=True)
+        state, _ = leave_out_outliers(inputs, state, options, per_sensor, screen=True)
     if options.estimate_noise:
-        options = estimate_noise(options)
+        state, options = estimate_noise(inputs, state, options)
     if options.robust:
-        screened = frozenset(outliers)
+        screened = state.outliers
         if screened and options.estimate_noise:
-            back = _passing_again(ds, robot, data, options, problem, values, screened)
+            back = _passing_again(ds, robot, data, options, state.problem, state.values, screened)
             if back:
-                outliers -= back
-                resolve(options, outliers, f"{len(back)} screened measurement(s) put back (they pass with the "
-                                           "learned noise)")
-        leave_out_outliers(options, screen=False)
-        if outliers != screened and options.estimate_noise:
-            options = estimate_noise(options)
-    result = calibration_result(ds, robot, data, problem, values, outliers, iterations, options)
+                state = dataclasses.replace(state, outliers=state.outliers - back)
+                state = resolve(inputs, state, options, f"{len(back)} screened measurement(s) put back (they pass "
+                                                        "with the learned noise)")
+        state, more = leave_out_outliers(inputs, state, options, per_sensor, screen=False)
+        warnings += more
+        if state.outliers != screened and options.estimate_noise:
+            state, options = estimate_noise(inputs, state, options)
+    problem, values = state.problem, state.values
+    result = calibration_result(ds, robot, data, problem, values, set(state.outliers), state.iterations, options)
     warnings += implausible_leg_data_warnings(data, robot, options)
     if options.estimate_noise:
+        noise_stats = state.noise_stats
         if not noise_stats:  # the rounds ran out (or outliers were left out) after the last update
-            noise_stats.update(noise_update(options, problem, values, converge=False).stats)
+            noise_stats = noise_update(options, problem, values, converge=False).stats
         groups, noise_warnings = noise_groups_report(noise_stats, options)
         warnings += noise_warnings
         result = dataclasses.replace(result, noise_groups=groups)

@@ -461,6 +461,71 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
     blocks, where, columns, factor_keys = _factor_blocks(lin, values, graph.keyVector(), int(graph.size()))
     n = sum(len(c) for c in columns.values())
     local, global_cols = _arrow_split(columns, factor_keys)
+    single_idx, multi, multi_idx = _group_rows(graph, groups, components, blocks, where)
+    # where each block's entries land: in the normal matrix's blocks and read from Sigma_x's
+    # (_ArrowLayout), and in the right-hand side
+    order = list(blocks)
+    layout = _ArrowLayout(n, local, global_cols)
+    if any(layout.two_locals(C) for (_, _, _, C) in blocks.values()):
+        raise GraphcalError("noise estimation: a factor touches two local variables")  # _arrow_split prevents it
+    h_tgt = np.concatenate([layout.h_target(blocks[key][3]).ravel() for key in order])
+    h_keep = h_tgt >= 0
+    h_tgt = h_tgt[h_keep]
+    sigma_src = {key: layout.sigma_source(C) for key, (_, _, _, C) in blocks.items()}
+    g_idx = np.concatenate([blocks[key][3].ravel() for key in order])
+
+    scale = {g: 1.0 for g in single_idx}
+    for g, m in multi.items():
+        scale.update({f"{g}/{k}": 1.0 for k in m["names"]})
+    A = {key: A0.copy() for key, (_, A0, _, _) in blocks.items()}
+    b = {key: b0.copy() for key, (_, _, b0, _) in blocks.items()}
+    first: dict = {}
+    updated: set = set()
+    split: dict[str, bool] = {}
+    for it in range(max_iterations):
+        Linv = _reweight(blocks, single_idx, multi, multi_idx, scale, A, b)
+        # normal equations summed from the blocks (a factor touches a few unknowns)
+        AtA = np.concatenate([(np.swapaxes(A[key], 1, 2) @ A[key]).ravel() for key in order])
+        Atb = np.concatenate([np.einsum("frk,fr->fk", A[key], b[key]).ravel() for key in order])
+        H_blocks = np.bincount(h_tgt, weights=AtA[h_keep], minlength=layout.size)
+        Sigma_x, delta = layout.solve(H_blocks, np.bincount(g_idx, weights=Atb, minlength=n))
+        # whitened residuals at the re-weighted linear solution, and the hat matrix A Sigma_x A^T
+        # of each factor (its diagonal block)
+        e, hat = {}, {}
+        for key, (_, _, _, C) in blocks.items():
+            A_f = A[key]
+            e[key] = b[key] - np.einsum("frk,fk->fr", A_f, delta[C])
+            hat[key] = A_f @ Sigma_x[sigma_src[key]] @ np.swapaxes(A_f, 1, 2)
+        stats, split = _group_statistics(single_idx, multi, e, hat, Linv, scale, split)
+        if it == 0:
+            first = stats
+            if settled is not None and settled(first):
+                break  # no scale updated: the caller keeps its noise
+        worst = 0.0
+        for key, v in stats.items():
+            if key in scale and eligible(v):
+                new = _clip(scale[key] * v.scale, bounds.get(key))
+                worst = max(worst, abs(new / scale[key] - 1.0))
+                scale[key] = new
+                updated.add(key)
+        if worst <= tolerance:
+            break
+    step = gtsam.VectorValues()
+    for k, cols in columns.items():
+        step.insert(k, delta[cols[0]:cols[-1] + 1])
+    return ConvergedScales(first, {key: scale[key] for key in updated}, step)
+
+
+def _group_rows(graph: gtsam.NonlinearFactorGraph, groups: dict, components: dict, blocks: dict,
+                where: dict) -> tuple[dict, dict, dict]:
+    """Where each noise group's rows sit in the factor blocks of :func:`_factor_blocks`
+    (``where``: factor index -> (block key, position)), for :func:`converged_scales`.
+
+    Returns ``single_idx`` (group -> block key -> positions of its factors, groups of one
+    component), ``multi`` (group -> its components' names, whitening matrices, covariances
+    ``S[k]`` (F, r, r) in the factors' error units, and its unwhitened rows ``raw`` per block) and
+    ``multi_idx`` (group -> block key -> (positions, indices among the group's factors)).
+    """
     single: dict[str, list] = {}
     multi: dict[str, dict] = {}
     for i, g in groups.items():
@@ -497,95 +562,64 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
         # without estimated parameters): (F_b, r, k_b) and (F_b, r)
         m["raw"] = {key: (m["W0_inv"][j] @ blocks[key][1][pos], np.einsum("fij,fj->fi", m["W0_inv"][j], blocks[key][2][pos]))
                     for key, (pos, j) in multi_idx[g].items()}
-    # where each block's entries land: in the normal matrix's blocks and read from Sigma_x's
-    # (_ArrowLayout), and in the right-hand side
-    order = list(blocks)
-    layout = _ArrowLayout(n, local, global_cols)
-    if any(layout.two_locals(C) for (_, _, _, C) in blocks.values()):
-        raise GraphcalError("noise estimation: a factor touches two local variables")  # _arrow_split prevents it
-    h_tgt = np.concatenate([layout.h_target(blocks[key][3]).ravel() for key in order])
-    h_keep = h_tgt >= 0
-    h_tgt = h_tgt[h_keep]
-    sigma_src = {key: layout.sigma_source(C) for key, (_, _, _, C) in blocks.items()}
-    g_idx = np.concatenate([blocks[key][3].ravel() for key in order])
+    return single_idx, multi, multi_idx
 
-    scale = {g: 1.0 for g in single}
+
+def _reweight(blocks: dict, single_idx: dict, multi: dict, multi_idx: dict, scale: dict, A: dict, b: dict) -> dict:
+    """The whitened rows ``A``, ``b`` (block key -> arrays, written in place) re-weighted with the
+    current ``scale`` (key -> sigma scale): a single-component group's rows divided by its scale, a
+    sum of components re-whitened with the Cholesky factor of ``sum_k s_k^2 Sigma_k``. Returns group
+    -> the inverse Cholesky factors (F, r, r) used."""
+    for g, d in single_idx.items():
+        for key, pos in d.items():
+            A[key][pos] = blocks[key][1][pos] / scale[g]
+            b[key][pos] = blocks[key][2][pos] / scale[g]
+    Linv = {}
     for g, m in multi.items():
-        scale.update({f"{g}/{k}": 1.0 for k in m["names"]})
-    A = {key: A0.copy() for key, (_, A0, _, _) in blocks.items()}
-    b = {key: b0.copy() for key, (_, _, b0, _) in blocks.items()}
-    first: dict = {}
-    updated: set = set()
-    split: dict[str, bool] = {}
-    for it in range(max_iterations):
-        for g, d in single_idx.items():
-            for key, pos in d.items():
-                A[key][pos] = blocks[key][1][pos] / scale[g]
-                b[key][pos] = blocks[key][2][pos] / scale[g]
-        Linv = {}
-        for g, m in multi.items():
-            Sig = sum(scale[f"{g}/{k}"] ** 2 * m["S"][k] for k in m["names"])
-            Linv[g] = np.linalg.inv(np.linalg.cholesky(Sig))
-            for key, (pos, j) in multi_idx[g].items():
-                A_raw, b_raw = m["raw"][key]
-                A[key][pos] = Linv[g][j] @ A_raw
-                b[key][pos] = np.einsum("fij,fj->fi", Linv[g][j], b_raw)
-        # normal equations summed from the blocks (a factor touches a few unknowns)
-        AtA = np.concatenate([(np.swapaxes(A[key], 1, 2) @ A[key]).ravel() for key in order])
-        Atb = np.concatenate([np.einsum("frk,fr->fk", A[key], b[key]).ravel() for key in order])
-        H_blocks = np.bincount(h_tgt, weights=AtA[h_keep], minlength=layout.size)
-        Sigma_x, delta = layout.solve(H_blocks, np.bincount(g_idx, weights=Atb, minlength=n))
-        # whitened residuals at the re-weighted linear solution, and the hat matrix A Sigma_x A^T
-        # of each factor (its diagonal block)
-        e, hat = {}, {}
-        for key, (_, _, _, C) in blocks.items():
-            A_f = A[key]
-            e[key] = b[key] - np.einsum("frk,fk->fr", A_f, delta[C])
-            hat[key] = A_f @ Sigma_x[sigma_src[key]] @ np.swapaxes(A_f, 1, 2)
-        stats: dict[str, GroupVariance] = {}
-        for g, d in single_idx.items():
-            chi2 = red = 0.0
-            rows = 0
-            for key, pos in d.items():
-                ef = e[key][pos]
-                h = np.einsum("fii->fi", hat[key][pos])
-                chi2 += float(np.einsum("fr,fr->", ef, ef))
-                red += float(np.clip(1.0 - h, 0.0, 1.0).sum())
-                rows += ef.size
-            stats[g] = GroupVariance(g, chi2, red, rows)
-        for g, m in multi.items():
-            names, locs = m["names"], m["where"]
-            R = np.eye(locs[0][0][0]) - np.stack(  # r rows, equal within a group
-                [hat[key][pos] for key, pos in locs])
-            ef = np.stack([e[key][pos] for key, pos in locs])
-            C = {k: Linv[g] @ (scale[f"{g}/{k}"] ** 2 * m["S"][k]) @ np.swapaxes(Linv[g], 1, 2) for k in names}
-            RC = {k: R @ C[k] for k in names}
-            q = np.array([float(np.einsum("fi,fij,fj->", ef, C[k], ef)) for k in names])
-            Nm = np.array([[float(np.einsum("fij,fji->", RC[k], RC[l])) for l in names] for k in names])
-            # decided at the ratio the call was given, kept for the call: a first step may overshoot
-            # through a ratio where the split looks undetermined (a known mixture then froze at a
-            # joint scale of 0.33 instead of its fixed point 0.46)
-            if g not in split:
-                split[g] = split_determined(Nm)
-            red = [float(np.maximum(np.trace(RC[k], axis1=1, axis2=2), 0.0).sum()) for k in names]
-            stats.update(helmert_components(g, names, Nm, q, red, ef.size, split[g]))
-        if it == 0:
-            first = stats
-            if settled is not None and settled(first):
-                break  # no scale updated: the caller keeps its noise
-        worst = 0.0
-        for key, v in stats.items():
-            if key in scale and eligible(v):
-                new = _clip(scale[key] * v.scale, bounds.get(key))
-                worst = max(worst, abs(new / scale[key] - 1.0))
-                scale[key] = new
-                updated.add(key)
-        if worst <= tolerance:
-            break
-    step = gtsam.VectorValues()
-    for k, cols in columns.items():
-        step.insert(k, delta[cols[0]:cols[-1] + 1])
-    return ConvergedScales(first, {key: scale[key] for key in updated}, step)
+        Sig = sum(scale[f"{g}/{k}"] ** 2 * m["S"][k] for k in m["names"])
+        Linv[g] = np.linalg.inv(np.linalg.cholesky(Sig))
+        for key, (pos, j) in multi_idx[g].items():
+            A_raw, b_raw = m["raw"][key]
+            A[key][pos] = Linv[g][j] @ A_raw
+            b[key][pos] = np.einsum("fij,fj->fi", Linv[g][j], b_raw)
+    return Linv
+
+
+def _group_statistics(single_idx: dict, multi: dict, e: dict, hat: dict, Linv: dict, scale: dict,
+                      split: dict) -> tuple[dict, dict]:
+    """Each group's (and component's) :class:`GroupVariance` from the whitened residuals ``e`` and
+    the hat-matrix blocks ``hat`` (block key -> arrays) at the re-weighted linear solution, and
+    ``split`` (group -> whether its components are estimated apart) with the groups decided now
+    added."""
+    split = dict(split)
+    stats: dict[str, GroupVariance] = {}
+    for g, d in single_idx.items():
+        chi2 = red = 0.0
+        rows = 0
+        for key, pos in d.items():
+            ef = e[key][pos]
+            h = np.einsum("fii->fi", hat[key][pos])
+            chi2 += float(np.einsum("fr,fr->", ef, ef))
+            red += float(np.clip(1.0 - h, 0.0, 1.0).sum())
+            rows += ef.size
+        stats[g] = GroupVariance(g, chi2, red, rows)
+    for g, m in multi.items():
+        names, locs = m["names"], m["where"]
+        R = np.eye(locs[0][0][0]) - np.stack(  # r rows, equal within a group
+            [hat[key][pos] for key, pos in locs])
+        ef = np.stack([e[key][pos] for key, pos in locs])
+        C = {k: Linv[g] @ (scale[f"{g}/{k}"] ** 2 * m["S"][k]) @ np.swapaxes(Linv[g], 1, 2) for k in names}
+        RC = {k: R @ C[k] for k in names}
+        q = np.array([float(np.einsum("fi,fij,fj->", ef, C[k], ef)) for k in names])
+        Nm = np.array([[float(np.einsum("fij,fji->", RC[k], RC[l])) for l in names] for k in names])
+        # decided at the ratio the call was given, kept for the call: a first step may overshoot
+        # through a ratio where the split looks undetermined (a known mixture then froze at a
+        # joint scale of 0.33 instead of its fixed point 0.46)
+        if g not in split:
+            split[g] = split_determined(Nm)
+        red = [float(np.maximum(np.trace(RC[k], axis1=1, axis2=2), 0.0).sum()) for k in names]
+        stats.update(helmert_components(g, names, Nm, q, red, ef.size, split[g]))
+    return stats, split
 
 
 def _clip(s: float, bound) -> float:
