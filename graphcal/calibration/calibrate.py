@@ -2,7 +2,9 @@
 
 Batch mode: build the graph (graph.py), solve it with Levenberg–Marquardt driven from Python
 (solvers/batch.py) under a Huber loss, list the measurements that fail a chi-square test as outliers
-and solve again without them, then read the marginal covariances (solvers/covariance.py).
+and solve again without them, learn the noise (noise_estimation.py), then read the result with its
+marginal covariances (result.py, solvers/covariance.py). Each solve is a plain function of a frozen
+:class:`BatchState`.
 """
 
 from __future__ import annotations
