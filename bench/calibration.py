@@ -63,7 +63,8 @@ def bench_chai(repeats: int = 6) -> dict:
     import yaml
 
     from graphcal.calibration.calibrate import calibrate
-    from graphcal.calibration.graph import CalibrationOptions, _kinematic_bodies
+    from graphcal.calibration.graph import CalibrationOptions
+    from graphcal.calibration.kinematic_pose import kinematic_bodies
     from graphcal.calibration.measurements import calibration_data, station_measurements
     from graphcal.geometry import plane_from_points_pca, se3_exp, transform_points
     from graphcal.io.dataset import cloud_paths, load_cloud, load_dataset_robot, read_dataset
@@ -103,7 +104,7 @@ def bench_chai(repeats: int = 6) -> dict:
     # Łabęcki's formulation: least squares on every raw point's height, body poses from the feet
     robot = load_dataset_robot(ds)
     data = calibration_data(ds, robot)
-    _, _, T_body = _kinematic_bodies(data, robot)
+    _, _, T_body = kinematic_bodies(data, robot)
     stations = [st.station for st in station_measurements(ds, robot)]
     T_cad = ds.sensors["depth"].T_body_sensor_prior.matrix
     from scipy.optimize import least_squares

@@ -262,7 +262,7 @@ def test_an_estimate_far_from_its_wide_prior_points_to_a_frame_mistake():
     """Planes in the body frame fit a sensor at the body origin: an audit's 60 deg / 500 mm prior let
     the estimate sit 137 deg / 395 mm away without a word. Beyond 30 deg or 250 mm the warning names
     the frames, whatever the prior's sigma; a 10 deg / 100 mm mounting error inside it says nothing."""
-    from graphcal.calibration.calibrate import prior_conflict
+    from graphcal.calibration.result import prior_conflict
     from graphcal.geometry import matrix_from_rpy
 
     T_prior = np.eye(4)
@@ -284,8 +284,7 @@ def test_an_estimate_far_from_its_wide_prior_points_to_a_frame_mistake():
 
 
 def test_plane_normals_pointing_away_from_the_sensor_are_named():
-    from graphcal.calibration.calibrate import flipped_normal_warnings
-    from graphcal.calibration.result import StationResidual
+    from graphcal.calibration.residuals import StationResidual, flipped_normal_warnings
 
     def rows(sensor, angles, outlier=False):
         return [StationResidual(i, sensor, 1.0, 5.0, a, 0.3, 2.0, outlier) for i, a in enumerate(angles)]

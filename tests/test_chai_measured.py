@@ -216,7 +216,7 @@ def test_summary_lists_only_the_noise_groups_the_data_has(tmp_path):
 
     import numpy as np
 
-    from graphcal.calibration.calibrate import prior_conflict
+    from graphcal.calibration.result import prior_conflict
     from graphcal.geometry import se3_exp
 
     md = _load("make_dataset")

@@ -47,7 +47,7 @@ def test_a_group_over_factors_of_different_variables(dataset, monkeypatch):
     """One leg's parameters estimated, the others fixed: the stance-foot group holds Python factors
     on (X, F, L) and built-in ones on (X, F). The per-block algebra of converged_scales gives the
     factor-by-factor (gtsam.Marginals) path's statistics, and its iterated scales are finite."""
-    from graphcal.calibration.graph import ModelExtensions
+    from graphcal.diagnosis.extensions import ModelExtensions
 
     ds, robot, data = dataset
     ext = ModelExtensions(leg_sigmas=((robot.feet[0], (0.01,) * 6),))
@@ -312,7 +312,7 @@ def test_noise_groups_report_names_how_each_sigma_was_set():
     residuals (the covariance could then be too small); a held sigma that is too large is not."""
     import dataclasses
 
-    from graphcal.calibration.calibrate import VCE_FLOOR, noise_groups_report
+    from graphcal.calibration.noise_estimation import VCE_FLOOR, noise_groups_report
 
     opts = dataclasses.replace(CalibrationOptions(), sigma_contact_m=VCE_FLOOR["sigma_contact_m"])
     stats = {
@@ -353,7 +353,7 @@ def test_components_scaled_together_are_reported_as_one():
     """Components that share one scale (an undetermined split) are learned together: status
     'learned', each names the other, no warning; the console says so in words and
     calibration.yaml records ``scaled_with``."""
-    from graphcal.calibration.calibrate import noise_groups_report
+    from graphcal.calibration.noise_estimation import noise_groups_report
 
     N = np.array([[7.3, 35.9], [35.9, 288.8]])  # the audit's hexapod at its fixed point
     assert not ne.split_determined(N)  # joint: sqrt(2 (N^-1)_00) = 0.84

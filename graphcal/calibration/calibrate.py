@@ -2,35 +2,27 @@
 
 Batch mode: build the graph (graph.py), solve it with Levenberg–Marquardt driven from Python
 (solvers/batch.py) under a Huber loss, list the measurements that fail a chi-square test as outliers
-and solve again without them, then read the marginal covariances (solvers/covariance.py).
+and solve again without them, learn the noise (noise_estimation.py), then read the result with its
+marginal covariances (result.py, solvers/covariance.py). Each solve is a plain function of a frozen
+:class:`BatchState`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.geometry import from_gtsam_pose
 from graphcal.io.dataset import off_plane_scan_warning
-from graphcal.calibration.graph import (CalibrationOptions, CalibrationProblem, build_problem, extrinsic_prior_for_observability,
-                    predicted_plane_errors)
+from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem, build_problem
 from graphcal.calibration.ground_selection import ground_choice_warnings
-from graphcal.calibration.measurements import CalibrationData, calibration_data, require_sensors
-from graphcal.calibration.result import (
-    CalibrationResult,
-    ExtrinsicSegment,
-    LegEstimate,
-    NoiseGroupEstimate,
-    SensorEstimate,
-    StationResidual,
-)
-
-if TYPE_CHECKING:
-    import gtsam
+from graphcal.calibration.measurements import (CalibrationData, calibration_data, plane_source_warnings,
+                                               require_sensors)
+from graphcal.calibration.noise_estimation import VCE_ROUNDS, noise_groups_report, noise_update
+from graphcal.calibration.result import CalibrationResult, calibration_result
 
 
 def _outlier_measurements(problem: CalibrationProblem, values, options: CalibrationOptions) -> tuple[set, dict]:
@@ -93,33 +85,96 @@ def solve_problem(problem: CalibrationProblem, *, progress: bool = False, stage:
     return result
 
 
-def plane_source_warnings(plane_max_points: int | None, planes_given: bool, ds, fitted=None) -> list[str]:
-    """The warnings about where the planes came from: that ``plane_max_points`` did nothing (the
-    planes were passed in, ``planes_given``, or the dataset ``ds`` has planes.csv, so no cloud was
-    fitted), and which stations with a camera cloud have no plane: planes.csv has none for them (the
-    clouds are not read when planes.csv exists: a planes.csv cut short or out of date silently drops
-    them), or, when the clouds were fitted, no plane was found in theirs (``fitted``: the
-    ``(station, sensor)`` keys of the fitted planes; too few points, collinear points, no plane)."""
-    out = []
-    if plane_max_points is not None and (planes_given or ds.planes is not None):
-        out.append(f"--plane-points {plane_max_points} (plane_max_points) had no effect: the planes were "
-                   + ("given" if planes_given else "read from planes.csv, not fitted to the clouds"))
-    if planes_given or ds.root is None or (ds.planes is None and fitted is None):
-        return out
-    from graphcal.clouds.plane_table import camera_clouds_without_planes, no_plane_found_warning, stations_text
+@dataclass(frozen=True, eq=False)
+class BatchInputs:
+    """What every solve of one batch calibration reads: the dataset ``ds``, its ``robot``, the
+    measurements ``data`` (:class:`CalibrationData`), and ``progress`` (one line per solve to stderr)."""
 
-    if ds.planes is not None:
-        have = zip(ds.planes["sensor"].tolist(), ds.planes["station"].tolist())
-    else:
-        have = ((sensor, station) for station, sensor in fitted)
-    for sensor, (missing, total) in camera_clouds_without_planes(ds, have).items():
-        if ds.planes is not None:
-            out.append(f"{sensor}: planes.csv has no plane for {len(missing)} of the {total} stations with a "
-                       f"cloud ({stations_text(missing)}); they are not used: when planes.csv exists the clouds are not read "
-                       "(if it is out of date, delete it or refit it with graphcal extract-planes --out NEW)")
-        else:
-            out.append(no_plane_found_warning(sensor, missing, total, "those stations are not used"))
-    return out
+    ds: object
+    robot: object
+    data: CalibrationData
+    progress: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class BatchState:
+    """Where a batch calibration stands after a solve.
+
+    Attributes:
+        problem, values: the graph last solved and its solution (gtsam.Values).
+        iterations: LM iterations so far, over every solve.
+        outliers: the (station, sensor) measurements left out.
+        noise_stats: noise group -> variance components at this solution and options (read by
+            :func:`estimate_noise`; empty after a new solve, until read again).
+    """
+
+    problem: CalibrationProblem
+    values: object
+    iterations: int
+    outliers: frozenset = frozenset()
+    noise_stats: dict = field(default_factory=dict)
+
+
+def resolve(inputs: BatchInputs, state: BatchState, options: CalibrationOptions, stage: str,
+            start=None) -> BatchState:
+    """The graph built again under ``options`` without ``state.outliers`` and solved, warm started
+    from the last solution (or ``start``, the caller's prediction of the new optimum, gtsam.Values):
+    the graph differs only in noise or left-out measurements. ``stage`` names the solve in the
+    progress line."""
+    problem = build_problem(inputs.ds, inputs.robot, inputs.data, options, exclude=frozenset(state.outliers),
+                            initial=state.values if start is None else start)
+    lm = solve_problem(problem, progress=inputs.progress, stage=stage)
+    # the noise statistics were read at the previous solution
+    return dataclasses.replace(state, problem=problem, values=lm.values, iterations=state.iterations + lm.iterations,
+                               noise_stats={})
+
+
+def estimate_noise(inputs: BatchInputs, state: BatchState,
+                   options: CalibrationOptions) -> tuple[BatchState, CalibrationOptions]:
+    """Variance-component estimation under the Huber loss (outliers are down-weighted): up to
+    :data:`~graphcal.calibration.noise_estimation.VCE_ROUNDS` updates of the noise, each followed by
+    a solve; returns the state and the options with the learned noise."""
+    for _ in range(VCE_ROUNDS):
+        u = noise_update(options, state.problem, state.values)
+        state = dataclasses.replace(state, noise_stats={**state.noise_stats, **u.stats})
+        if not u.changed:
+            break
+        options, step = u.options, u.step
+        # start at the variance estimation's linear solution with the new weights: the
+        # re-weighted optimum to first order (fewer LM iterations)
+        state = resolve(inputs, state, options, "noise re-estimated",
+                        start=None if step is None else state.values.retract(step))
+    return state, options
+
+
+def leave_out_outliers(inputs: BatchInputs, state: BatchState, options: CalibrationOptions, per_sensor: dict, *,
+                       screen: bool) -> tuple[BatchState, list[str]]:
+    """Data snooping: leave out the worst measurements (within 10x of the worst chi-square), solve
+    again, repeat until every measurement passes; one gross outlier left in biases the estimate
+    enough to make good stations fail the test. At most :data:`MAX_OUTLIER_SHARE` of a sensor's
+    measurements (``per_sensor``: sensor -> number of its measurements) are left out; beyond it a
+    warning says so, unless ``screen`` (the screen at the default noise). Returns the state and the
+    warnings."""
+    warnings = []
+    for _ in range(MAX_OUTLIER_ROUNDS):
+        bad, stats = _outlier_measurements(state.problem, state.values, options)
+        if not bad:
+            break
+        worst = max(stats[m] for m in bad)
+        new = {m for m in bad if stats[m] >= 0.1 * worst}
+        over = [sn for sn in per_sensor
+                if sum(1 for m in state.outliers | new if m[1] == sn) > MAX_OUTLIER_SHARE * per_sensor[sn]]
+        if over:
+            if not screen:
+                warnings.append(
+                    f"more than {MAX_OUTLIER_SHARE:.0%} of the measurements of {', '.join(over)} fail the "
+                    "chi-square test: the model does not fit these data (see graphcal diagnose); none more "
+                    "were left out")
+            break
+        state = dataclasses.replace(state, outliers=state.outliers | new)
+        stage = "screened at the default noise" if screen else "left out"
+        state = resolve(inputs, state, options, f"{len(state.outliers)} outlier measurement(s) {stage}")
+    return state, warnings
 
 
 def calibrate(
@@ -150,94 +205,47 @@ def calibrate(
     planes_given = data is not None
     if data is None:
         data = calibration_data(ds, robot, progress=progress, plane_max_points=plane_max_points)
+    inputs = BatchInputs(ds, robot, data, progress)
     problem = build_problem(ds, robot, data, options)
     lm = solve_problem(problem, progress=progress, stage="first solve (closed-form start, default noise)")
-    values, iterations = lm.values, lm.iterations
-    outliers: set = set()
+    state = BatchState(problem, lm.values, lm.iterations)
     # a laser scanner's clouds that are not scans first: what follows from them is its consequence
     warnings: list[str] = [off_plane_scan_warning(sensor, off, n)
                            for sensor, (off, n) in sorted(getattr(data, "scans_off_plane", {}).items())]
     warnings += plane_source_warnings(plane_max_points, planes_given, ds, data.planes)
     warnings += ground_choice_warnings(data)
 
-    def resolve(opts, excluded, stage, start=None):
-        nonlocal problem, values, iterations
-        # warm start from the last solution (or the caller's prediction of the new optimum): the
-        # graph differs only in noise or left-out measurements
-        problem = build_problem(ds, robot, data, opts, exclude=frozenset(excluded),
-                                initial=values if start is None else start)
-        lm = solve_problem(problem, progress=progress, stage=stage)
-        values = lm.values
-        iterations += lm.iterations
-        noise_stats.clear()  # read at the previous solution
-
-    noise_stats: dict = {}  # the variance components at the current solution and options
-
-    def estimate_noise(opts):
-        # variance-component estimation under the Huber loss (outliers are down-weighted)
-        for _ in range(VCE_ROUNDS):
-            u = noise_update(opts, problem, values)
-            noise_stats.update(u.stats)
-            if not u.changed:
-                break
-            opts, step = u.options, u.step
-            # start at the variance estimation's linear solution with the new weights: the
-            # re-weighted optimum to first order (fewer LM iterations)
-            resolve(opts, outliers, "noise re-estimated", start=None if step is None else values.retract(step))
-        return opts
-
     per_sensor: dict = {}
     for m in problem.plane_factors.values():
         per_sensor[m[1]] = per_sensor.get(m[1], 0) + 1
-
-    def leave_out_outliers(opts, *, screen: bool) -> None:
-        # data snooping: leave out the worst measurements (within 10x of the worst chi-square),
-        # solve again, repeat until every measurement passes; one gross outlier left in biases the
-        # estimate enough to make good stations fail the test
-        nonlocal outliers
-        for _ in range(MAX_OUTLIER_ROUNDS):
-            bad, stats = _outlier_measurements(problem, values, opts)
-            if not bad:
-                break
-            worst = max(stats[m] for m in bad)
-            new = {m for m in bad if stats[m] >= 0.1 * worst}
-            over = [sn for sn in per_sensor
-                    if sum(1 for m in outliers | new if m[1] == sn) > MAX_OUTLIER_SHARE * per_sensor[sn]]
-            if over:
-                if not screen:
-                    warnings.append(
-                        f"more than {MAX_OUTLIER_SHARE:.0%} of the measurements of {', '.join(over)} fail the "
-                        "chi-square test: the model does not fit these data (see graphcal diagnose); none more "
-                        "were left out")
-                break
-            outliers |= new
-            stage = "screened at the default noise" if screen else "left out"
-            resolve(opts, outliers, f"{len(outliers)} outlier measurement(s) {stage}")
 
     if options.robust and options.estimate_noise:
         # gross outliers out before the noise is learned: left in, the variance components absorb
         # them (measured: two stations with another station's clouds learned a contact noise of
         # 11 mm and hid both); at the default noise the screen may also take good measurements,
         # which are tested again below with the learned noise
-        leave_out_outliers(options, screen=True)
+        state, _ = leave_out_outliers(inputs, state, options, per_sensor, screen=True)
     if options.estimate_noise:
-        options = estimate_noise(options)
+        state, options = estimate_noise(inputs, state, options)
     if options.robust:
-        screened = frozenset(outliers)
+        screened = state.outliers
         if screened and options.estimate_noise:
-            back = _passing_again(ds, robot, data, options, problem, values, screened)
+            back = _passing_again(ds, robot, data, options, state.problem, state.values, screened)
             if back:
-                outliers -= back
-                resolve(options, outliers, f"{len(back)} screened measurement(s) put back (they pass with the "
-                                           "learned noise)")
-        leave_out_outliers(options, screen=False)
-        if outliers != screened and options.estimate_noise:
-            options = estimate_noise(options)
-    result = _result(ds, robot, data, problem, values, outliers, iterations, options)
+                state = dataclasses.replace(state, outliers=state.outliers - back)
+                state = resolve(inputs, state, options, f"{len(back)} screened measurement(s) put back (they pass "
+                                                        "with the learned noise)")
+        state, more = leave_out_outliers(inputs, state, options, per_sensor, screen=False)
+        warnings += more
+        if state.outliers != screened and options.estimate_noise:
+            state, options = estimate_noise(inputs, state, options)
+    problem, values = state.problem, state.values
+    result = calibration_result(ds, robot, data, problem, values, set(state.outliers), state.iterations, options)
     warnings += implausible_leg_data_warnings(data, robot, options)
     if options.estimate_noise:
+        noise_stats = state.noise_stats
         if not noise_stats:  # the rounds ran out (or outliers were left out) after the last update
-            noise_stats.update(noise_update(options, problem, values, converge=False).stats)
+            noise_stats = noise_update(options, problem, values, converge=False).stats
         groups, noise_warnings = noise_groups_report(noise_stats, options)
         warnings += noise_warnings
         result = dataclasses.replace(result, noise_groups=groups)
@@ -311,313 +319,16 @@ def implausible_leg_data_warnings(data: CalibrationData, robot, options: Calibra
     return out
 
 
-VCE_ROUNDS = 8
-#: iterations of the variance components on one linearisation, and their stopping tolerance
-VCE_INNER_ITERATIONS = 60
-VCE_INNER_TOLERANCE = 1e-3
-#: stop once every scale is within this of 1
-VCE_TOLERANCE = 0.02
+#: rounds of data snooping (leave out the worst measurements, solve again)
 MAX_OUTLIER_ROUNDS = 10
 #: at most this share of a sensor's measurements is left out as outliers; beyond it the model, not
 #: the data, is wrong and calibrate says so instead of discarding the data
 MAX_OUTLIER_SHARE = 0.2
-#: a group's sigma is re-estimated only with at least this much redundancy (dof), and this share
-#: of its rows: below it the residuals say little about the noise (e.g. the planes, whose errors the
-#: body poses can absorb almost entirely)
-VCE_MIN_REDUNDANCY = 3.0
-VCE_MIN_REDUNDANCY_SHARE = 0.05
-#: bounds on a re-estimated sigma relative to its default, and absolute floors (SI)
-VCE_SCALE_BOUNDS = (0.02, 50.0)
-VCE_FLOOR = {"sigma_joint_rad": 1e-6, "sigma_contact_m": 1e-6, "sigma_ground_m": 1e-6, "sigma_imu_rad": 1e-5,
-             "sigma_commanded_rad": 1e-5, "sigma_commanded_m": 5e-5}
 
-
-#: option fields scaled by each noise group's variance component
-_GROUP_FIELDS = {"stance_foot/joint": ("sigma_joint_rad",), "stance_foot/contact": ("sigma_contact_m",),
-                 "foot_on_ground": ("sigma_ground_m",), "imu": ("sigma_imu_rad",),
-                 "commanded": ("sigma_commanded_rad", "sigma_commanded_m")}
-
-
-class NoiseUpdate(NamedTuple):
-    """One variance-component update at a solution (:func:`noise_update`)."""
-
-    #: options with every eligible group's sigma multiplied by its converged scale
-    options: CalibrationOptions
-    #: False once every eligible scale is within ``VCE_TOLERANCE`` of 1 (a scale held at its bound
-    #: is no change)
-    changed: bool
-    #: the linear step from the solution with the new weights (None on the large-graph path)
-    step: "gtsam.VectorValues | None"
-    #: group -> :class:`~graphcal.calibration.noise_estimation.GroupVariance` at the solution with
-    #: the options given (the statistics a report on the noise model reads)
-    stats: dict
-
-
-def _vce_eligible(v) -> bool:
-    """Whether a group's residuals carry enough redundancy for its sigma to be re-estimated."""
-    return v.redundancy >= max(VCE_MIN_REDUNDANCY, VCE_MIN_REDUNDANCY_SHARE * v.rows)
-
-
-def noise_update(options: CalibrationOptions, problem: CalibrationProblem, values, *,
-                 converge: bool = True) -> NoiseUpdate:
-    """Every noise group's sigma multiplied by its variance-component scale
-    (noise_estimation.py) at ``values``. ``converge``: iterate the scales to their fixed point on
-    the graph linearised at ``values``
-    (:func:`~graphcal.calibration.noise_estimation.converged_scales`); False: one update."""
-    import dataclasses
-
-    from graphcal.calibration.noise_estimation import converged_scales
-
-    bounds = {g: (max(VCE_SCALE_BOUNDS[0], *(VCE_FLOOR[n] / getattr(options, n) for n in names)), VCE_SCALE_BOUNDS[1])
-              for g, names in _GROUP_FIELDS.items()}
-
-    def changes(stats: dict) -> bool:
-        # a scale held at its bound (a sigma at its floor) is no change
-        return any(abs(float(np.clip(v.scale, *bounds.get(g, VCE_SCALE_BOUNDS))) - 1.0) > VCE_TOLERANCE
-                   for g, v in stats.items() if _vce_eligible(v))
-
-    # converging, a first update that changes nothing ends the call: calibrate then keeps its noise
-    # and reads only the statistics (with converge=False the one update is returned as it is)
-    first, scale, step = converged_scales(problem.graph, values, problem.factor_groups, problem.factor_components,
-                                          eligible=_vce_eligible, bounds=bounds, tolerance=VCE_INNER_TOLERANCE,
-                                          max_iterations=VCE_INNER_ITERATIONS if converge else 1,
-                                          settled=(lambda stats: not changes(stats)) if converge else None)
-    changed = changes(first)
-    update = {}
-    for group, names in _GROUP_FIELDS.items():
-        if group in scale:
-            for name in names:
-                update[name] = max(getattr(options, name) * scale[group], VCE_FLOOR[name])
-    planes = dict(options.plane_sigma_scales)
-    for group, s in scale.items():
-        if group.startswith("plane:"):
-            sensor = group.split(":", 1)[1]
-            planes[sensor] = planes.get(sensor, 1.0) * s
-    update["plane_sigma_scales"] = tuple(sorted(planes.items()))
-    return NoiseUpdate(dataclasses.replace(options, **update), changed, step, first)
-
-
-def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, values, *,
-                     converge: bool = True) -> tuple[CalibrationOptions, bool, "gtsam.VectorValues | None"]:
-    """(options, changed, step) of :func:`noise_update`."""
-    u = noise_update(options, problem, values, converge=converge)
-    return u.options, u.changed, u.step
-
-
-#: a held group whose residuals are this improbable under its sigma (chi-square upper tail) makes
-#: calibrate warn that the covariance may be too small
-NOISE_TOO_SMALL_P = 0.01
-
-
-#: a learned plane noise scale above this makes calibrate warn (measured: 0.86-1.01 on flat simulated
-#: floors, 1.7-18 on Chai's little bumpiness, 3 mm RMS, docs/calibration.md)
-PLANE_SCALE_WARN = 1.5
-
-
-def noise_groups_report(stats: dict, options: CalibrationOptions, *,
-                        given: bool = False) -> tuple[tuple[NoiseGroupEstimate, ...], list[str]]:
-    """How each noise group's sigma was set, from the variance-component statistics ``stats`` at
-    the final solution with the final ``options`` (:class:`NoiseUpdate` ``stats``), and a warning
-    for every group whose residuals say its sigma is too small (chi-square upper tail below
-    :data:`NOISE_TOO_SMALL_P`) but which the estimation could not correct (too few dof, or the
-    rounds ran out): then the reported covariance may be too small.
-
-    A group held with residuals *below* its sigma (``data_scale`` < 1, e.g. the feet's height
-    above a perfectly flat simulated floor: 6 rows, under 3 dof) only makes the covariance
-    conservative; it is reported, not warned about (docs/calibration.md measures its effect). A
-    learned plane noise scale above :data:`PLANE_SCALE_WARN` is warned about: it is what uneven
-    ground looks like to this model (and a sensor noisier than its noise model).
-
-    ``given``: the noise was not learned (``--noise-from``, or the defaults): every group's status
-    is ``given``, and nothing is warned about here: one group's residuals above its sigma does not
-    make the covariance too small when others are conservative (the defaults' planes point to
-    x1.2-x3.2 while the incremental mean NEES was 5.99 over 40 simulated sessions);
-    :func:`~graphcal.calibration.noise_check.given_noise_check` scales and warns per sensor."""
-    from graphcal import stats as chi2_dist
-
-    fields_of = dict(_GROUP_FIELDS)
-    out, warnings = [], []
-    for key, v in sorted(stats.items()):
-        if key in fields_of:
-            names = fields_of[key]
-            fields = tuple((n, float(getattr(options, n))) for n in names)
-        elif key.startswith("plane:"):
-            sensor = key.split(":", 1)[1]
-            names = ()
-            fields = ((f"plane_scale:{sensor}", float(options.plane_scale(sensor))),)
-        else:  # not a group whose sigma calibrate re-estimates
-            continue
-        dof = float(v.redundancy)
-        scale = float(v.scale)
-        # chi2 / dof = scale^2 for a single group; for one component of a sum, Helmert's theta = scale^2
-        # times its dof is the same test to first order
-        p_high = float(chi2_dist.sf(scale * scale * dof, dof)) if dof > 1e-9 else float("nan")
-        at_floor = bool(names) and all(getattr(options, n) <= VCE_FLOOR[n] * (1 + 1e-9) for n in names)
-        if given:
-            status = "given"
-        elif not _vce_eligible(v):
-            status = "too few dof"
-        elif abs(scale - 1.0) <= VCE_TOLERANCE:
-            status = "learned"
-        elif at_floor and scale < 1.0:
-            status = "at floor"
-        else:
-            status = "not converged"
-        out.append(NoiseGroupEstimate(key, fields, status, dof, int(v.rows), scale, p_high,
-                                      tuple(getattr(v, "shared_with", ()))))
-        if given:
-            continue
-        if key.startswith("plane:") and fields[0][1] > PLANE_SCALE_WARN:
-            warnings.append(
-                f"{key.split(':', 1)[1]}: the planes scatter {fields[0][1]:.2g} times more than the point noise of "
-                "their fits predicts (learned plane noise scale): the sensor is noisier than its noise model, "
-                "or the ground is not one plane (bumps: give --ground-roughness-mm; an offset per session or a "
-                "tilted floor: graphcal diagnose). On uneven ground the reported covariance is too small: the "
-                "scale treats the unevenness as independent noise per station")
-        # only residuals above their sigma make the covariance too small (with ~0 dof the chi-square
-        # puts all its mass at 0 and any positive statistic has a tiny p: 1 station gave 'residuals
-        # 0.058 times its sigma ... may be too small')
-        if status != "learned" and scale > 1.0 and p_high < NOISE_TOO_SMALL_P:
-            warnings.append(
-                f"noise group {key} ({status}, {dof:.1f} dof): its residuals are {scale:.2g} times its sigma "
-                f"(chi-square p = {p_high:.2g}); the reported covariance may be too small")
-    return tuple(out), warnings
-
-
-def _result(ds, robot, data, problem: CalibrationProblem, values, outliers: set, iterations: int,
-            options: CalibrationOptions) -> CalibrationResult:
-    from graphcal.solvers.covariance import body_axis_sigmas, marginal_covariances, unobservable_directions
-
-    keys = list(problem.sensor_keys.values()) + [k for k, _ in problem.leg_keys.values()]
-    covs = marginal_covariances(problem.graph, values, keys)
-    sensors, warnings = {}, []
-    for name, key in problem.sensor_keys.items():
-        T = from_gtsam_pose(values.atPose3(key))
-        cov = np.asarray(covs[key])
-        T_cad, sig_m, sig_rad = problem.sensor_priors[name]
-        cov_prior, held = extrinsic_prior_for_observability(sig_m, sig_rad)
-        s_rot, s_xyz, corr, _ = body_axis_sigmas(T, cov)
-        unobs = tuple(unobservable_directions(T, cov, cov_prior))
-        warnings += [f"{name}: {u}" for u in unobs + held]
-        conflict = prior_conflict(T, T_cad, sig_m, sig_rad)
-        if conflict:
-            warnings.append(f"{name}: {conflict}")
-        ids = [st.station for st in data.stations]
-        sensors[name] = SensorEstimate(
-            name=name, type=ds.sensors[name].type, T_body_sensor=T, covariance=cov, T_body_sensor_prior=T_cad,
-            sigma_rot_deg=np.asarray(s_rot), sigma_xyz_mm=np.asarray(s_xyz), correlation=np.asarray(corr),
-            unobservable=unobs, segments=(ExtrinsicSegment(min(ids), max(ids), T, cov),),
-        )
-    legs = {}
-    for foot, (key, param) in problem.leg_keys.items():
-        legs[foot] = LegEstimate(foot, tuple(param.names), np.asarray(values.atVector(key)),
-                                 np.sqrt(np.clip(np.diag(covs[key]), 0.0, None)))
-    T_world_body = {st: from_gtsam_pose(values.atPose3(k)) for st, k in problem.station_keys.items()}
-    residuals = _residuals(data, problem, values, T_world_body, sensors, outliers)
-    warnings += flipped_normal_warnings(residuals)
-    after = [r for r in residuals if not r.outlier]
-    normal_rms = float(np.sqrt(np.mean([r.angle_after_deg**2 for r in after]))) if after else float("nan")
-    dist_rms = float(np.sqrt(np.mean([r.distance_after_mm**2 for r in after]))) if after else float("nan")
-    return CalibrationResult(
-        dataset=str(ds.root) if ds.root is not None else "",
-        robot_urdf_xml=robot.urdf_xml,
-        robot_name=str(robot.name),
-        base_frame=robot.base_frame,
-        sensors=sensors,
-        legs=legs,
-        outliers=tuple(sorted({m[0] for m in outliers})),
-        residuals=tuple(residuals),
-        normal_rms_deg=normal_rms,
-        distance_rms_mm=dist_rms,
-        T_world_body=T_world_body,
-        solver="batch",
-        iterations=iterations,
-        warnings=tuple(warnings),
-        noise=noise_summary(options, problem),
-    )
-
-
-#: A CAD prior further from the estimate than this many of its own sigmas is reported as wrong.
-PRIOR_CONFLICT_SIGMAS = 5.0
-#: an estimate this far from its CAD prior, whatever the prior's sigma, points to data in the wrong
-#: frame (an audit's planes in the body frame with a 60 deg / 500 mm prior: 137 deg / 395 mm off, no word)
-FRAME_MISTAKE_DEG = 30.0
-FRAME_MISTAKE_M = 0.25
 
 #: noise groups (noise_estimation.py) in the words of calibrate's summary line
 _GROUP_WORDS = {"stance_foot/joint": "joints", "stance_foot/contact": "contact", "imu": "IMU",
                 "commanded": "commanded pose"}
-
-
-def prior_conflict(T_body_sensor: np.ndarray, T_prior: np.ndarray, sigma_m: float, sigma_rad: float) -> str:
-    """A sentence when the CAD prior (4x4, with its sigma in m and rad from dataset.yaml) is further
-    from the calibrated extrinsic than :data:`PRIOR_CONFLICT_SIGMAS` of its own sigma, in rotation
-    angle or in translation distance; empty otherwise. The data then outweighed a prior that said
-    otherwise: either the prior is wrong or its sigma is too small (and it pulled the estimate)."""
-    from graphcal.geometry import rotation_angle_between
-
-    angle = float(rotation_angle_between(T_body_sensor[:3, :3], T_prior[:3, :3]))
-    dist = float(np.linalg.norm(T_body_sensor[:3, 3] - T_prior[:3, 3]))
-    # a zero sigma holds that part at the CAD value (a note says so): what is left of it is rounding
-    k_rot = angle / sigma_rad if sigma_rad > 0 else 0.0
-    k_xyz = dist / sigma_m if sigma_m > 0 else 0.0
-    frames = angle > np.radians(FRAME_MISTAKE_DEG) or dist > FRAME_MISTAKE_M
-    hint = ("; a difference this large is seldom a mounting error: are the planes (planes.csv) and clouds in the "
-            "sensor frame, not the body or world frame, and is the prior T_body_sensor, not its inverse? (planes "
-            "in the body frame make the data fit a sensor at the body origin)")
-    if max(k_rot, k_xyz) <= PRIOR_CONFLICT_SIGMAS:
-        if not frames:
-            return ""
-        return (f"the calibrated pose is {np.degrees(angle):.1f} deg and {1e3 * dist:.0f} mm from the CAD prior in "
-                f"dataset.yaml ({max(k_rot, k_xyz):.1f} times its sigma, which allows it)" + hint)
-    return (f"the CAD prior in dataset.yaml is {np.degrees(angle):.1f} deg and {1e3 * dist:.0f} mm from the "
-            f"calibrated pose, {max(k_rot, k_xyz):.0f} times its stated sigma ({np.degrees(sigma_rad):.3g} deg, "
-            f"{1e3 * sigma_m:.3g} mm): the prior is wrong or its sigma too small (a tight wrong prior pulls "
-            "the estimate; widen sigma_rpy_deg / sigma_mm or correct the prior)" + (hint if frames else ""))
-
-
-def flipped_normal_warnings(residuals) -> list[str]:
-    """A warning per sensor most of whose planes are answered at more than 90 deg: their normals point
-    away from the sensor, against the contract (n from the plane towards the sensor, d >= 0). The
-    plane factor does not use the normal's sign, so the estimate stands, but the residual statistics
-    read ~180 deg and the exporter has a sign error (an audit's flipped normals went unsaid)."""
-    out = []
-    for sensor in dict.fromkeys(r.sensor for r in residuals):
-        rows = [r for r in residuals if r.sensor == sensor and not r.outlier and np.isfinite(r.angle_after_deg)]
-        flipped = sum(1 for r in rows if r.angle_after_deg > 90.0)
-        if rows and flipped > len(rows) / 2:
-            out.append(f"{sensor}: {flipped} of {len(rows)} plane normals point away from the sensor (answered at "
-                       "~180 deg): the contract's n points from the plane towards the sensor with d >= 0; the "
-                       "estimate does not depend on that sign, but the residual angles do and the plane exporter "
-                       "has a sign error")
-    return out
-
-
-def noise_summary(options: CalibrationOptions, problem: CalibrationProblem) -> dict:
-    """The noise model of the final solve, SI units (what ``--noise-from`` reads back)."""
-    from graphcal.calibration.noise_file import NOISE_KEYS, PLANE_SCALE_PREFIX
-
-    out = {name: float(getattr(options, name)) for name in NOISE_KEYS}
-    for sensor in problem.sensor_keys:
-        out[f"{PLANE_SCALE_PREFIX}{sensor}"] = options.plane_scale(sensor)
-    return out
-
-
-def _residuals(data, problem, values, T_world_body, sensors, outliers) -> list[StationResidual]:
-    from graphcal.solvers.batch import whitened_errors
-
-    index_of = {m: i for i, m in problem.plane_factors.items()}
-    out = []
-    for (station, sensor), p in sorted(data.planes.items()):
-        if sensor not in sensors:
-            continue
-        T_cad = problem.sensor_priors[sensor][0]
-        a0, d0 = predicted_plane_errors(problem.initial_body[station], T_cad, p.n, p.d)
-        a1, d1 = predicted_plane_errors(T_world_body[station], sensors[sensor].T_body_sensor, p.n, p.d)
-        i = index_of.get((station, sensor))
-        chi2 = float(whitened_errors(problem.graph, values, [i])[0]) if i is not None else float("nan")
-        out.append(StationResidual(station, sensor, a0, d0, a1, d1, chi2, (station, sensor) in outliers))
-    return out
 
 
 def run_calibrate(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,

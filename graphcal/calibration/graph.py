@@ -24,16 +24,16 @@ least squares), laser scanners from their points (linear) — see graphcal/solve
 from __future__ import annotations
 
 import functools
-import weakref
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import gtsam
 import numpy as np
 
-from graphcal.factors.keys import C, F, G, L, M, S, W, X
+from graphcal.factors.keys import F, G, L, M, S, X
 from graphcal.errors import GraphcalError
-from graphcal.geometry import pose_matrix, to_gtsam_pose
-from graphcal.calibration.kinematic_pose import ground_from_feet, initial_body_pose
+from graphcal.geometry import to_gtsam_pose
+from graphcal.calibration.kinematic_pose import kinematic_bodies, leg_kinematics
 from graphcal.calibration.measurements import CalibrationData
 
 
@@ -112,39 +112,6 @@ class CalibrationOptions:
         return dict(self.plane_sigma_scales).get(sensor, 1.0)
 
 
-@dataclass(frozen=True)
-class ModelExtensions:
-    """Extra variables of the diagnosis catalogue (graphcal/diagnosis) in the calibration graph.
-
-    Each entry adds a variable with a zero-mean prior of the given sigma (SI units): a tiny sigma
-    keeps the nominal model (the variable exists so that its Jacobian can be read), a large one lets
-    the data estimate it. All default to absent.
-
-    Attributes:
-        range_scale: (sensor, sigma) -> C(k) = [scale] of sensor k (prior 1): its planes and scans
-            read ``scale`` times the true range (factors/range_scale.py).
-        session_offset: (session, sigma_m) -> G(1 + j), the ground plane the sensors see at the
-            stations of session j, ``offset_m`` above the plane the feet (and the commanded poses)
-            stand on: the feet sank by ``offset_m`` (d of the plane = -offset_m; its tilt is held).
-        ground_tilt_sigma_rad: gravity against the ground: W(0) = R_ground_level (Rot3, prior
-            identity with this sigma on the tilt, its yaw pinned) in every IMU factor
-            (factors/gravity_tilt.py); needs the IMU mounting variable. The world stays the ground.
-        imu_mounting_sigma_rad: sigma of the prior on the IMU mounting rotation M(0) about the
-            dataset's prior (replaces ``max(dataset sigma, options.sigma_imu_mounting_rad)``).
-        leg_sigmas: (foot, per-parameter sigmas) -> L(l) for that leg (the graph's ``legs`` switch
-            then applies to the other legs only).
-        extrinsic_segments: (sensor, station): from that station on (in station order), the sensor
-            has a new extrinsic S(k + 1000 j) with the CAD prior (the sensor was knocked).
-    """
-
-    range_scale: tuple[tuple[str, float], ...] = ()
-    session_offset: tuple[tuple[str, float], ...] = ()
-    ground_tilt_sigma_rad: float | None = None
-    imu_mounting_sigma_rad: float | None = None
-    leg_sigmas: tuple[tuple[str, tuple[float, ...]], ...] = ()
-    extrinsic_segments: tuple[tuple[str, int], ...] = ()
-
-
 #: footprint length (m) over which a ground offset becomes a tilt in :func:`options_for_ground_roughness`
 #: (an Octopus-sized stance: 1 mm of offset across it is 0.1 deg)
 ROUGHNESS_FOOTPRINT_M = 0.573
@@ -197,7 +164,8 @@ class CalibrationProblem:
             "foot_on_ground", "imu", "commanded"); priors on S and L belong to no group.
         factor_components: factor index -> {component: covariance} for factors whose noise is a sum
             of components (stance feet: "joint", "contact").
-        extensions: the :class:`ModelExtensions` the graph was built with.
+        extensions: the :class:`GraphExtension` the graph was built with (a :class:`NoExtension`
+            without one).
         extension_keys: extension name -> key: ``range_scale:<sensor>``, ``session_offset:<session>``,
             ``ground_tilt``, ``imu_mounting``, ``segment:<sensor>:<station>``.
         extension_priors: factor index -> extension name of the priors on those variables.
@@ -216,91 +184,10 @@ class CalibrationProblem:
     excluded: frozenset = field(default_factory=frozenset)
     factor_groups: dict = field(default_factory=dict)
     factor_components: dict = field(default_factory=dict)
-    extensions: ModelExtensions = field(default_factory=ModelExtensions)
+    extensions: object = None
     extension_keys: dict = field(default_factory=dict)
     extension_priors: dict = field(default_factory=dict)
     measurement_keys: dict = field(default_factory=dict)
-
-
-_LEG_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-
-
-def leg_kinematics(data: CalibrationData, robot) -> dict:
-    """(station, foot) -> (p_body_foot (3,), J (3, n) position Jacobian) of the measured joint
-    angles on the nominal legs, computed once per (data, robot) and cached (graphs are rebuilt
-    many times by the noise estimation and the diagnosis)."""
-    from graphcal.models.kinematics import foot_positions, leg_jacobian
-
-    per_data = _LEG_CACHE.setdefault(data, {})
-    out = per_data.get(id(robot))
-    if out is None or out[0] is not robot:
-        by_foot: dict = {}
-        for st in data.stations:
-            for f, q in st.q_by_foot.items():
-                by_foot.setdefault(f, []).append((st.station, q))
-        table = {}
-        for f, items in by_foot.items():  # one batch per leg (the kinematics is vectorised)
-            leg = robot.leg(f)
-            Q = np.array([np.asarray(q, dtype=float) for _, q in items])
-            P, J = foot_positions(leg, Q), leg_jacobian(leg, Q)
-            P.flags.writeable = J.flags.writeable = False  # shared by every graph built from the cache
-            for k, (station, _) in enumerate(items):
-                table[(station, f)] = (P[k], J[k])
-        out = (robot, table)
-        per_data[id(robot)] = out
-    return out[1]
-
-
-def _kinematic_bodies(data: CalibrationData, robot) -> tuple[dict, dict, dict]:
-    """station -> (u_body, height, T_world_body initial) from the stance feet (or the commanded pose);
-    cached with :func:`leg_kinematics` (new dicts each call, the arrays read-only)."""
-    per_data = _LEG_CACHE.setdefault(data, {})
-    out = per_data.get(("bodies", id(robot)))
-    if out is None or out[0] is not robot:
-        out = (robot, _compute_kinematic_bodies(data, robot))
-        per_data[("bodies", id(robot))] = out
-    return tuple(dict(d) for d in out[1])
-
-
-def _compute_kinematic_bodies(data: CalibrationData, robot) -> tuple[dict, dict, dict]:
-    out_u, out_h, out_T = {}, {}, {}
-    kin = leg_kinematics(data, robot)
-    for st in data.stations:
-        if len(st.q_by_foot) >= 3:
-            u, h = ground_from_feet(np.array([kin[(st.station, f)][0] for f in st.q_by_foot]))
-            T = initial_body_pose(u, h, st.T_world_body_cmd)
-        elif st.T_world_body_cmd is not None:
-            T = st.T_world_body_cmd
-            u, h = T[:3, :3].T @ np.array([0.0, 0.0, 1.0]), float(T[2, 3])
-        else:
-            raise GraphcalError(
-                f"station {st.station}: fewer than 3 legs with joint angles and no commanded pose; "
-                "the body pose cannot be known"
-            )
-        u, T = np.array(u, dtype=float), np.array(T, dtype=float)
-        u.flags.writeable = T.flags.writeable = False
-        out_u[st.station], out_h[st.station], out_T[st.station] = u, float(h), T
-    return out_u, out_h, out_T
-
-
-def _robust_closed_form_extrinsic(u: np.ndarray, n: np.ndarray, d: np.ndarray, z: np.ndarray, T_prior: np.ndarray):
-    """Closed-form extrinsic from planes, with stations whose residual is far off the rest trimmed
-    (outlier stations would otherwise pull the closed form)."""
-    from graphcal.solvers.closed_form import rotation_from_normals, translation_from_distances
-
-    keep = np.ones(len(u), dtype=bool)
-    for _ in range(4):
-        R, _ = rotation_from_normals(u[keep], n[keep], R_prior=T_prior[:3, :3])
-        ang = np.arccos(np.clip(np.einsum("ij,ij->i", (n @ R.T), u), -1.0, 1.0))
-        t, _ = translation_from_distances(u[keep], d[keep], z[keep], t_prior=T_prior[:3, 3])
-        res = d - z - u @ t
-        a_med = np.median(ang[keep])
-        r_mad = np.median(np.abs(res[keep] - np.median(res[keep]))) + 1e-6
-        new_keep = (ang < max(6 * a_med, np.radians(0.3))) & (np.abs(res - np.median(res[keep])) < max(8 * r_mad, 0.005))
-        if new_keep.sum() < 3 or np.array_equal(new_keep, keep):
-            break
-        keep = new_keep
-    return pose_matrix(R, t)
 
 
 #: prior pinning x, y and yaw of a session's first body pose when the dataset has no commanded
@@ -484,48 +371,150 @@ def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, opti
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class GraphBuild:
+    """The calibration graph while :func:`build_problem` builds it: what a :class:`GraphExtension`
+    reads (the dataset, the sensors' variables) and where it adds its variables and priors.
+
+    Attributes:
+        ds, data, options: the dataset, its :class:`CalibrationData` and the options of the build.
+        graph, values: the factor graph and initial values being filled.
+        sensor_keys, sensor_priors, initial_extrinsics: as in :class:`CalibrationProblem` (filled
+            before the extension is called).
+        station_order: station id -> its position in ``data.stations``.
+        sessions: the session labels in station order (each once).
+        factor_groups: factor index -> noise group (as in :class:`CalibrationProblem`).
+        extension_keys, extension_priors: as in :class:`CalibrationProblem`; an extension records
+            the keys of its variables and (through :meth:`add_prior`) the indices of their priors.
+    """
+
+    ds: object
+    data: CalibrationData
+    options: CalibrationOptions
+    graph: gtsam.NonlinearFactorGraph = field(default_factory=gtsam.NonlinearFactorGraph)
+    values: gtsam.Values = field(default_factory=gtsam.Values)
+    sensor_keys: dict = field(default_factory=dict)
+    sensor_priors: dict = field(default_factory=dict)
+    initial_extrinsics: dict = field(default_factory=dict)
+    station_order: dict = field(default_factory=dict)
+    sessions: list = field(default_factory=list)
+    factor_groups: dict = field(default_factory=dict)
+    factor_components: dict = field(default_factory=dict)
+    extension_keys: dict = field(default_factory=dict)
+    extension_priors: dict = field(default_factory=dict)
+
+    def add(self, factor, group: str | None = None, components: dict | None = None) -> None:
+        """Add a factor, in noise group ``group`` (None: no group), its noise a sum of ``components``."""
+        if group is not None:
+            self.factor_groups[self.graph.size()] = group
+        if components is not None:
+            self.factor_components[self.graph.size()] = components
+        self.graph.add(factor)
+
+    def add_prior(self, factor, name: str) -> None:
+        """Add the prior of an extension's variable, recorded in ``extension_priors`` as ``name``."""
+        self.extension_priors[self.graph.size()] = name
+        self.graph.add(factor)
+
+
+@dataclass(frozen=True)
+class ExtensionKeys:
+    """The variables a :class:`GraphExtension` added that the calibration's own factors use.
+
+    Attributes:
+        range_scale: sensor -> key of its range scale (its plane and scan factors read scaled ranges).
+        ground_tilt: key of gravity against the ground (Rot3) in every IMU factor, or None.
+        segments: sensor -> ((position in station order from which it applies, key of an extrinsic
+            segment (Pose3)), ...): the measurements from there on use that extrinsic.
+        session_planes: session -> key of the ground plane (OrientedPlane3) the sensors see at its
+            stations.
+        leg_feet: feet whose leg parameters get the extension's prior (:meth:`GraphExtension.leg_prior`).
+    """
+
+    range_scale: dict = field(default_factory=dict)
+    ground_tilt: int | None = None
+    segments: dict = field(default_factory=dict)
+    session_planes: dict = field(default_factory=dict)
+    leg_feet: frozenset = frozenset()
+
+
+class GraphExtension(Protocol):
+    """A hook of :func:`build_problem`: extra variables and priors in the calibration graph (the
+    diagnosis catalogue's model extensions, graphcal/diagnosis/extensions.py)."""
+
+    def add_variables(self, build: GraphBuild) -> ExtensionKeys:
+        """Add variables with their priors (:meth:`GraphBuild.add_prior`) once the sensors' extrinsics
+        are in ``build``; return the keys the measurement and station factors must use."""
+
+    def leg_prior(self, foot: str, key: int, n_params: int):
+        """The prior factor on leg ``foot``'s parameters (key ``key``, ``n_params`` of them, SI) for a
+        foot of :attr:`ExtensionKeys.leg_feet` (replacing ``options``' leg priors)."""
+
+    def imu_mounting_prior(self, R_body_imu: np.ndarray):
+        """The prior factor on the IMU mounting rotation M(0) about ``R_body_imu`` (3x3, body <- IMU),
+        or None for the default (:func:`imu_mounting_prior`)."""
+
+
+@dataclass(frozen=True)
+class NoExtension:
+    """The graph as calibrate builds it: no extra variables."""
+
+    def add_variables(self, build: GraphBuild) -> ExtensionKeys:
+        return ExtensionKeys()
+
+    def leg_prior(self, foot: str, key: int, n_params: int):
+        return None
+
+    def imu_mounting_prior(self, R_body_imu: np.ndarray):
+        return None
+
+
 def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions, *,
-                  exclude: frozenset = frozenset(), extensions: ModelExtensions | None = None,
+                  exclude: frozenset = frozenset(), extensions: GraphExtension | None = None,
                   initial: gtsam.Values | None = None) -> CalibrationProblem:
     """Build the calibration graph of a dataset (see the module docstring).
 
     Args:
         exclude: (station, sensor) measurements to leave out.
-        extensions: extra variables of the diagnosis catalogue (:class:`ModelExtensions`).
+        extensions: extra variables (a :class:`GraphExtension`: the diagnosis catalogue's
+            :class:`~graphcal.diagnosis.extensions.ModelExtensions`); None: none.
         initial: values to start from instead of the closed form, for every variable they hold
             (a warm start from a previous solve of a similar graph).
     """
-    from graphcal.factors.plane_prior import plane_prior_factor
-
-    ext = extensions if extensions is not None else ModelExtensions()
-    from graphcal.factors.foot_on_ground import foot_on_ground_factor
-    from graphcal.solvers.closed_form import extrinsic_from_scan_points
-
+    ext = extensions if extensions is not None else NoExtension()
     if not data.stations:
         raise GraphcalError(f"{_stations_file(ds)}: no stations (a header without rows): nothing to calibrate")
     if options.legs and not any(st.q_by_foot for st in data.stations):
         raise GraphcalError(f"{_stations_file(ds)}: --legs estimates the legs from the stance feet's joint angles, "
                             f"and no station has any (no q_<joint> columns for the feet of dataset.yaml's robot); "
                             f"calibrate without --legs")
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    groups: dict[int, str] = {}
-    components: dict[int, dict] = {}
-
-    def add(factor, group: str | None = None) -> None:
-        if group is not None:
-            groups[graph.size()] = group
-        graph.add(factor)
-
-    u_body, height, T_body0 = _kinematic_bodies(data, robot)
-    kin = leg_kinematics(data, robot)
+    b = GraphBuild(ds, data, options, station_order={st.station: i for i, st in enumerate(data.stations)},
+                   sessions=list(dict.fromkeys(st.session for st in data.stations)))
+    u_body, height, T_body0 = kinematic_bodies(data, robot)
     station_keys = {st.station: X(st.station) for st in data.stations}
     for st in data.stations:
-        values.insert(station_keys[st.station], to_gtsam_pose(T_body0[st.station]))
+        b.values.insert(station_keys[st.station], to_gtsam_pose(T_body0[st.station]))
+    _add_sensors(b, exclude, u_body, height)
+    ek = ext.add_variables(b)
+    uneven_planes = _add_uneven_ground(b, ek)
+    plane_factors, measurement_keys = _add_measurements(b, exclude, ek, uneven_planes)
+    leg_keys = _add_legs(b, robot, ext, ek)
+    _add_stations(b, robot, station_keys, leg_keys, T_body0, ext, ek)
+    if initial is not None:
+        for k in initial.keys():
+            if b.values.exists(k):
+                _copy_value(b.values, initial, int(k))
+    return CalibrationProblem(b.graph, b.values, b.sensor_keys, b.sensor_priors, station_keys, leg_keys, plane_factors,
+                              T_body0, b.initial_extrinsics, frozenset(exclude), b.factor_groups, b.factor_components,
+                              ext, b.extension_keys, b.extension_priors, measurement_keys)
 
-    # sensors: closed-form initial extrinsic and the CAD prior
-    sensor_keys, sensor_priors, ext0 = {}, {}, {}
-    for k, (name, spec) in enumerate(ds.sensors.items()):
+
+def _add_sensors(b: GraphBuild, exclude: frozenset, u_body: dict, height: dict) -> None:
+    """Every sensor with data: its extrinsic S(k) at the closed form, and its CAD prior."""
+    from graphcal.solvers.closed_form import extrinsic_from_scan_points, robust_closed_form_extrinsic
+
+    data = b.data
+    for k, (name, spec) in enumerate(b.ds.sensors.items()):
         T_cad = spec.T_body_sensor_prior.matrix
         prior = (T_cad, spec.T_body_sensor_prior.sigma_m, spec.T_body_sensor_prior.sigma_rad)
         planes = [(st.station, data.planes[(st.station, name)]) for st in data.stations
@@ -536,133 +525,104 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
             continue  # a sensor with no data at the stations: nothing to calibrate
         if planes:
             ids = [s for s, _ in planes]
-            T0 = _robust_closed_form_extrinsic(
+            T0 = robust_closed_form_extrinsic(
                 np.array([u_body[s] for s in ids]), np.array([p.n for _, p in planes]),
                 np.array([p.d for _, p in planes]), np.array([height[s] for s in ids]), T_cad)
         else:
             T0, _ = extrinsic_from_scan_points([u_body[s] for s, _ in scans], [height[s] for s, _ in scans],
                                                [p for _, p in scans], T_prior=T_cad)
         key = S(k)
-        sensor_keys[name], sensor_priors[name], ext0[name] = key, prior, T0
-        values.insert(key, to_gtsam_pose(T0))
-        graph.add(floored_extrinsic_prior(key, T_cad, prior[1], prior[2]))
-    if not sensor_keys:
+        b.sensor_keys[name], b.sensor_priors[name], b.initial_extrinsics[name] = key, prior, T0
+        b.values.insert(key, to_gtsam_pose(T0))
+        b.graph.add(floored_extrinsic_prior(key, T_cad, prior[1], prior[2]))
+    if not b.sensor_keys:
         raise GraphcalError("no sensor has ground planes or scan points at any station: nothing to calibrate")
 
-    ext_keys: dict[str, int] = {}
-    ext_priors: dict[int, str] = {}
-    R_body_imu_prior = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
 
-    def add_prior(factor, name: str) -> None:
-        ext_priors[graph.size()] = name
-        graph.add(factor)
+def _add_uneven_ground(b: GraphBuild, ek: ExtensionKeys) -> dict:
+    """session -> G(1 + j), the plane the cameras see on uneven ground (``options.ground_unevenness_*``;
+    laser scans: not supported), for the sessions without an extension's plane."""
+    from graphcal.factors.plane_prior import plane_prior_factor
 
-    sensor_index = {name: k for k, name in enumerate(ds.sensors)}
-    station_order = {st.station: i for i, st in enumerate(data.stations)}
-    for name, sig in ext.range_scale:
-        if name not in sensor_keys:
-            raise GraphcalError(f"range_scale names sensor {name!r}, which has no measurements")
-        key = C(sensor_index[name])
-        ext_keys[f"range_scale:{name}"] = key
-        values.insert(key, np.array([1.0]))
-        add_prior(gtsam.PriorFactorVector(key, np.array([1.0]), gtsam.noiseModel.Isotropic.Sigma(1, float(sig))),
-                  f"range_scale:{name}")
-    g_key = None  # the ground the sensors see: z = 0 of the world, or a session's own plane
-    w_key = None
-    if ext.ground_tilt_sigma_rad is not None and R_body_imu_prior is not None:
-        # gravity against the ground: W = R_ground_level, its rotation about the vertical pinned
-        w_key = W(0)
-        ext_keys["ground_tilt"] = w_key
-        values.insert(w_key, gtsam.Rot3())
-        sig = float(ext.ground_tilt_sigma_rad)
-        add_prior(gtsam.PriorFactorRot3(w_key, gtsam.Rot3(), gtsam.noiseModel.Diagonal.Sigmas(
-            np.array([sig, sig, 1e-6]))), "ground_tilt")
-    segments: dict[str, list[tuple[int, int]]] = {}
-    for name, station in ext.extrinsic_segments:
-        if name not in sensor_keys:
-            raise GraphcalError(f"extrinsic segment names sensor {name!r}, which has no measurements")
-        if station not in station_order:
-            raise GraphcalError(f"extrinsic segment of {name!r} starts at station {station}, which does not exist")
-        j = len(segments.setdefault(name, [])) + 1
-        key = S(sensor_index[name] + SEGMENT_KEY_STRIDE * j)
-        segments[name].append((station_order[station], key))
-        ext_keys[f"segment:{name}:{station}"] = key
-        values.insert(key, to_gtsam_pose(ext0[name]))
-        T_cad, sig_m, sig_r = sensor_priors[name]
-        add_prior(floored_extrinsic_prior(key, T_cad, sig_m, sig_r), f"segment:{name}:{station}")
-
-    sessions = list(dict.fromkeys(st.session for st in data.stations))
-    session_planes = {}
-    for s_name, sig in ext.session_offset:
-        if s_name not in sessions:
-            raise GraphcalError(f"session_offset names session {s_name!r}; the sessions are {', '.join(sessions)}")
-        key = G(1 + sessions.index(s_name))
-        session_planes[s_name] = key
-        ext_keys[f"session_offset:{s_name}"] = key
-        values.insert(key, gtsam.OrientedPlane3(0.0, 0.0, 1.0, 0.0))
-        add_prior(plane_prior_factor(key, [0.0, 0.0, 1.0, 0.0], 1e-6, float(sig)), f"session_offset:{s_name}")
-    uneven_planes = {}  # the planes the cameras see on uneven ground (laser scans: not supported)
+    options = b.options
+    uneven_planes = {}
     if options.ground_unevenness_m > 0 or options.ground_unevenness_rad > 0:
-        for j, s_name in enumerate(sessions):
-            if s_name in session_planes:
+        for j, s_name in enumerate(b.sessions):
+            if s_name in ek.session_planes:
                 continue
             key = G(1 + j)
             uneven_planes[s_name] = key
-            values.insert(key, gtsam.OrientedPlane3(0.0, 0.0, 1.0, 0.0))
-            add_prior(plane_prior_factor(key, [0.0, 0.0, 1.0, 0.0], max(options.ground_unevenness_rad, 1e-9),
-                                         max(options.ground_unevenness_m, 1e-9)), f"ground_unevenness:{s_name}")
+            b.values.insert(key, gtsam.OrientedPlane3(0.0, 0.0, 1.0, 0.0))
+            b.add_prior(plane_prior_factor(key, [0.0, 0.0, 1.0, 0.0], max(options.ground_unevenness_rad, 1e-9),
+                                           max(options.ground_unevenness_m, 1e-9)), f"ground_unevenness:{s_name}")
+    return uneven_planes
+
+
+def _add_measurements(b: GraphBuild, exclude: frozenset, ek: ExtensionKeys, uneven_planes: dict) -> tuple[dict, dict]:
+    """The plane and scan factors of every sensor and station; returns (factor index -> (station,
+    sensor), (station, sensor) -> key of the extrinsic its factor uses)."""
+    data, options = b.data, b.options
     session_of = {st.station: st.session for st in data.stations}
 
     def extrinsic_key(name: str, station: int) -> int:
-        key = sensor_keys[name]
-        for start, k in sorted(segments.get(name, [])):
-            if station_order[station] >= start:
+        key = b.sensor_keys[name]
+        for start, k in sorted(ek.segments.get(name, [])):
+            if b.station_order[station] >= start:
                 key = k
         return key
 
-    plane_factors = {}
-    measurement_keys = {}
-    for name in sensor_keys:
-        c_key = ext_keys.get(f"range_scale:{name}")
+    plane_factors, measurement_keys = {}, {}
+    for name in b.sensor_keys:
+        c_key = ek.range_scale.get(name)
         for st in data.stations:
             m = (st.station, name)
             if m in exclude:
                 continue
             key = extrinsic_key(name, st.station)
-            gk = session_planes.get(session_of[st.station], g_key)
+            gk = ek.session_planes.get(session_of[st.station])
             if m in data.planes:
                 gk = uneven_planes.get(session_of[st.station], gk)
-                f = measurement_factor(station_keys[st.station], key, name, options, plane=data.planes[m],
+                f = measurement_factor(X(st.station), key, name, options, plane=data.planes[m],
                                        robust=options.robust, c_key=c_key, g_key=gk)
             elif m in data.scan_points:
-                f = measurement_factor(station_keys[st.station], key, name, options, points=data.scan_points[m],
+                f = measurement_factor(X(st.station), key, name, options, points=data.scan_points[m],
                                        robust=options.robust, c_key=c_key, g_key=gk)
             else:
                 continue
-            plane_factors[graph.size()] = m
+            plane_factors[b.graph.size()] = m
             measurement_keys[m] = key
-            add(f, f"plane:{name}")
+            b.add(f, f"plane:{name}")
+    return plane_factors, measurement_keys
 
-    # legs and stance
+
+def _add_legs(b: GraphBuild, robot, ext: GraphExtension, ek: ExtensionKeys) -> dict:
+    """foot -> (L(l), LegParameterization) of every leg estimated (``options.legs``, or a leg of the
+    extension), with its prior."""
     leg_keys = {}
-    leg_sigmas = dict(ext.leg_sigmas)
-    if options.legs or leg_sigmas:
-        from graphcal.factors.priors import leg_offset_prior
+    if b.options.legs or ek.leg_feet:
+        for foot, key, param, prior in leg_parameter_priors(robot, b.options):
+            if foot in ek.leg_feet:
+                factor = ext.leg_prior(foot, key, len(param.names))
+                leg_keys[foot] = (key, param)
+                b.values.insert(key, np.zeros(len(param.names)))
+                b.add_prior(factor, f"legs:{foot}")
+            elif b.options.legs:
+                leg_keys[foot] = (key, param)
+                b.values.insert(key, np.zeros(len(param.names)))
+                b.graph.add(prior)
+    return leg_keys
 
-        for foot, key, param, prior in leg_parameter_priors(robot, options):
-            if foot in leg_sigmas:
-                sig = np.asarray(leg_sigmas[foot], dtype=float)
-                if sig.shape != (len(param.names),):
-                    raise GraphcalError(f"leg {foot}: {len(sig)} parameter sigmas for {len(param.names)} parameters")
-                leg_keys[foot] = (key, param)
-                values.insert(key, np.zeros(len(param.names)))
-                add_prior(leg_offset_prior(key, len(param.names), sig), f"legs:{foot}")
-            elif options.legs:
-                leg_keys[foot] = (key, param)
-                values.insert(key, np.zeros(len(param.names)))
-                graph.add(prior)
-    sessions = list(dict.fromkeys(st.session for st in data.stations))
-    foot_index = {(s, f): j for j, (s, f) in enumerate((s, f) for s in sessions for f in robot.feet)}
+
+def _add_stations(b: GraphBuild, robot, station_keys: dict, leg_keys: dict, T_body0: dict, ext: GraphExtension,
+                  ek: ExtensionKeys) -> None:
+    """The proprioceptive factors of every station (:func:`station_factors`), the IMU mounting
+    variable with its prior, the planted feet F(j) on the ground, and the gauge priors when the
+    dataset has no commanded poses."""
+    from graphcal.factors.foot_on_ground import foot_on_ground_factor
+
+    ds, data, options, values = b.ds, b.data, b.options, b.values
+    kin = leg_kinematics(data, robot)
+    foot_index = {(s, f): j for j, (s, f) in enumerate((s, f) for s in b.sessions for f in robot.feet)}
     feet_sum: dict = {}
     R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
     for st in data.stations:
@@ -670,18 +630,17 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         if R_body_imu is not None and st.imu_accel is not None and options.estimate_imu_mounting \
                 and not values.exists(M(0)):
             values.insert(M(0), gtsam.Rot3(R_body_imu))
-            if ext.imu_mounting_sigma_rad is None:
-                graph.add(imu_mounting_prior(R_body_imu, ds.imu.T_body_imu_prior.sigma_rad, options))
+            factor = ext.imu_mounting_prior(R_body_imu)
+            if factor is None:
+                b.graph.add(imu_mounting_prior(R_body_imu, ds.imu.T_body_imu_prior.sigma_rad, options))
             else:
-                ext_keys["imu_mounting"] = M(0)
-                add_prior(gtsam.PriorFactorRot3(M(0), gtsam.Rot3(R_body_imu), gtsam.noiseModel.Isotropic.Sigma(
-                    3, float(ext.imu_mounting_sigma_rad))), "imu_mounting")
+                b.extension_keys["imu_mounting"] = M(0)
+                b.add_prior(factor, "imu_mounting")
         foot_keys = {f: F(foot_index[(st.session, f)]) for f in st.q_by_foot}
         for factor, group, comps in station_factors(robot, st, station_keys[st.station], foot_keys, leg_keys,
-                                                    options, R_body_imu=R_body_imu, kinematics=kin, w_key=w_key):
-            if comps is not None:
-                components[graph.size()] = comps
-            add(factor, group)
+                                                    options, R_body_imu=R_body_imu, kinematics=kin,
+                                                    w_key=ek.ground_tilt):
+            b.add(factor, group, comps)
         for f, q in st.q_by_foot.items():
             p_world = T[:3, :3] @ kin[(st.station, f)][0] + T[:3, 3]
             feet_sum.setdefault(foot_index[(st.session, f)], []).append(p_world)
@@ -689,22 +648,15 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         p0 = np.mean(pts, axis=0)
         p0[2] = 0.0
         values.insert(F(j), p0)
-        add(foot_on_ground_factor(F(j), options.sigma_ground_m), "foot_on_ground")
+        b.add(foot_on_ground_factor(F(j), options.sigma_ground_m), "foot_on_ground")
     if not any(st.T_world_body_cmd is not None for st in data.stations):
         # no commanded poses: x, y and yaw of each session are a free gauge; pin them loosely
         first = {}
         for st in data.stations:
             first.setdefault(st.session, st.station)
         for s, station in first.items():
-            graph.add(gtsam.PriorFactorPose3(station_keys[station], to_gtsam_pose(T_body0[station]),
-                                             gtsam.noiseModel.Diagonal.Sigmas(GAUGE_PRIOR_SIGMAS)))
-    if initial is not None:
-        for k in initial.keys():
-            if values.exists(k):
-                _copy_value(values, initial, int(k))
-    return CalibrationProblem(graph, values, sensor_keys, sensor_priors, station_keys, leg_keys, plane_factors,
-                              T_body0, ext0, frozenset(exclude), groups, components, ext, ext_keys, ext_priors,
-                              measurement_keys)
+            b.graph.add(gtsam.PriorFactorPose3(station_keys[station], to_gtsam_pose(T_body0[station]),
+                                               gtsam.noiseModel.Diagonal.Sigmas(GAUGE_PRIOR_SIGMAS)))
 
 
 def _copy_value(values: gtsam.Values, source: gtsam.Values, key: int) -> None:

@@ -65,7 +65,7 @@ def _consensus_extrinsic(picks: list, U: np.ndarray, H: np.ndarray, T_start: np.
     """Closed-form extrinsic from the picks that agree with most others: the distances' offsets
     ``d - h - u . t_start`` of the floor's picks cluster within the gate, a tread's lie a riser
     lower; the largest cluster (ties: the lowest plane) is kept."""
-    from graphcal.calibration.graph import _robust_closed_form_extrinsic
+    from graphcal.solvers.closed_form import robust_closed_form_extrinsic
 
     N = np.array([p.n for p in picks])
     D = np.array([p.d for p in picks])
@@ -75,7 +75,7 @@ def _consensus_extrinsic(picks: list, U: np.ndarray, H: np.ndarray, T_start: np.
     keep = np.abs(r - r[best]) <= GATE_D_M
     if keep.sum() < 3:
         keep[:] = True
-    return _robust_closed_form_extrinsic(U[keep], N[keep], D[keep], H[keep], T_start)
+    return robust_closed_form_extrinsic(U[keep], N[keep], D[keep], H[keep], T_start)
 
 
 def choose_ground_planes(

@@ -29,7 +29,7 @@ factors through :meth:`~IncrementalCalibrator.add_factors`. :func:`calibrate_inc
 the batch problem with ``build_problem`` and feeds ITS factors, split per station by
 :func:`station_updates`, so the incremental graph is the batch graph factor for factor; it returns
 a :class:`~graphcal.calibration.result.CalibrationResult` like the batch ``calibrate`` (assembled
-by the batch's own ``_result`` / ``_residuals`` on the graph iSAM2 holds).
+by the batch's own :func:`~graphcal.calibration.result.calibration_result` on the graph iSAM2 holds).
 
 Robustness: the plane / scan factors are Gaussian, and outliers are gated by the change test's
 outlier guard (an inconsistent station is held until the next one shows whether it was an
@@ -708,7 +708,9 @@ def calibrate_incremental(
     """
     from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
     from graphcal.solvers.covariance import marginal_covariances
-    from graphcal.calibration.calibrate import _residuals, _result, plane_source_warnings
+    from graphcal.calibration.measurements import plane_source_warnings
+    from graphcal.calibration.residuals import plane_residuals
+    from graphcal.calibration.result import calibration_result
     from graphcal.calibration.ground_selection import ground_choice_warnings
     from graphcal.calibration.noise_check import given_noise_check
 
@@ -747,7 +749,7 @@ def calibrate_incremental(
         for c in cal.change_stations(name):
             warnings.append(f"{name}: the extrinsic changed at station {c} (new segment from there on)")
 
-    # -- the result, assembled as the batch's (calibrate._result) on the graph iSAM2 holds
+    # -- the result, assembled as the batch's (result.calibration_result) on the graph iSAM2 holds
     inc_problem, values = cal.problem()
     used = set(cal.stations)
     sub = CalibrationData(
@@ -759,7 +761,7 @@ def calibrate_incremental(
     inc_problem = replace(inc_problem, initial_body={s: problem.initial_body[s] for s in used},
                           leg_keys=dict(problem.leg_keys))
     outliers = set(inc_problem.excluded)
-    res = _result(ds, robot, sub, inc_problem, values, outliers, len(cal.stations), options)
+    res = calibration_result(ds, robot, sub, inc_problem, values, outliers, len(cal.stations), options)
 
     seg_keys = {n: cal.segment_keys(n) for n in res.sensors}
     all_keys = [k for segs in seg_keys.values() for k, _ in segs]
@@ -777,7 +779,7 @@ def calibrate_incremental(
                 # residuals of an earlier segment: against that segment's extrinsic
                 part = CalibrationData(sub.stations, {m: p for m, p in sub.planes.items()
                                                       if m[1] == name and m[0] in ids}, {}, sub.sensor_types)
-                for r in _residuals(part, inc_problem, values, T_world_body,
+                for r in plane_residuals(part, inc_problem, values, T_world_body,
                                     {name: replace(est, T_body_sensor=T_k)}, outliers):
                     residuals[(r.station, r.sensor)] = r
         sensors[name] = replace(est, segments=tuple(segments), change_stations=cal.change_stations(name))

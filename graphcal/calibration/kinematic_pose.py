@@ -9,8 +9,11 @@ the gauge of the problem) and come from the commanded pose when the dataset has 
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
+from graphcal.errors import GraphcalError
 from graphcal.geometry import matrix_from_axis_angle, pose_matrix, rot_z
 
 
@@ -59,3 +62,70 @@ def initial_body_pose(u_body: np.ndarray, height_m: float, T_world_body_cmd: np.
     else:
         yaw, xy = 0.0, np.zeros(2)
     return pose_matrix(rot_z(yaw) @ R_tilt, [xy[0], xy[1], height_m])
+
+
+#: per CalibrationData (weakly held): the leg kinematics and the kinematic body poses, computed once
+#: (graphs are rebuilt many times by the noise estimation and the diagnosis)
+_LEG_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def leg_kinematics(data, robot) -> dict:
+    """(station, foot) -> (p_body_foot (3,) m, J (3, n) position Jacobian, m per joint unit) of the
+    measured joint angles of ``data`` (a :class:`~graphcal.calibration.measurements.CalibrationData`)
+    on the nominal legs of ``robot``, computed once per (data, robot) and cached (graphs are rebuilt
+    many times by the noise estimation and the diagnosis)."""
+    from graphcal.models.kinematics import foot_positions, leg_jacobian
+
+    per_data = _LEG_CACHE.setdefault(data, {})
+    out = per_data.get(id(robot))
+    if out is None or out[0] is not robot:
+        by_foot: dict = {}
+        for st in data.stations:
+            for f, q in st.q_by_foot.items():
+                by_foot.setdefault(f, []).append((st.station, q))
+        table = {}
+        for f, items in by_foot.items():  # one batch per leg (the kinematics is vectorised)
+            leg = robot.leg(f)
+            Q = np.array([np.asarray(q, dtype=float) for _, q in items])
+            P, J = foot_positions(leg, Q), leg_jacobian(leg, Q)
+            P.flags.writeable = J.flags.writeable = False  # shared by every graph built from the cache
+            for k, (station, _) in enumerate(items):
+                table[(station, f)] = (P[k], J[k])
+        out = (robot, table)
+        per_data[id(robot)] = out
+    return out[1]
+
+
+def kinematic_bodies(data, robot) -> tuple[dict, dict, dict]:
+    """Three dicts keyed by station id: ``u_body`` (3,) the ground's up direction in the body frame,
+    the body origin's height above the ground (m), and the initial ``T_world_body`` (4x4, m), from
+    the stance feet (or the commanded pose) of ``data`` (a
+    :class:`~graphcal.calibration.measurements.CalibrationData`); cached with
+    :func:`leg_kinematics` (new dicts each call, the arrays read-only)."""
+    per_data = _LEG_CACHE.setdefault(data, {})
+    out = per_data.get(("bodies", id(robot)))
+    if out is None or out[0] is not robot:
+        out = (robot, _compute_kinematic_bodies(data, robot))
+        per_data[("bodies", id(robot))] = out
+    return tuple(dict(d) for d in out[1])
+
+
+def _compute_kinematic_bodies(data, robot) -> tuple[dict, dict, dict]:
+    out_u, out_h, out_T = {}, {}, {}
+    kin = leg_kinematics(data, robot)
+    for st in data.stations:
+        if len(st.q_by_foot) >= 3:
+            u, h = ground_from_feet(np.array([kin[(st.station, f)][0] for f in st.q_by_foot]))
+            T = initial_body_pose(u, h, st.T_world_body_cmd)
+        elif st.T_world_body_cmd is not None:
+            T = st.T_world_body_cmd
+            u, h = T[:3, :3].T @ np.array([0.0, 0.0, 1.0]), float(T[2, 3])
+        else:
+            raise GraphcalError(
+                f"station {st.station}: fewer than 3 legs with joint angles and no commanded pose; "
+                "the body pose cannot be known"
+            )
+        u, T = np.array(u, dtype=float), np.array(T, dtype=float)
+        u.flags.writeable = T.flags.writeable = False
+        out_u[st.station], out_h[st.station], out_T[st.station] = u, float(h), T
+    return out_u, out_h, out_T

@@ -251,13 +251,42 @@ def calibration_data(ds, robot, *, progress: bool = False, plane_max_points: int
     )
     if data.planes:
         # the floor among each station's planes: the one the stance feet and the extrinsic predict
-        from graphcal.calibration.graph import _kinematic_bodies
+        from graphcal.calibration.kinematic_pose import kinematic_bodies
         from graphcal.calibration.ground_selection import choose_ground_planes
 
-        u_body, height, _ = _kinematic_bodies(data, robot)  # cached on data: the graph reuses it
+        u_body, height, _ = kinematic_bodies(data, robot)  # cached on data: the graph reuses it
         priors = {name: (spec.T_body_sensor_prior.matrix, spec.T_body_sensor_prior.sigma_m,
                          spec.T_body_sensor_prior.sigma_rad) for name, spec in ds.sensors.items()}
         chosen, moved = choose_ground_planes(candidates, u_body, height, priors, refit)
         data.planes.update(chosen)
         data.ground_not_largest.update(moved)
     return data
+
+
+def plane_source_warnings(plane_max_points: int | None, planes_given: bool, ds, fitted=None) -> list[str]:
+    """The warnings about where the planes came from: that ``plane_max_points`` did nothing (the
+    planes were passed in, ``planes_given``, or the dataset ``ds`` has planes.csv, so no cloud was
+    fitted), and which stations with a camera cloud have no plane: planes.csv has none for them (the
+    clouds are not read when planes.csv exists: a planes.csv cut short or out of date silently drops
+    them), or, when the clouds were fitted, no plane was found in theirs (``fitted``: the
+    ``(station, sensor)`` keys of the fitted planes; too few points, collinear points, no plane)."""
+    out = []
+    if plane_max_points is not None and (planes_given or ds.planes is not None):
+        out.append(f"--plane-points {plane_max_points} (plane_max_points) had no effect: the planes were "
+                   + ("given" if planes_given else "read from planes.csv, not fitted to the clouds"))
+    if planes_given or ds.root is None or (ds.planes is None and fitted is None):
+        return out
+    from graphcal.clouds.plane_table import camera_clouds_without_planes, no_plane_found_warning, stations_text
+
+    if ds.planes is not None:
+        have = zip(ds.planes["sensor"].tolist(), ds.planes["station"].tolist())
+    else:
+        have = ((sensor, station) for station, sensor in fitted)
+    for sensor, (missing, total) in camera_clouds_without_planes(ds, have).items():
+        if ds.planes is not None:
+            out.append(f"{sensor}: planes.csv has no plane for {len(missing)} of the {total} stations with a "
+                       f"cloud ({stations_text(missing)}); they are not used: when planes.csv exists the clouds are not read "
+                       "(if it is out of date, delete it or refit it with graphcal extract-planes --out NEW)")
+        else:
+            out.append(no_plane_found_warning(sensor, missing, total, "those stations are not used"))
+    return out

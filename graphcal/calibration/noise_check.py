@@ -39,10 +39,9 @@ import dataclasses
 
 import numpy as np
 
-from graphcal.calibration.calibrate import (NOISE_TOO_SMALL_P, VCE_INNER_ITERATIONS, VCE_INNER_TOLERANCE, VCE_MIN_REDUNDANCY,
-                        noise_groups_report)
 from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem
-from graphcal.calibration.noise_estimation import converged_scales
+from graphcal.calibration.noise_estimation import (NOISE_TOO_SMALL_P, VCE_INNER_ITERATIONS, VCE_INNER_TOLERANCE,
+                                                   VCE_MIN_REDUNDANCY, converged_scales, noise_groups_report)
 from graphcal.calibration.result import NoiseGroupEstimate, SensorEstimate
 
 

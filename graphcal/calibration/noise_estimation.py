@@ -55,6 +55,8 @@ import gtsam
 import numpy as np
 
 from graphcal.errors import GraphcalError
+from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem
+from graphcal.calibration.result import NoiseGroupEstimate
 
 
 def whitening_matrix(factor) -> np.ndarray:
@@ -459,6 +461,71 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
     blocks, where, columns, factor_keys = _factor_blocks(lin, values, graph.keyVector(), int(graph.size()))
     n = sum(len(c) for c in columns.values())
     local, global_cols = _arrow_split(columns, factor_keys)
+    single_idx, multi, multi_idx = _group_rows(graph, groups, components, blocks, where)
+    # where each block's entries land: in the normal matrix's blocks and read from Sigma_x's
+    # (_ArrowLayout), and in the right-hand side
+    order = list(blocks)
+    layout = _ArrowLayout(n, local, global_cols)
+    if any(layout.two_locals(C) for (_, _, _, C) in blocks.values()):
+        raise GraphcalError("noise estimation: a factor touches two local variables")  # _arrow_split prevents it
+    h_tgt = np.concatenate([layout.h_target(blocks[key][3]).ravel() for key in order])
+    h_keep = h_tgt >= 0
+    h_tgt = h_tgt[h_keep]
+    sigma_src = {key: layout.sigma_source(C) for key, (_, _, _, C) in blocks.items()}
+    g_idx = np.concatenate([blocks[key][3].ravel() for key in order])
+
+    scale = {g: 1.0 for g in single_idx}
+    for g, m in multi.items():
+        scale.update({f"{g}/{k}": 1.0 for k in m["names"]})
+    A = {key: A0.copy() for key, (_, A0, _, _) in blocks.items()}
+    b = {key: b0.copy() for key, (_, _, b0, _) in blocks.items()}
+    first: dict = {}
+    updated: set = set()
+    split: dict[str, bool] = {}
+    for it in range(max_iterations):
+        Linv = _reweight(blocks, single_idx, multi, multi_idx, scale, A, b)
+        # normal equations summed from the blocks (a factor touches a few unknowns)
+        AtA = np.concatenate([(np.swapaxes(A[key], 1, 2) @ A[key]).ravel() for key in order])
+        Atb = np.concatenate([np.einsum("frk,fr->fk", A[key], b[key]).ravel() for key in order])
+        H_blocks = np.bincount(h_tgt, weights=AtA[h_keep], minlength=layout.size)
+        Sigma_x, delta = layout.solve(H_blocks, np.bincount(g_idx, weights=Atb, minlength=n))
+        # whitened residuals at the re-weighted linear solution, and the hat matrix A Sigma_x A^T
+        # of each factor (its diagonal block)
+        e, hat = {}, {}
+        for key, (_, _, _, C) in blocks.items():
+            A_f = A[key]
+            e[key] = b[key] - np.einsum("frk,fk->fr", A_f, delta[C])
+            hat[key] = A_f @ Sigma_x[sigma_src[key]] @ np.swapaxes(A_f, 1, 2)
+        stats, split = _group_statistics(single_idx, multi, e, hat, Linv, scale, split)
+        if it == 0:
+            first = stats
+            if settled is not None and settled(first):
+                break  # no scale updated: the caller keeps its noise
+        worst = 0.0
+        for key, v in stats.items():
+            if key in scale and eligible(v):
+                new = _clip(scale[key] * v.scale, bounds.get(key))
+                worst = max(worst, abs(new / scale[key] - 1.0))
+                scale[key] = new
+                updated.add(key)
+        if worst <= tolerance:
+            break
+    step = gtsam.VectorValues()
+    for k, cols in columns.items():
+        step.insert(k, delta[cols[0]:cols[-1] + 1])
+    return ConvergedScales(first, {key: scale[key] for key in updated}, step)
+
+
+def _group_rows(graph: gtsam.NonlinearFactorGraph, groups: dict, components: dict, blocks: dict,
+                where: dict) -> tuple[dict, dict, dict]:
+    """Where each noise group's rows sit in the factor blocks of :func:`_factor_blocks`
+    (``where``: factor index -> (block key, position)), for :func:`converged_scales`.
+
+    Returns ``single_idx`` (group -> block key -> positions of its factors, groups of one
+    component), ``multi`` (group -> its components' names, whitening matrices, covariances
+    ``S[k]`` (F, r, r) in the factors' error units, and its unwhitened rows ``raw`` per block) and
+    ``multi_idx`` (group -> block key -> (positions, indices among the group's factors)).
+    """
     single: dict[str, list] = {}
     multi: dict[str, dict] = {}
     for i, g in groups.items():
@@ -495,97 +562,235 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
         # without estimated parameters): (F_b, r, k_b) and (F_b, r)
         m["raw"] = {key: (m["W0_inv"][j] @ blocks[key][1][pos], np.einsum("fij,fj->fi", m["W0_inv"][j], blocks[key][2][pos]))
                     for key, (pos, j) in multi_idx[g].items()}
-    # where each block's entries land: in the normal matrix's blocks and read from Sigma_x's
-    # (_ArrowLayout), and in the right-hand side
-    order = list(blocks)
-    layout = _ArrowLayout(n, local, global_cols)
-    if any(layout.two_locals(C) for (_, _, _, C) in blocks.values()):
-        raise GraphcalError("noise estimation: a factor touches two local variables")  # _arrow_split prevents it
-    h_tgt = np.concatenate([layout.h_target(blocks[key][3]).ravel() for key in order])
-    h_keep = h_tgt >= 0
-    h_tgt = h_tgt[h_keep]
-    sigma_src = {key: layout.sigma_source(C) for key, (_, _, _, C) in blocks.items()}
-    g_idx = np.concatenate([blocks[key][3].ravel() for key in order])
+    return single_idx, multi, multi_idx
 
-    scale = {g: 1.0 for g in single}
+
+def _reweight(blocks: dict, single_idx: dict, multi: dict, multi_idx: dict, scale: dict, A: dict, b: dict) -> dict:
+    """The whitened rows ``A``, ``b`` (block key -> arrays, written in place) re-weighted with the
+    current ``scale`` (key -> sigma scale): a single-component group's rows divided by its scale, a
+    sum of components re-whitened with the Cholesky factor of ``sum_k s_k^2 Sigma_k``. Returns group
+    -> the inverse Cholesky factors (F, r, r) used."""
+    for g, d in single_idx.items():
+        for key, pos in d.items():
+            A[key][pos] = blocks[key][1][pos] / scale[g]
+            b[key][pos] = blocks[key][2][pos] / scale[g]
+    Linv = {}
     for g, m in multi.items():
-        scale.update({f"{g}/{k}": 1.0 for k in m["names"]})
-    A = {key: A0.copy() for key, (_, A0, _, _) in blocks.items()}
-    b = {key: b0.copy() for key, (_, _, b0, _) in blocks.items()}
-    first: dict = {}
-    updated: set = set()
-    split: dict[str, bool] = {}
-    for it in range(max_iterations):
-        for g, d in single_idx.items():
-            for key, pos in d.items():
-                A[key][pos] = blocks[key][1][pos] / scale[g]
-                b[key][pos] = blocks[key][2][pos] / scale[g]
-        Linv = {}
-        for g, m in multi.items():
-            Sig = sum(scale[f"{g}/{k}"] ** 2 * m["S"][k] for k in m["names"])
-            Linv[g] = np.linalg.inv(np.linalg.cholesky(Sig))
-            for key, (pos, j) in multi_idx[g].items():
-                A_raw, b_raw = m["raw"][key]
-                A[key][pos] = Linv[g][j] @ A_raw
-                b[key][pos] = np.einsum("fij,fj->fi", Linv[g][j], b_raw)
-        # normal equations summed from the blocks (a factor touches a few unknowns)
-        AtA = np.concatenate([(np.swapaxes(A[key], 1, 2) @ A[key]).ravel() for key in order])
-        Atb = np.concatenate([np.einsum("frk,fr->fk", A[key], b[key]).ravel() for key in order])
-        H_blocks = np.bincount(h_tgt, weights=AtA[h_keep], minlength=layout.size)
-        Sigma_x, delta = layout.solve(H_blocks, np.bincount(g_idx, weights=Atb, minlength=n))
-        # whitened residuals at the re-weighted linear solution, and the hat matrix A Sigma_x A^T
-        # of each factor (its diagonal block)
-        e, hat = {}, {}
-        for key, (_, _, _, C) in blocks.items():
-            A_f = A[key]
-            e[key] = b[key] - np.einsum("frk,fk->fr", A_f, delta[C])
-            hat[key] = A_f @ Sigma_x[sigma_src[key]] @ np.swapaxes(A_f, 1, 2)
-        stats: dict[str, GroupVariance] = {}
-        for g, d in single_idx.items():
-            chi2 = red = 0.0
-            rows = 0
-            for key, pos in d.items():
-                ef = e[key][pos]
-                h = np.einsum("fii->fi", hat[key][pos])
-                chi2 += float(np.einsum("fr,fr->", ef, ef))
-                red += float(np.clip(1.0 - h, 0.0, 1.0).sum())
-                rows += ef.size
-            stats[g] = GroupVariance(g, chi2, red, rows)
-        for g, m in multi.items():
-            names, locs = m["names"], m["where"]
-            R = np.eye(locs[0][0][0]) - np.stack(  # r rows, equal within a group
-                [hat[key][pos] for key, pos in locs])
-            ef = np.stack([e[key][pos] for key, pos in locs])
-            C = {k: Linv[g] @ (scale[f"{g}/{k}"] ** 2 * m["S"][k]) @ np.swapaxes(Linv[g], 1, 2) for k in names}
-            RC = {k: R @ C[k] for k in names}
-            q = np.array([float(np.einsum("fi,fij,fj->", ef, C[k], ef)) for k in names])
-            Nm = np.array([[float(np.einsum("fij,fji->", RC[k], RC[l])) for l in names] for k in names])
-            # decided at the ratio the call was given, kept for the call: a first step may overshoot
-            # through a ratio where the split looks undetermined (a known mixture then froze at a
-            # joint scale of 0.33 instead of its fixed point 0.46)
-            if g not in split:
-                split[g] = split_determined(Nm)
-            red = [float(np.maximum(np.trace(RC[k], axis1=1, axis2=2), 0.0).sum()) for k in names]
-            stats.update(helmert_components(g, names, Nm, q, red, ef.size, split[g]))
-        if it == 0:
-            first = stats
-            if settled is not None and settled(first):
-                break  # no scale updated: the caller keeps its noise
-        worst = 0.0
-        for key, v in stats.items():
-            if key in scale and eligible(v):
-                new = _clip(scale[key] * v.scale, bounds.get(key))
-                worst = max(worst, abs(new / scale[key] - 1.0))
-                scale[key] = new
-                updated.add(key)
-        if worst <= tolerance:
-            break
-    step = gtsam.VectorValues()
-    for k, cols in columns.items():
-        step.insert(k, delta[cols[0]:cols[-1] + 1])
-    return ConvergedScales(first, {key: scale[key] for key in updated}, step)
+        Sig = sum(scale[f"{g}/{k}"] ** 2 * m["S"][k] for k in m["names"])
+        Linv[g] = np.linalg.inv(np.linalg.cholesky(Sig))
+        for key, (pos, j) in multi_idx[g].items():
+            A_raw, b_raw = m["raw"][key]
+            A[key][pos] = Linv[g][j] @ A_raw
+            b[key][pos] = np.einsum("fij,fj->fi", Linv[g][j], b_raw)
+    return Linv
+
+
+def _group_statistics(single_idx: dict, multi: dict, e: dict, hat: dict, Linv: dict, scale: dict,
+                      split: dict) -> tuple[dict, dict]:
+    """Each group's (and component's) :class:`GroupVariance` from the whitened residuals ``e`` and
+    the hat-matrix blocks ``hat`` (block key -> arrays) at the re-weighted linear solution, and
+    ``split`` (group -> whether its components are estimated apart) with the groups decided now
+    added."""
+    split = dict(split)
+    stats: dict[str, GroupVariance] = {}
+    for g, d in single_idx.items():
+        chi2 = red = 0.0
+        rows = 0
+        for key, pos in d.items():
+            ef = e[key][pos]
+            h = np.einsum("fii->fi", hat[key][pos])
+            chi2 += float(np.einsum("fr,fr->", ef, ef))
+            red += float(np.clip(1.0 - h, 0.0, 1.0).sum())
+            rows += ef.size
+        stats[g] = GroupVariance(g, chi2, red, rows)
+    for g, m in multi.items():
+        names, locs = m["names"], m["where"]
+        R = np.eye(locs[0][0][0]) - np.stack(  # r rows, equal within a group
+            [hat[key][pos] for key, pos in locs])
+        ef = np.stack([e[key][pos] for key, pos in locs])
+        C = {k: Linv[g] @ (scale[f"{g}/{k}"] ** 2 * m["S"][k]) @ np.swapaxes(Linv[g], 1, 2) for k in names}
+        RC = {k: R @ C[k] for k in names}
+        q = np.array([float(np.einsum("fi,fij,fj->", ef, C[k], ef)) for k in names])
+        Nm = np.array([[float(np.einsum("fij,fji->", RC[k], RC[l])) for l in names] for k in names])
+        # decided at the ratio the call was given, kept for the call: a first step may overshoot
+        # through a ratio where the split looks undetermined (a known mixture then froze at a
+        # joint scale of 0.33 instead of its fixed point 0.46)
+        if g not in split:
+            split[g] = split_determined(Nm)
+        red = [float(np.maximum(np.trace(RC[k], axis1=1, axis2=2), 0.0).sum()) for k in names]
+        stats.update(helmert_components(g, names, Nm, q, red, ef.size, split[g]))
+    return stats, split
 
 
 def _clip(s: float, bound) -> float:
     lo, hi = bound if bound is not None else (0.02, 50.0)
     return float(min(max(s, lo), hi))
+
+
+# ----------------------------------------------------------------------------- the calibration's noise groups
+#: re-solves of the calibration graph with re-estimated noise (calibrate's outer loop)
+VCE_ROUNDS = 8
+#: iterations of the variance components on one linearisation, and their stopping tolerance
+VCE_INNER_ITERATIONS = 60
+VCE_INNER_TOLERANCE = 1e-3
+#: stop once every scale is within this of 1
+VCE_TOLERANCE = 0.02
+#: a group's sigma is re-estimated only with at least this much redundancy (dof), and this share
+#: of its rows: below it the residuals say little about the noise (e.g. the planes, whose errors the
+#: body poses can absorb almost entirely)
+VCE_MIN_REDUNDANCY = 3.0
+VCE_MIN_REDUNDANCY_SHARE = 0.05
+#: bounds on a re-estimated sigma relative to its default, and absolute floors (SI)
+VCE_SCALE_BOUNDS = (0.02, 50.0)
+VCE_FLOOR = {"sigma_joint_rad": 1e-6, "sigma_contact_m": 1e-6, "sigma_ground_m": 1e-6, "sigma_imu_rad": 1e-5,
+             "sigma_commanded_rad": 1e-5, "sigma_commanded_m": 5e-5}
+
+
+#: option fields scaled by each noise group's variance component
+_GROUP_FIELDS = {"stance_foot/joint": ("sigma_joint_rad",), "stance_foot/contact": ("sigma_contact_m",),
+                 "foot_on_ground": ("sigma_ground_m",), "imu": ("sigma_imu_rad",),
+                 "commanded": ("sigma_commanded_rad", "sigma_commanded_m")}
+
+
+class NoiseUpdate(NamedTuple):
+    """One variance-component update at a solution (:func:`noise_update`)."""
+
+    #: options with every eligible group's sigma multiplied by its converged scale
+    options: CalibrationOptions
+    #: False once every eligible scale is within ``VCE_TOLERANCE`` of 1 (a scale held at its bound
+    #: is no change)
+    changed: bool
+    #: the linear step from the solution with the new weights (None on the large-graph path)
+    step: "gtsam.VectorValues | None"
+    #: group -> :class:`~graphcal.calibration.noise_estimation.GroupVariance` at the solution with
+    #: the options given (the statistics a report on the noise model reads)
+    stats: dict
+
+
+def _vce_eligible(v) -> bool:
+    """Whether a group's residuals carry enough redundancy for its sigma to be re-estimated."""
+    return v.redundancy >= max(VCE_MIN_REDUNDANCY, VCE_MIN_REDUNDANCY_SHARE * v.rows)
+
+
+def noise_update(options: CalibrationOptions, problem: CalibrationProblem, values, *,
+                 converge: bool = True) -> NoiseUpdate:
+    """Every noise group's sigma multiplied by its variance-component scale
+    (noise_estimation.py) at ``values``. ``converge``: iterate the scales to their fixed point on
+    the graph linearised at ``values``
+    (:func:`~graphcal.calibration.noise_estimation.converged_scales`); False: one update."""
+    import dataclasses
+
+    bounds = {g: (max(VCE_SCALE_BOUNDS[0], *(VCE_FLOOR[n] / getattr(options, n) for n in names)), VCE_SCALE_BOUNDS[1])
+              for g, names in _GROUP_FIELDS.items()}
+
+    def changes(stats: dict) -> bool:
+        # a scale held at its bound (a sigma at its floor) is no change
+        return any(abs(float(np.clip(v.scale, *bounds.get(g, VCE_SCALE_BOUNDS))) - 1.0) > VCE_TOLERANCE
+                   for g, v in stats.items() if _vce_eligible(v))
+
+    # converging, a first update that changes nothing ends the call: calibrate then keeps its noise
+    # and reads only the statistics (with converge=False the one update is returned as it is)
+    first, scale, step = converged_scales(problem.graph, values, problem.factor_groups, problem.factor_components,
+                                          eligible=_vce_eligible, bounds=bounds, tolerance=VCE_INNER_TOLERANCE,
+                                          max_iterations=VCE_INNER_ITERATIONS if converge else 1,
+                                          settled=(lambda stats: not changes(stats)) if converge else None)
+    changed = changes(first)
+    update = {}
+    for group, names in _GROUP_FIELDS.items():
+        if group in scale:
+            for name in names:
+                update[name] = max(getattr(options, name) * scale[group], VCE_FLOOR[name])
+    planes = dict(options.plane_sigma_scales)
+    for group, s in scale.items():
+        if group.startswith("plane:"):
+            sensor = group.split(":", 1)[1]
+            planes[sensor] = planes.get(sensor, 1.0) * s
+    update["plane_sigma_scales"] = tuple(sorted(planes.items()))
+    return NoiseUpdate(dataclasses.replace(options, **update), changed, step, first)
+
+
+def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, values, *,
+                     converge: bool = True) -> tuple[CalibrationOptions, bool, "gtsam.VectorValues | None"]:
+    """(options, changed, step) of :func:`noise_update`."""
+    u = noise_update(options, problem, values, converge=converge)
+    return u.options, u.changed, u.step
+
+
+#: a held group whose residuals are this improbable under its sigma (chi-square upper tail) makes
+#: calibrate warn that the covariance may be too small
+NOISE_TOO_SMALL_P = 0.01
+
+
+#: a learned plane noise scale above this makes calibrate warn (measured: 0.86-1.01 on flat simulated
+#: floors, 1.7-18 on Chai's little bumpiness, 3 mm RMS, docs/calibration.md)
+PLANE_SCALE_WARN = 1.5
+
+
+def noise_groups_report(stats: dict, options: CalibrationOptions, *,
+                        given: bool = False) -> tuple[tuple[NoiseGroupEstimate, ...], list[str]]:
+    """How each noise group's sigma was set, from the variance-component statistics ``stats`` at
+    the final solution with the final ``options`` (:class:`NoiseUpdate` ``stats``), and a warning
+    for every group whose residuals say its sigma is too small (chi-square upper tail below
+    :data:`NOISE_TOO_SMALL_P`) but which the estimation could not correct (too few dof, or the
+    rounds ran out): then the reported covariance may be too small.
+
+    A group held with residuals *below* its sigma (``data_scale`` < 1, e.g. the feet's height
+    above a perfectly flat simulated floor: 6 rows, under 3 dof) only makes the covariance
+    conservative; it is reported, not warned about (docs/calibration.md measures its effect). A
+    learned plane noise scale above :data:`PLANE_SCALE_WARN` is warned about: it is what uneven
+    ground looks like to this model (and a sensor noisier than its noise model).
+
+    ``given``: the noise was not learned (``--noise-from``, or the defaults): every group's status
+    is ``given``, and nothing is warned about here: one group's residuals above its sigma does not
+    make the covariance too small when others are conservative (the defaults' planes point to
+    x1.2-x3.2 while the incremental mean NEES was 5.99 over 40 simulated sessions);
+    :func:`~graphcal.calibration.noise_check.given_noise_check` scales and warns per sensor."""
+    from graphcal import stats as chi2_dist
+
+    fields_of = dict(_GROUP_FIELDS)
+    out, warnings = [], []
+    for key, v in sorted(stats.items()):
+        if key in fields_of:
+            names = fields_of[key]
+            fields = tuple((n, float(getattr(options, n))) for n in names)
+        elif key.startswith("plane:"):
+            sensor = key.split(":", 1)[1]
+            names = ()
+            fields = ((f"plane_scale:{sensor}", float(options.plane_scale(sensor))),)
+        else:  # not a group whose sigma calibrate re-estimates
+            continue
+        dof = float(v.redundancy)
+        scale = float(v.scale)
+        # chi2 / dof = scale^2 for a single group; for one component of a sum, Helmert's theta = scale^2
+        # times its dof is the same test to first order
+        p_high = float(chi2_dist.sf(scale * scale * dof, dof)) if dof > 1e-9 else float("nan")
+        at_floor = bool(names) and all(getattr(options, n) <= VCE_FLOOR[n] * (1 + 1e-9) for n in names)
+        if given:
+            status = "given"
+        elif not _vce_eligible(v):
+            status = "too few dof"
+        elif abs(scale - 1.0) <= VCE_TOLERANCE:
+            status = "learned"
+        elif at_floor and scale < 1.0:
+            status = "at floor"
+        else:
+            status = "not converged"
+        out.append(NoiseGroupEstimate(key, fields, status, dof, int(v.rows), scale, p_high,
+                                      tuple(getattr(v, "shared_with", ()))))
+        if given:
+            continue
+        if key.startswith("plane:") and fields[0][1] > PLANE_SCALE_WARN:
+            warnings.append(
+                f"{key.split(':', 1)[1]}: the planes scatter {fields[0][1]:.2g} times more than the point noise of "
+                "their fits predicts (learned plane noise scale): the sensor is noisier than its noise model, "
+                "or the ground is not one plane (bumps: give --ground-roughness-mm; an offset per session or a "
+                "tilted floor: graphcal diagnose). On uneven ground the reported covariance is too small: the "
+                "scale treats the unevenness as independent noise per station")
+        # only residuals above their sigma make the covariance too small (with ~0 dof the chi-square
+        # puts all its mass at 0 and any positive statistic has a tiny p: 1 station gave 'residuals
+        # 0.058 times its sigma ... may be too small')
+        if status != "learned" and scale > 1.0 and p_high < NOISE_TOO_SMALL_P:
+            warnings.append(
+                f"noise group {key} ({status}, {dof:.1f} dof): its residuals are {scale:.2g} times its sigma "
+                f"(chi-square p = {p_high:.2g}); the reported covariance may be too small")
+    return tuple(out), warnings

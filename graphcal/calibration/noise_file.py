@@ -22,7 +22,7 @@ from pathlib import Path
 from graphcal.errors import DatasetError
 from graphcal.calibration.graph import CalibrationOptions
 
-__all__ = ["NOISE_KEYS", "PLANE_SCALE_PREFIX", "noise_from_mismatch", "options_with_noise_from"]
+__all__ = ["NOISE_KEYS", "PLANE_SCALE_PREFIX", "noise_from_mismatch", "noise_summary", "options_with_noise_from"]
 
 #: the sigmas of ``noise_model`` (SI units), all required
 NOISE_KEYS = ("sigma_joint_rad", "sigma_contact_m", "sigma_ground_m", "sigma_imu_rad",
@@ -124,3 +124,13 @@ def noise_from_mismatch(path: str | Path, robot_name: str, sensors) -> tuple[str
             out.append(f"{path} has {key}, but this dataset has no sensor {key[len(PLANE_SCALE_PREFIX):]!r} "
                        f"(its sensors: {', '.join(sorted(ours))})")
     return tuple(out)
+
+
+def noise_summary(options: CalibrationOptions, problem) -> dict:
+    """The noise model of the final solve, SI units (what ``--noise-from`` reads back): every sigma
+    of :data:`NOISE_KEYS` from ``options`` and the plane scale of every sensor of ``problem`` (a
+    :class:`~graphcal.calibration.graph.CalibrationProblem`)."""
+    out = {name: float(getattr(options, name)) for name in NOISE_KEYS}
+    for sensor in problem.sensor_keys:
+        out[f"{PLANE_SCALE_PREFIX}{sensor}"] = options.plane_scale(sensor)
+    return out

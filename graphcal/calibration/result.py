@@ -1,4 +1,5 @@
-"""What a calibration returns: estimates with their covariance, residuals before and after, outliers.
+"""What a calibration returns: estimates with their covariance, residuals before and after, outliers;
+:func:`calibration_result` reads it off a solved graph (batch or incremental).
 
 Frames and units: ``T_body_sensor`` maps sensor coordinates to the body frame (4x4, m). Every
 covariance is of the right perturbation ``T = T_hat * Exp(xi)``, ``xi = [omega (rad), v (m)]``
@@ -10,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from graphcal.calibration.residuals import StationResidual
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,22 +70,6 @@ class LegEstimate:
     names: tuple[str, ...]
     values: np.ndarray
     sigmas: np.ndarray
-
-
-@dataclass(frozen=True)
-class StationResidual:
-    """Plane residual of one station and sensor, against the model before (CAD prior, body poses
-    from kinematics) and after calibration. Chai 2015's theta (angle between measured and predicted
-    ground, deg) and e_d (distance error, mm)."""
-
-    station: int
-    sensor: str
-    angle_before_deg: float
-    distance_before_mm: float
-    angle_after_deg: float
-    distance_after_mm: float
-    chi2_after: float
-    outlier: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -195,3 +182,109 @@ class CalibrationResult:
     noise_groups: tuple[NoiseGroupEstimate, ...] = ()
     noise_source: str = ""
     robot_name: str = ""
+
+
+#: A CAD prior further from the estimate than this many of its own sigmas is reported as wrong.
+PRIOR_CONFLICT_SIGMAS = 5.0
+#: an estimate this far from its CAD prior, whatever the prior's sigma, points to data in the wrong
+#: frame (an audit's planes in the body frame with a 60 deg / 500 mm prior: 137 deg / 395 mm off, no word)
+FRAME_MISTAKE_DEG = 30.0
+FRAME_MISTAKE_M = 0.25
+
+
+def prior_conflict(T_body_sensor: np.ndarray, T_prior: np.ndarray, sigma_m: float, sigma_rad: float) -> str:
+    """A sentence when the CAD prior (4x4, with its sigma in m and rad from dataset.yaml) is further
+    from the calibrated extrinsic than :data:`PRIOR_CONFLICT_SIGMAS` of its own sigma, in rotation
+    angle or in translation distance; empty otherwise. The data then outweighed a prior that said
+    otherwise: either the prior is wrong or its sigma is too small (and it pulled the estimate)."""
+    from graphcal.geometry import rotation_angle_between
+
+    angle = float(rotation_angle_between(T_body_sensor[:3, :3], T_prior[:3, :3]))
+    dist = float(np.linalg.norm(T_body_sensor[:3, 3] - T_prior[:3, 3]))
+    # a zero sigma holds that part at the CAD value (a note says so): what is left of it is rounding
+    k_rot = angle / sigma_rad if sigma_rad > 0 else 0.0
+    k_xyz = dist / sigma_m if sigma_m > 0 else 0.0
+    frames = angle > np.radians(FRAME_MISTAKE_DEG) or dist > FRAME_MISTAKE_M
+    hint = ("; a difference this large is seldom a mounting error: are the planes (planes.csv) and clouds in the "
+            "sensor frame, not the body or world frame, and is the prior T_body_sensor, not its inverse? (planes "
+            "in the body frame make the data fit a sensor at the body origin)")
+    if max(k_rot, k_xyz) <= PRIOR_CONFLICT_SIGMAS:
+        if not frames:
+            return ""
+        return (f"the calibrated pose is {np.degrees(angle):.1f} deg and {1e3 * dist:.0f} mm from the CAD prior in "
+                f"dataset.yaml ({max(k_rot, k_xyz):.1f} times its sigma, which allows it)" + hint)
+    return (f"the CAD prior in dataset.yaml is {np.degrees(angle):.1f} deg and {1e3 * dist:.0f} mm from the "
+            f"calibrated pose, {max(k_rot, k_xyz):.0f} times its stated sigma ({np.degrees(sigma_rad):.3g} deg, "
+            f"{1e3 * sigma_m:.3g} mm): the prior is wrong or its sigma too small (a tight wrong prior pulls "
+            "the estimate; widen sigma_rpy_deg / sigma_mm or correct the prior)" + (hint if frames else ""))
+
+
+def calibration_result(ds, robot, data, problem, values, outliers: set, iterations: int,
+                       options) -> CalibrationResult:
+    """The :class:`CalibrationResult` of a solved calibration graph (batch, or the graph iSAM2 holds).
+
+    Args:
+        ds, robot: the dataset (:class:`graphcal.io.dataset.Dataset`) and its robot model.
+        data: the :class:`~graphcal.calibration.measurements.CalibrationData` the graph was built from.
+        problem, values: the :class:`~graphcal.calibration.graph.CalibrationProblem` and its solution
+            (gtsam.Values; body poses T_world_body and extrinsics T_body_sensor in m).
+        outliers: the (station, sensor) measurements left out as outliers.
+        iterations: solver iterations (batch) or stations added (incremental).
+        options: the :class:`~graphcal.calibration.graph.CalibrationOptions` of the final solve.
+
+    Every covariance is of ``xi = [omega (rad), v (m)]`` with ``T = T_hat * Exp(xi)`` (the module's
+    convention); sigmas about the body axes in deg and mm.
+    """
+    from graphcal.calibration.graph import extrinsic_prior_for_observability
+    from graphcal.calibration.noise_file import noise_summary
+    from graphcal.calibration.residuals import flipped_normal_warnings, plane_residuals
+    from graphcal.geometry import from_gtsam_pose
+    from graphcal.solvers.covariance import body_axis_sigmas, marginal_covariances, unobservable_directions
+
+    keys = list(problem.sensor_keys.values()) + [k for k, _ in problem.leg_keys.values()]
+    covs = marginal_covariances(problem.graph, values, keys)
+    sensors, warnings = {}, []
+    for name, key in problem.sensor_keys.items():
+        T = from_gtsam_pose(values.atPose3(key))
+        cov = np.asarray(covs[key])
+        T_cad, sig_m, sig_rad = problem.sensor_priors[name]
+        cov_prior, held = extrinsic_prior_for_observability(sig_m, sig_rad)
+        s_rot, s_xyz, corr, _ = body_axis_sigmas(T, cov)
+        unobs = tuple(unobservable_directions(T, cov, cov_prior))
+        warnings += [f"{name}: {u}" for u in unobs + held]
+        conflict = prior_conflict(T, T_cad, sig_m, sig_rad)
+        if conflict:
+            warnings.append(f"{name}: {conflict}")
+        ids = [st.station for st in data.stations]
+        sensors[name] = SensorEstimate(
+            name=name, type=ds.sensors[name].type, T_body_sensor=T, covariance=cov, T_body_sensor_prior=T_cad,
+            sigma_rot_deg=np.asarray(s_rot), sigma_xyz_mm=np.asarray(s_xyz), correlation=np.asarray(corr),
+            unobservable=unobs, segments=(ExtrinsicSegment(min(ids), max(ids), T, cov),),
+        )
+    legs = {}
+    for foot, (key, param) in problem.leg_keys.items():
+        legs[foot] = LegEstimate(foot, tuple(param.names), np.asarray(values.atVector(key)),
+                                 np.sqrt(np.clip(np.diag(covs[key]), 0.0, None)))
+    T_world_body = {st: from_gtsam_pose(values.atPose3(k)) for st, k in problem.station_keys.items()}
+    residuals = plane_residuals(data, problem, values, T_world_body, sensors, outliers)
+    warnings += flipped_normal_warnings(residuals)
+    after = [r for r in residuals if not r.outlier]
+    normal_rms = float(np.sqrt(np.mean([r.angle_after_deg**2 for r in after]))) if after else float("nan")
+    dist_rms = float(np.sqrt(np.mean([r.distance_after_mm**2 for r in after]))) if after else float("nan")
+    return CalibrationResult(
+        dataset=str(ds.root) if ds.root is not None else "",
+        robot_urdf_xml=robot.urdf_xml,
+        robot_name=str(robot.name),
+        base_frame=robot.base_frame,
+        sensors=sensors,
+        legs=legs,
+        outliers=tuple(sorted({m[0] for m in outliers})),
+        residuals=tuple(residuals),
+        normal_rms_deg=normal_rms,
+        distance_rms_mm=dist_rms,
+        T_world_body=T_world_body,
+        solver="batch",
+        iterations=iterations,
+        warnings=tuple(warnings),
+        noise=noise_summary(options, problem),
+    )

@@ -90,11 +90,11 @@ class Diagnosis:
     nuisance: tuple = field(default=())
 
     def to_json(self) -> dict:
-        from graphcal.calibration.calibrate import _result
+        from graphcal.calibration.result import calibration_result
         from graphcal.report.calibration_yaml import calibration_to_dict as calibration_dict
 
-        result = _result(self.model.ds, self.model.robot, self.model.data, self.problem, self.values, set(), 0,
-                         self.model.options)
+        result = calibration_result(self.model.ds, self.model.robot, self.model.data, self.problem, self.values,
+                                    set(), 0, self.model.options)
         cal = calibration_dict(result)
         return {
             "format": "graphcal-diagnosis/1",
@@ -414,13 +414,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
             old, base = None, model
         ext_model = base.with_finding(cand)
         ext_problem, ext_values = ext_model.solve(initial=values)
-        chi_cur, rows = chi2_of(problem, values)
-        chi_ext, _ = chi2_of(ext_problem, ext_values)
-        new_rows = [s.columns for s in significant if cand.cause == "outlier_stations"
-                    and s.candidate.cause == "outlier_stations" and s.candidate.get("stations")[0] in cand.get("stations")]
-        # the LR compares with the current model: its degrees of freedom are the newly freed rows
-        dof = sc.evidence.dof if cand.cause != "outlier_stations" else sum(len(c.rows) for c in new_rows)
-        ev = evidence("likelihood_ratio", chi_cur - chi_ext, dof, cand.family_size, rows)
+        ev, new_rows = _likelihood_ratio(sc, cand, significant, (problem, values), (ext_problem, ext_values))
         params, sig = _parameters(cand, ext_model, ext_problem, ext_values)
         if ev.log10_p_family >= threshold:
             # the screening's linear score overstated it: the fitted extension is not significant
@@ -429,18 +423,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
             rejected.add(sc.candidate)
             continue
         named = relevant(cand.cause, params)
-        if heldout:
-            from graphcal.diagnosis.heldout import heldout_gain
-
-            j_cols = current_columns(system, cands)
-            if cand.cause == "outlier_stations":
-                drop = np.concatenate([c.rows for c in new_rows]) if new_rows else None
-                gain = heldout_gain(system, j_cols, None, order, drop_rows=drop,
-                                    skip_stations=set(int(x) for x in cand.get("stations")))
-            else:
-                gain = heldout_gain(system, j_cols, sc.columns.matrix(system), order)
-        else:
-            gain = None
+        gain = _heldout(system, cands, sc, cand, new_rows, order) if heldout else None
         size = implausible_size(cand, params, model.robot)
         if size:
             # not a kinematic error but wrong data (an audit's sign-flipped knee read as a femur 0.23 m shorter)
@@ -473,8 +456,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         # (a floor tilt first read as an IMU misalignment: both tilt gravity against the feet, only
         # the heading changes between stations tell them apart). Below the minimum size it stays in
         # the model as a nuisance, and is no longer named.
-        demoted = [f for f in findings[:-1]
-                   if not relevant(f.candidate.cause, _parameters(f.candidate, model, problem, values)[0])]
+        demoted = _demoted(findings[:-1], model, problem, values)
         for f in demoted:
             say(f"{f.candidate.label()}: below the catalogue's minimum size once {cand.label()} is in the model; "
                 "kept as a nuisance, no longer named")
@@ -487,13 +469,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     # outliers can explain
     unexplained = (st is not None and st[2] < 1e-3) or too_many_outliers or inconsistent
     # re-read every finding's parameters in the final model (later findings can move earlier ones)
-    reread = [dataclasses.replace(f, parameters=p, sigma=s) for f in findings
-              for p, s in [_parameters(f.candidate, model, problem, values)]]
-    for before, after in zip(findings, reread):
-        if _params_text(before.parameters) != _params_text(after.parameters):  # what the report will say
-            say(f"{after.candidate.label()} in the final model: {_params_text(after.parameters)} "
-                f"(sigma {_params_text(after.sigma)})")
-    findings = reread
+    findings = _reread(findings, model, problem, values, say)
     nuisance = [c.label() for c in model.findings if c not in {f.candidate for f in findings}]
     from graphcal.diagnosis.residuals import residual_records, stance_records
 
@@ -502,6 +478,52 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
                      residual_records(nominal_model, nominal_problem, nominal_values),
                      residual_records(model, problem, values), stance_records(nominal_model, nominal_problem, nominal_values),
                      stance_records(model, problem, values), tuple(notes), tuple(nuisance))
+
+
+def _likelihood_ratio(sc, cand: Candidate, significant: list, current: tuple, extended: tuple) -> tuple:
+    """(the likelihood-ratio :class:`~graphcal.diagnosis.catalogue.Evidence` of the extended model
+    against the current one, the score columns of the newly freed outlier rows). ``current`` and
+    ``extended``: (problem, solved values) of each model; ``sc``: the candidate's score, ``cand``:
+    the candidate fitted (outlier stations: merged with the significant ones it holds)."""
+    chi_cur, rows = chi2_of(*current)
+    chi_ext, _ = chi2_of(*extended)
+    new_rows = [s.columns for s in significant if cand.cause == "outlier_stations"
+                and s.candidate.cause == "outlier_stations" and s.candidate.get("stations")[0] in cand.get("stations")]
+    # the LR compares with the current model: its degrees of freedom are the newly freed rows
+    dof = sc.evidence.dof if cand.cause != "outlier_stations" else sum(len(c.rows) for c in new_rows)
+    return evidence("likelihood_ratio", chi_cur - chi_ext, dof, cand.family_size, rows), new_rows
+
+
+def _heldout(system, cands: list, sc, cand: Candidate, new_rows: list, order: list):
+    """The held-out gain (two-fold, by station; ``order``: station ids in dataset order) of the
+    candidate ``cand`` (score ``sc``) in the screening's linear ``system`` with its candidates
+    ``cands``; outlier stations: their ``new_rows`` dropped."""
+    from graphcal.diagnosis.heldout import heldout_gain
+
+    j_cols = current_columns(system, cands)
+    if cand.cause == "outlier_stations":
+        drop = np.concatenate([c.rows for c in new_rows]) if new_rows else None
+        return heldout_gain(system, j_cols, None, order, drop_rows=drop,
+                            skip_stations=set(int(x) for x in cand.get("stations")))
+    return heldout_gain(system, j_cols, sc.columns.matrix(system), order)
+
+
+def _demoted(findings: list, model: DiagnosisModel, problem, values) -> list:
+    """The findings whose parameters, read in ``model`` solved at ``values``, fell below the
+    catalogue's minimum size."""
+    return [f for f in findings if not relevant(f.candidate.cause, _parameters(f.candidate, model, problem, values)[0])]
+
+
+def _reread(findings: list, model: DiagnosisModel, problem, values, say) -> list:
+    """Every finding with its parameters read again in the final model (later findings can move
+    earlier ones); ``say`` tells the ones whose reported values changed."""
+    reread = [dataclasses.replace(f, parameters=p, sigma=s) for f in findings
+              for p, s in [_parameters(f.candidate, model, problem, values)]]
+    for before, after in zip(findings, reread):
+        if _params_text(before.parameters) != _params_text(after.parameters):  # what the report will say
+            say(f"{after.candidate.label()} in the final model: {_params_text(after.parameters)} "
+                f"(sigma {_params_text(after.sigma)})")
+    return reread
 
 
 #: a link changed by more than this share of its nominal length is not a kinematic error

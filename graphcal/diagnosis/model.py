@@ -3,7 +3,7 @@
 The *nominal* model is graphcal's calibration graph with what its simulation of the robot assumes:
 the URDF legs as they are, the IMU as mounted, a level floor, one extrinsic per sensor, ranges
 read true and every station's data its own. Each accepted finding frees the variables of its cause
-(:class:`graphcal.calibration.graph.ModelExtensions`). For screening, every candidate's variable is
+(:class:`graphcal.diagnosis.extensions.ModelExtensions`). For screening, every candidate's variable is
 added with a tight prior (the nominal value), so that one linearisation gives their Jacobians.
 
 Noise: the plane covariances that planes.csv gives (the fit's own scatter) are kept as they are, so
@@ -20,9 +20,10 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem, ModelExtensions, build_problem
+from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem, build_problem
 from graphcal.solvers.batch import solve_lm, whitened_errors
 from graphcal.diagnosis.catalogue import Candidate
+from graphcal.diagnosis.extensions import ModelExtensions
 
 __all__ = ["DiagnosisModel", "TIGHT_SIGMA", "FREE_SIGMA", "model_options"]
 
@@ -162,7 +163,7 @@ class DiagnosisModel:
 
     def learn_noise(self, values: gtsam.Values | None = None, rounds: int = VCE_ROUNDS):
         """This model with its noise re-estimated (variance components), and (problem, values)."""
-        from graphcal.calibration.calibrate import rescaled_options
+        from graphcal.calibration.noise_estimation import rescaled_options
 
         model = self
         problem, values = model.solve(initial=values)

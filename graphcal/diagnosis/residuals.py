@@ -35,8 +35,7 @@ def _kinematic_body(model, problem, values, st) -> np.ndarray | None:
     """T_world_body the model predicts from proprioception alone: the plane through the feet (forward
     kinematics with the model's leg parameters) gives roll, pitch and height; x, y, yaw come from the
     commanded pose. None without three legs."""
-    from graphcal.calibration.graph import leg_kinematics
-    from graphcal.calibration.kinematic_pose import ground_from_feet, initial_body_pose
+    from graphcal.calibration.kinematic_pose import ground_from_feet, initial_body_pose, leg_kinematics
     from graphcal.models.legs import fk_with_params
 
     if len(st.q_by_foot) < 3:

@@ -156,7 +156,10 @@ def _ordering(lin: gtsam.GaussianFactorGraph) -> gtsam.Ordering:
 
 
 def diag_information(lin: gtsam.GaussianFactorGraph, dims: dict[int, int]) -> dict[int, np.ndarray]:
-    """Per variable, the diagonal of A^T A of the whitened linear system (column norms squared)."""
+    """Per variable, the diagonal of A^T A of the whitened linear system (column norms squared).
+
+    ``lin``: a graph linearised at a solution (whitened rows); ``dims``: key -> its tangent
+    dimension. Returns key -> (dim,) in the units of the whitened information (1 / tangent unit^2)."""
     out = {k: np.zeros(d) for k, d in dims.items()}
     for i in range(lin.size()):
         f = lin.at(i)

@@ -34,6 +34,7 @@ __all__ = [
     "translation_from_distances",
     "extrinsic_from_scan_points",
     "project_to_so3",
+    "robust_closed_form_extrinsic",
 ]
 
 #: Default threshold of "tilt variation": directions whose spread (RMS angle of the up vectors
@@ -315,6 +316,44 @@ def _ground_symmetric_starts(R: np.ndarray, t: np.ndarray, U_st: np.ndarray, z_s
     return starts
 
 
+def _stacked_points(U_st: np.ndarray, z_st: np.ndarray, points_sensor_list: Sequence) -> tuple:
+    """The scan points of :func:`extrinsic_from_scan_points` checked and stacked: (per station the
+    finite points (N_i, 3) in the sensor frame (m; 2D scans get z = 0), all points P (N, 3), each
+    point's station up direction U (N, 3) in the body frame and body height z (N,), m)."""
+    Ps, Us, zs = [], [], []
+    for i, pts in enumerate(points_sensor_list):
+        P = np.asarray(pts, dtype=float)
+        if P.ndim != 2 or P.shape[1] not in (2, 3):
+            raise GraphcalError(f"points_sensor_list[{i}]: expected (N, 2) or (N, 3), got shape {P.shape}")
+        if P.shape[1] == 2:
+            P = np.hstack([P, np.zeros((len(P), 1))])
+        P = P[np.all(np.isfinite(P), axis=1)]
+        Ps.append(P)
+        Us.append(np.repeat(U_st[i : i + 1], len(P), axis=0))
+        zs.append(np.full(len(P), z_st[i]))
+    P = np.vstack(Ps) if Ps else np.zeros((0, 3))
+    U = np.vstack(Us) if Us else np.zeros((0, 3))
+    z = np.concatenate(zs) if zs else np.zeros(0)
+    return Ps, P, U, z
+
+
+def _best_solution(solutions: list, U_st: np.ndarray, z_st: np.ndarray, U: np.ndarray, z: np.ndarray,
+                   P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of the solution (R, t, _, rank) whose sensor origin is above the ground (median over
+    the stations: up directions ``U_st``, body heights ``z_st``, m) with the lowest median absolute
+    point height (points ``P`` in the sensor frame with their ``U``, ``z``)."""
+    best = None
+    for R, t, _, rank in solutions:
+        above = bool(np.median(U_st @ t + z_st) > 0.0)  # the sensor origin's height above the ground
+        r, _ = _point_residuals_and_jacobian(U, z, P, R, t)
+        key = (not above, float(np.median(np.abs(r))))
+        # earlier candidates win ties: a level floor's turned copies fit exactly as well, and the
+        # first solutions keep the prior's value along the directions the data do not determine
+        if best is None or key[0] < best[2][0] or (key[0] == best[2][0] and key[1] < best[2][1] * (1 - 1e-9)):
+            best = (R, t, key, rank)
+    return best[0], best[1]
+
+
 def extrinsic_from_scan_points(
     u_body_list,
     z_body_list,
@@ -375,20 +414,7 @@ def extrinsic_from_scan_points(
         )
     if not np.all(np.isfinite(z_st)):
         raise GraphcalError("z_body_list contains NaN or inf")
-    Ps, Us, zs = [], [], []
-    for i, pts in enumerate(points_sensor_list):
-        P = np.asarray(pts, dtype=float)
-        if P.ndim != 2 or P.shape[1] not in (2, 3):
-            raise GraphcalError(f"points_sensor_list[{i}]: expected (N, 2) or (N, 3), got shape {P.shape}")
-        if P.shape[1] == 2:
-            P = np.hstack([P, np.zeros((len(P), 1))])
-        P = P[np.all(np.isfinite(P), axis=1)]
-        Ps.append(P)
-        Us.append(np.repeat(U_st[i : i + 1], len(P), axis=0))
-        zs.append(np.full(len(P), z_st[i]))
-    P = np.vstack(Ps) if Ps else np.zeros((0, 3))
-    U = np.vstack(Us) if Us else np.zeros((0, 3))
-    z = np.concatenate(zs) if zs else np.zeros(0)
+    Ps, P, U, z = _stacked_points(U_st, z_st, points_sensor_list)
     Tp = np.eye(4) if T_prior is None else np.asarray(T_prior, dtype=float)
     if Tp.shape != (4, 4) or not np.all(np.isfinite(Tp)):
         raise GraphcalError(f"T_prior: expected a finite 4x4 pose, got shape {Tp.shape}")
@@ -458,16 +484,31 @@ def extrinsic_from_scan_points(
             for R, t in _ground_symmetric_starts(R0, t0, U_st, z_st, n_yaw=8):
                 solutions.append(_gauss_newton_points(U[sub], z[sub], P[sub], R, t, scale, search_rcond,
                                                       gauss_newton_iterations, robust=True))
-    best = None
-    for R, t, _, rank in solutions:
-        above = bool(np.median(U_st @ t + z_st) > 0.0)  # the sensor origin's height above the ground
-        r, _ = _point_residuals_and_jacobian(U, z, P, R, t)
-        key = (not above, float(np.median(np.abs(r))))
-        # earlier candidates win ties: a level floor's turned copies fit exactly as well, and the
-        # first solutions keep the prior's value along the directions the data do not determine
-        if best is None or key[0] < best[2][0] or (key[0] == best[2][0] and key[1] < best[2][1] * (1 - 1e-9)):
-            best = (R, t, key, rank)
-    R, t, _, _ = best
+    R, t = _best_solution(solutions, U_st, z_st, U, z, P)
     best = _gauss_newton_points(U, z, P, R, t, scale, spread_rcond, gauss_newton_iterations, robust=True)
     R, t, _, rank = best
     return pose_matrix(R, t), rank
+
+
+def robust_closed_form_extrinsic(u: np.ndarray, n: np.ndarray, d: np.ndarray, z: np.ndarray, T_prior: np.ndarray):
+    """Closed-form extrinsic ``T_body_sensor`` (4x4, m) from planes, with stations whose residual is
+    far off the rest trimmed (outlier stations would otherwise pull the closed form).
+
+    Args: per station, ``u`` (N, 3) the ground's up direction in the body frame, ``n`` (N, 3) and
+    ``d`` (N,) the plane measured in the sensor frame (unit normal towards the sensor, distance m),
+    ``z`` (N,) the body origin's height above the ground (m); ``T_prior`` (4x4) the CAD extrinsic
+    (it fixes directions the planes do not determine).
+    """
+    keep = np.ones(len(u), dtype=bool)
+    for _ in range(4):
+        R, _ = rotation_from_normals(u[keep], n[keep], R_prior=T_prior[:3, :3])
+        ang = np.arccos(np.clip(np.einsum("ij,ij->i", (n @ R.T), u), -1.0, 1.0))
+        t, _ = translation_from_distances(u[keep], d[keep], z[keep], t_prior=T_prior[:3, 3])
+        res = d - z - u @ t
+        a_med = np.median(ang[keep])
+        r_mad = np.median(np.abs(res[keep] - np.median(res[keep]))) + 1e-6
+        new_keep = (ang < max(6 * a_med, np.radians(0.3))) & (np.abs(res - np.median(res[keep])) < max(8 * r_mad, 0.005))
+        if new_keep.sum() < 3 or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    return pose_matrix(R, t)

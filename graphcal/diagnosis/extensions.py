@@ -1,0 +1,126 @@
+"""The diagnosis catalogue's model extensions: extra variables of the calibration graph.
+
+:class:`ModelExtensions` is the :class:`~graphcal.calibration.graph.GraphExtension` the diagnosis
+(model.py) passes to :func:`~graphcal.calibration.graph.build_problem`: a range scale per sensor, a
+ground plane per session, gravity against the ground, the IMU mounting's prior, leg parameters with
+their own sigmas and extrinsic segments (docs/diagnosis.md lists the causes they model).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from graphcal.calibration.graph import SEGMENT_KEY_STRIDE, ExtensionKeys, GraphBuild, floored_extrinsic_prior
+from graphcal.errors import GraphcalError
+from graphcal.factors.keys import C, G, M, S, W
+from graphcal.geometry import to_gtsam_pose
+
+
+@dataclass(frozen=True)
+class ModelExtensions:
+    """Extra variables of the diagnosis catalogue (graphcal/diagnosis) in the calibration graph.
+
+    Each entry adds a variable with a zero-mean prior of the given sigma (SI units): a tiny sigma
+    keeps the nominal model (the variable exists so that its Jacobian can be read), a large one lets
+    the data estimate it. All default to absent.
+
+    Attributes:
+        range_scale: (sensor, sigma) -> C(k) = [scale] of sensor k (prior 1): its planes and scans
+            read ``scale`` times the true range (factors/range_scale.py).
+        session_offset: (session, sigma_m) -> G(1 + j), the ground plane the sensors see at the
+            stations of session j, ``offset_m`` above the plane the feet (and the commanded poses)
+            stand on: the feet sank by ``offset_m`` (d of the plane = -offset_m; its tilt is held).
+        ground_tilt_sigma_rad: gravity against the ground: W(0) = R_ground_level (Rot3, prior
+            identity with this sigma on the tilt, its yaw pinned) in every IMU factor
+            (factors/gravity_tilt.py); needs the IMU mounting variable. The world stays the ground.
+        imu_mounting_sigma_rad: sigma of the prior on the IMU mounting rotation M(0) about the
+            dataset's prior (replaces ``max(dataset sigma, options.sigma_imu_mounting_rad)``).
+        leg_sigmas: (foot, per-parameter sigmas) -> L(l) for that leg (the graph's ``legs`` switch
+            then applies to the other legs only).
+        extrinsic_segments: (sensor, station): from that station on (in station order), the sensor
+            has a new extrinsic S(k + 1000 j) with the CAD prior (the sensor was knocked).
+
+    It is the :class:`~graphcal.calibration.graph.GraphExtension` the diagnosis passes to
+    :func:`~graphcal.calibration.graph.build_problem`; the variables' keys are recorded in the
+    problem's ``extension_keys`` (``range_scale:<sensor>``, ``session_offset:<session>``,
+    ``ground_tilt``, ``imu_mounting``, ``segment:<sensor>:<station>``) and their priors in
+    ``extension_priors``.
+    """
+
+    range_scale: tuple[tuple[str, float], ...] = ()
+    session_offset: tuple[tuple[str, float], ...] = ()
+    ground_tilt_sigma_rad: float | None = None
+    imu_mounting_sigma_rad: float | None = None
+    leg_sigmas: tuple[tuple[str, tuple[float, ...]], ...] = ()
+    extrinsic_segments: tuple[tuple[str, int], ...] = ()
+
+    def add_variables(self, build: GraphBuild) -> ExtensionKeys:
+        """The range scales, gravity against the ground, extrinsic segments and session ground planes,
+        each with its prior, added to ``build`` (after the sensors' extrinsics)."""
+        from graphcal.factors.plane_prior import plane_prior_factor
+
+        ds, values = build.ds, build.values
+        sensor_keys, ext_keys = build.sensor_keys, build.extension_keys
+        sensor_index = {name: k for k, name in enumerate(ds.sensors)}
+        range_scale = {}
+        for name, sig in self.range_scale:
+            if name not in sensor_keys:
+                raise GraphcalError(f"range_scale names sensor {name!r}, which has no measurements")
+            key = C(sensor_index[name])
+            ext_keys[f"range_scale:{name}"] = range_scale[name] = key
+            values.insert(key, np.array([1.0]))
+            build.add_prior(gtsam.PriorFactorVector(key, np.array([1.0]), gtsam.noiseModel.Isotropic.Sigma(1, float(sig))),
+                            f"range_scale:{name}")
+        w_key = None
+        if self.ground_tilt_sigma_rad is not None and ds.imu is not None:
+            # gravity against the ground: W = R_ground_level, its rotation about the vertical pinned
+            w_key = W(0)
+            ext_keys["ground_tilt"] = w_key
+            values.insert(w_key, gtsam.Rot3())
+            sig = float(self.ground_tilt_sigma_rad)
+            build.add_prior(gtsam.PriorFactorRot3(w_key, gtsam.Rot3(), gtsam.noiseModel.Diagonal.Sigmas(
+                np.array([sig, sig, 1e-6]))), "ground_tilt")
+        segments: dict[str, list[tuple[int, int]]] = {}
+        for name, station in self.extrinsic_segments:
+            if name not in sensor_keys:
+                raise GraphcalError(f"extrinsic segment names sensor {name!r}, which has no measurements")
+            if station not in build.station_order:
+                raise GraphcalError(f"extrinsic segment of {name!r} starts at station {station}, which does not exist")
+            j = len(segments.setdefault(name, [])) + 1
+            key = S(sensor_index[name] + SEGMENT_KEY_STRIDE * j)
+            segments[name].append((build.station_order[station], key))
+            ext_keys[f"segment:{name}:{station}"] = key
+            values.insert(key, to_gtsam_pose(build.initial_extrinsics[name]))
+            T_cad, sig_m, sig_r = build.sensor_priors[name]
+            build.add_prior(floored_extrinsic_prior(key, T_cad, sig_m, sig_r), f"segment:{name}:{station}")
+        session_planes = {}
+        for s_name, sig in self.session_offset:
+            if s_name not in build.sessions:
+                raise GraphcalError(f"session_offset names session {s_name!r}; the sessions are "
+                                    f"{', '.join(build.sessions)}")
+            key = G(1 + build.sessions.index(s_name))
+            ext_keys[f"session_offset:{s_name}"] = session_planes[s_name] = key
+            values.insert(key, gtsam.OrientedPlane3(0.0, 0.0, 1.0, 0.0))
+            build.add_prior(plane_prior_factor(key, [0.0, 0.0, 1.0, 0.0], 1e-6, float(sig)), f"session_offset:{s_name}")
+        return ExtensionKeys(range_scale=range_scale, ground_tilt=w_key, segments=segments,
+                             session_planes=session_planes, leg_feet=frozenset(f for f, _ in self.leg_sigmas))
+
+    def leg_prior(self, foot: str, key: int, n_params: int):
+        """The prior on leg ``foot``'s parameters with its sigmas of ``leg_sigmas`` (rad or m each)."""
+        from graphcal.factors.priors import leg_offset_prior
+
+        sig = np.asarray(dict(self.leg_sigmas)[foot], dtype=float)
+        if sig.shape != (n_params,):
+            raise GraphcalError(f"leg {foot}: {len(sig)} parameter sigmas for {n_params} parameters")
+        return leg_offset_prior(key, n_params, sig)
+
+    def imu_mounting_prior(self, R_body_imu: np.ndarray):
+        """The prior on M(0) about ``R_body_imu`` (3x3, body <- IMU) with ``imu_mounting_sigma_rad``,
+        or None (the graph's default prior)."""
+        if self.imu_mounting_sigma_rad is None:
+            return None
+        return gtsam.PriorFactorRot3(M(0), gtsam.Rot3(R_body_imu), gtsam.noiseModel.Isotropic.Sigma(
+            3, float(self.imu_mounting_sigma_rad)))
