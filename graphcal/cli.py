@@ -216,14 +216,14 @@ def _cmd_extract_planes(args) -> int:
 
 
 def _cmd_diagnose(args) -> int:
-    from graphcal.diagnosis.command import run_diagnose
+    from graphcal.commands.diagnose import run_diagnose
 
     print(run_diagnose(args.dataset, args.out, progress=not args.quiet))
     return 0
 
 
 def _cmd_identify_legs(args) -> int:
-    from graphcal.legs.command import run_identify_legs
+    from graphcal.commands.identify_legs import run_identify_legs
 
     print(run_identify_legs(args.dataset, args.out, progress=not args.quiet, mocap_free=args.mocap_free,
                             origins=args.origins, sigma_marker_mm=args.sigma_marker_mm,
