@@ -61,7 +61,7 @@ def test_clean_data_leave_no_unexplained_structure(battery):
 # ----------------------------------------------------------------------------- command and files
 @pytest.fixture(scope="module")
 def knocked(tmp_path_factory):
-    from graphcal.simulation.run import simulate_to_folder
+    from graphcal.commands.simulate import run as simulate_to_folder
 
     out = tmp_path_factory.mktemp("diag") / "knocked"
     simulate_to_folder(robot="octopus", program="random", ground="level", out_dir=out, seed=7, n_stations=30,
@@ -132,7 +132,7 @@ def knee_flipped(tmp_path_factory):
     import csv
     import shutil
 
-    from graphcal.simulation.run import simulate_to_folder
+    from graphcal.commands.simulate import run as simulate_to_folder
 
     root = tmp_path_factory.mktemp("diagflip")
     clean = root / "clean"

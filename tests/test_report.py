@@ -771,7 +771,7 @@ def test_write_outputs_refuses_previous_calibration_with_user_files(tmp_path, fa
 
 def test_calibrate_refuses_a_folder_with_user_files_before_the_work(tmp_path):
     """The output folder is checked first: the dataset (here absent) is not even read."""
-    from graphcal.calibration.calibrate import run_calibrate
+    from graphcal.commands.calibrate import run as run_calibrate
 
     out = tmp_path / "calib"
     out.mkdir()

@@ -252,7 +252,7 @@ def test_track_output_folder_safety(short_walk, tmp_path, capsys):
 
 def test_track_refuses_a_negative_tum_rate_before_any_work(tmp_path):
     from graphcal.errors import GraphcalError
-    from graphcal.locomotion.track import run_track
+    from graphcal.commands.track import run as run_track
 
     with pytest.raises(GraphcalError, match="--tum-rate must be a finite number >= 0"):
         run_track(tmp_path / "no-such-dataset", tmp_path / "out", tum_rate_hz=-5.0)

@@ -16,7 +16,7 @@ from pathlib import Path
 from graphcal.io.atomic import atomic_directory, atomic_write_text, check_output_folder, previous_output_files
 from graphcal.diagnosis.diagnose import Diagnosis, diagnose
 
-__all__ = ["run_diagnose", "write_diagnosis", "summary_text", "DIAGNOSIS_FILES"]
+__all__ = ["run", "write_diagnosis", "summary_text", "DIAGNOSIS_FILES"]
 
 DIAGNOSIS_FILES = ("diagnosis.json", "report.html")
 
@@ -124,7 +124,7 @@ def write_diagnosis(diag: Diagnosis, out_dir, *, title: str | None = None) -> di
     return doc
 
 
-def run_diagnose(dataset, out_dir, *, progress: bool = True) -> str:
+def run(dataset, out_dir, *, progress: bool = True) -> str:
     """``graphcal diagnose``: diagnose ``dataset`` and write ``out_dir``; returns the summary."""
     out = Path(out_dir)
     _check_out(out)  # refuse early, before the work

@@ -157,7 +157,7 @@ def trajectory_metrics(times, T_est, truth: Truth, *, max_diff_s: float = 0.002,
     return out
 
 
-def _interp_truth(truth: Truth, t: np.ndarray) -> np.ndarray:
+def interp_truth(truth: Truth, t: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation, Slerp
 
     t = np.clip(t, truth.times[0], truth.times[-1])
@@ -188,7 +188,7 @@ def nees_against_truth(result, truth: Truth) -> tuple[np.ndarray, np.ndarray]:
     t = result.times[idx]
     inside = (t >= truth.times[0]) & (t <= truth.times[-1])
     idx, t = idx[inside], t[inside]
-    e = pose_errors(result.T_world_body[idx], _interp_truth(truth, t))
+    e = pose_errors(result.T_world_body[idx], interp_truth(truth, t))
     P = result.cov_pose[inside]
     nees = np.einsum("ni,ni->n", e, np.linalg.solve(P, e[:, :, None])[:, :, 0])
     return t, nees
