@@ -114,13 +114,16 @@ def test_cli_bad_dataset_is_one_line(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
-def test_the_last_progress_line_of_a_finding_gives_its_final_estimate(knocked, capsys):
+def test_the_last_progress_line_of_a_finding_gives_its_final_estimate(knocked, caplog):
     """A finding is re-read in the final model (later findings and the noise re-learned move it);
-    progress ends with the numbers the report gives, not those of the moment it was found."""
+    progress (logged, INFO) ends with the numbers the report gives, not those of the moment it was found."""
+    import logging
+
     from graphcal.diagnosis.diagnose import _params_text, diagnose
 
-    result = diagnose(knocked, progress=True, heldout=False)
-    lines = capsys.readouterr().err.splitlines()
+    with caplog.at_level(logging.INFO, logger="graphcal"):
+        result = diagnose(knocked, progress=True, heldout=False)
+    lines = [r.getMessage() for r in caplog.records]
     for f in result.findings:
         said = [ln for ln in lines if f.candidate.label() in ln and "sigma" in ln]
         assert said and said[-1].endswith(f"{_params_text(f.parameters)} (sigma {_params_text(f.sigma)})")

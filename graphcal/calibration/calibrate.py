@@ -8,6 +8,7 @@ and solve again without them, then read the marginal covariances (solvers/covari
 from __future__ import annotations
 
 import dataclasses
+import logging
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -77,17 +78,18 @@ def _passing_again(ds, robot, data: CalibrationData, options: CalibrationOptions
     return back
 
 
+log = logging.getLogger(__name__)
+
+
 def solve_problem(problem: CalibrationProblem, *, progress: bool = False, stage: str = "solve"):
     """Levenberg–Marquardt on a built problem; returns the solver result. With ``progress`` one line
-    per solve goes to stderr."""
-    import sys
-
+    per solve is logged (INFO)."""
     from graphcal.solvers.batch import solve_lm
 
     result = solve_lm(problem.graph, problem.initial)
     if progress:
-        print(f"calibrate: {stage}: {problem.graph.size()} factors, {result.iterations} LM iterations, "
-              f"error {result.error_initial:.4g} -> {result.error_final:.4g}", file=sys.stderr, flush=True)
+        log.info(f"calibrate: {stage}: {problem.graph.size()} factors, {result.iterations} LM iterations, "
+                 f"error {result.error_initial:.4g} -> {result.error_final:.4g}")
     return result
 
 

@@ -37,14 +37,23 @@ __all__ = [
     "plot_incremental_sigma",
     "report_figures",
     "figure_png",
+    "new_figure",
+    "BEFORE_COLOR",
+    "AFTER_COLOR",
+    "MARK_COLOR",
 ]
 
 #: (row, column) index pairs into the body-axis vector [rx, ry, rz, x, y, z], and axis labels.
 ELLIPSE_PAIRS: tuple[tuple[int, int], ...] = ((3, 4), (3, 5), (4, 5), (0, 1), (0, 2), (1, 2))
 _AXIS_LABELS = ("roll (about x) [deg]", "pitch (about y) [deg]", "yaw (about z) [deg]", "x [mm]", "y [mm]", "z [mm]")
-_BEFORE = "#999999"
-_AFTER = "#1f77b4"
-_OUTLIER = "#d62728"
+#: the one plot style of every report: before (nominal / prior) in grey, after (estimated) in blue,
+#: marked samples (outliers, a change, a finding's stations) in red
+BEFORE_COLOR = "#999999"
+AFTER_COLOR = "#1f77b4"
+MARK_COLOR = "#d62728"
+_BEFORE = BEFORE_COLOR
+_AFTER = AFTER_COLOR
+_OUTLIER = MARK_COLOR
 _BOX = {"boxstyle": "round,pad=0.15", "facecolor": "white", "edgecolor": "none", "alpha": 0.8}
 
 
@@ -227,10 +236,15 @@ def plot_incremental_sigma(ax_rot, ax_xyz, history, *, sensor: str | None = None
 
 
 # ----------------------------------------------------------------------------- figure sets
-def _fig(w: float, h: float) -> Figure:
+def new_figure(w: float, h: float) -> Figure:
+    """A figure of every report: ``w`` x ``h`` inches at 100 dpi, constrained layout (labels never
+    overlap), drawn with the Agg canvas (no display, no pyplot)."""
     fig = Figure(figsize=(w, h), dpi=100, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
+
+
+_fig = new_figure
 
 
 def report_figures(result) -> list[tuple[str, Figure]]:
