@@ -67,12 +67,20 @@ def _split(rows, outliers: Iterable[int]):
     return bad
 
 
-def _mark_stats(ax, values: np.ndarray, color: str, label: str, unit: str) -> None:
+def _mark_stats(ax, values: np.ndarray, color: str, label: str, unit: str, span: float | None = None) -> None:
+    """Mean (dashed) and max (dotted) lines with their labels; one label for both when they are
+    closer than 6 % of ``span`` (the y range), so the two never overlap."""
     if values.size == 0:
         return
     mean, vmax = float(values.mean()), float(values.max())
     ax.axhline(mean, color=color, linestyle="--", linewidth=1.0)
     ax.axhline(vmax, color=color, linestyle=":", linewidth=1.0)
+    if span is not None and vmax - mean < 0.06 * span:
+        ax.annotate(
+            f"{label} mean {mean:.3g}{unit}, max {vmax:.3g}{unit}", xy=(1.0, vmax), xycoords=("axes fraction", "data"),
+            xytext=(-4, 2), textcoords="offset points", ha="right", va="bottom", fontsize=7, color=color, bbox=_BOX,
+        )  # fmt: skip
+        return
     ax.annotate(
         f"{label} mean {mean:.3g}{unit}", xy=(1.0, mean), xycoords=("axes fraction", "data"),
         xytext=(-4, 2), textcoords="offset points", ha="right", va="bottom", fontsize=7, color=color, bbox=_BOX,
@@ -97,14 +105,14 @@ def _per_station(ax, residuals, sensor, outliers, before_attr, after_attr, unit,
     ax.plot(st, after, "o-", color=_AFTER, markersize=3, linewidth=0.8, label="after calibration")
     if bad.any():
         ax.plot(st[bad], after[bad], "x", color=_OUTLIER, markersize=7, label="outlier (not in mean/max)")
-    _mark_stats(ax, before[~bad], _BEFORE, "before", unit)
-    _mark_stats(ax, after[~bad], _AFTER, "after", unit)
-    ax.set_xlabel("station")
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
     finite = np.concatenate([before, after])
     finite = finite[np.isfinite(finite)]
     top = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+    _mark_stats(ax, before[~bad], _BEFORE, "before", unit, span=1.15 * top)
+    _mark_stats(ax, after[~bad], _AFTER, "after", unit, span=1.15 * top)
+    ax.set_xlabel("station")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
     ax.set_ylim(0.0, 1.15 * top)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, loc="upper left")

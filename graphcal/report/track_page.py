@@ -101,6 +101,14 @@ def track_figures(result, truth, nees_t, nees, nees_dof) -> dict[str, bytes]:
         ax.plot(result.icp_times, result.icp_dof, "k_", ms=8, label="dof (directions fused)")
     if nees is not None and len(nees):
         ax.plot(nees_t, nees, "-", color="C3", lw=0.8, label=f"pose NEES (dof {nees_dof})")
+    shown = np.concatenate([np.asarray(v, dtype=float).ravel() for v in (result.icp_nis, result.icp_dof,
+                                                                          [] if nees is None else nees)])
+    shown = shown[np.isfinite(shown)]
+    if shown.size:  # a start-up transient of the NEES must not squash the ICP values: clip at 3x its 99th percentile
+        top = max(3.0 * float(np.percentile(shown, 99)), 2.0 * nees_dof)
+        if top < shown.max():
+            ax.set_ylim(0.0, top)
+            ax.set_title("clipped at 3x the 99th percentile", fontsize=8, loc="right")
     ax.set_xlabel("time (s)")
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="upper right", fontsize=8)
