@@ -252,6 +252,19 @@ def _cmd_track(args) -> str:
 _HANDLER_MARK = "_graphcal_cli_handler"
 
 
+class _StderrHandler(logging.StreamHandler):
+    """A stream handler that writes to whatever ``sys.stderr`` is when a message is emitted (tests
+    and callers that redirect stderr after the command line was configured still get the lines)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
 def configure_logging(quiet: bool = False, verbose: bool = False) -> None:
     """Messages of every graphcal module (``logging.getLogger(__name__)``) go to stderr, one line each,
     as the message alone: warnings only with ``quiet``, everything with ``verbose`` (DEBUG), else INFO."""
@@ -259,7 +272,7 @@ def configure_logging(quiet: bool = False, verbose: bool = False) -> None:
     logger = logging.getLogger("graphcal")
     for h in [h for h in logger.handlers if getattr(h, _HANDLER_MARK, False)]:
         logger.removeHandler(h)
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _StderrHandler()
     handler.setFormatter(logging.Formatter("%(message)s"))
     setattr(handler, _HANDLER_MARK, True)
     logger.addHandler(handler)

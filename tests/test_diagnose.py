@@ -94,6 +94,9 @@ def test_cli_writes_the_diagnosis(knocked, tmp_path):
     assert "depth" in doc["extended_calibration"]["sensors"]
     page = (out / "report.html").read_text()
     assert "extrinsic_change" in page and page.count("data:image/png;base64,") >= 1
+    from graphcal.report.page import CSS
+
+    assert CSS in page  # the one page template and style sheet of every report
     # a previous diagnosis is replaced; anything else is refused and left alone
     assert _cli("diagnose", knocked, "--out", out, "--quiet").returncode == 0
     foreign = tmp_path / "mine"

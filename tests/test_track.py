@@ -133,6 +133,9 @@ def test_track_outputs(level20):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     report = (out / "report.html").read_text()
     assert "drift" in report and f"{m['drift_percent']:.3f}" in report
+    from graphcal.report.page import CSS
+
+    assert CSS in report and report.count("data:image/png;base64,") == 3  # the page of every report, plots inside
     assert set(m["output_files"]) == {p.name for p in out.iterdir()}
     for key in ("ape_rmse_m", "rpe_rmse_m", "drift_percent", "distance_m", "nees_mean"):
         assert isinstance(m[key], float), key
