@@ -62,7 +62,9 @@ def write_diagnosis(diag: Diagnosis, out_dir, *, title: str | None = None) -> di
 
 
 def run(dataset, out_dir, *, progress: bool = True) -> str:
-    """``graphcal diagnose``: diagnose ``dataset`` and write ``out_dir``; returns the summary."""
+    """``graphcal diagnose``: diagnose ``dataset`` (a dataset folder) and write diagnosis.json and
+    report.html into ``out_dir`` (new, empty, or a previous diagnosis); ``progress``: tqdm bars and one
+    log line (INFO) per step. Returns the summary (RMS in deg and mm, one line per finding)."""
     out = Path(out_dir)
     _check_out(out)  # refuse early, before the work
     diag = diagnose(dataset, progress=progress)

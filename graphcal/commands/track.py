@@ -126,6 +126,15 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
         tum_rate_hz: float = 100.0, overwrite: bool = True, stairs: bool = True) -> str:
     """The ``graphcal track`` command (see the module docstring). Returns a short summary.
 
+    Args:
+        dataset: dataset folder with a timeseries (``truth.yaml`` beside it is read for the evaluation only).
+        out: output folder (replaces only an empty folder or a previous track output).
+        progress: progress bar (tqdm) of the filter.
+        config: :class:`~graphcal.locomotion.estimator.TrackerConfig` (default: its defaults).
+        tum_rate_hz: poses per second in trajectory.tum (Hz; 0 = every filter sample).
+        overwrite: replace a previous track output in ``out``.
+        stairs: on a stairs dataset, also model the stairs (stairs.json).
+
     Raises:
         DatasetError: the dataset is malformed or lacks what the filter needs (file and field named).
         OutputExistsError: ``out`` is not empty and not a previous track output.
