@@ -105,7 +105,7 @@ def _one_run(job: tuple[int, tuple[str, ...], str, str]) -> dict:
         from graphcal.calibration.calibrate import calibrate
         from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between, to_gtsam_pose
         from graphcal.io.dataset import read_dataset
-        from graphcal.simulation.run import write_simulation
+        from graphcal.simulation.write import write_simulation
         from graphcal.simulation.session import simulate
         from graphcal.solvers.covariance import body_axis_sigmas, nees
 

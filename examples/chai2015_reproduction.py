@@ -25,7 +25,7 @@ import numpy as np
 
 from graphcal.calibration.calibrate import calibrate
 from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between, xyz_rpy_from_pose
-from graphcal.simulation.run import write_simulation
+from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
 
 PAPER = {"theta_mean_deg": 0.2104, "theta_max_deg": 0.5219, "e_d_mean_mm": 1.1, "e_d_max_mm": 3.236,

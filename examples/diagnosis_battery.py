@@ -127,7 +127,7 @@ def _compare(cause: str, truth: dict, finding: dict, sim_truth: dict) -> tuple[b
 
 def run_case(seed: int, robot: str, hidden: str, workdir: Path) -> CaseResult:
     from graphcal.diagnosis import diagnose
-    from graphcal.simulation.run import simulate_to_folder
+    from graphcal.commands.simulate import run as simulate_to_folder
 
     from graphcal.errors import GraphcalError
 

@@ -26,7 +26,7 @@ import numpy as np
 from graphcal.calibration.calibrate import calibrate
 from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between, se3_exp, transform_points
 from graphcal.io.dataset import load_cloud, read_dataset
-from graphcal.simulation.run import write_simulation
+from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
 
 PAPER = {"epsilon_laser_mm": (8.566, 7.441), "epsilon_stereo_mm": (4.145, 2.085), "elevation_m": (0.041, 0.014)}

@@ -26,7 +26,7 @@ def main(out_dir: str | Path | None = None, *, seeds=(0,), distance_m: float = 2
         {"level": {seed: metrics}, "stairs": {seed: metrics}} with the keys of ``KEYS`` (SI units,
         drift in %), plus "whiteness_fraction_inside" per run.
     """
-    from graphcal.locomotion.track import run_track
+    from graphcal.commands.track import run as run_track
     from graphcal.simulation.walking import simulate_walking_to_folder
 
     root = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="graphcal-walk-"))

@@ -1,10 +1,13 @@
-"""graphcal command line. Only argument parsing and wiring live here; every command calls a library
-function. graphcal's own errors (bad input) print one line and exit with code 2; anything else is a
+"""graphcal command line. Only argument parsing and wiring live here; every command calls its
+``graphcal.commands.<name>.run`` and prints the summary it returns (stdout). Messages go through
+``logging`` to stderr (``--quiet``: warnings only; ``--verbose``: debug), progress bars through tqdm.
+graphcal's own errors (bad input) print one line and exit with code 2; anything else is a
 bug and keeps its traceback."""
 
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import sys
 from pathlib import Path
@@ -23,6 +26,19 @@ def _effect_arg(text: str):
     return cause.strip(), params
 
 
+class _DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Shows ``(default: X)`` after an option's help when it has a default worth showing (not None,
+    False or empty) and its help does not already say it."""
+
+    def _get_help_string(self, action) -> str:
+        text = action.help or ""
+        shown = not (action.default is None or action.default is False or action.default == []
+                     or action.default == argparse.SUPPRESS)
+        if action.option_strings and shown and "(default" not in text:
+            text += " (default: %(default)s)"
+        return text
+
+
 def _build_parser() -> argparse.ArgumentParser:
     from graphcal import __version__
 
@@ -32,8 +48,16 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"graphcal {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    # every command: --quiet / --verbose (log levels, configure_logging); DATASET (the positional)
+    common = argparse.ArgumentParser(add_help=False)
+    talk = common.add_mutually_exclusive_group()
+    talk.add_argument("--quiet", action="store_true",
+                      help="no progress bars, only warnings and errors on stderr (the summary still goes to stdout)")
+    talk.add_argument("--verbose", action="store_true", help="also debug messages on stderr")
+    dataset_help = "dataset folder (dataset.yaml and its files; the contract: docs/dataset.md)"
 
-    s = sub.add_parser("simulate", help="simulate a calibration session and write it as a dataset")
+    s = sub.add_parser("simulate", help="simulate a calibration session and write it as a dataset", parents=[common],
+                       formatter_class=_DefaultsHelpFormatter)
     s.add_argument("--robot", default="octopus", help="built-in robot model (octopus, qingzhui, messor, a1)")
     s.add_argument("--program", default="chai2015",
                    help="station program (chai2015, labecki2012, random), walk (tripod-walk, tripod-stairs: "
@@ -42,7 +66,9 @@ def _build_parser() -> argparse.ArgumentParser:
                         "--stations samples, default 1000; see docs/legs.md)")
     s.add_argument("--ground", default="level", help="level, bumpy-little, bumpy-big, stairs, boxes")
     s.add_argument("--out", required=True, type=Path, help="output dataset folder (must not exist or be empty)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=0,
+                   help="seed of every random draw (noise, random stations, effects without parameters); "
+                        "the same seed writes the same dataset")
     s.add_argument("--stations", type=int, default=None, help="number of stations (random program)")
     s.add_argument("--sessions", type=int, default=1, help="number of stances (feet re-planted between them)")
     s.add_argument("--sensor", action="append", default=None, help="simulate only this sensor (repeatable)")
@@ -65,13 +91,12 @@ def _build_parser() -> argparse.ArgumentParser:
                         "CAUSE alone draws its magnitude and location from the seed")
     s.add_argument("--overwrite", action="store_true",
                    help="replace a previous simulation in --out (one with a graphcal truth.yaml and nothing else)")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
 
-    v = sub.add_parser("validate", help="check a dataset against the contract (docs/dataset.md)")
-    v.add_argument("dataset", type=Path)
+    v = sub.add_parser("validate", help="check a dataset against the contract (docs/dataset.md)", parents=[common])
+    v.add_argument("dataset", type=Path, help=dataset_help)
 
-    c = sub.add_parser("calibrate", help="calibrate the sensors (and legs) of a dataset: calibration.yaml, URDF, report")
-    c.add_argument("dataset", type=Path)
+    c = sub.add_parser("calibrate", help="calibrate the sensors (and legs) of a dataset: calibration.yaml, URDF, report", parents=[common])
+    c.add_argument("dataset", type=Path, help=dataset_help)
     c.add_argument("--out", required=True, type=Path,
                    help="output folder (created; a previous graphcal calibration there is replaced only at the end)")
     c.add_argument("--incremental", action="store_true", help="iSAM2, one station at a time, with change detection")
@@ -89,10 +114,9 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="use the noise model (noise_model) of an earlier calibration.yaml of this robot as "
                         "given instead of learning it; for --incremental, which cannot learn it "
                         "(docs/incremental.md)")
-    c.add_argument("--quiet", action="store_true")
 
-    g = sub.add_parser("suggest-poses", help="propose the k body poses that most shrink the extrinsic covariance")
-    g.add_argument("dataset", type=Path)
+    g = sub.add_parser("suggest-poses", help="propose the k body poses that most shrink the extrinsic covariance", parents=[common])
+    g.add_argument("dataset", type=Path, help=dataset_help)
     g.add_argument("-k", type=int, default=10, help="number of poses (default 10; with targets, the most)")
     g.add_argument("--sigma-target-deg", type=float, nargs="+", default=None, metavar="DEG",
                    help="aim at this 1-sigma of the extrinsic's rotation (one value, or three: body x y z) and "
@@ -106,8 +130,8 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="predict sigma with the noise model an earlier calibration of this robot learned "
                         "(default: graphcal's defaults, which a calibration usually improves on)")
 
-    e = sub.add_parser("extract-planes", help="fit planes to a dataset's clouds and write planes.csv")
-    e.add_argument("dataset", type=Path)
+    e = sub.add_parser("extract-planes", help="fit planes to a dataset's clouds and write planes.csv", parents=[common])
+    e.add_argument("dataset", type=Path, help=dataset_help)
     e.add_argument("--out", type=Path, default=None,
                    help="planes.csv to write (default: DATASET/planes.csv, only if it does not exist)")
     e.add_argument("--max-planes", type=int, default=1, metavar="K",
@@ -115,18 +139,16 @@ def _build_parser() -> argparse.ArgumentParser:
     e.add_argument("--plane-points", type=int, default=None, metavar="N",
                    help="fit each cloud's planes on at most N of its points, every k-th one (default: all); "
                         "as calibrate --plane-points")
-    e.add_argument("--quiet", action="store_true")
 
     dg = sub.add_parser("diagnose", help="what the model gets wrong on these data: named causes, evidence, "
-                                         "held-out gain (diagnosis.json, report.html)")
-    dg.add_argument("dataset", type=Path)
+                                         "held-out gain (diagnosis.json, report.html)", parents=[common])
+    dg.add_argument("dataset", type=Path, help=dataset_help)
     dg.add_argument("--out", required=True, type=Path,
                     help="output folder (new, empty, or a previous diagnosis, replaced only at the end)")
-    dg.add_argument("--quiet", action="store_true")
 
     il = sub.add_parser("identify-legs", help="identify leg kinematic parameters from motion capture (mocap.csv): "
-                                              "legs.yaml, calibrated URDF, report")
-    il.add_argument("dataset", type=Path)
+                                              "legs.yaml, calibrated URDF, report", parents=[common])
+    il.add_argument("dataset", type=Path, help=dataset_help)
     il.add_argument("--out", required=True, type=Path, help="output folder (replaces only a previous identify-legs output)")
     il.add_argument("--mocap-free", default=None,
                     help="unknown components of T_body_mocap, e.g. 'rz,z' (Yuan's alpha_h, z_h); default all six")
@@ -134,24 +156,22 @@ def _build_parser() -> argparse.ArgumentParser:
                     help="3-D joint origin changes: first joint only (hip position, default), every joint, none")
     il.add_argument("--sigma-marker-mm", type=float, default=1.0, help="a-priori marker noise (mm)")
     il.add_argument("--sigma-joint-deg", type=float, default=0.0, help="a-priori joint encoder noise (deg)")
-    il.add_argument("--quiet", action="store_true")
 
     tr = sub.add_parser("track", help="estimate the body trajectory of a timeseries dataset (EKF: IMU, leg "
-                                      "kinematics, ICP): trajectory.tum, metrics.json, plots, report")
-    tr.add_argument("dataset", type=Path)
+                                      "kinematics, ICP): trajectory.tum, metrics.json, plots, report", parents=[common])
+    tr.add_argument("dataset", type=Path, help=dataset_help)
     tr.add_argument("--out", required=True, type=Path,
                     help="output folder (replaces only an empty folder or a previous track output)")
     tr.add_argument("--tum-rate", type=float, default=100.0,
                     help="poses per second in trajectory.tum (default 100; 0 = every sample)")
     tr.add_argument("--no-icp", action="store_true", help="proprioception only (no ICP between clouds)")
-    tr.add_argument("--quiet", action="store_true")
     return p
 
 
-def _cmd_simulate(args) -> int:
-    from graphcal.simulation.run import simulate_to_folder
+def _cmd_simulate(args) -> str:
+    from graphcal.commands import simulate
 
-    summary = simulate_to_folder(
+    return simulate.run(
         robot=args.robot,
         program=args.program,
         ground=args.ground,
@@ -170,92 +190,113 @@ def _cmd_simulate(args) -> int:
         overwrite=args.overwrite,
         progress=not args.quiet,
     )
-    print(summary)
-    return 0
 
 
-def _cmd_calibrate(args) -> int:
-    from graphcal.calibration.calibrate import run_calibrate
-    from graphcal.errors import GraphcalError
+def _cmd_calibrate(args) -> str:
     from graphcal.clouds.plane_table import check_max_points
+    from graphcal.commands import calibrate
+    from graphcal.errors import GraphcalError
 
     if not (math.isfinite(args.ground_roughness_mm) and args.ground_roughness_mm >= 0):
         raise GraphcalError(f"--ground-roughness-mm must be a number >= 0 (mm), got {args.ground_roughness_mm}")
-
-    print(run_calibrate(args.dataset, args.out, legs=args.legs, incremental=args.incremental,
-                        progress=not args.quiet, ground_roughness_m=1e-3 * args.ground_roughness_mm,
-                        plane_max_points=check_max_points(args.plane_points, "--plane-points"),
-                        noise_from=args.noise_from))
-    return 0
+    return calibrate.run(args.dataset, args.out, legs=args.legs, incremental=args.incremental,
+                         progress=not args.quiet, ground_roughness_m=1e-3 * args.ground_roughness_mm,
+                         plane_max_points=check_max_points(args.plane_points, "--plane-points"),
+                         noise_from=args.noise_from)
 
 
-def _cmd_suggest(args) -> int:
-    from graphcal.calibration.suggest import suggest_poses_command
+def _cmd_suggest_poses(args) -> str:
+    from graphcal.commands import suggest_poses
 
-    print(suggest_poses_command(args.dataset, args.k, out=args.out, after_existing=args.after_existing,
-                                noise_from=args.noise_from, sigma_target_deg=args.sigma_target_deg,
-                                sigma_target_mm=args.sigma_target_mm))
-    return 0
-
-
-def _cmd_validate(args) -> int:
-    from graphcal.io.dataset import validate_dataset
-
-    report = validate_dataset(args.dataset)
-    print(report.summary())
-    return 0
+    return suggest_poses.run(args.dataset, args.k, out=args.out, after_existing=args.after_existing,
+                             noise_from=args.noise_from, sigma_target_deg=args.sigma_target_deg,
+                             sigma_target_mm=args.sigma_target_mm)
 
 
-def _cmd_extract_planes(args) -> int:
-    from graphcal.clouds.plane_table import extract_planes_to_csv
+def _cmd_validate(args) -> str:
+    from graphcal.commands import validate
 
-    out = extract_planes_to_csv(args.dataset, args.out, max_planes=args.max_planes, progress=not args.quiet,
-                                max_points=args.plane_points, on_warning=lambda w: print(f"warning: {w}"))
-    print(f"wrote {out}")
-    return 0
+    return validate.run(args.dataset)
 
 
-def _cmd_diagnose(args) -> int:
-    from graphcal.diagnosis.command import run_diagnose
+def _cmd_extract_planes(args) -> str:
+    from graphcal.commands import extract_planes
 
-    print(run_diagnose(args.dataset, args.out, progress=not args.quiet))
-    return 0
-
-
-def _cmd_identify_legs(args) -> int:
-    from graphcal.legs.command import run_identify_legs
-
-    print(run_identify_legs(args.dataset, args.out, progress=not args.quiet, mocap_free=args.mocap_free,
-                            origins=args.origins, sigma_marker_mm=args.sigma_marker_mm,
-                            sigma_joint_deg=args.sigma_joint_deg))
-    return 0
+    return extract_planes.run(args.dataset, args.out, max_planes=args.max_planes, progress=not args.quiet,
+                              max_points=args.plane_points)
 
 
-def _cmd_track(args) -> int:
+def _cmd_diagnose(args) -> str:
+    from graphcal.commands import diagnose
+
+    return diagnose.run(args.dataset, args.out, progress=not args.quiet)
+
+
+def _cmd_identify_legs(args) -> str:
+    from graphcal.commands import identify_legs
+
+    return identify_legs.run(args.dataset, args.out, progress=not args.quiet, mocap_free=args.mocap_free,
+                             origins=args.origins, sigma_marker_mm=args.sigma_marker_mm,
+                             sigma_joint_deg=args.sigma_joint_deg)
+
+
+def _cmd_track(args) -> str:
+    from graphcal.commands import track
     from graphcal.locomotion.estimator import TrackerConfig
-    from graphcal.locomotion.track import run_track
 
-    print(run_track(args.dataset, args.out, progress=not args.quiet, tum_rate_hz=args.tum_rate,
-                    config=TrackerConfig(icp=not args.no_icp)))
-    return 0
+    return track.run(args.dataset, args.out, progress=not args.quiet, tum_rate_hz=args.tum_rate,
+                     config=TrackerConfig(icp=not args.no_icp))
+
+
+#: the handler attached to the ``graphcal`` logger by :func:`configure_logging` (replaced on each call)
+_HANDLER_MARK = "_graphcal_cli_handler"
+
+
+class _StderrHandler(logging.StreamHandler):
+    """A stream handler that writes to whatever ``sys.stderr`` is when a message is emitted (tests
+    and callers that redirect stderr after the command line was configured still get the lines)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
+def configure_logging(quiet: bool = False, verbose: bool = False) -> None:
+    """Messages of every graphcal module (``logging.getLogger(__name__)``) go to stderr, one line each,
+    as the message alone: warnings only with ``quiet``, everything with ``verbose`` (DEBUG), else INFO."""
+    level = logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO
+    logger = logging.getLogger("graphcal")
+    for h in [h for h in logger.handlers if getattr(h, _HANDLER_MARK, False)]:
+        logger.removeHandler(h)
+    handler = _StderrHandler()
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    setattr(handler, _HANDLER_MARK, True)
+    logger.addHandler(handler)
+    logger.setLevel(level)
 
 
 def main(argv: list[str] | None = None) -> int:
     from graphcal.errors import GraphcalError
 
     args = _build_parser().parse_args(argv)
+    configure_logging(args.quiet, args.verbose)
     handlers = {
         "simulate": _cmd_simulate,
         "track": _cmd_track,
         "validate": _cmd_validate,
         "calibrate": _cmd_calibrate,
-        "suggest-poses": _cmd_suggest,
+        "suggest-poses": _cmd_suggest_poses,
         "extract-planes": _cmd_extract_planes,
         "identify-legs": _cmd_identify_legs,
         "diagnose": _cmd_diagnose,
     }
     try:
-        return handlers[args.command](args)
+        print(handlers[args.command](args))
+        return 0
     except GraphcalError as exc:
         print(f"graphcal {args.command}: error: {exc}", file=sys.stderr)
         return 2

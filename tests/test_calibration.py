@@ -15,7 +15,7 @@ from graphcal.calibration.measurements import calibration_data
 from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between, se3_exp
 from graphcal.io.dataset import load_dataset_robot, read_dataset
 from graphcal.simulation.effects import Effects
-from graphcal.simulation.run import write_simulation
+from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
 
 

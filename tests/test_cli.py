@@ -456,7 +456,7 @@ def test_simulate_mocap_refuses_the_station_program_options(tmp_path):
 def test_simulate_overwrite_replaces_a_simulation_never_a_users_folder(tmp_path):
     """--overwrite (which scripts/demo passes) replaces a previous simulation; a measured dataset (no
     graphcal truth.yaml) or a simulation the user put notes in is refused and left as it was."""
-    from graphcal.simulation.run import SIMULATION_FILES
+    from graphcal.simulation.write import SIMULATION_FILES
     from graphcal.simulation.walking import TRUTH_TRAJECTORY_FILE
 
     assert TRUTH_TRAJECTORY_FILE in SIMULATION_FILES
@@ -586,3 +586,38 @@ def test_joint_angles_in_degrees_are_an_error_naming_the_column(small_dataset, t
         assert proc.returncode == 2, proc.stdout + proc.stderr
         assert "stations.csv: column q_" in proc.stderr and "degrees?" in proc.stderr
         assert "Traceback" not in proc.stderr
+
+
+def test_every_command_has_quiet_verbose_and_documented_arguments(capsys):
+    """--quiet / --verbose on every command (log levels), help for every positional DATASET and for
+    --seed, simulate --help shows its defaults; --quiet hides the INFO messages, --verbose shows DEBUG."""
+    import argparse
+    import logging
+
+    from graphcal.cli import _build_parser, configure_logging
+
+    parser = _build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    assert set(subs) == {"simulate", "validate", "calibrate", "suggest-poses", "extract-planes", "diagnose",
+                         "identify-legs", "track"}
+    for name, sp in subs.items():
+        opts = {o for a in sp._actions for o in a.option_strings}
+        assert {"--quiet", "--verbose"} <= opts, name
+        for a in sp._actions:
+            if a.dest in ("dataset", "seed"):
+                assert a.help, (name, a.dest)
+    subs["simulate"].print_help()
+    text = capsys.readouterr().out
+    assert "(default: octopus)" in text and "(default: 0)" in text
+    log = logging.getLogger("graphcal.calibration.calibrate")
+    for quiet, verbose, shown in ((True, False, logging.WARNING), (False, False, logging.INFO),
+                                  (False, True, logging.DEBUG)):
+        configure_logging(quiet, verbose)
+        assert log.getEffectiveLevel() == shown
+    configure_logging()
+    mine = [h for h in logging.getLogger("graphcal").handlers if getattr(h, "_graphcal_cli_handler", False)]
+    assert len(mine) == 1
+    log.info("calibrate: a message")
+    assert capsys.readouterr().err == "calibrate: a message\n"
+    logging.getLogger("graphcal").removeHandler(mine[0])
+    logging.getLogger("graphcal").setLevel(logging.NOTSET)

@@ -14,7 +14,7 @@ from scipy.stats import chi2
 from graphcal.calibration.calibrate import calibrate
 from graphcal.calibration.graph import CalibrationOptions
 from graphcal.geometry import pose_from_xyz_quat_wxyz
-from graphcal.simulation.run import write_simulation
+from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
 from graphcal.solvers.covariance import nees
 

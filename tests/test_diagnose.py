@@ -61,7 +61,7 @@ def test_clean_data_leave_no_unexplained_structure(battery):
 # ----------------------------------------------------------------------------- command and files
 @pytest.fixture(scope="module")
 def knocked(tmp_path_factory):
-    from graphcal.simulation.run import simulate_to_folder
+    from graphcal.commands.simulate import run as simulate_to_folder
 
     out = tmp_path_factory.mktemp("diag") / "knocked"
     simulate_to_folder(robot="octopus", program="random", ground="level", out_dir=out, seed=7, n_stations=30,
@@ -94,6 +94,9 @@ def test_cli_writes_the_diagnosis(knocked, tmp_path):
     assert "depth" in doc["extended_calibration"]["sensors"]
     page = (out / "report.html").read_text()
     assert "extrinsic_change" in page and page.count("data:image/png;base64,") >= 1
+    from graphcal.report.page import CSS
+
+    assert CSS in page  # the one page template and style sheet of every report
     # a previous diagnosis is replaced; anything else is refused and left alone
     assert _cli("diagnose", knocked, "--out", out, "--quiet").returncode == 0
     foreign = tmp_path / "mine"
@@ -114,13 +117,16 @@ def test_cli_bad_dataset_is_one_line(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
-def test_the_last_progress_line_of_a_finding_gives_its_final_estimate(knocked, capsys):
+def test_the_last_progress_line_of_a_finding_gives_its_final_estimate(knocked, caplog):
     """A finding is re-read in the final model (later findings and the noise re-learned move it);
-    progress ends with the numbers the report gives, not those of the moment it was found."""
+    progress (logged, INFO) ends with the numbers the report gives, not those of the moment it was found."""
+    import logging
+
     from graphcal.diagnosis.diagnose import _params_text, diagnose
 
-    result = diagnose(knocked, progress=True, heldout=False)
-    lines = capsys.readouterr().err.splitlines()
+    with caplog.at_level(logging.INFO, logger="graphcal"):
+        result = diagnose(knocked, progress=True, heldout=False)
+    lines = [r.getMessage() for r in caplog.records]
     for f in result.findings:
         said = [ln for ln in lines if f.candidate.label() in ln and "sigma" in ln]
         assert said and said[-1].endswith(f"{_params_text(f.parameters)} (sigma {_params_text(f.sigma)})")
@@ -132,7 +138,7 @@ def knee_flipped(tmp_path_factory):
     import csv
     import shutil
 
-    from graphcal.simulation.run import simulate_to_folder
+    from graphcal.commands.simulate import run as simulate_to_folder
 
     root = tmp_path_factory.mktemp("diagflip")
     clean = root / "clean"

@@ -30,7 +30,7 @@ from graphcal.calibration.measurements import PlaneMeasurement, calibration_data
 from graphcal.geometry import invert_pose, pose_from_xyz_quat_wxyz, se3_exp, skew, so3_exp, to_gtsam_pose
 from graphcal.io.dataset import load_dataset_robot, read_dataset
 from graphcal.simulation.effects import Effects, ExtrinsicChange
-from graphcal.simulation.run import result_to_dataset, write_simulation
+from graphcal.simulation.write import result_to_dataset, write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
 
 #: no robust loss and no variance-component estimation: the incremental solver must then

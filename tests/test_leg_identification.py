@@ -298,6 +298,9 @@ def test_cli_identify_legs_writes_the_files(cli_dataset, tmp_path):
     assert np.allclose(p, [cal.fk_pinocchio(FOOT, qq)[:3, 3] for qq in q], atol=1e-12)
     html = (out / "report.html").read_text()
     assert "<img" in html and "fl_hip_joint.offset_rad" in html
+    from graphcal.report.page import CSS
+
+    assert CSS in html  # the one page template and style sheet of every report
     png = out / "foot_errors_fl_foot.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert set(doc["output_files"]) == {p.name for p in out.iterdir()}

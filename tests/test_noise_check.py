@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 import yaml
 
-from graphcal.calibration.calibrate import calibrate, run_calibrate
+from graphcal.calibration.calibrate import calibrate
+from graphcal.commands.calibrate import run as run_calibrate
 from graphcal.calibration.graph import CalibrationOptions
 from graphcal.calibration.incremental import calibrate_incremental
 from graphcal.io.dataset import read_dataset
 from graphcal.report.calibration_yaml import read_calibration_yaml
-from graphcal.simulation.run import write_simulation
+from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
 
 

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 import yaml
 
-from graphcal.calibration.calibrate import run_calibrate
+from graphcal.commands.calibrate import run as run_calibrate
 from graphcal.calibration.graph import CalibrationOptions
 from graphcal.calibration.noise_file import NOISE_KEYS, options_with_noise_from
 from graphcal.errors import DatasetError
 from graphcal.geometry import invert_pose, pose_from_xyz_quat_wxyz, to_gtsam_pose
 from graphcal.report.calibration_yaml import read_calibration_yaml
-from graphcal.simulation.run import write_simulation
+from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
 
 NOISE = {"sigma_joint_rad": 0.005, "sigma_contact_m": 0.0011, "sigma_ground_m": 0.0003, "sigma_imu_rad": 0.0006,

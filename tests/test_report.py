@@ -620,7 +620,7 @@ class _Checker(html.parser.HTMLParser):
 
 @pytest.fixture(scope="module")
 def html_page():
-    from graphcal.report.html import report_html
+    from graphcal.report.calibration_page import report_html
     from graphcal.report.plots import report_figures
 
     res = make_result(moved=True, history=True)
@@ -790,7 +790,7 @@ def test_write_outputs_refuses_previous_calibration_with_user_files(tmp_path, fa
 
 def test_calibrate_refuses_a_folder_with_user_files_before_the_work(tmp_path):
     """The output folder is checked first: the dataset (here absent) is not even read."""
-    from graphcal.calibration.calibrate import run_calibrate
+    from graphcal.commands.calibrate import run as run_calibrate
 
     out = tmp_path / "calib"
     out.mkdir()
@@ -812,7 +812,7 @@ def test_write_outputs_overwrite_false_and_empty_folder(tmp_path, fast_report):
 def test_station_counts_agree_between_the_yaml_and_the_report(result):
     """calibration.yaml counts every station with residuals, outliers included; the report's total
     row splits the same number into inliers + outliers (it showed the inlier rows of all sensors)."""
-    from graphcal.report.html import _residual_section
+    from graphcal.report.calibration_page import _residual_section
 
     n = calibration_to_dict(result)["residuals"]["stations"]
     assert n == N_STATIONS and result.outliers == (17,)

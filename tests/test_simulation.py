@@ -245,7 +245,7 @@ def test_a_users_own_hexapod_urdf_is_simulated_and_written_in_the_contract(tmp_p
     import custom_hexapod
 
     from graphcal.io.dataset import read_dataset, validate_dataset
-    from graphcal.simulation.run import write_simulation
+    from graphcal.simulation.write import write_simulation
     from graphcal.simulation.session import CustomRobot
 
     config = SimulationConfig(robot="sidewinder", program="random", n_stations=10, n_sessions=3, seed=8,
@@ -277,7 +277,7 @@ def test_a_station_where_the_camera_saw_nothing_has_no_cloud_file(tmp_path):
 
     from graphcal.calibration.calibrate import calibrate
     from graphcal.io.dataset import read_dataset
-    from graphcal.simulation.run import write_simulation
+    from graphcal.simulation.write import write_simulation
     from graphcal.simulation.session import CustomRobot
 
     res = simulate(SimulationConfig(robot="sidewinder", program="random", n_stations=45, n_sessions=3, seed=604,
@@ -302,7 +302,7 @@ def test_output_planes_keeps_the_laser_scans(tmp_path):
     """A laser scanner's data are its scan points (a 2D scan has no plane): with --output planes they
     are still written as clouds. Before, `simulate --sensor laser --output planes` wrote a dataset
     with no sensor data ("0 clouds, 0 planes", exit 0) and calibrate found nothing to calibrate."""
-    from graphcal.simulation.run import simulate_to_folder
+    from graphcal.commands.simulate import run as simulate_to_folder
 
     out = tmp_path / "ds"
     msg = simulate_to_folder(robot="messor", program="labecki2012", ground="level", out_dir=out, output="planes",
@@ -321,7 +321,7 @@ def test_random_stations_stay_within_the_joint_limits(tmp_path, robot, seed):
     front knee on 21 of 60 stations; qingzhui seeds 2 and 3 hip angles up to 0.694 rad against
     limits of +-0.6 (poses out of reach)."""
     from graphcal.io.dataset import validate_dataset
-    from graphcal.simulation.run import write_simulation
+    from graphcal.simulation.write import write_simulation
 
     res = simulate(SimulationConfig(robot=robot, program="random", n_stations=60, seed=seed, cloud_stride=16))
     write_simulation(res, tmp_path / "ds", output="planes")

@@ -14,7 +14,7 @@ import yaml
 
 from graphcal.calibration.calibrate import calibrate
 from graphcal.calibration.graph import CalibrationOptions
-from graphcal.simulation.run import simulate_to_folder
+from graphcal.commands.simulate import run as simulate_to_folder
 from test_calibration import errors, truth_T
 
 TIBIA_JOINT = "lf_foot_joint"  # its origin is the lf tibia: lf_foot_joint.delta_m is the tibia length

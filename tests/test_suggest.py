@@ -13,13 +13,14 @@ import pytest
 from graphcal.calibration.calibrate import calibrate
 from graphcal.calibration.graph import CalibrationOptions
 from graphcal.errors import GraphcalError
-from graphcal.calibration.suggest import _Model, predict_sigmas, suggest_poses, suggest_poses_command
+from graphcal.calibration.suggest import PoseInformationModel, predict_sigmas, suggest_poses
+from graphcal.commands.suggest_poses import run as suggest_poses_command
 from graphcal.io.dataset import read_dataset
 from graphcal.models.builtin import builtin_info
 from graphcal.models.kinematics import ik_leg
 from graphcal.simulation import session as sim_session
 from graphcal.simulation.programs import StationCommand, station_program
-from graphcal.simulation.run import write_simulation
+from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
 
 PLAIN = CalibrationOptions(robust=False, estimate_noise=False)
@@ -93,7 +94,7 @@ def test_d_optimal_beats_chai_on_its_criterion(chai):
 
 def test_suggested_poses_are_reachable_and_distinct(chai, targeted):
     ds, _ = chai
-    model = _Model(ds, None, PLAIN)
+    model = PoseInformationModel(ds, None, PLAIN)
     T = np.array([p.T_stance_body for p in targeted])
     for k, f in enumerate(model.feet):
         leg = model.robot.leg(f)
@@ -128,7 +129,7 @@ def test_information_model_matches_a_simulated_calibration(chai, targeted, tmp_p
     monkeypatch.setattr(sim_session, "station_program", lambda *a, **k: cmds)
     sim = simulate(SimulationConfig(robot="octopus", program="chai2015", seed=4, cloud_stride=16))
     monkeypatch.undo()
-    robot = _Model(ds_chai, None, PLAIN).robot
+    robot = PoseInformationModel(ds_chai, None, PLAIN).robot
     for rec in sim.stations:
         for f in robot.feet:
             leg = robot.leg(f)
@@ -150,7 +151,7 @@ def test_stance_noise_matches_the_factor(chai):
     from graphcal.factors.stance_foot import joint_noise_covariance
 
     ds, _ = chai
-    model = _Model(ds, None, PLAIN)
+    model = PoseInformationModel(ds, None, PLAIN)
     T = _chai_poses()[:1]
     _, qs = model.reachable(T)
     f = model.feet[0]
@@ -192,7 +193,7 @@ def test_after_existing_plans_the_stations_to_add_to_the_dataset(chai):
     """The dataset's 52 stations counted as done: the model's sigma of them alone is the sigma an
     actual calibration of them reports (same noise model), and the suggestions shrink it from there."""
     ds, _ = chai
-    model = _Model(ds, None, PLAIN)
+    model = PoseInformationModel(ds, None, PLAIN)
     Lam, n_done = model.existing_information()
     assert n_done == 52
     rot0, xyz0 = model.sigmas(model.prior_information() + Lam)
@@ -233,7 +234,7 @@ def test_after_existing_counts_only_stations_that_saw_the_ground(chai, tmp_path)
     kept = [ln for ln in lines[1:] if int(ln.split(",")[col]) not in {1, 2, 3, 4, 5}]
     assert len(kept) == len(lines) - 1 - 5
     (copy / "planes.csv").write_text("".join([lines[0]] + kept), encoding="utf-8")
-    assert _Model(read_dataset(copy), None, PLAIN).existing_information()[1] == 47
+    assert PoseInformationModel(read_dataset(copy), None, PLAIN).existing_information()[1] == 47
 
 
 def test_noise_from_predicts_the_sigma_a_calibration_with_that_noise_reports(chai, tmp_path):
@@ -249,13 +250,13 @@ def test_noise_from_predicts_the_sigma_a_calibration_with_that_noise_reports(cha
     path = tmp_path / "calibration.yaml"
     path.write_text(calibration_yaml_text(result), encoding="utf-8")
     options, _ = options_with_noise_from(path, CalibrationOptions())
-    model = _Model(ds, None, options)
+    model = PoseInformationModel(ds, None, options)
     Lam, _ = model.existing_information()
     rot, xyz = model.sigmas(model.prior_information() + Lam)
     # measured: within 0.7 % per axis
     np.testing.assert_allclose(rot, learned.sigma_rot_deg, rtol=0.02)
     np.testing.assert_allclose(xyz, learned.sigma_xyz_mm, rtol=0.02)
-    default = _Model(ds, None, CalibrationOptions())
+    default = PoseInformationModel(ds, None, CalibrationOptions())
     rot_d, _ = default.sigmas(default.prior_information() + default.existing_information()[0])
     assert np.all(rot_d > 2 * rot)  # the defaults' prediction is the wrong one here (measured 3.0-28x)
     text = suggest_poses_command(ds, 1, after_existing=True, noise_from=path)

@@ -116,8 +116,8 @@ def test_stairs_treads_within_5_mm(stairs):
             assert t["depth_complete"] is True and t["edge_from_riser"] is True
             assert abs(e["depth_error_m"]) <= 0.005, (t["index"], e)  # the goal
     assert doc["max_abs_height_error_m"] <= 0.005 and doc["max_abs_depth_error_m"] <= 0.005
-    report = (out / "report.md").read_text()
-    assert "## Stairs" in report and "all its treads found: yes" in report
+    report = (out / "report.html").read_text()
+    assert "<h2>Stairs</h2>" in report and "all its treads found: yes" in report
 
 
 def test_track_outputs(level20):
@@ -131,8 +131,11 @@ def test_track_outputs(level20):
     assert np.linalg.norm(A[0, 1:3]) < 1e-6  # starts at the world origin (x, y)
     for name in ("trajectory.png", "errors.png", "nis.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    report = (out / "report.md").read_text()
+    report = (out / "report.html").read_text()
     assert "drift" in report and f"{m['drift_percent']:.3f}" in report
+    from graphcal.report.page import CSS
+
+    assert CSS in report and report.count("data:image/png;base64,") == 3  # the page of every report, plots inside
     assert set(m["output_files"]) == {p.name for p in out.iterdir()}
     for key in ("ape_rmse_m", "rpe_rmse_m", "drift_percent", "distance_m", "nees_mean"):
         assert isinstance(m[key], float), key
@@ -159,7 +162,7 @@ def test_track_without_truth_reports_null_metrics(short_walk, tmp_path):
     for key in ("ape_rmse_m", "rpe_rmse_m", "drift_percent", "nees_mean"):
         assert m[key] is None, key
     assert m["distance_m"] > 0.9 and m["distance_source"] == "estimate"
-    assert "no truth" in (tmp_path / "out" / "report.md").read_text()
+    assert "no truth" in (tmp_path / "out" / "report.html").read_text()
 
 
 def test_bad_input_is_named_and_exits_2(short_walk, tmp_path, capsys):
@@ -252,7 +255,7 @@ def test_track_output_folder_safety(short_walk, tmp_path, capsys):
 
 def test_track_refuses_a_negative_tum_rate_before_any_work(tmp_path):
     from graphcal.errors import GraphcalError
-    from graphcal.locomotion.track import run_track
+    from graphcal.commands.track import run as run_track
 
     with pytest.raises(GraphcalError, match="--tum-rate must be a finite number >= 0"):
         run_track(tmp_path / "no-such-dataset", tmp_path / "out", tum_rate_hz=-5.0)

@@ -47,7 +47,7 @@ options' sigmas as given (pass the batch's re-estimated options to get its covar
 
 from __future__ import annotations
 
-import sys
+import logging
 from dataclasses import replace
 from functools import partial
 from typing import Callable, Mapping
@@ -66,6 +66,8 @@ from graphcal.calibration.measurements import (CalibrationData, PlaneMeasurement
 from graphcal.calibration.result import CalibrationResult, ExtrinsicSegment, IncrementalStep, SensorEstimate
 
 __all__ = ["IncrementalCalibrator", "calibrate_incremental", "station_updates"]
+
+log = logging.getLogger(__name__)
 
 
 class IncrementalCalibrator:
@@ -690,7 +692,7 @@ def calibrate_incremental(
     Args:
         dataset: a dataset folder or a :class:`graphcal.io.dataset.Dataset`.
         options: noise models and switches (as the batch).
-        progress: print one line per station to stderr.
+        progress: log one line (INFO) per station.
         sigma_target_deg, sigma_target_mm: stop rule: stop adding stations once every sensor's
             1-sigma about every body axis is below ``sigma_target_deg`` and along every body axis
             below ``sigma_target_mm`` (either may be None: not checked). The station where it
@@ -733,7 +735,7 @@ def calibrate_incremental(
             txt = "; ".join(f"{s.sensor}: rot {np.round(s.sigma_rot_deg, 3).tolist()} deg, "
                             f"xyz {np.round(s.sigma_xyz_mm, 2).tolist()} mm"
                             + (" CHANGE" if s.change_detected else "") for s in steps)
-            print(f"calibrate --incremental: station {st.station}: {txt}", file=sys.stderr, flush=True)
+            log.info(f"calibrate --incremental: station {st.station}: {txt}")
         if targets and _sigmas_below(cal, steps, sigma_target_deg, sigma_target_mm):
             stopped = st.station
             break

@@ -47,15 +47,14 @@ a chosen pose is dropped, so that the program is not k copies of the best corner
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.geometry import invert_pose, pose_from_xyz_rpy, xyz_quat_wxyz_from_pose, xyz_rpy_from_pose
+from graphcal.geometry import invert_pose, pose_from_xyz_rpy, xyz_rpy_from_pose
 from graphcal.calibration.graph import DEFAULT_PLANE_COV, CalibrationOptions
 
-__all__ = ["SuggestedPose", "suggest_poses", "predict_sigmas", "suggest_poses_command", "MIN_GROUND_RAYS"]
+__all__ = ["SuggestedPose", "suggest_poses", "predict_sigmas", "PoseInformationModel", "suggest_with_model", "MIN_GROUND_RAYS"]
 
 #: rays of the strided pixel grid that must hit the ground for a pose to count as a measurement
 MIN_GROUND_RAYS = 30
@@ -94,7 +93,7 @@ class SuggestedPose:
     q_by_foot: dict
 
 
-class _Model:
+class PoseInformationModel:
     """The information model of one dataset and camera (module docstring)."""
 
     def __init__(self, dataset, sensor: str | None, options: CalibrationOptions):
@@ -337,7 +336,7 @@ class _Model:
         return np.asarray(s_rot), np.asarray(s_xyz)
 
 
-def _target_score(model: "_Model", Lam: np.ndarray, target: np.ndarray) -> np.ndarray:
+def _target_score(model: "PoseInformationModel", Lam: np.ndarray, target: np.ndarray) -> np.ndarray:
     """Targeted criterion for a batch (N, D, D): minus the soft maximum (8-norm) of the body-axis
     sigma / target ratios of the extrinsic (larger is better)."""
     R = model.T_ext[:3, :3]
@@ -356,7 +355,7 @@ def _logdet_marginal(Lam: np.ndarray) -> np.ndarray:
     return np.linalg.slogdet(Lam)[1] - np.linalg.slogdet(Lam[..., 6:, 6:])[1]
 
 
-def _candidates(model: _Model, n: int, seed: int) -> np.ndarray:
+def _candidates(model: PoseInformationModel, n: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     roll = rng.uniform(-25.0, 25.0, n)
     pitch = rng.uniform(-25.0, 25.0, n)
@@ -400,7 +399,7 @@ def suggest_poses(
             selection stops as soon as every sigma is at or below its target (the stop rule of
             the incremental calibration, planned ahead).
         after_existing: count the dataset's own stations of its first session as done
-            (:meth:`_Model.existing_information`): the k stations to add to them, with sigmas of
+            (:meth:`PoseInformationModel.existing_information`): the k stations to add to them, with sigmas of
             them all; no station when the targets are met already. False: a new session.
 
     Returns:
@@ -410,12 +409,12 @@ def suggest_poses(
     Raises:
         GraphcalError: k < 1, no camera, no reachable candidate.
     """
-    return _suggest(_Model(dataset, sensor, options), k, candidates=candidates, n_candidates=n_candidates, seed=seed,
+    return suggest_with_model(PoseInformationModel(dataset, sensor, options), k, candidates=candidates, n_candidates=n_candidates, seed=seed,
                     min_separation_deg=min_separation_deg, sigma_target_deg=sigma_target_deg,
                     sigma_target_mm=sigma_target_mm, after_existing=after_existing)
 
 
-def _suggest(model: _Model, k: int, *, candidates, n_candidates: int, seed: int, min_separation_deg: float,
+def suggest_with_model(model: PoseInformationModel, k: int, *, candidates, n_candidates: int, seed: int, min_separation_deg: float,
              sigma_target_deg, sigma_target_mm, after_existing: bool) -> list[SuggestedPose]:
     """:func:`suggest_poses` on a built model."""
     if k < 1:
@@ -482,7 +481,7 @@ def predict_sigmas(dataset, poses, *, sensor: str | None = None,
     after stations at ``poses`` ((N, 4, 4) ``T_stance_body``) in the dataset's stance, e.g. to
     compare a station program with :func:`suggest_poses`. Poses the legs cannot reach within the
     joint limits are evaluated anyway (joint angles from IK without limits)."""
-    model = _Model(dataset, sensor, options)
+    model = PoseInformationModel(dataset, sensor, options)
     P = np.asarray(poses, dtype=float)
     _, qs = model.reachable(P)
     Lam = model.prior_information()
@@ -490,114 +489,3 @@ def predict_sigmas(dataset, poses, *, sensor: str | None = None,
         if info is not None:
             Lam = Lam + info
     return model.sigmas(Lam)
-
-
-def suggest_poses_command(dataset, k: int, out: str | Path | None = None, *, after_existing: bool = False,
-                          noise_from: str | Path | None = None, sigma_target_deg=None, sigma_target_mm=None) -> str:
-    """The ``graphcal suggest-poses`` command: a text table of the k suggested poses; with ``out``
-    also a stations-like CSV of the commanded poses (station, session, body pose, IK joint angles),
-    written atomically (a missing parent folder is created); an existing ``out`` is never replaced
-    (checked before the work).
-
-    The sigma of each rank is that of a new session of the suggested stations up to that rank
-    (it plans a calibration session), or with ``after_existing`` that of the dataset's first
-    session plus the suggested stations up to that rank (it plans the stations to add). The noise
-    model is graphcal's defaults, or with ``noise_from`` the one an earlier calibration learned (its
-    ``calibration.yaml``, :func:`graphcal.calibration.noise_file.options_with_noise_from`).
-    ``sigma_target_deg`` (deg) and ``sigma_target_mm`` (mm), one value or three (body x, y, z), both
-    or neither: aim at these 1-sigma and stop as soon as every axis is at or below its target, k
-    being then the most stations to suggest (:func:`suggest_poses`)."""
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-        raise GraphcalError(f"-k (the number of poses) must be a whole number >= 1, got {k}")
-    if (sigma_target_deg is None) != (sigma_target_mm is None):
-        raise GraphcalError("--sigma-target-deg and --sigma-target-mm go together: give both or neither")
-    targets = None
-    if sigma_target_deg is not None:
-        targets = []
-        for flag, v in (("--sigma-target-deg", sigma_target_deg), ("--sigma-target-mm", sigma_target_mm)):
-            a = np.atleast_1d(np.asarray(v, dtype=float))
-            if a.shape not in ((1,), (3,)) or not np.all(np.isfinite(a)) or np.any(a <= 0):
-                raise GraphcalError(f"{flag} must be one or three finite numbers > 0 (body x, y, z), got {v}")
-            targets.append(np.broadcast_to(a, (3,)).copy())
-    if out is not None and (Path(out).exists() or Path(out).is_symlink()):
-        from graphcal.errors import DatasetError
-
-        raise DatasetError(out, "--out", "a file that does not exist yet (graphcal never overwrites it); "
-                           "give another name")
-    if out is not None:
-        from graphcal.io.atomic import check_output_location
-
-        check_output_location(out)  # before the work
-    options = CalibrationOptions()
-    if noise_from is not None:
-        from graphcal.calibration.noise_file import options_with_noise_from
-
-        options, _ = options_with_noise_from(noise_from, options)
-        noise_line = f"noise model: learned by the calibration {noise_from}"
-    else:
-        noise_line = ("noise model: graphcal's defaults (0.1 deg joints, 0.5 deg IMU, ...); a calibration learns its "
-                      "own and reports sigma for it: --noise-from ITS/calibration.yaml predicts with that")
-    model = _Model(dataset, None, options)
-    if noise_from is not None:
-        from graphcal.calibration.noise_file import noise_from_mismatch
-
-        noise_line += "".join(f"\nwarning: {w}" for w in noise_from_mismatch(noise_from, model.robot.name, model.ds.sensors))
-    others = [f"{name} ({spec.type})" for name, spec in model.ds.sensors.items() if name != model.sensor]
-    if others:  # e.g. the Messor's laser scanner beside its stereo camera
-        noise_line += (f"\nplanned for {model.sensor} ({model.ds.sensors[model.sensor].type}) alone; not for "
-                       f"{', '.join(others)} (the information model covers one camera)")
-    if after_existing:
-        Lam, n_done = model.existing_information()
-        s_rot, s_xyz = model.sigmas(model.prior_information() + Lam)
-        unseen = len(model.existing_T) - n_done
-        head = [f"the dataset's first session: {n_done} station(s) with a plane of {model.sensor}, predicted sigma "
-                f"rot {' '.join(f'{v:.3f}' for v in s_rot)} deg, xyz {' '.join(f'{v:.2f}' for v in s_xyz)} mm"
-                + (f" ({unseen} more with a plane lie outside the visibility model, {model.visibility_text()}: "
-                   "not counted)" if unseen > 0 else ""),
-                f"suggested stations to add: {{n}} (greedy D-optimal; sigma = predicted 1-sigma of the extrinsic "
-                "from those stations and the suggested ones up to that rank, body axes)"]
-    else:
-        head = ["suggested stations: {n} (greedy D-optimal; sigma = predicted 1-sigma of the extrinsic "
-                "from a new session of the stations up to that rank, body axes; the dataset's own stations "
-                "are not counted: --after-existing counts them)"]
-    if targets is not None:
-        head[-1] = head[-1].replace("(greedy D-optimal;", "(greedy, aiming at sigma rot "
-                                    f"{' '.join(f'{v:g}' for v in targets[0])} deg, xyz "
-                                    f"{' '.join(f'{v:g}' for v in targets[1])} mm, at most {k};")
-    poses = _suggest(model, k, candidates=None, n_candidates=N_CANDIDATES, seed=0,
-                     min_separation_deg=MIN_SEPARATION_DEG,
-                     sigma_target_deg=None if targets is None else targets[0],
-                     sigma_target_mm=None if targets is None else targets[1],
-                     after_existing=after_existing)
-    head[-1] = head[-1].replace("{n}", str(len(poses)))
-    if targets is not None and poses:
-        reached = np.all(poses[-1].sigma_rot_deg <= targets[0] * (1 + 1e-9)) and \
-            np.all(poses[-1].sigma_xyz_mm <= targets[1] * (1 + 1e-9))
-        head.append(f"targets reached with {len(poses)} station(s)" if reached else
-                    f"targets not reached with {k} station(s): raise -k, or the targets")
-    lines = [noise_line] + head + [
-             f"{'rank':>4} {'roll':>7} {'pitch':>7} {'yaw':>7} {'height':>7} {'x':>7} {'y':>7}  "
-             f"{'sigma rot x/y/z (deg)':>23}  {'sigma xyz (mm)':>20}",
-             f"{'':>4} {'deg':>7} {'deg':>7} {'deg':>7} {'m':>7} {'m':>7} {'m':>7}"]
-    for p in poses:
-        x, y = p.T_stance_body[0, 3], p.T_stance_body[1, 3]
-        lines.append(f"{p.rank:>4} {p.roll_deg:>7.2f} {p.pitch_deg:>7.2f} {p.yaw_deg:>7.2f} {p.height_m:>7.3f} "
-                     f"{x:>7.3f} {y:>7.3f}  {' '.join(f'{v:7.3f}' for v in p.sigma_rot_deg)}  "
-                     f"{' '.join(f'{v:6.2f}' for v in p.sigma_xyz_mm)}")
-    if out is not None:
-        from graphcal.io.atomic import atomic_write_text, make_parent_folder
-        from graphcal.io.dataset import Table, table_csv_text
-
-        cols: dict[str, list] = {"station": [p.rank for p in poses], "session": ["suggested"] * len(poses)}
-        for i, c in enumerate("xyz"):
-            cols[f"body_{c}"] = [float(xyz_quat_wxyz_from_pose(p.T_stance_body)[0][i]) for p in poses]
-        for i, c in enumerate(("qw", "qx", "qy", "qz")):
-            cols[f"body_{c}"] = [float(xyz_quat_wxyz_from_pose(p.T_stance_body)[1][i]) for p in poses]
-        if poses:
-            for f in poses[0].q_by_foot:
-                for j, name in enumerate(model.robot.leg(f).joint_names):
-                    cols[f"q_{name}"] = [float(p.q_by_foot[f][j]) for p in poses]
-        make_parent_folder(out)
-        atomic_write_text(out, table_csv_text(Table.from_columns(cols)), overwrite=False)
-        lines.append(f"wrote {out}")
-    return "\n".join(lines)

@@ -4,14 +4,12 @@ covariance of (nx, ny, nz, d) stacked row-major)."""
 
 from __future__ import annotations
 
-import functools
 import itertools
-from pathlib import Path
-from typing import Callable, Iterable, Mapping
+from typing import Iterable, Mapping
 
 import numpy as np
 
-from graphcal.errors import DatasetError, GraphcalError
+from graphcal.errors import GraphcalError
 
 PLANE_COLUMNS = ("station", "sensor", "nx", "ny", "nz", "d", "n_points", "rms") + tuple(
     f"cov_{i}{j}" for i in range(4) for j in range(4)
@@ -311,40 +309,3 @@ def no_plane_found_warning(sensor: str, missing: list[int], total: int, conseque
     shown = stations_text(missing)
     return (f"{sensor}: no plane found in the clouds of {len(missing)} of the {total} stations ({shown}; "
             f"clouds/{sensor}/<station>.ply: too few points, collinear points or no plane among them); {consequence}")
-
-
-def extract_planes_to_csv(dataset: str | Path, out: str | Path | None = None, *, max_planes: int = 1,
-                          progress: bool = False, max_points: int | None = None,
-                          on_warning: Callable[[str], None] | None = None) -> Path:
-    """Read a dataset's clouds, fit planes, and write ``planes.csv`` atomically.
-
-    ``out`` defaults to ``DATASET/planes.csv``; an existing file is never replaced (give another
-    ``out``); a missing parent folder is created. ``max_points``: fit each cloud on at most this
-    many of its points (see :func:`planes_rows`; None: all), as ``graphcal calibrate --plane-points``
-    does. ``on_warning`` receives one line per camera with clouds in which no plane was found.
-    """
-    from graphcal.io.atomic import atomic_write_text, check_output_location, make_parent_folder
-    from graphcal.io.dataset import Table, cloud_paths, load_cloud, read_dataset, table_csv_text
-
-    max_points = check_max_points(max_points, "max_points (--plane-points)")
-    if isinstance(max_planes, bool) or not isinstance(max_planes, (int, np.integer)) or max_planes < 1:
-        raise GraphcalError(f"max_planes (--max-planes) must be a whole number >= 1, got {max_planes!r}")
-    ds = read_dataset(dataset)
-    out_path = Path(out) if out is not None else Path(dataset) / "planes.csv"
-    if out_path.exists():
-        raise DatasetError(out_path, "--out", "a file that does not exist yet (graphcal never overwrites it); "
-                           "pass --out to write elsewhere")
-    check_output_location(out_path)  # before the work
-    paths = cloud_paths(ds)
-    if not paths:
-        raise DatasetError(Path(dataset) / "clouds", "clouds/<sensor>/<station>.ply", "at least one station cloud")
-    types = {name: spec.type for name, spec in ds.sensors.items()}
-    pairs = [(key, functools.partial(load_cloud, ds, *key)) for key in sorted(paths)]  # read by the workers
-    rows = planes_rows(pairs, types, max_planes=max_planes, progress=progress, max_points=max_points)
-    if on_warning is not None:
-        have = zip(rows["sensor"], rows["station"])
-        for sensor, (missing, total) in camera_clouds_without_planes(ds, have).items():
-            on_warning(no_plane_found_warning(sensor, missing, total, "the planes file has no row for them"))
-    make_parent_folder(out_path)
-    atomic_write_text(out_path, table_csv_text(Table.from_columns(rows)), overwrite=False)
-    return out_path

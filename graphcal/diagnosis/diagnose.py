@@ -17,7 +17,7 @@
 from __future__ import annotations
 
 import dataclasses
-import sys
+import logging
 from dataclasses import dataclass, field
 
 import gtsam
@@ -31,6 +31,8 @@ from graphcal.diagnosis.model import DiagnosisModel, chi2_of, model_options
 from graphcal.diagnosis.scores import CandidateColumns, current_columns, evidence, linear_system, score_candidates
 
 __all__ = ["Diagnosis", "diagnose", "ALPHA", "MAX_FINDINGS"]
+
+log = logging.getLogger(__name__)
 
 #: family-wise significance level of a finding (before the division by the number of causes)
 ALPHA = 1e-3
@@ -344,7 +346,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
 
     Args:
         dataset: a dataset folder or a :class:`graphcal.io.dataset.Dataset`.
-        progress: one line per step on stderr.
+        progress: one log line (INFO) per step.
         alpha: family-wise significance level (divided by the number of causes tested).
         max_findings: stop after this many findings.
         heldout: compute the held-out gain of each finding (two-fold, by station).
@@ -354,7 +356,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
 
     def say(msg):
         if progress:
-            print(f"diagnose: {msg}", file=sys.stderr, flush=True)
+            log.info(f"diagnose: {msg}")
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
     require_sensors(ds, "diagnose")

@@ -21,11 +21,12 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
-__all__ = ["diagnosis_figures"]
+from graphcal.report.plots import AFTER_COLOR as _AFTER
+from graphcal.report.plots import BEFORE_COLOR as _BEFORE
+from graphcal.report.plots import MARK_COLOR as _MARK
+from graphcal.report.plots import new_figure
 
-_BEFORE = "#999999"
-_AFTER = "#1f77b4"
-_MARK = "#d62728"
+__all__ = ["diagnosis_figures"]
 
 
 def _xy(records, x: str, y: str, sensor=None):
@@ -57,7 +58,7 @@ def _pair(fig, records_before, records_after, x, y, xlabel, ylabel, title, senso
 
 def _finding_figure(diag, f) -> tuple[str, Figure]:
     c = f.candidate
-    fig = Figure(figsize=(9.0, 3.4), layout="constrained")
+    fig = new_figure(9.0, 3.4)
     b, a = diag.residuals_before, diag.residuals_after
     label = c.label()
     if c.cause == "sensor_range_scale":
@@ -113,7 +114,7 @@ def diagnosis_figures(diag) -> list[tuple[str, Figure]]:
     """(caption, figure) per finding; with no finding, the residuals per station."""
     out = [_finding_figure(diag, f) for f in diag.findings]
     if not out:
-        fig = Figure(figsize=(9.0, 3.4), layout="constrained")
+        fig = new_figure(9.0, 3.4)
         _pair(fig, diag.residuals_before, diag.residuals_after, "index", "whitened", "station (dataset order)",
               "measurement residual (whitened RMS)", "no finding")
         out.append(("measurement residual per station (left: nominal model, right: final model)", fig))

@@ -8,8 +8,8 @@ Modules (docs/legs.md):
 * :mod:`.mocap_data`      -- ``mocap.csv`` + joint values of a dataset as marker tracks;
 * :mod:`.identifiability` -- which parameters the data determine (column-scaled SVD, pivoted QR);
 * :mod:`.identify`        -- the graph, the identifiable set, LM to convergence, covariance;
-* :mod:`.report`          -- legs.yaml, calibrated URDF, report.html;
-* :mod:`.command`         -- ``graphcal identify-legs``.
+* :mod:`.report`          -- legs.yaml, calibrated URDF, report.html (the page: :mod:`graphcal.report.legs_page`);
+  the command ``graphcal identify-legs`` is :mod:`graphcal.commands.identify_legs`.
 
 Nothing is imported here, so ``import graphcal.legs.identify`` imports only what it needs.
 """

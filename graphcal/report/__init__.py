@@ -17,8 +17,8 @@ from graphcal.report.write import OUTPUT_FILES, write_calibration_outputs
 
 
 def report_html(result, *, title: str = "graphcal calibration report") -> str:
-    """See :func:`graphcal.report.html.report_html` (imported lazily: it pulls in matplotlib)."""
-    from graphcal.report.html import report_html as _report_html
+    """See :func:`graphcal.report.calibration_page.report_html` (imported lazily: it pulls in matplotlib)."""
+    from graphcal.report.calibration_page import report_html as _report_html
 
     return _report_html(result, title=title)
 

@@ -37,14 +37,23 @@ __all__ = [
     "plot_incremental_sigma",
     "report_figures",
     "figure_png",
+    "new_figure",
+    "BEFORE_COLOR",
+    "AFTER_COLOR",
+    "MARK_COLOR",
 ]
 
 #: (row, column) index pairs into the body-axis vector [rx, ry, rz, x, y, z], and axis labels.
 ELLIPSE_PAIRS: tuple[tuple[int, int], ...] = ((3, 4), (3, 5), (4, 5), (0, 1), (0, 2), (1, 2))
 _AXIS_LABELS = ("roll (about x) [deg]", "pitch (about y) [deg]", "yaw (about z) [deg]", "x [mm]", "y [mm]", "z [mm]")
-_BEFORE = "#999999"
-_AFTER = "#1f77b4"
-_OUTLIER = "#d62728"
+#: the one plot style of every report: before (nominal / prior) in grey, after (estimated) in blue,
+#: marked samples (outliers, a change, a finding's stations) in red
+BEFORE_COLOR = "#999999"
+AFTER_COLOR = "#1f77b4"
+MARK_COLOR = "#d62728"
+_BEFORE = BEFORE_COLOR
+_AFTER = AFTER_COLOR
+_OUTLIER = MARK_COLOR
 _BOX = {"boxstyle": "round,pad=0.15", "facecolor": "white", "edgecolor": "none", "alpha": 0.8}
 
 
@@ -58,12 +67,20 @@ def _split(rows, outliers: Iterable[int]):
     return bad
 
 
-def _mark_stats(ax, values: np.ndarray, color: str, label: str, unit: str) -> None:
+def _mark_stats(ax, values: np.ndarray, color: str, label: str, unit: str, span: float | None = None) -> None:
+    """Mean (dashed) and max (dotted) lines with their labels; one label for both when they are
+    closer than 6 % of ``span`` (the y range), so the two never overlap."""
     if values.size == 0:
         return
     mean, vmax = float(values.mean()), float(values.max())
     ax.axhline(mean, color=color, linestyle="--", linewidth=1.0)
     ax.axhline(vmax, color=color, linestyle=":", linewidth=1.0)
+    if span is not None and vmax - mean < 0.06 * span:
+        ax.annotate(
+            f"{label} mean {mean:.3g}{unit}, max {vmax:.3g}{unit}", xy=(1.0, vmax), xycoords=("axes fraction", "data"),
+            xytext=(-4, 2), textcoords="offset points", ha="right", va="bottom", fontsize=7, color=color, bbox=_BOX,
+        )  # fmt: skip
+        return
     ax.annotate(
         f"{label} mean {mean:.3g}{unit}", xy=(1.0, mean), xycoords=("axes fraction", "data"),
         xytext=(-4, 2), textcoords="offset points", ha="right", va="bottom", fontsize=7, color=color, bbox=_BOX,
@@ -88,14 +105,14 @@ def _per_station(ax, residuals, sensor, outliers, before_attr, after_attr, unit,
     ax.plot(st, after, "o-", color=_AFTER, markersize=3, linewidth=0.8, label="after calibration")
     if bad.any():
         ax.plot(st[bad], after[bad], "x", color=_OUTLIER, markersize=7, label="outlier (not in mean/max)")
-    _mark_stats(ax, before[~bad], _BEFORE, "before", unit)
-    _mark_stats(ax, after[~bad], _AFTER, "after", unit)
-    ax.set_xlabel("station")
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
     finite = np.concatenate([before, after])
     finite = finite[np.isfinite(finite)]
     top = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+    _mark_stats(ax, before[~bad], _BEFORE, "before", unit, span=1.15 * top)
+    _mark_stats(ax, after[~bad], _AFTER, "after", unit, span=1.15 * top)
+    ax.set_xlabel("station")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
     ax.set_ylim(0.0, 1.15 * top)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, loc="upper left")
@@ -227,10 +244,15 @@ def plot_incremental_sigma(ax_rot, ax_xyz, history, *, sensor: str | None = None
 
 
 # ----------------------------------------------------------------------------- figure sets
-def _fig(w: float, h: float) -> Figure:
+def new_figure(w: float, h: float) -> Figure:
+    """A figure of every report: ``w`` x ``h`` inches at 100 dpi, constrained layout (labels never
+    overlap), drawn with the Agg canvas (no display, no pyplot)."""
     fig = Figure(figsize=(w, h), dpi=100, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
+
+
+_fig = new_figure
 
 
 def report_figures(result) -> list[tuple[str, Figure]]:

@@ -5,7 +5,7 @@
 * ``calibration.yaml``       -- :mod:`graphcal.report.calibration_yaml` (format ``graphcal-calibration/1``)
 * ``robot_calibrated.urdf``  -- :mod:`graphcal.report.urdf`
 * ``static_transforms.sh``   -- :mod:`graphcal.report.ros` (executable)
-* ``report.html``            -- :mod:`graphcal.report.html`
+* ``report.html``            -- :mod:`graphcal.report.calibration_page`
 
 into a hidden sibling temporary folder and renames it onto ``out_dir`` only when all four are
 complete (:func:`graphcal.io.atomic.atomic_directory`): an exception or an interruption half-way
@@ -83,7 +83,7 @@ def _write_static_transforms(folder: Path, result) -> Path:
 
 
 def _write_report(folder: Path, result, title: str | None) -> Path:
-    from graphcal.report.html import report_html  # matplotlib: imported only when needed
+    from graphcal.report.calibration_page import report_html  # matplotlib: imported only when needed
 
     text = report_html(result, title=title or f"graphcal calibration: {Path(str(result.dataset)).name or result.dataset}")
     return atomic_write_text(folder / OUTPUT_FILES["report"], text)

@@ -15,7 +15,7 @@ from pathlib import Path
 from graphcal.errors import GraphcalError
 from graphcal.legs.identify import MOCAP_COMPONENTS, IdentifyOptions, identify_legs_dataset
 
-__all__ = ["run_identify_legs", "parse_mocap_free"]
+__all__ = ["run", "parse_mocap_free"]
 
 _STAGES = 7  # read, start, before, identifiability, after, covariance, write
 
@@ -31,8 +31,8 @@ def parse_mocap_free(text: str | None) -> tuple[str, ...]:
     return comps
 
 
-def run_identify_legs(dataset: str | Path, out: str | Path, progress: bool = True, *, mocap_free: str | None = None,
-                      origins: str = "first", sigma_marker_mm: float = 1.0, sigma_joint_deg: float = 0.0) -> str:
+def run(dataset: str | Path, out: str | Path, *, progress: bool = True, mocap_free: str | None = None,
+        origins: str = "first", sigma_marker_mm: float = 1.0, sigma_joint_deg: float = 0.0) -> str:
     """Run the identification on ``dataset`` and write the outputs into ``out``; returns a summary.
 
     Args:

@@ -1,53 +1,21 @@
-"""``report.html``: one self-contained page (inline CSS, PNG figures as base64 data URIs, no script,
-nothing fetched from the network) summarising a calibration for a human."""
+"""The ``report.html`` of ``graphcal calibrate``: one self-contained page (:mod:`graphcal.report.page`)
+summarising a calibration for a human."""
 
 from __future__ import annotations
-
-import base64
-import html
-import math
 
 import numpy as np
 
 from graphcal.geometry import axis_angle_from_matrix, rotation_angle_between, rpy_from_matrix
 from graphcal.report.calibration_yaml import residual_summary
-from graphcal.report.plots import figure_png, report_figures
+from graphcal.report.page import Markup, Section, esc, figure, num, render_page, row
+from graphcal.report.plots import report_figures
 from graphcal.report.ros import static_transform_publisher_command
 
 __all__ = ["report_html"]
 
-_CSS = """
-body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:2em auto;max-width:1000px;color:#222;padding:0 1em}
-h1{font-size:1.6em}h2{font-size:1.25em;border-bottom:1px solid #ddd;padding-bottom:.2em;margin-top:1.6em}
-h3{font-size:1.05em}
-table{border-collapse:collapse;margin:.5em 0 1em 0;font-size:.9em}
-th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}
-th{background:#f3f3f3}td.l,th.l{text-align:left}
-.warn{background:#fff4e5;border:1px solid #f0a030;border-left:6px solid #f0a030;padding:.6em 1em;margin:.6em 0}
-.ok{color:#2a7a2a}
-pre{background:#f6f6f6;border:1px solid #ddd;padding:.6em;overflow-x:auto;font-size:.8em}
-figure{margin:1em 0}figure img{max-width:100%;border:1px solid #eee}figcaption{font-size:.85em;color:#555}
-.small{font-size:.85em;color:#555}
-"""
-
-
-def _e(x) -> str:
-    return html.escape(str(x), quote=True)
-
-
-def _n(x, fmt: str = ".3f") -> str:
-    try:
-        x = float(x)
-    except (TypeError, ValueError):
-        return _e(x)
-    if math.isnan(x):
-        return "–"
-    if math.isinf(x):
-        return "∞" if x > 0 else "−∞"
-    text = format(x, fmt)
-    if text.lstrip("+-").strip("0.") == "":  # -0.000 -> 0.000
-        text = text.lstrip("+-")
-    return text
+_e = esc
+_n = num
+_row = row
 
 
 def _log_so3(R) -> np.ndarray:
@@ -223,57 +191,27 @@ def report_html(result, *, title: str = "graphcal calibration report") -> str:
     PNG data URI), warnings and the ROS 2 static_transform_publisher lines.
     """
     base = str(result.base_frame)
-    out = [
-        "<!DOCTYPE html>",
-        '<html lang="en">',
-        "<head>",
-        '<meta charset="utf-8">',
-        '<meta name="viewport" content="width=device-width, initial-scale=1">',
-        f"<title>{_e(title)}</title>",
-        f"<style>{_CSS}</style>",
-        "</head>",
-        "<body>",
-        f"<h1>{_e(title)}</h1>",
-        f'<p class="small">Dataset: <code>{_e(result.dataset)}</code> · base frame <code>{_e(base)}</code> · '
+    subtitle = Markup(
+        f"Dataset: <code>{_e(result.dataset)}</code> · base frame <code>{_e(base)}</code> · "
         f"solver: {_e(result.solver)} ({int(result.iterations)} "
         f"{'iterations' if result.solver == 'batch' else 'stations'}) · "
-        f"sensors: {', '.join(f'<code>{_e(s)}</code>' for s in result.sensors) or 'none'}</p>",
-    ]
-    if result.warnings:
-        items = "".join(f"<li>{_e(w)}</li>" for w in result.warnings)
-        out.append(f'<div class="warn"><strong>Warnings</strong><ul>{items}</ul></div>')
-    out.append("<h2>Sensors</h2>")
-    for name, s in result.sensors.items():
-        out.append(_sensor_section(str(name), s, base))
-    out.append("<h2>Legs</h2>")
-    out.append(_legs_section(result))
-    out.append("<h2>Outliers</h2>")
+        f"sensors: {', '.join(f'<code>{_e(s)}</code>' for s in result.sensors) or 'none'}")
     if result.outliers:
-        out.append(
-            f"<p>{len(result.outliers)} station{'s' if len(result.outliers) != 1 else ''} down-weighted by the "
-            f"robust loss: {_e(', '.join(str(int(s)) for s in sorted(result.outliers)))}.</p>"
-        )
+        outliers = (f"<p>{len(result.outliers)} station{'s' if len(result.outliers) != 1 else ''} down-weighted by the "
+                    f"robust loss: {_e(', '.join(str(int(s)) for s in sorted(result.outliers)))}.</p>")
     else:
-        out.append("<p>None: no station was down-weighted by the robust loss.</p>")
-    out.append("<h2>Noise model</h2>")
-    out.append(_noise_section(result))
-    out.append("<h2>Plane residuals</h2>")
-    out.append(_residual_section(result))
-    out.append("<h2>Figures</h2>")
-    for caption, fig in report_figures(result):
-        data = base64.b64encode(figure_png(fig)).decode("ascii")
-        out.append(
-            f'<figure><img src="data:image/png;base64,{data}" alt="{_e(caption)}">'
-            f"<figcaption>{_e(caption)}</figcaption></figure>"
-        )
-    out.append("<h2>ROS 2 static transforms</h2>")
-    out.append(
-        '<p class="small">ROS 2 Humble or newer; also written to <code>static_transforms.sh</code>. '
-        "Alternatively load <code>robot_calibrated.urdf</code> in robot_state_publisher (not both).</p>"
-    )
+        outliers = "<p>None: no station was down-weighted by the robust loss.</p>"
     cmds = "\n".join(static_transform_publisher_command(base, str(n), s.T_body_sensor) for n, s in result.sensors.items())
-    out.append(f"<pre>{_e(cmds)}</pre>")
-    out.append('<p class="small">Written by graphcal calibrate.</p>')
-    out.append("</body>")
-    out.append("</html>")
-    return "\n".join(out) + "\n"
+    sections = [
+        Section("Sensors", *(_sensor_section(str(name), s, base) for name, s in result.sensors.items())),
+        Section("Legs", _legs_section(result)),
+        Section("Outliers", outliers),
+        Section("Noise model", _noise_section(result)),
+        Section("Plane residuals", _residual_section(result)),
+        Section("Figures", *(figure(fig, caption) for caption, fig in report_figures(result))),
+        Section("ROS 2 static transforms",
+                '<p class="small">ROS 2 Humble or newer; also written to <code>static_transforms.sh</code>. '
+                "Alternatively load <code>robot_calibrated.urdf</code> in robot_state_publisher (not both).</p>",
+                f"<pre>{_e(cmds)}</pre>"),
+    ]
+    return render_page(title, sections, subtitle=subtitle, warnings=result.warnings, footer="Written by graphcal calibrate.")

@@ -1,0 +1,113 @@
+"""``graphcal calibrate DATASET --out DIR``: calibrate the sensors (and with ``legs`` the legs) of a
+dataset, batch or incremental, and write calibration.yaml, the calibrated URDF, the ROS 2 static
+transforms and report.html (:func:`graphcal.report.write.write_calibration_outputs`)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from graphcal.calibration.calibrate import calibrate
+from graphcal.calibration.graph import CalibrationOptions, options_for_ground_roughness
+from graphcal.errors import GraphcalError
+from graphcal.report.write import check_output_folder, write_calibration_outputs
+
+__all__ = ["run", "GROUP_WORDS"]
+
+#: noise groups (noise_estimation.py) in the words of calibrate's summary line
+GROUP_WORDS = {"stance_foot/joint": "joints", "stance_foot/contact": "contact", "imu": "IMU",
+               "commanded": "commanded pose"}
+
+
+def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,
+        progress: bool = True, ground_roughness_m: float = 0.0,
+        plane_max_points: int | None = None, noise_from: str | Path | None = None) -> str:
+    """The ``graphcal calibrate`` command: calibrate and write the outputs; returns a summary.
+
+    Args:
+        dataset: dataset folder.
+        out_dir: output folder (created; a previous graphcal calibration there is replaced only at the end).
+        legs: also estimate the leg joint offsets and link lengths.
+        incremental: iSAM2, one station at a time, with change detection.
+        progress: progress bars (tqdm) and one log line per solve.
+        ground_roughness_m: RMS bump height of the ground (m), see
+            :func:`graphcal.calibration.graph.options_for_ground_roughness`.
+        plane_max_points: see :func:`graphcal.calibration.calibrate.calibrate`.
+        noise_from: an earlier ``calibration.yaml`` whose noise model is used as given, not learned
+            (:func:`graphcal.calibration.noise_file.options_with_noise_from`).
+    """
+    check_output_folder(out_dir)  # refuse early, before the work (checked again when writing)
+    if noise_from is not None and Path(out_dir).resolve() in Path(noise_from).resolve().parents:
+        raise GraphcalError(f"--noise-from {noise_from} is inside --out {out_dir}, whose contents calibrate "
+                            "replaces: the file would be lost; copy it elsewhere or choose another --out")
+    options = options_for_ground_roughness(CalibrationOptions(legs=legs), ground_roughness_m)
+    scaled: tuple[str, ...] = ()
+    if noise_from is not None:
+        from graphcal.calibration.noise_file import options_with_noise_from
+
+        options, scaled = options_with_noise_from(noise_from, options)
+    if incremental:
+        from graphcal.calibration.incremental import calibrate_incremental
+
+        result = calibrate_incremental(dataset, options=options, progress=progress,
+                                       plane_max_points=plane_max_points)
+    else:
+        result = calibrate(dataset, options=options, progress=progress, plane_max_points=plane_max_points)
+    if noise_from is not None:
+        from graphcal.calibration.noise_file import noise_from_mismatch
+
+        unscaled = [name for name in result.sensors if name not in scaled]
+        notes = noise_from_mismatch(noise_from, result.robot_name, result.sensors) + tuple(
+            f"{noise_from} has no plane_scale:{name}: the plane noise of {name} is its own noise "
+            "model, unscaled" for name in unscaled)
+        result = dataclasses.replace(result, noise_source=str(noise_from), warnings=result.warnings + notes)
+    written = write_calibration_outputs(result, out_dir)
+    lines = [f"calibrated {len(result.sensors)} sensor(s) from {dataset} ({result.solver}); wrote {out_dir}:"]
+    for name, s in result.sensors.items():
+        lines.append(
+            f"  {name}: xyz {np.round(s.T_body_sensor[:3, 3], 4).tolist()} m, "
+            f"sigma rot {np.round(s.sigma_rot_deg, 3).tolist()} deg, xyz {np.round(s.sigma_xyz_mm, 2).tolist()} mm"
+        )
+    if np.isfinite(result.normal_rms_deg):
+        lines.append(f"  residuals after: normal {result.normal_rms_deg:.3g} deg RMS, distance "
+                     f"{result.distance_rms_mm:.3g} mm RMS")
+    else:  # laser scanners only: their residuals are point distances, not planes
+        lines.append("  residuals after: no plane residuals (laser scan points only)")
+    if result.noise:
+        n = result.noise
+        how = (f"noise from {noise_from} (not learned)" if noise_from is not None
+               else "noise (defaults; the incremental mode does not learn it: see --noise-from)" if incremental
+               else "noise learned from the data")
+        learned = [g for g in result.noise_groups if g.status == "learned"]
+        if noise_from is None and not incremental and result.noise_groups:
+            # only what was learned: a dataset without joint angles or an IMU has no such group
+            if learned:
+                lines.append(f"  {how}: " + ", ".join(f"{GROUP_WORDS.get(g.group, g.group)} {g.values_text()}"
+                                                      for g in learned))
+            shared = sorted({" and ".join(GROUP_WORDS.get(k, k) for k in sorted((g.group, *g.shared_with)))
+                             for g in result.noise_groups if g.shared_with})
+            for words in shared:
+                lines.append(f"  {words} noise scaled together: the data do not separate them")
+        else:
+            lines.append(f"  {how}: joints {np.degrees(n['sigma_joint_rad']):.3f} deg, "
+                         f"contact {1e3 * n['sigma_contact_m']:.2f} mm, IMU {np.degrees(n['sigma_imu_rad']):.3f} deg")
+    held = [g for g in result.noise_groups if g.status not in ("learned", "given")]
+    given = [g for g in result.noise_groups if g.status == "given"]
+    if given:
+        lines.append("  the residuals point to (given sigma x, one update at the solution): " + ", ".join(
+            f"{g.group} {g.data_scale:.2g}" for g in given))
+    for name, s in result.sensors.items():
+        if s.covariance_scale > 1.0:
+            lines.append(f"  {name}: covariance x{s.covariance_scale:.3g} "
+                         "(its plane residuals outgrew the given noise; the planes' variance factor at its fixed point)")
+    if held:
+        lines.append("  noise not learned: " + "; ".join(
+            f"{g.group} {g.values_text()} ({g.status}, {g.dof:.1f} dof; "
+            f"the residuals point to {g.data_scale:.2g}x)" for g in held))
+    if result.outliers:
+        lines.append(f"  outlier stations: {', '.join(map(str, result.outliers))}")
+    lines += [f"  warning: {w}" for w in result.warnings]
+    lines.append("  files: " + ", ".join(sorted(p.name for p in written.values())))
+    return "\n".join(lines)

@@ -1,0 +1,71 @@
+"""``graphcal diagnose DATASET --out DIR``: run the diagnosis and write its files atomically.
+
+Files: ``diagnosis.json`` (format ``graphcal-diagnosis/1``, docs/diagnosis.md) and ``report.html``
+(findings, evidence, held-out gain, and per finding the residuals against the covariate that reveals
+its cause, before and after). ``DIR`` must be new, empty, or a previous diagnosis (replaced only
+once the new one is complete); anything else is refused, so nothing the user made is overwritten.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from graphcal.io.atomic import atomic_directory, atomic_write_text, check_command_output
+from graphcal.diagnosis.diagnose import Diagnosis, diagnose
+from graphcal.report.diagnosis_page import diagnosis_html
+
+__all__ = ["run", "write_diagnosis", "summary_text", "DIAGNOSIS_FILES"]
+
+DIAGNOSIS_FILES = ("diagnosis.json", "report.html")
+
+
+def _check_out(out: Path) -> None:
+    """The output-folder policy of graphcal.io.atomic.check_output_folder, for a diagnosis."""
+    check_command_output(out, "diagnosis.json", DIAGNOSIS_FILES, "graphcal-diagnosis/", what="graphcal diagnosis")
+
+
+def summary_text(doc: dict, out: Path | None = None) -> str:
+    n = doc["nominal"]
+    lines = [f"nominal model: theta RMS {n['normal_rms_deg']:.4f} deg, e_d RMS {n['distance_rms_mm']:.3f} mm, "
+             f"chi2/dof {n['chi2_per_dof']:.2f}"]
+    if not doc["findings"]:
+        lines.append("findings: none (no catalogued effect is significant)")
+    for fd in doc["findings"]:
+        where = ", ".join(f"{k}={v}" for k, v in fd["where"].items())
+        params = ", ".join(f"{k}={v:.4g}±{fd['sigma'].get(k, float('nan')):.2g}" for k, v in fd["parameters"].items()
+                           if isinstance(v, float))
+        g = fd["gain"]
+        gain = f"; held-out RMS {g['heldout_rms_before']:.3g} -> {g['heldout_rms_after']:.3g}" if g else ""
+        lines.append(f"found {fd['cause']}" + (f" ({where})" if where else "") + (f": {params}" if params else "")
+                     + f"; LR {fd['evidence']['statistic']:.1f} on {fd['evidence']['dof']} dof{gain}")
+    if doc["unexplained_structure"]:
+        lines.append("structure remains that no catalogued effect explains")
+    if out is not None:
+        lines.append(f"wrote {out / 'diagnosis.json'} and {out / 'report.html'}")
+    return "\n".join(lines)
+
+
+def write_diagnosis(diag: Diagnosis, out_dir, *, title: str | None = None) -> dict:
+    """Write diagnosis.json and report.html into ``out_dir`` as one atomic set; returns the JSON."""
+    out = Path(out_dir)
+    _check_out(out)
+    doc = diag.to_json()
+    text = json.dumps(doc, indent=1, default=float)
+    page = diagnosis_html(diag, doc, title or f"graphcal diagnosis of {diag.model.ds.root}")
+    with atomic_directory(out, overwrite=True) as tmp:
+        atomic_write_text(tmp / "diagnosis.json", text)
+        atomic_write_text(tmp / "report.html", page)
+        _check_out(out)
+    return doc
+
+
+def run(dataset, out_dir, *, progress: bool = True) -> str:
+    """``graphcal diagnose``: diagnose ``dataset`` (a dataset folder) and write diagnosis.json and
+    report.html into ``out_dir`` (new, empty, or a previous diagnosis); ``progress``: tqdm bars and one
+    log line (INFO) per step. Returns the summary (RMS in deg and mm, one line per finding)."""
+    out = Path(out_dir)
+    _check_out(out)  # refuse early, before the work
+    diag = diagnose(dataset, progress=progress)
+    doc = write_diagnosis(diag, out)
+    return summary_text(doc, out)

@@ -1,0 +1,242 @@
+"""``graphcal track DATASET --out DIR``: run the legged EKF over a dataset's timeseries and write
+
+* ``trajectory.tum``  -- the estimate, TUM format ``t x y z qx qy qz qw`` (T_world_body), at
+  ``tum_rate_hz`` (default 100 Hz; every sample with 0);
+* ``metrics.json``    -- ``ape_rmse_m``, ``rpe_rmse_m``, ``drift_percent``, ``distance_m``,
+  ``nees_mean`` (null when the dataset has no truth), NIS, whiteness, real-time factor, ...;
+* ``trajectory.png``, ``errors.png``, ``nis.png`` -- plots;
+* ``report.html``     -- the report (:func:`graphcal.report.track_page.track_html`, the plots embedded);
+* ``stairs.json``     -- on a stairs dataset, the stairs model of :mod:`graphcal.locomotion.stairs` from the
+  keyframe clouds (:func:`stairs_keyframes`) placed with the estimated poses, with per-tread errors
+  against the truth's ascending flight (:func:`ascending_flight`) when there is a truth.
+
+The outputs are written as one atomic set (:func:`graphcal.io.atomic.atomic_directory`); an
+existing ``DIR`` is replaced only if it is empty or holds a previous ``graphcal track`` output
+(``metrics.json`` with ``format: graphcal-track/1`` and nothing else graphcal did not write).
+Truth is read from ``truth.yaml`` beside the dataset (simulated data) by the evaluation only.
+"""
+
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from graphcal.errors import GraphcalError
+from graphcal.io.atomic import atomic_directory, atomic_write_bytes, check_command_output
+from graphcal.locomotion.track import ascending_flight, stairs_keyframes, track, tum_text
+from graphcal.report.track_page import track_figures, track_html
+
+__all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run"]
+
+TRACK_FORMAT = "graphcal-track/1"
+OUTPUT_FILES = ("trajectory.tum", "metrics.json", "trajectory.png", "errors.png", "nis.png", "report.html",
+                "stairs.json")
+#: what a previous track output may hold (before 2026-11-27 the report was report.md)
+_PREVIOUS_FILES = OUTPUT_FILES + ("report.md",)
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    """The output-folder policy of graphcal.io.atomic.check_output_folder, for a track output."""
+    check_command_output(out, "metrics.json", _PREVIOUS_FILES, TRACK_FORMAT, what="graphcal track output",
+                         overwrite=overwrite)
+
+
+def _stairs_model(ds, inp, result, truth, *, max_clouds: int = 20):
+    """The stairs model (graphcal.locomotion.stairs) from the keyframe clouds (:func:`stairs_keyframes`)
+    placed with the estimate, compared with the truth's ascending flight when there is a truth.
+    Errors of the model become {"error": ...}."""
+    from graphcal.locomotion import stairs as stairs_mod
+
+    if inp.T_body_sensor is None or not inp.clouds:
+        return None
+    idx_all = np.array(sorted(inp.clouds), dtype=np.int64)
+    poses_all = [result.T_world_body[int(k)] @ inp.T_body_sensor for k in idx_all]
+    # one cloud in memory at a time for the choice (a 30 Hz walk has hundreds); the chosen are re-read
+    pick, _ = stairs_keyframes((inp.clouds[int(k)]() for k in idx_all), poses_all, max_clouds=max_clouds)
+    method = "views of a rising flight"
+    if len(pick) < 2:  # no such views: every cloud is a candidate
+        method = "evenly spread (no view of a rising flight)"
+        pick = sorted(set(np.round(np.linspace(0, len(idx_all) - 1, min(max_clouds, len(idx_all)))).astype(int).tolist()))
+    idx = idx_all[pick]
+    meta = {
+        "n_clouds_used": int(len(idx)),
+        "n_clouds_available": int(len(idx_all)),
+        "keyframes": {"method": method, "samples": [int(k) for k in idx],
+                      "times_s": [float(result.times[int(k)]) for k in idx]},
+    }
+    try:
+        clouds = [np.asarray(inp.clouds[int(idx_all[i])](), dtype=float) for i in pick]
+        model = stairs_mod.model_stairs(clouds, [poses_all[i] for i in pick])
+        errors = None
+        compared = None
+        if truth is not None:
+            from graphcal.simulation.terrain import Stair
+
+            steps = [Stair(**s) for s in (truth.doc.get("ground", {}) or {}).get("stairs", []) or []]
+            up, rest = ascending_flight(steps)
+            if up:
+                errors = stairs_mod.tread_errors(model, up)
+                compared = {
+                    "flight": "ascending",
+                    "selection": "the true steps sorted by x, the leading run of rising heights; the last one "
+                                 "is the landing",
+                    "true_treads": [
+                        {"true_index": j, "x_start_m": s.x_start_m, "height_m": s.height_m, "depth_m": s.depth_m,
+                         "width_m": s.width_m, "landing": j == len(up) - 1}
+                        for j, s in enumerate(up)
+                    ],
+                    "not_compared": [
+                        {"x_start_m": s.x_start_m, "height_m": s.height_m, "depth_m": s.depth_m} for s in rest
+                    ],
+                    "note": "depth errors only for treads with depth_complete: the landing has no riser "
+                            "behind it (it ends where the flight down begins, at the depth limit of the "
+                            "views of the approach), so its depth is its visible extent; the flight down is "
+                            "not modelled (its risers face away; the keyframes are views of the flight up)",
+                }
+        doc = dict(stairs_mod.stairs_to_json(model, errors))
+        if compared is not None:
+            found = {e.true_index for e in errors if e.true_index >= 0}
+            compared["all_true_treads_found"] = found == set(range(len(compared["true_treads"])))
+            doc["truth_compared"] = compared
+    except GraphcalError as exc:
+        doc = {"error": str(exc)}
+    doc.update(meta)
+    return doc
+
+
+# ----------------------------------------------------------------------------- the command
+def _clean(x):
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items() if not k.startswith("_")}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, np.ndarray):
+        return _clean(x.tolist())
+    return x
+
+
+def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=None,
+        tum_rate_hz: float = 100.0, overwrite: bool = True, stairs: bool = True) -> str:
+    """The ``graphcal track`` command (see the module docstring). Returns a short summary.
+
+    Args:
+        dataset: dataset folder with a timeseries (``truth.yaml`` beside it is read for the evaluation only).
+        out: output folder (replaces only an empty folder or a previous track output).
+        progress: progress bar (tqdm) of the filter.
+        config: :class:`~graphcal.locomotion.estimator.TrackerConfig` (default: its defaults).
+        tum_rate_hz: poses per second in trajectory.tum (Hz; 0 = every filter sample).
+        overwrite: replace a previous track output in ``out``.
+        stairs: on a stairs dataset, also model the stairs (stairs.json).
+
+    Raises:
+        DatasetError: the dataset is malformed or lacks what the filter needs (file and field named).
+        OutputExistsError: ``out`` is not empty and not a previous track output.
+    """
+    from graphcal.locomotion.metrics import chi2_band, load_truth, nees_against_truth, trajectory_metrics, whiteness
+
+    out = Path(out)
+    if not (np.isfinite(tum_rate_hz) and tum_rate_hz >= 0):
+        raise GraphcalError(f"--tum-rate must be a finite number >= 0 (Hz; 0 = every sample), got {tum_rate_hz}")
+    _check_out(out, overwrite)
+    ds, inp, res = track(dataset, config=config, progress=progress)
+    truth = load_truth(ds.root) if ds.root is not None else None
+
+    m: dict = {"format": TRACK_FORMAT, "dataset": str(dataset), "truth": truth is not None}
+    nees_t = nees = None
+    nees_dof = 6
+    est_len = float(np.linalg.norm(np.diff(res.T_world_body[:, :3, 3], axis=0), axis=1).sum())
+    if truth is not None:
+        tm = trajectory_metrics(res.times, res.T_world_body, truth)
+        tm.pop("_series")
+        m.update(tm)
+        m["distance_source"] = "truth"
+        nees_t, nees = nees_against_truth(res, truth)
+        lo, hi = chi2_band(nees_dof)
+        m.update({
+            "nees_mean": float(nees.mean()) if len(nees) else None,
+            "nees_dof": nees_dof,
+            "nees_band_95_single": [lo, hi],
+            "nees_fraction_in_band": float(np.mean((nees >= lo) & (nees <= hi))) if len(nees) else None,
+        })
+    else:
+        m.update({"ape_rmse_m": None, "ape_max_m": None, "rpe_rmse_m": None, "drift_percent": None,
+                  "final_error_m": None, "distance_m": est_len, "distance_source": "estimate",
+                  "nees_mean": None, "nees_dof": nees_dof, "nees_band_95_single": None,
+                  "nees_fraction_in_band": None})
+    m["distance_estimated_m"] = est_len
+    white = whiteness(res.stance_innovations)
+    white.pop("autocorr", None)
+    lo_s, hi_s = chi2_band(res.stance_dof)
+    m.update({
+        "stance_nis_mean": float(res.stance_nis.mean()) if len(res.stance_nis) else None,
+        "stance_nis_dof": res.stance_dof,
+        "stance_nis_fraction_in_band": float(np.mean((res.stance_nis >= lo_s) & (res.stance_nis <= hi_s)))
+        if len(res.stance_nis) else None,
+        "stance_updates": int(len(res.stance_nis)),
+        "innovation_whiteness": white,
+        "icp_updates": int(len(res.icp_nis)),
+        "icp_rejected": int(res.n_icp_rejected),
+        "icp_nis_mean": float(res.icp_nis.mean()) if len(res.icp_nis) else None,
+        "icp_dof_mean": float(res.icp_dof.mean()) if len(res.icp_dof) else None,
+        "support_switches": int(np.count_nonzero(np.diff(res.support_group))),
+        "n_samples": int(len(res.times)),
+        "duration_s": res.duration_s,
+        "processing_s": res.processing_s,
+        "real_time_factor": res.real_time_factor,
+        "output_files": [],
+    })
+
+    stairs_doc = None
+    if stairs and str(ds.ground.get("type", "")) == "stairs":
+        stairs_doc = _stairs_model(ds, inp, res, truth)
+
+    # TUM at the requested rate (always including the last sample)
+    if tum_rate_hz and tum_rate_hz > 0:
+        keep = np.r_[0, np.flatnonzero(np.diff(np.floor(res.times * tum_rate_hz + 1e-9)) > 0) + 1]
+        keep = np.union1d(keep, [len(res.times) - 1])
+    else:
+        keep = np.arange(len(res.times))
+    files: dict[str, bytes] = {"trajectory.tum": tum_text(res.times[keep], res.T_world_body[keep]).encode()}
+    # the metrics are of the filter (every sample), not of the thinned file: evo on trajectory.tum
+    # at --tum-rate 10 matches a tenth of the poses and reads a slightly different RMS
+    m["metrics_samples"] = "every filter sample (n_samples), whatever --tum-rate"
+    m["tum_samples"] = int(len(keep))
+    pngs = track_figures(res, truth, nees_t, nees, nees_dof)
+    files.update(pngs)
+    if stairs_doc is not None:
+        files["stairs.json"] = json.dumps(_clean(stairs_doc), indent=2).encode()
+    names = sorted(list(files) + ["metrics.json", "report.html"])
+    m["output_files"] = names
+    m = _clean(m)
+    files["metrics.json"] = (json.dumps(m, indent=2) + "\n").encode()
+    files["report.html"] = track_html(m, stairs_doc, pngs, title=f"graphcal track: {Path(str(dataset)).name}").encode()
+
+    with atomic_directory(out, overwrite=True) as tmp:
+        for name, data in files.items():
+            atomic_write_bytes(tmp / name, data)
+        _check_out(out, overwrite)
+    lines = [f"tracked {dataset}: {m['n_samples']} samples, {m['duration_s']:.1f} s in {m['processing_s']:.1f} s "
+             f"({m['real_time_factor']:.1f}x real time); wrote {out}"]
+    if m["truth"]:
+        lines.append(f"  against the truth: APE {1e3 * m['ape_rmse_m']:.1f} mm RMS, drift {m['drift_percent']:.3f} % "
+                     f"of {m['distance_m']:.2f} m, NEES mean {m['nees_mean']:.2f} (dof {nees_dof})")
+    else:
+        lines.append("  no truth.yaml beside the dataset: accuracy metrics are null")
+    if stairs_doc is not None:
+        if "error" in stairs_doc:
+            lines.append(f"  stairs: {stairs_doc['error']}")
+        else:
+            line = f"  stairs: {len(stairs_doc.get('treads', []))} treads from {stairs_doc['n_clouds_used']} clouds"
+            if stairs_doc.get("max_abs_height_error_m") is not None:
+                dep = stairs_doc.get("max_abs_depth_error_m")
+                line += (f"; max |error| height {1e3 * stairs_doc['max_abs_height_error_m']:.1f} mm, depth "
+                         f"{'n/a' if dep is None else format(1e3 * dep, '.1f') + ' mm'}")
+            lines.append(line)
+    return "\n".join(lines)

@@ -1,0 +1,188 @@
+"""The ``report.html`` of ``graphcal track`` and its plots (trajectory, errors with the filter's
+3 sigma, NIS / NEES): one page of :mod:`graphcal.report.page` with the same PNGs the command writes
+beside it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from graphcal.report.page import Section, esc, figure_png_html, render_page
+from graphcal.report.plots import figure_png, new_figure
+
+__all__ = ["track_figures", "track_html"]
+
+#: caption of each plot file
+FIGURE_CAPTIONS = {
+    "trajectory.png": "body trajectory: top view (world) and height",
+    "errors.png": "estimate - truth (solid) and the filter's 3 sigma (dotted), position (mm) and orientation (deg)",
+    "nis.png": "normalised innovation squared: stance kinematics, ICP, and the pose NEES against the truth",
+}
+
+
+def track_figures(result, truth, nees_t, nees, nees_dof) -> dict[str, bytes]:
+    """The plots of a track output, file name -> PNG: ``trajectory.png`` (top view and height, with the
+    truth when there is one), ``errors.png`` (estimate - truth with the filter's 3 sigma, mm and deg)
+    and ``nis.png`` (stance NIS, ICP NIS and the pose NEES against ``nees_dof``).
+
+    Args:
+        result: a :class:`~graphcal.locomotion.estimator.TrackResult` (T_world_body, times in s).
+        truth: the :class:`~graphcal.locomotion.metrics.Truth` beside the dataset, or None.
+        nees_t, nees: the pose NEES against the truth (times in s, values), or None.
+        nees_dof: its degrees of freedom.
+    """
+    from graphcal.locomotion.metrics import chi2_band, interp_truth, pose_errors
+
+    est = result.T_world_body[:, :3, 3]
+    t = result.times
+    out = {}
+    # trajectory: top view and height
+    fig = new_figure(10, 4.2)
+    ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+    if truth is not None:
+        ax1.plot(truth.T_world_body[:, 0, 3], truth.T_world_body[:, 1, 3], "k-", lw=2.5, alpha=0.35, label="truth")
+        ax2.plot(truth.times, truth.T_world_body[:, 2, 3], "k-", lw=2.5, alpha=0.35, label="truth")
+    ax1.plot(est[:, 0], est[:, 1], "C0-", lw=1, label="estimate")
+    ax1.set_xlabel("x (m)")
+    ax1.set_ylabel("y (m)")
+    ax1.set_aspect("equal", adjustable="datalim")
+    ax1.set_title("body trajectory, top view (world)")
+    ax1.legend(loc="best")
+    ax2.plot(t, est[:, 2], "C0-", lw=1, label="estimate")
+    ax2.set_xlabel("time (s)")
+    ax2.set_ylabel("z (m)")
+    ax2.set_title("body height")
+    out["trajectory.png"] = figure_png(fig)
+
+    # errors with the filter's 3-sigma
+    fig = new_figure(10, 6)
+    ci = result.cov_index
+    sig = np.sqrt(np.maximum(np.diagonal(result.cov_pose, axis1=1, axis2=2), 0.0))
+    axp, axr = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
+    labels = ("x", "y", "z")
+    if truth is not None:
+        e = pose_errors(result.T_world_body[ci], interp_truth(truth, t[ci]))
+        for k in range(3):
+            axp.plot(t[ci], 1e3 * e[:, k], f"C{k}-", lw=0.8, label=f"{labels[k]} error")
+            axr.plot(t[ci], np.degrees(e[:, 3 + k]), f"C{k}-", lw=0.8, label=f"rot {labels[k]} error")
+    for k in range(3):
+        axp.plot(t[ci], 3e3 * sig[:, k], f"C{k}:", lw=0.8)
+        axp.plot(t[ci], -3e3 * sig[:, k], f"C{k}:", lw=0.8)
+        axr.plot(t[ci], 3 * np.degrees(sig[:, 3 + k]), f"C{k}:", lw=0.8)
+        axr.plot(t[ci], -3 * np.degrees(sig[:, 3 + k]), f"C{k}:", lw=0.8)
+    axp.set_ylabel("position (mm)")
+    axr.set_ylabel("orientation (deg)")
+    axr.set_xlabel("time (s)")
+    axp.set_title("estimate - truth (solid) and the filter's 3 sigma (dotted)" if truth is not None
+                  else "the filter's 3 sigma (no truth)")
+    if truth is not None:
+        axp.legend(loc="upper left", fontsize=8)
+        axr.legend(loc="upper left", fontsize=8)
+    out["errors.png"] = figure_png(fig)
+
+    # NIS
+    fig = new_figure(10, 5)
+    ax = fig.add_subplot(2, 1, 1)
+    if len(result.stance_nis):
+        lo, hi = chi2_band(result.stance_dof)
+        ax.plot(result.stance_times, result.stance_nis, ".", ms=1.5, alpha=0.4, color="C0", label="stance NIS")
+        w = max(1, len(result.stance_nis) // 200)
+        if w > 1:
+            m = np.convolve(result.stance_nis, np.ones(w * 5) / (w * 5), mode="same")
+            ax.plot(result.stance_times, m, "C1-", lw=1, label="running mean")
+        ax.axhline(result.stance_dof, color="k", lw=0.8, label=f"dof {result.stance_dof}")
+        ax.axhspan(lo, hi, color="g", alpha=0.1, label="95 % band")
+        ax.set_ylim(0, max(3 * hi, 1))
+    ax.set_ylabel("NIS")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title("normalised innovation squared (stance kinematics; ICP below)")
+    ax = fig.add_subplot(2, 1, 2)
+    if len(result.icp_nis):
+        ax.plot(result.icp_times, result.icp_nis, "o", ms=3, label="ICP NIS")
+        ax.plot(result.icp_times, result.icp_dof, "k_", ms=8, label="dof (directions fused)")
+    if nees is not None and len(nees):
+        ax.plot(nees_t, nees, "-", color="C3", lw=0.8, label=f"pose NEES (dof {nees_dof})")
+    shown = np.concatenate([np.asarray(v, dtype=float).ravel() for v in (result.icp_nis, result.icp_dof,
+                                                                          [] if nees is None else nees)])
+    shown = shown[np.isfinite(shown)]
+    if shown.size:  # a start-up transient of the NEES must not squash the ICP values: clip at 3x its 99th percentile
+        top = max(3.0 * float(np.percentile(shown, 99)), 2.0 * nees_dof)
+        if top < shown.max():
+            ax.set_ylim(0.0, top)
+            ax.set_title("clipped at 3x the 99th percentile", fontsize=8, loc="right")
+    ax.set_xlabel("time (s)")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="upper right", fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no ICP updates, no truth", ha="center", va="center", transform=ax.transAxes)
+    out["nis.png"] = figure_png(fig)
+    return out
+
+
+def _value(v, fmt: str, scale: float = 1.0, unit: str = "") -> str:
+    return "n/a (no truth)" if v is None else f"{format(v * scale, fmt)}{unit}"
+
+
+def _facts(items) -> str:
+    return '<ul class="facts">' + "".join(f"<li>{x}</li>" for x in items) + "</ul>"
+
+
+def _stairs_section(stairs_doc: dict) -> Section:
+    if "error" in stairs_doc:
+        return Section("Stairs", f"<p>stairs model failed: {esc(stairs_doc['error'])}</p>")
+    kf = stairs_doc.get("keyframes", {})
+    parts = [f"<p>{stairs_doc.get('n_clouds_used')} of {stairs_doc.get('n_clouds_available')} clouds "
+             f"({esc(kf.get('method', ''))}), placed with the estimate, stitched by ICP (graphcal.locomotion.stairs).</p>"]
+    treads = []
+    for t in stairs_doc.get("treads", []):
+        line = (f"tread {t.get('index')}: height {1e3 * t['height_m']:.1f} mm, depth "
+                f"{1e3 * t['depth_m']:.1f} mm{'' if t.get('depth_complete') else ' (visible extent)'}, "
+                f"width {1e3 * t['width_m']:.1f} mm (visible)")
+        e = t.get("errors")
+        if e and e.get("true_index", -1) >= 0:
+            dep = e.get("depth_error_m")
+            line += (f"; against true tread {e['true_index']}: height {1e3 * e['height_error_m']:+.1f} mm, "
+                     f"depth {'n/a' if dep is None else format(1e3 * dep, '+.1f') + ' mm'}")
+        elif e:
+            line += "; no true tread within 5 cm of its height"
+        treads.append(esc(line))
+    parts.append(_facts(treads))
+    tc = stairs_doc.get("truth_compared")
+    if tc:
+        parts.append(f"<p>Compared with the truth's {esc(tc['flight'])} flight ({esc(tc['selection'])}); all its treads "
+                     f"found: {'yes' if tc.get('all_true_treads_found') else 'NO'}. {esc(tc['note'])}.</p>")
+    return Section("Stairs", *parts)
+
+
+def track_html(m: dict, stairs_doc: dict | None, pngs: dict[str, bytes], *, title: str = "graphcal track") -> str:
+    """The page of a track output: ``m`` is metrics.json (SI units; null without truth), ``stairs_doc``
+    stairs.json or None, ``pngs`` the plots (file name -> PNG, :func:`track_figures`)."""
+    w = m.get("innovation_whiteness") or {}
+    subtitle = (f"Dataset: {m['dataset']}; {m['n_samples']} samples over {m['duration_s']:.2f} s, processed in "
+                f"{m['processing_s']:.2f} s ({m['real_time_factor']:.1f}x real time). Filter: error-state EKF "
+                "(filterpy), IMU propagation, stance-tripod kinematics (support from joint torques), ICP between "
+                "keyframe clouds as relative-pose measurements (docs/state_estimation.md).")
+    accuracy = _facts(esc(x) for x in (
+        f"distance: {m['distance_m']:.2f} m ({m['distance_source']})",
+        f"APE (RMS, no alignment): {_value(m.get('ape_rmse_m'), '.2f', 1e3, ' mm')}",
+        f"RPE over {m.get('rpe_delta_m', 1.0)} m (RMS): {_value(m.get('rpe_rmse_m'), '.2f', 1e3, ' mm')}",
+        f"drift (final error / distance): {_value(m.get('drift_percent'), '.3f', 1.0, ' %')}",
+        f"pose NEES mean: {_value(m.get('nees_mean'), '.2f')} (dof 6; fraction of samples inside the single-sample "
+        f"95 % band: {_value(m.get('nees_fraction_in_band'), '.3f')})",
+    ))
+    consistency = _facts(esc(x) for x in (
+        f"stance NIS mean {_value(m.get('stance_nis_mean'), '.2f')} (dof {m['stance_nis_dof']}), "
+        f"{m['stance_updates']} updates, {m['support_switches']} support switches",
+        f"innovation whiteness: {_value(w.get('fraction_inside'), '.3f')} of the autocorrelations at lags "
+        f"1..{w.get('lags')} inside ±1.96/sqrt(n) (white: 0.95); max |rho| {_value(w.get('max_abs_autocorr'), '.3f')}",
+        f"ICP: {m['icp_updates']} fused (mean NIS {_value(m.get('icp_nis_mean'), '.2f')}, "
+        f"{_value(m.get('icp_dof_mean'), '.1f')} directions on average), {m['icp_rejected']} rejected",
+    ))
+    heading = "Accuracy" + ("" if m["truth"] else " (no truth.yaml beside the dataset: the keys that need it are null)")
+    sections = [Section(heading, accuracy), Section("Consistency", consistency)]
+    if stairs_doc is not None:
+        sections.append(_stairs_section(stairs_doc))
+    sections.append(Section("Figures", *(figure_png_html(png, f"{name}: {FIGURE_CAPTIONS.get(name, '')}")
+                                         for name, png in pngs.items()),
+                            "<p class='small'>Trajectory: trajectory.tum (TUM: t x y z qx qy qz qw); every number "
+                            "above: metrics.json.</p>"))
+    return render_page(title, sections, subtitle=subtitle, footer="Written by graphcal track.")
