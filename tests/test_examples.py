@@ -2,23 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_chai2015_reproduction():
-    mod = _load("chai2015_reproduction")
+def test_chai2015_reproduction(load_example):
+    mod = load_example("chai2015_reproduction.py")
     # the bumpy grounds take minutes: docs/calibration.md ("Chai 2015") has their measured numbers
     out = mod.main(runs=2, stride=8, conditions=("noise x1 (normal light)", "noise x3 (strong light)", "flat ground"))
     mod._print(out)
@@ -38,8 +26,8 @@ def test_chai2015_reproduction():
     assert acc["noise x3 (strong light)"]["translation_err_mm"] >= 0.5 * acc["noise x1 (normal light)"]["translation_err_mm"]
 
 
-def test_labecki2012_reproduction():
-    mod = _load("labecki2012_reproduction")
+def test_labecki2012_reproduction(load_example):
+    mod = load_example("labecki2012_reproduction.py")
     out = mod.main(starts=2, stride=4)
     mod._print(out)
     for s in ("laser", "stereo"):
