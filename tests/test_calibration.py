@@ -159,6 +159,7 @@ def test_unseen_hexapod_three_sessions_from_clouds(tmp_path):
     assert np.all(np.diag(thin.sensors["front_cam"].covariance) > np.diag(result.sensors["front_cam"].covariance))
 
 
+@pytest.mark.slow
 def test_laser_scanner_and_stereo_camera_in_one_graph(tmp_path):
     """Łabęcki's Messor: a 2D laser scanner (dense point-to-plane) and a stereo camera (planes)."""
     path, truth = simulated_dataset(tmp_path, "messor", output="both", robot="messor", program="labecki2012", seed=24)
@@ -201,6 +202,7 @@ def test_directions_without_data_are_named_not_guessed(tmp_path):
     assert abs(est.T_body_sensor[2, 3] - T_true[2, 3]) < 0.002
 
 
+@pytest.mark.slow
 def test_bumpy_ground_roughness_puts_the_bumps_into_sigma(tmp_path):
     """On Chai's little bumpiness (3 mm RMS smooth bumps, one stance) the feet stand on bumps: an
     offset between the feet's plane and the ground the camera sees that one stance cannot tell from

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 
+@pytest.mark.slow
 def test_chai2015_reproduction(load_example):
     mod = load_example("chai2015_reproduction.py")
     # the bumpy grounds take minutes: docs/calibration.md ("Chai 2015") has their measured numbers
@@ -26,6 +27,7 @@ def test_chai2015_reproduction(load_example):
     assert acc["noise x3 (strong light)"]["translation_err_mm"] >= 0.5 * acc["noise x1 (normal light)"]["translation_err_mm"]
 
 
+@pytest.mark.slow
 def test_labecki2012_reproduction(load_example):
     mod = load_example("labecki2012_reproduction.py")
     out = mod.main(starts=2, stride=4)
@@ -45,3 +47,34 @@ def test_labecki2012_reproduction(load_example):
     for (sd, sa), per_sensor in out["stability"].items():
         for s, dev in per_sensor.items():
             assert dev["max_dev_deg"] < 0.01 and dev["max_dev_mm"] < 0.1, (sd, sa, s, dev)
+
+
+@pytest.mark.slow
+def test_qingzhui_walk_tracking(load_example, tmp_path):
+    """Zhao 2020's EKF on the qingzhui: the example's 20 m level walk and stairs (seed 0, clouds at
+    10 Hz), simulated and tracked. Measured on 2026-11-27 (the level walk's row of
+    docs/state_estimation.md, seed 0): level 20.15 m, drift 0.0127 %, APE 3.83 mm, RPE 1.10 mm, NEES
+    4.41 (0.95 in band), stance NIS 8.93 / 9, whiteness 0.928, ICP 63 fused / 0 rejected; stairs
+    5.62 m, drift 0.0234 %, APE 1.51 mm, RPE 3.15 mm, NEES 9.65 (0.98 in band), stance NIS 8.97 / 9,
+    whiteness 0.950, ICP 16 fused / 3 rejected. The bands are a fifth of each value (the drift's,
+    two fifths): a change of the filter or the simulator moves them further, floating point does not."""
+    mod = load_example("qingzhui_walk_tracking.py")
+    out = mod.main(tmp_path)
+    mod._print(out)
+    level, stairs = out["level"][0], out["stairs"][0]
+    assert level["distance_m"] == pytest.approx(20.15, abs=0.01)
+    assert level["drift_percent"] == pytest.approx(0.0127, abs=0.005)  # the goal: <= 1 %
+    assert level["ape_rmse_m"] == pytest.approx(0.00383, rel=0.2)
+    assert level["rpe_rmse_m"] == pytest.approx(0.00110, rel=0.2)
+    assert level["nees_mean"] == pytest.approx(4.41, rel=0.2) and level["nees_fraction_in_band"] > 0.9
+    assert level["stance_nis_mean"] == pytest.approx(8.93, abs=0.2)
+    assert level["whiteness_fraction_inside"] == pytest.approx(0.928, abs=0.03)
+    assert level["icp_updates"] == pytest.approx(63, abs=3) and level["icp_rejected"] <= 2
+    assert stairs["distance_m"] == pytest.approx(5.62, abs=0.01)
+    assert stairs["drift_percent"] == pytest.approx(0.0234, abs=0.01)  # the goal: <= 2 %
+    assert stairs["ape_rmse_m"] == pytest.approx(0.00151, rel=0.2)
+    assert stairs["rpe_rmse_m"] == pytest.approx(0.00315, rel=0.2)
+    assert stairs["nees_mean"] == pytest.approx(9.65, rel=0.2) and stairs["nees_fraction_in_band"] > 0.9
+    assert stairs["stance_nis_mean"] == pytest.approx(8.97, abs=0.2)
+    assert stairs["whiteness_fraction_inside"] == pytest.approx(0.950, abs=0.03)
+    assert stairs["icp_updates"] == pytest.approx(16, abs=3) and stairs["icp_rejected"] == pytest.approx(3, abs=2)
