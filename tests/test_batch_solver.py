@@ -254,6 +254,7 @@ def test_whitened_errors_of_custom_factors():
 
 
 # ----------------------------------------------------------------------------- the graph bench/batch_solver.py times
+@pytest.mark.slow
 def test_same_optimum_as_gtsam_lm_on_1000_python_factors():
     """The graph of bench/batch_solver.py (which times the two): same optimum as gtsam's LM."""
     graph, initial = custom_point_graph()

@@ -520,6 +520,7 @@ def test_bad_identify_legs_sigmas_are_one_line_exit_2(tmp_path, option, value, w
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_commands_needing_a_sensor_name_dataset_yaml_on_a_mocap_dataset(tmp_path):
     """calibrate said "station 0: fewer than 3 legs" and diagnose "run graphcal extract-planes?" on
     a motion-capture dataset; now each names dataset.yaml's sensors and identify-legs."""

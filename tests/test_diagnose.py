@@ -78,6 +78,7 @@ def _cli(*args):
                           cwd=ROOT)
 
 
+@pytest.mark.slow
 def test_cli_writes_the_diagnosis(knocked, tmp_path):
     out = tmp_path / "dg"
     p = _cli("diagnose", knocked, "--out", out, "--quiet")

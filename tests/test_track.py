@@ -235,6 +235,7 @@ def test_timeseries_and_truth_mistakes_are_named_not_integrated(short_walk, tmp_
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_track_output_folder_safety(short_walk, tmp_path, capsys):
     foreign = tmp_path / "foreign"
     foreign.mkdir()
