@@ -61,20 +61,19 @@ def test_qingzhui_walk_tracking(load_example, tmp_path):
     mod = load_example("qingzhui_walk_tracking.py")
     out = mod.main(tmp_path)
     mod._print(out)
-    level, stairs = out["level"][0], out["stairs"][0]
-    assert level["distance_m"] == pytest.approx(20.15, abs=0.01)
-    assert level["drift_percent"] == pytest.approx(0.0127, abs=0.005)  # the goal: <= 1 %
-    assert level["ape_rmse_m"] == pytest.approx(0.00383, rel=0.2)
-    assert level["rpe_rmse_m"] == pytest.approx(0.00110, rel=0.2)
-    assert level["nees_mean"] == pytest.approx(4.41, rel=0.2) and level["nees_fraction_in_band"] > 0.9
-    assert level["stance_nis_mean"] == pytest.approx(8.93, abs=0.2)
-    assert level["whiteness_fraction_inside"] == pytest.approx(0.928, abs=0.03)
-    assert level["icp_updates"] == pytest.approx(63, abs=3) and level["icp_rejected"] <= 2
-    assert stairs["distance_m"] == pytest.approx(5.62, abs=0.01)
-    assert stairs["drift_percent"] == pytest.approx(0.0234, abs=0.01)  # the goal: <= 2 %
-    assert stairs["ape_rmse_m"] == pytest.approx(0.00151, rel=0.2)
-    assert stairs["rpe_rmse_m"] == pytest.approx(0.00315, rel=0.2)
-    assert stairs["nees_mean"] == pytest.approx(9.65, rel=0.2) and stairs["nees_fraction_in_band"] > 0.9
-    assert stairs["stance_nis_mean"] == pytest.approx(8.97, abs=0.2)
-    assert stairs["whiteness_fraction_inside"] == pytest.approx(0.950, abs=0.03)
-    assert stairs["icp_updates"] == pytest.approx(16, abs=3) and stairs["icp_rejected"] == pytest.approx(3, abs=2)
+    rel, within = (lambda r: {"rel": r}), (lambda a: {"abs": a})
+    expected = {  # metric: (measured value, band)
+        "level": {"distance_m": (20.15, within(0.01)), "drift_percent": (0.0127, within(0.005)),  # goal <= 1 %
+                  "ape_rmse_m": (0.00383, rel(0.2)), "rpe_rmse_m": (0.00110, rel(0.2)), "nees_mean": (4.41, rel(0.2)),
+                  "stance_nis_mean": (8.93, within(0.2)), "whiteness_fraction_inside": (0.928, within(0.03)),
+                  "icp_updates": (63, within(3)), "icp_rejected": (0, within(2))},
+        "stairs": {"distance_m": (5.62, within(0.01)), "drift_percent": (0.0234, within(0.01)),  # goal <= 2 %
+                   "ape_rmse_m": (0.00151, rel(0.2)), "rpe_rmse_m": (0.00315, rel(0.2)), "nees_mean": (9.65, rel(0.2)),
+                   "stance_nis_mean": (8.97, within(0.2)), "whiteness_fraction_inside": (0.950, within(0.03)),
+                   "icp_updates": (16, within(3)), "icp_rejected": (3, within(2))},
+    }
+    for name, metrics in expected.items():
+        m = out[name][0]
+        for key, (value, band) in metrics.items():
+            assert m[key] == pytest.approx(value, **band), (name, key, m[key])
+        assert m["nees_fraction_in_band"] > 0.9, (name, m["nees_fraction_in_band"])
