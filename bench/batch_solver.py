@@ -7,20 +7,16 @@ Values into every Python callback), run side by side in this process.
 
 from __future__ import annotations
 
-import sys
 import time
-from pathlib import Path
 
 import gtsam
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_batch_solver import _custom_point_graph, _max_diff  # noqa: E402  (the tested graph)
-
-from graphcal.solvers.batch import solve_lm  # noqa: E402
+from graphcal.solvers.batch import solve_lm
+from graphcal.testing import custom_point_graph, max_local_difference  # the graph tests/test_batch_solver.py solves
 
 
 def main() -> None:
-    graph, initial = _custom_point_graph()
+    graph, initial = custom_point_graph()
     t0 = time.perf_counter()
     res = solve_lm(graph, initial)
     t_ours = time.perf_counter() - t0
@@ -33,7 +29,7 @@ def main() -> None:
     t_gtsam = time.perf_counter() - t0
     print(f"{graph.size()} Python CustomFactors: solve_lm {t_ours:.2f} s ({res.iterations} iterations), "
           f"gtsam LM {t_gtsam:.2f} s ({opt.iterations()} iterations), ratio {t_gtsam / t_ours:.1f}x, "
-          f"max |difference| {_max_diff(ref, res.values):.1e}")
+          f"max |difference| {max_local_difference(ref, res.values):.1e}")
 
 
 if __name__ == "__main__":

@@ -45,13 +45,6 @@ from pathlib import Path
 import numpy as np
 
 
-def _truth_T(truth, sensor):
-    from graphcal.geometry import pose_from_xyz_quat_wxyz
-
-    t = truth["sensors"][sensor]["T_body_sensor"]
-    return pose_from_xyz_quat_wxyz(t["xyz"], t["quaternion_wxyz"])
-
-
 def _errors(T, T_true):
     from graphcal.geometry import rotation_angle_between
 
@@ -70,11 +63,12 @@ def bench_chai(repeats: int = 6) -> dict:
     from graphcal.io.dataset import cloud_paths, load_cloud, load_dataset_robot, read_dataset
     from graphcal.simulation.write import write_simulation
     from graphcal.simulation.session import SimulationConfig, simulate
+    from graphcal.testing import true_extrinsic
 
     folder = Path(tempfile.mkdtemp(prefix="graphcal-bench-")) / "chai"
     res = simulate(SimulationConfig(robot="octopus", program="chai2015", seed=5, cloud_stride=1))
     write_simulation(res, folder, output="clouds")
-    T_true = _truth_T(yaml.safe_load((folder / "truth.yaml").read_text()), "depth")
+    T_true = true_extrinsic(yaml.safe_load((folder / "truth.yaml").read_text()), "depth")
     ds = read_dataset(folder)
     n_points = int(np.mean([len(v) for v in res.clouds.values()]))
     del res

@@ -9,14 +9,14 @@ calibrations (Octopus, Chai's 2015 program, ``cloud_stride=8``, planes written t
 one fresh seed each (S, S+1, ..., S+N-1; default S = 300, the test's first seed, so the test's 24
 runs are the first 24 here). ``--scenario unseen`` runs instead issue 3's acceptance case, the set-up of
 tests/test_calibration.py's ``test_unseen_hexapod_three_sessions_from_clouds`` with one seed per run
-(default S = 600): the "sidewinder" hexapod of tests/custom_hexapod.py (a URDF graphcal does not ship),
+(default S = 600): the "sidewinder" hexapod of graphcal/testing.py (a URDF graphcal does not ship),
 45 random stations in three sessions, IMU, depth clouds written (``cloud_stride=8``) and the planes fitted
 by ``calibrate`` itself; it also counts the runs within the issue's goal (0.1 deg and 2 mm).
 Each simulated dataset is calibrated in two variants:
 
 * ``learned``: the product's default (``CalibrationOptions()``, noise learned from the data);
-* ``simulator``: the simulator's own noise model given, ``SIMULATOR_NOISE`` imported from the test
-  (as bench/batch_solver.py imports its tested graph), so that the two stay the same.
+* ``simulator``: the simulator's own noise model given, ``SIMULATOR_NOISE`` of graphcal/testing.py
+  (the test's too), so that the two stay the same.
 
 Per run: NEES = ``xi^T inv(cov) xi`` with ``xi = Log(T_est^-1 T_true)`` (graphcal.solvers.covariance
 ``nees``, calibration's right-perturbation tangent of the sensor frame); the error rotated to the body
@@ -70,8 +70,7 @@ def _options(variant: str):
 
     if variant == "learned":
         return CalibrationOptions()  # the product's default: estimate_noise=True
-    sys.path.insert(0, str(REPO / "tests"))
-    from test_covariance_honesty import SIMULATOR_NOISE  # the test's noise model (the simulator's)
+    from graphcal.testing import SIMULATOR_NOISE  # the test's noise model (the simulator's)
 
     return SIMULATOR_NOISE
 
@@ -81,16 +80,14 @@ def _worker_init() -> None:
 
 
 def _config(scenario: str, seed: int):
-    from graphcal.simulation.session import CustomRobot, SimulationConfig
+    from graphcal.simulation.session import SimulationConfig
 
     if scenario == "chai":
         return SimulationConfig(robot="octopus", program="chai2015", seed=seed, cloud_stride=8)
-    sys.path.insert(0, str(REPO / "tests"))
-    import custom_hexapod  # the test's hexapod: a URDF graphcal does not ship
+    from graphcal.testing import custom_hexapod  # the test's hexapod: a URDF graphcal does not ship
 
     return SimulationConfig(robot="sidewinder", program="random", n_stations=45, n_sessions=3, seed=seed,
-                            tilt_scale=0.8, cloud_stride=8,
-                            custom_robot=CustomRobot(custom_hexapod.urdf_xml(), custom_hexapod.info()))
+                            tilt_scale=0.8, cloud_stride=8, custom_robot=custom_hexapod())
 
 
 def _one_run(job: tuple[int, tuple[str, ...], str, str]) -> dict:

@@ -3,8 +3,9 @@ with ``graphcal simulate --program tripod-walk|tripod-stairs``, track both with 
 and print the accuracy and consistency numbers of docs/state_estimation.md.
 
 Run:  python examples/qingzhui_walk_tracking.py [OUT_DIR] [--seeds N]
-``main`` returns the numbers (a dict per sequence and seed); the tests run the same sequences
-(tests/test_track.py), the Monte Carlo NEES on shorter walks (tests/test_ekf.py).
+``main`` returns the numbers (a dict per sequence and seed); tests/test_examples.py runs this
+example (seed 0) and asserts them, tests/test_track.py runs the same sequences through the command
+line (fewer clouds), tests/test_ekf.py the Monte Carlo NEES on shorter walks.
 """
 
 from __future__ import annotations

@@ -23,6 +23,7 @@ from graphcal.solvers.batch import (
     solve_lm,
     whitened_errors,
 )
+from graphcal.testing import custom_point_graph, max_local_difference
 
 
 def _gtsam_lm(graph, initial, max_iterations=200):
@@ -31,10 +32,6 @@ def _gtsam_lm(graph, initial, max_iterations=200):
     p.setAbsoluteErrorTol(1e-15)
     p.setMaxIterations(max_iterations)
     return gtsam.LevenbergMarquardtOptimizer(graph, initial, p).optimize()
-
-
-def _max_diff(a: gtsam.Values, b: gtsam.Values) -> float:
-    return float(np.max(np.abs(a.localCoordinates(b).vector())))
 
 
 def _tight(graph, initial, **kw):
@@ -110,7 +107,7 @@ def test_matches_gtsam_lm(make):
     assert res.converged, res.message
     assert res.error_final <= res.error_initial
     assert res.error_final == pytest.approx(graph.error(ref), rel=1e-9, abs=1e-12)
-    assert _max_diff(ref, res.values) < 1e-6
+    assert max_local_difference(ref, res.values) < 1e-6
     # the input is untouched
     assert initial.equals(make()[1], 1e-12)
 
@@ -120,7 +117,7 @@ def test_matches_gtsam_lm_with_huber_outliers():
     ref = _gtsam_lm(graph, initial)
     res = _tight(graph, initial)
     assert res.converged, res.message
-    assert _max_diff(ref, res.values) < 1e-6
+    assert max_local_difference(ref, res.values) < 1e-6
     assert res.error_final == pytest.approx(graph.error(ref), rel=1e-9)
 
 
@@ -129,7 +126,7 @@ def test_default_tolerances_are_close_to_the_optimum():
     ref = _gtsam_lm(graph, initial)
     res = solve_lm(graph, initial)
     assert res.converged
-    assert _max_diff(ref, res.values) < 1e-6
+    assert max_local_difference(ref, res.values) < 1e-6
 
 
 def test_ill_conditioned_but_determined_graph_is_solved():
@@ -256,63 +253,16 @@ def test_whitened_errors_of_custom_factors():
     assert 2 * graph.at(1).error(values) < 36.0
 
 
-# ----------------------------------------------------------------------------- benchmark (printed, not asserted)
-def _custom_point_graph(n=1000, seed=0):
-    """n Point3 variables, all factors Python CustomFactors: prior, relative offsets, ranges."""
-    rng = np.random.default_rng(seed)
-    truth = np.cumsum(rng.normal(size=(n, 3)), axis=0)
-    graph, initial = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    nm3 = gtsam.noiseModel.Isotropic.Sigma(3, 0.05)
-    nm1 = gtsam.noiseModel.Isotropic.Sigma(1, 0.02)
-    eye3 = np.eye(3)
-
-    def prior(m):
-        def f(this, values, H):
-            if H is not None:
-                H[0] = eye3
-            return values.atPoint3(this.keys()[0]) - m
-        return f
-
-    def offset(m):
-        def f(this, values, H):
-            k = this.keys()
-            if H is not None:
-                H[0] = -eye3
-                H[1] = eye3
-            return values.atPoint3(k[1]) - values.atPoint3(k[0]) - m
-        return f
-
-    def distance(m):
-        def f(this, values, H):
-            k = this.keys()
-            d = values.atPoint3(k[1]) - values.atPoint3(k[0])
-            r = np.linalg.norm(d)
-            if H is not None:
-                H[0] = -(d / r)[None, :]
-                H[1] = (d / r)[None, :]
-            return np.array([r - m])
-        return f
-
-    graph.add(gtsam.CustomFactor(nm3, [0], prior(truth[0])))
-    for i in range(n - 1):
-        m = truth[i + 1] - truth[i] + rng.normal(scale=0.05, size=3)
-        graph.add(gtsam.CustomFactor(nm3, [i, i + 1], offset(m)))
-    for i in range(n - 2):
-        m = np.linalg.norm(truth[i + 2] - truth[i]) + rng.normal(scale=0.02)
-        graph.add(gtsam.CustomFactor(nm1, [i, i + 2], distance(m)))
-    for i in range(n):
-        initial.insert(i, truth[i] + rng.normal(scale=0.1, size=3))
-    return graph, initial
-
-
+# ----------------------------------------------------------------------------- the graph bench/batch_solver.py times
+@pytest.mark.slow
 def test_same_optimum_as_gtsam_lm_on_1000_python_factors():
     """The graph of bench/batch_solver.py (which times the two): same optimum as gtsam's LM."""
-    graph, initial = _custom_point_graph()
+    graph, initial = custom_point_graph()
     res = solve_lm(graph, initial)
     p = gtsam.LevenbergMarquardtParams()
     p.setRelativeErrorTol(1e-9)
     p.setAbsoluteErrorTol(1e-12)
     ref = gtsam.LevenbergMarquardtOptimizer(graph, initial, p).optimize()
-    diff = _max_diff(ref, res.values)
+    diff = max_local_difference(ref, res.values)
     assert res.converged
     assert diff < 1e-5  # both stop at relative error decrease 1e-9

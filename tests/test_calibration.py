@@ -12,46 +12,22 @@ import pytest
 from graphcal.calibration.calibrate import _passing_again, calibrate, solve_problem
 from graphcal.calibration.graph import CalibrationOptions, build_problem
 from graphcal.calibration.measurements import calibration_data
-from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between, se3_exp
+from graphcal.geometry import rotation_angle_between, se3_exp
 from graphcal.io.dataset import load_dataset_robot, read_dataset
 from graphcal.simulation.effects import Effects
-from graphcal.simulation.write import write_simulation
-from graphcal.simulation.session import SimulationConfig, simulate
-
-
-def sim_dataset(tmp_path, name, output="planes", **kw):
-    res = simulate(SimulationConfig(**{"cloud_stride": 8, **kw}))
-    write_simulation(res, tmp_path / name, output=output)
-    return tmp_path / name, res.truth
-
-
-def truth_T(truth, sensor):
-    t = truth["sensors"][sensor]["T_body_sensor"]
-    return pose_from_xyz_quat_wxyz(t["xyz"], t["quaternion_wxyz"])
-
-
-def errors(est, T_true):
-    """(angle deg, translation mm, per-axis error / sigma in body axes)."""
-    T = est.T_body_sensor
-    ang = np.degrees(rotation_angle_between(T[:3, :3], T_true[:3, :3]))
-    dt = 1e3 * (T[:3, 3] - T_true[:3, 3])
-    # rotation error about the body axes: R_est = Exp(dphi) R_true  ->  dphi ~ vee(R_est R_true^T)
-    D = T[:3, :3] @ T_true[:3, :3].T
-    dphi = np.degrees(0.5 * np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]))
-    z = np.r_[dphi / est.sigma_rot_deg, dt / est.sigma_xyz_mm]
-    return ang, float(np.linalg.norm(dt)), z
+from graphcal.testing import custom_hexapod, extrinsic_errors, simulated_dataset, true_extrinsic
 
 
 @pytest.fixture(scope="module")
 def octopus(tmp_path_factory):
-    path, truth = sim_dataset(tmp_path_factory.mktemp("oct"), "octopus", robot="octopus", program="chai2015", seed=21)
+    path, truth = simulated_dataset(tmp_path_factory.mktemp("oct"), "octopus", robot="octopus", program="chai2015", seed=21)
     return path, truth, calibrate(path)
 
 
 def test_octopus_chai_program_recovers_the_extrinsic(octopus):
     path, truth, result = octopus
     est = result.sensors["depth"]
-    ang, dist, z = errors(est, truth_T(truth, "depth"))
+    ang, dist, z = extrinsic_errors(est, true_extrinsic(truth, "depth"))
     # CAD is off by ~1 deg / 10 mm (simulator default); the calibration gets within hundredths
     assert ang < 0.02 and dist < 1.0
     assert np.all(np.abs(z) < 4.0), z  # the reported sigma covers the error on every body axis
@@ -123,15 +99,15 @@ def test_fixed_legs_use_the_builtin_stance_factor_and_agree_with_the_python_one(
 
 
 def test_outlier_stations_are_found_and_do_not_hurt(tmp_path):
-    path, truth = sim_dataset(tmp_path, "outliers", robot="octopus", program="chai2015", seed=22,
-                              effects=Effects(outlier_stations=(5, 30, 44)))
+    path, truth = simulated_dataset(tmp_path, "outliers", robot="octopus", program="chai2015", seed=22,
+                                    effects=Effects(outlier_stations=(5, 30, 44)))
     result = calibrate(path)
     assert set(result.outliers) == {5, 30, 44}
     assert not any("plane_max_points" in w for w in result.warnings)
     # planes.csv given: a cap on the cloud points cannot apply, and the result says so
     assert any("--plane-points 5000 (plane_max_points) had no effect" in w
                for w in calibrate(path, plane_max_points=5000).warnings)
-    ang, dist, _ = errors(result.sensors["depth"], truth_T(truth, "depth"))
+    ang, dist, _ = extrinsic_errors(result.sensors["depth"], true_extrinsic(truth, "depth"))
     assert ang < 0.03 and dist < 1.5
 
 
@@ -139,15 +115,15 @@ def test_outliers_are_left_out_before_the_noise_is_learned(tmp_path):
     # qingzhui, planes only: learned with the two outliers in, the noise absorbed them (contact
     # 11 mm, joints 0.27 deg; no outlier found, the extrinsic 0.4-1.4 deg and 20-36 mm off). Screened
     # at the default noise first, they are found and the learned noise is the simulator's.
-    path, truth = sim_dataset(tmp_path, "outliers_q", robot="qingzhui", program="random", seed=201,
-                              n_stations=48, n_sessions=3, session_heading_step_deg=40.0,
-                              effects=Effects(outlier_stations=(4, 29)))
+    path, truth = simulated_dataset(tmp_path, "outliers_q", robot="qingzhui", program="random", seed=201,
+                                    n_stations=48, n_sessions=3, session_heading_step_deg=40.0,
+                                    effects=Effects(outlier_stations=(4, 29)))
     result = calibrate(path)
     replaced = set(truth["outliers"])  # the stations whose clouds are another station's
     assert {4, 29} <= replaced and set(result.outliers) == replaced
     noise = {g.group: g for g in result.noise_groups}
     assert dict(noise["stance_foot/contact"].fields)["sigma_contact_m"] < 0.5e-3
-    ang, dist, z = errors(result.sensors["depth"], truth_T(truth, "depth"))
+    ang, dist, z = extrinsic_errors(result.sensors["depth"], true_extrinsic(truth, "depth"))
     assert ang < 0.03 and dist < 1.0 and np.all(np.abs(z) < 4.0)
 
     # the re-test of what the screen left out: a good station left out with the two outliers is
@@ -164,35 +140,32 @@ def test_outliers_are_left_out_before_the_noise_is_learned(tmp_path):
 def test_unseen_hexapod_three_sessions_from_clouds(tmp_path):
     """The issue's acceptance case: a hexapod URDF graphcal never saw, clouds (planes fitted by
     calibrate itself), IMU, three sessions: within 0.1 deg and 2 mm, sigma covering the error."""
-    import custom_hexapod
-
-    from graphcal.simulation.session import CustomRobot
-
-    path, truth = sim_dataset(
+    path, truth = simulated_dataset(
         tmp_path, "sidewinder", output="clouds", robot="sidewinder", program="random", n_stations=45,
         n_sessions=3, seed=23, tilt_scale=0.8,
-        custom_robot=CustomRobot(custom_hexapod.urdf_xml(), custom_hexapod.info()))
+        custom_robot=custom_hexapod())
     assert not (path / "planes.csv").exists()
     result = calibrate(path)
-    ang, dist, z = errors(result.sensors["front_cam"], truth_T(truth, "front_cam"))
+    ang, dist, z = extrinsic_errors(result.sensors["front_cam"], true_extrinsic(truth, "front_cam"))
     assert ang < 0.1 and dist < 2.0
     assert np.all(np.abs(z) < 4.0), z
     # the clouds thinned to every k-th point: the planes are fitted on fewer points (the sigma
     # grows), the extrinsic still within the goal and covered
     thin = calibrate(path, plane_max_points=1000)  # its clouds have 1.7k-3.3k points
-    ang, dist, z = errors(thin.sensors["front_cam"], truth_T(truth, "front_cam"))
+    ang, dist, z = extrinsic_errors(thin.sensors["front_cam"], true_extrinsic(truth, "front_cam"))
     assert ang < 0.1 and dist < 2.0
     assert np.all(np.abs(z) < 4.0), z
     assert not thin.warnings
     assert np.all(np.diag(thin.sensors["front_cam"].covariance) > np.diag(result.sensors["front_cam"].covariance))
 
 
+@pytest.mark.slow
 def test_laser_scanner_and_stereo_camera_in_one_graph(tmp_path):
     """Łabęcki's Messor: a 2D laser scanner (dense point-to-plane) and a stereo camera (planes)."""
-    path, truth = sim_dataset(tmp_path, "messor", output="both", robot="messor", program="labecki2012", seed=24)
+    path, truth = simulated_dataset(tmp_path, "messor", output="both", robot="messor", program="labecki2012", seed=24)
     result = calibrate(path)
-    ang_l, dist_l, z_l = errors(result.sensors["laser"], truth_T(truth, "laser"))
-    ang_s, dist_s, z_s = errors(result.sensors["stereo"], truth_T(truth, "stereo"))
+    ang_l, dist_l, z_l = extrinsic_errors(result.sensors["laser"], true_extrinsic(truth, "laser"))
+    ang_s, dist_s, z_s = extrinsic_errors(result.sensors["stereo"], true_extrinsic(truth, "stereo"))
     # the Messor tilts only +-5 deg: yaw about the ground normal is known to ~0.03 deg (1 sigma)
     assert ang_l < 0.1 and dist_l < 2.0
     assert ang_s < 0.1 and dist_s < 1.0
@@ -203,8 +176,8 @@ def test_laser_scanner_and_stereo_camera_in_one_graph(tmp_path):
 def test_a_depth_cloud_declared_laser_scanner_is_the_first_warning(tmp_path):
     """The stereo camera's 3-D clouds declared ``laser_scanner``: calibrate reads them as scan lines,
     and its first warning says why that is wrong, naming a cloud file."""
-    path, _ = sim_dataset(tmp_path, "messor", output="clouds", robot="messor", program="random", n_stations=8,
-                          seed=24)
+    path, _ = simulated_dataset(tmp_path, "messor", output="clouds", robot="messor", program="random", n_stations=8,
+                                seed=24)
     text = (path / "dataset.yaml").read_text()
     (path / "dataset.yaml").write_text(text.replace("type: stereo_camera", "type: laser_scanner"))
     result = calibrate(path)
@@ -217,18 +190,19 @@ def test_a_depth_cloud_declared_laser_scanner_is_the_first_warning(tmp_path):
 def test_directions_without_data_are_named_not_guessed(tmp_path):
     """No roll or pitch variation: yaw about the ground normal and the horizontal lever arm are not
     determined; the result says so in words instead of reporting a tight sigma."""
-    path, truth = sim_dataset(tmp_path, "flat", robot="octopus", program="random", n_stations=12, seed=25,
-                              tilt_scale=0.0)
+    path, truth = simulated_dataset(tmp_path, "flat", robot="octopus", program="random", n_stations=12, seed=25,
+                                    tilt_scale=0.0)
     result = calibrate(path)
     est = result.sensors["depth"]
     text = " ".join(est.unobservable)
     assert est.unobservable, "expected undetermined directions"
     assert "roll and pitch" in text or "pitch" in text
     # what IS determined (the height above the ground) stays accurate
-    T_true = truth_T(truth, "depth")
+    T_true = true_extrinsic(truth, "depth")
     assert abs(est.T_body_sensor[2, 3] - T_true[2, 3]) < 0.002
 
 
+@pytest.mark.slow
 def test_bumpy_ground_roughness_puts_the_bumps_into_sigma(tmp_path):
     """On Chai's little bumpiness (3 mm RMS smooth bumps, one stance) the feet stand on bumps: an
     offset between the feet's plane and the ground the camera sees that one stance cannot tell from
@@ -236,18 +210,18 @@ def test_bumpy_ground_roughness_puts_the_bumps_into_sigma(tmp_path):
     up to 14); with the ground's roughness given the sigma covers it."""
     from graphcal.calibration.graph import CalibrationOptions, options_for_ground_roughness
 
-    path, truth = sim_dataset(tmp_path, "bumpy", robot="octopus", program="chai2015", ground="bumpy-little",
-                              seed=0, cloud_stride=4)
-    T_true = truth_T(truth, "depth")
+    path, truth = simulated_dataset(tmp_path, "bumpy", robot="octopus", program="chai2015", ground="bumpy-little",
+                                    seed=0, cloud_stride=4)
+    T_true = true_extrinsic(truth, "depth")
     flat = calibrate(path)
-    _, _, z_flat = errors(flat.sensors["depth"], T_true)
+    _, _, z_flat = extrinsic_errors(flat.sensors["depth"], T_true)
     assert np.max(np.abs(z_flat)) > 6.0, z_flat  # overconfident without the roughness
     # ... and calibrate says so: the planes scatter more than their point noise predicts
     assert [w for w in flat.warnings if "the planes scatter" in w and "--ground-roughness-mm" in w], flat.warnings
     rough = calibrate(path, options=options_for_ground_roughness(CalibrationOptions(), 0.003))
     assert not [w for w in rough.warnings if "the planes scatter" in w], rough.warnings
     est = rough.sensors["depth"]
-    ang, dist, z = errors(est, T_true)
+    ang, dist, z = extrinsic_errors(est, T_true)
     # measured: largest |error| / sigma 1.2 (NEES 1.8); with the roughness terms at a third of the
     # bump height (until the eighteenth stop) 3.57 (NEES 15.8; mean NEES 82 over 12 seeds)
     assert np.all(np.abs(z) < 2.5), z

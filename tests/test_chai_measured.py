@@ -14,29 +14,15 @@ the ones measured on 2026-11-21 and quoted in examples/octopus_chai2015/README.m
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-EXAMPLE = ROOT / "examples" / "octopus_chai2015"
-
-
-def _load(name):
-    if str(EXAMPLE) not in sys.path:
-        sys.path.insert(0, str(EXAMPLE))
-    spec = importlib.util.spec_from_file_location(f"chai2015_{name}", EXAMPLE / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
 
 @pytest.fixture(scope="module")
-def out():
-    run = _load("run")
+def out(load_example):
+    run = load_example("octopus_chai2015/run.py", "chai2015_run")
     t0, c0 = time.perf_counter(), time.process_time()
     r = run.main()
     r["_wall_s"], r["_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
@@ -81,9 +67,9 @@ def test_paper_metric_on_its_six_rows(out):
     assert r10["angle_to_table3_c_flipped_deg"] == pytest.approx(0.126, abs=1e-3)
 
 
-def test_frame_conversion_roundtrip(out):
-    md = _load("make_dataset")
-    run = _load("run")
+def test_frame_conversion_roundtrip(out, load_example):
+    md = load_example("octopus_chai2015/make_dataset.py", "chai2015_make_dataset")
+    run = load_example("octopus_chai2015/run.py", "chai2015_run")
     eq32 = out["paper"]["eq32"]
     back = run.chai_parameters(md.paper_T_body_sensor())
     for k, v in back.items():
@@ -194,13 +180,13 @@ def test_runtime(out):
     assert out["_cpu_s"] < 20.0
 
 
-def test_legs_without_joint_angles_is_refused_not_answered_with_the_prior(tmp_path):
+def test_legs_without_joint_angles_is_refused_not_answered_with_the_prior(load_example, tmp_path):
     """Chai's measured data have commanded poses and no joint angles: --legs, which drops the
     commanded roll, pitch and height in favour of the stance feet, would leave the body poses free and
     return the CAD prior as the answer (it did, exit 0). It is a one-line exit 2 naming stations.csv."""
     import subprocess
 
-    md = _load("make_dataset")
+    md = load_example("octopus_chai2015/make_dataset.py", "chai2015_make_dataset")
     ds = md.build_dataset(tmp_path / "printed")
     proc = subprocess.run([sys.executable, "-m", "graphcal", "calibrate", str(ds), "--out", str(tmp_path / "o"),
                            "--legs", "--quiet"], capture_output=True, text=True, timeout=300)
@@ -209,7 +195,7 @@ def test_legs_without_joint_angles_is_refused_not_answered_with_the_prior(tmp_pa
     assert not (tmp_path / "o").exists()
 
 
-def test_summary_lists_only_the_noise_groups_the_data_has(tmp_path):
+def test_summary_lists_only_the_noise_groups_the_data_has(load_example, tmp_path):
     """Chai's data have no joint angles and no IMU: the summary names no joint, contact or IMU sigma
     (it printed their defaults as 'learned'), and a prior sigma of 0 is not a prior conflict."""
     import subprocess
@@ -219,7 +205,7 @@ def test_summary_lists_only_the_noise_groups_the_data_has(tmp_path):
     from graphcal.calibration.result import prior_conflict
     from graphcal.geometry import se3_exp
 
-    md = _load("make_dataset")
+    md = load_example("octopus_chai2015/make_dataset.py", "chai2015_make_dataset")
     ds = md.build_dataset(tmp_path / "printed")
     proc = subprocess.run([sys.executable, "-m", "graphcal", "calibrate", str(ds), "--out", str(tmp_path / "o"),
                            "--quiet"], capture_output=True, text=True, timeout=300)

@@ -4,17 +4,12 @@ never overwrite what the user has, and the example scripts."""
 from __future__ import annotations
 
 import csv
-
-import importlib.util
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def run(*args, check_rc=None):
@@ -111,10 +106,8 @@ def test_extract_planes_writes_once_and_never_overwrites(small_dataset, tmp_path
     assert not (tmp_path / "none.csv").exists()
 
 
-def test_example_simulate_and_validate(tmp_path):
-    spec = importlib.util.spec_from_file_location("example", ROOT / "examples" / "simulate_and_validate.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+def test_example_simulate_and_validate(load_example, tmp_path):
+    mod = load_example("simulate_and_validate.py", "example")
     result = mod.main(tmp_path / "octopus")
     assert result["stations"] == 52
     # Kinect noise over ~16k points per frame: the fitted ground is within hundredths of a degree
@@ -527,6 +520,7 @@ def test_bad_identify_legs_sigmas_are_one_line_exit_2(tmp_path, option, value, w
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_commands_needing_a_sensor_name_dataset_yaml_on_a_mocap_dataset(tmp_path):
     """calibrate said "station 0: fewer than 3 legs" and diagnose "run graphcal extract-planes?" on
     a motion-capture dataset; now each names dataset.yaml's sensors and identify-legs."""

@@ -39,6 +39,7 @@ def test_battery_covers_the_catalogue_on_two_robots():
     assert sum(c[2] == "clean" for c in CASES) >= 5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k", range(len(CASES)), ids=[f"{s}-{r}-{c}" for s, r, c in CASES])
 def test_battery_case(battery, k):
     r = battery["results"][k]
@@ -46,6 +47,7 @@ def test_battery_case(battery, k):
     assert r.passed, f"{r.hidden} on {r.robot} (seed {r.seed}): named {r.named or 'nothing'}; {r.detail}"
 
 
+@pytest.mark.slow
 def test_battery_targets(battery):
     print(f"\nbattery: top-1 {battery['top1']:.1%}, all checks {battery['passed']:.1%}, "
           f"false alarms {battery['false_alarm']:.1%}")
@@ -53,6 +55,7 @@ def test_battery_targets(battery):
     assert battery["false_alarm"] <= 0.05
 
 
+@pytest.mark.slow
 def test_clean_data_leave_no_unexplained_structure(battery):
     clean = [r for r in battery["results"] if r.hidden == "clean"]
     assert clean and not any(r.unexplained for r in clean)
@@ -75,6 +78,7 @@ def _cli(*args):
                           cwd=ROOT)
 
 
+@pytest.mark.slow
 def test_cli_writes_the_diagnosis(knocked, tmp_path):
     out = tmp_path / "dg"
     p = _cli("diagnose", knocked, "--out", out, "--quiet")

@@ -14,7 +14,7 @@ from graphcal.factors.plane_prior import plane_prior_factor
 from graphcal.factors.range_scale import scaled_plane_error, scaled_plane_factor, scaled_range_error, scaled_range_factor
 from graphcal.factors.range_to_plane import range_to_plane_error
 from graphcal.geometry import pose_from_xyz_rpy
-from test_factors import SPECIAL_ROTATIONS, _random_pose, _random_unit, _values, assert_jacobians
+from graphcal.testing import SPECIAL_ROTATIONS, assert_jacobians, factor_jacobians, gtsam_values, random_pose, random_rotation, random_unit
 
 C = gtsam.symbol_shorthand.C
 
@@ -29,21 +29,21 @@ def _camera_looking_down(rng):
 @pytest.mark.parametrize("seed", range(6))
 def test_scaled_plane_jacobians(seed):
     rng = np.random.default_rng(seed)
-    X_, S_ = _random_pose(rng, 0.3), _random_pose(rng, 0.3)
+    X_, S_ = random_pose(rng, 0.3), random_pose(rng, 0.3)
     if seed < len(SPECIAL_ROTATIONS):
         S_[:3, :3] = SPECIAL_ROTATIONS[seed]
-    n_m, d_m = _random_unit(rng), 0.2 + rng.random()
+    n_m, d_m = random_unit(rng), 0.2 + rng.random()
     scale = 1.0 + rng.normal(scale=0.03)
-    plane = _random_unit(rng)
+    plane = random_unit(rng)
     for g in (None, np.append(plane, rng.normal())):
         if g is None:
             f = scaled_plane_factor(X(1), S(0), C(0), n_m, d_m, np.eye(4) * 1e-6)
-            v = _values(x=(X(1), X_), s=(S(0), S_), c=(C(0), np.array([scale])))
+            v = gtsam_values(x=(X(1), X_), s=(S(0), S_), c=(C(0), np.array([scale])))
             e, H = scaled_plane_error(X_, S_, [scale], n_m, d_m)
             H, dims = H[:3], [6, 6, 1]
         else:
             f = scaled_plane_factor(X(1), S(0), C(0), n_m, d_m, np.eye(4) * 1e-6, g_key=G(0))
-            v = _values(x=(X(1), X_), s=(S(0), S_), c=(C(0), np.array([scale])),
+            v = gtsam_values(x=(X(1), X_), s=(S(0), S_), c=(C(0), np.array([scale])),
                         g=(G(0), gtsam.OrientedPlane3(*g)))
             e, H = scaled_plane_error(X_, S_, [scale], n_m, d_m, g)
             dims = [6, 6, 1, 3]
@@ -83,7 +83,7 @@ def test_scaled_range_jacobians_and_meaning(seed):
     e0, _ = range_to_plane_error(X_, S_, P, want_jacobians=False)
     assert np.abs(e0).max() > 1e-3  # unscaled: the error is visible
     f = scaled_range_factor(X(1), S(0), C(0), P * 1.01, 0.01)
-    v = _values(x=(X(1), X_), s=(S(0), S_), c=(C(0), np.array([scale])))
+    v = gtsam_values(x=(X(1), X_), s=(S(0), S_), c=(C(0), np.array([scale])))
     e, H = scaled_range_error(X_, S_, [scale], P * 1.01)
     np.testing.assert_allclose(f.unwhitenedError(v), e, atol=1e-12)
     assert_jacobians(f, v, [6, 6, 1], H, what=f"scaled range seed {seed}")
@@ -94,14 +94,12 @@ def test_plane_prior_factor(tilt):
     n0 = np.array([0.0, 0.0, 1.0])
     n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
     f = plane_prior_factor(G(0), np.append(n0, 0.0), 0.01, 0.001)
-    v = _values(g=(G(0), gtsam.OrientedPlane3(n[0], n[1], n[2], 0.004)))
+    v = gtsam_values(g=(G(0), gtsam.OrientedPlane3(n[0], n[1], n[2], 0.004)))
     e = f.unwhitenedError(v)
     assert np.hypot(e[0], e[1]) == pytest.approx(np.sin(tilt), abs=1e-12)
     assert e[2] == pytest.approx(0.004)
-    from test_factors import numerical_jacobians
-
     A, _ = f.linearize(v).jacobian()
-    Hn = numerical_jacobians(f, v, [3])[0] / np.array([0.01, 0.01, 0.001])[:, None]
+    Hn = factor_jacobians(f, v, [3])[0] / np.array([0.01, 0.01, 0.001])[:, None]
     np.testing.assert_allclose(A, Hn, atol=1e-5)
 
 
@@ -117,12 +115,11 @@ def test_imu_tilted_jacobians_and_meaning(seed):
     from graphcal.factors.gravity_tilt import imu_attitude_tilted_error, imu_attitude_tilted_factor
     from graphcal.factors.keys import M
     from graphcal.geometry import matrix_from_axis_angle
-    from test_factors import _random_rotation
 
     W_ = gtsam.symbol_shorthand.W
     rng = np.random.default_rng(20 + seed)
-    X_ = _random_pose(rng, 0.3) if seed else np.eye(4)
-    R_bi = _random_rotation(rng) if seed > 1 else np.eye(3)
+    X_ = random_pose(rng, 0.3) if seed else np.eye(4)
+    R_bi = random_rotation(rng) if seed > 1 else np.eye(3)
     R_tilt = matrix_from_axis_angle([np.cos(seed), np.sin(seed), 0.0], 0.03 * (seed + 1))
     W = R_tilt.T
     # the accelerometer of a body X on a floor tilted by R_tilt (level world) reads up = (R_tilt X R_bi)^T e_z
@@ -133,7 +130,7 @@ def test_imu_tilted_jacobians_and_meaning(seed):
     assert np.linalg.norm(e_level) == pytest.approx(0.03 * (seed + 1), rel=0.02)  # the level model sees the tilt
     f_meas = f + rng.normal(scale=0.05, size=3)
     fac = imu_attitude_tilted_factor(X(1), M(0), W_(0), f_meas, 0.01)
-    v = _values(x=(X(1), X_), m=(M(0), R_bi), w=(W_(0), W))
+    v = gtsam_values(x=(X(1), X_), m=(M(0), R_bi), w=(W_(0), W))
     e, H = imu_attitude_tilted_error(X_, R_bi, W, f_meas)
     np.testing.assert_allclose(fac.unwhitenedError(v), e, atol=1e-12)
     assert_jacobians(fac, v, [6, 3, 3], H, what=f"imu tilted seed {seed}")

@@ -2,23 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_chai2015_reproduction():
-    mod = _load("chai2015_reproduction")
+@pytest.mark.slow
+def test_chai2015_reproduction(load_example):
+    mod = load_example("chai2015_reproduction.py")
     # the bumpy grounds take minutes: docs/calibration.md ("Chai 2015") has their measured numbers
     out = mod.main(runs=2, stride=8, conditions=("noise x1 (normal light)", "noise x3 (strong light)", "flat ground"))
     mod._print(out)
@@ -38,8 +27,9 @@ def test_chai2015_reproduction():
     assert acc["noise x3 (strong light)"]["translation_err_mm"] >= 0.5 * acc["noise x1 (normal light)"]["translation_err_mm"]
 
 
-def test_labecki2012_reproduction():
-    mod = _load("labecki2012_reproduction")
+@pytest.mark.slow
+def test_labecki2012_reproduction(load_example):
+    mod = load_example("labecki2012_reproduction.py")
     out = mod.main(starts=2, stride=4)
     mod._print(out)
     for s in ("laser", "stereo"):
@@ -57,3 +47,33 @@ def test_labecki2012_reproduction():
     for (sd, sa), per_sensor in out["stability"].items():
         for s, dev in per_sensor.items():
             assert dev["max_dev_deg"] < 0.01 and dev["max_dev_mm"] < 0.1, (sd, sa, s, dev)
+
+
+@pytest.mark.slow
+def test_qingzhui_walk_tracking(load_example, tmp_path):
+    """Zhao 2020's EKF on the qingzhui: the example's 20 m level walk and stairs (seed 0, clouds at
+    10 Hz), simulated and tracked. Measured on 2026-11-27 (the level walk's row of
+    docs/state_estimation.md, seed 0): level 20.15 m, drift 0.0127 %, APE 3.83 mm, RPE 1.10 mm, NEES
+    4.41 (0.95 in band), stance NIS 8.93 / 9, whiteness 0.928, ICP 63 fused / 0 rejected; stairs
+    5.62 m, drift 0.0234 %, APE 1.51 mm, RPE 3.15 mm, NEES 9.65 (0.98 in band), stance NIS 8.97 / 9,
+    whiteness 0.950, ICP 16 fused / 3 rejected. The bands are a fifth of each value (the drift's,
+    two fifths): a change of the filter or the simulator moves them further, floating point does not."""
+    mod = load_example("qingzhui_walk_tracking.py")
+    out = mod.main(tmp_path)
+    mod._print(out)
+    rel, within = (lambda r: {"rel": r}), (lambda a: {"abs": a})
+    expected = {  # metric: (measured value, band)
+        "level": {"distance_m": (20.15, within(0.01)), "drift_percent": (0.0127, within(0.005)),  # goal <= 1 %
+                  "ape_rmse_m": (0.00383, rel(0.2)), "rpe_rmse_m": (0.00110, rel(0.2)), "nees_mean": (4.41, rel(0.2)),
+                  "stance_nis_mean": (8.93, within(0.2)), "whiteness_fraction_inside": (0.928, within(0.03)),
+                  "icp_updates": (63, within(3)), "icp_rejected": (0, within(2))},
+        "stairs": {"distance_m": (5.62, within(0.01)), "drift_percent": (0.0234, within(0.01)),  # goal <= 2 %
+                   "ape_rmse_m": (0.00151, rel(0.2)), "rpe_rmse_m": (0.00315, rel(0.2)), "nees_mean": (9.65, rel(0.2)),
+                   "stance_nis_mean": (8.97, within(0.2)), "whiteness_fraction_inside": (0.950, within(0.03)),
+                   "icp_updates": (16, within(3)), "icp_rejected": (3, within(2))},
+    }
+    for name, metrics in expected.items():
+        m = out[name][0]
+        for key, (value, band) in metrics.items():
+            assert m[key] == pytest.approx(value, **band), (name, key, m[key])
+        assert m["nees_fraction_in_band"] > 0.9, (name, m["nees_fraction_in_band"])

@@ -150,6 +150,7 @@ def test_without_commanded_poses_or_imu_two_sessions(tmp_path_factory):
                                np.r_[batch.sigma_rot_deg, batch.sigma_xyz_mm], rtol=0.05)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [20, 26])
 def test_a_laser_scanners_first_scan_is_not_a_change(tmp_path_factory, seed):
     """Clean Messor data (laser scanner and stereo camera, 40 random stations, two stances): no
@@ -230,6 +231,7 @@ def knocked(tmp_path_factory):
     return get
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(5))
 def test_one_degree_knock_is_detected_within_three_stations(knocked, seed):
     """1 deg about a random axis at station 25: the change is located at 25 and declared by 27
@@ -262,6 +264,7 @@ def test_knock_without_outlier_guard_is_declared_at_the_station(knocked):
     assert [h.station for h in res.history if h.change_detected] == [k]
 
 
+@pytest.mark.slow
 def test_uneven_ground_roughness_keeps_false_changes_out_and_finds_the_knock(tmp_path_factory):
     """Chai's little bumpiness (3 mm RMS), seed 1, a 3 deg knock at station 25. With the flat-floor
     model the bumps look like the sensor moving (false changes besides 25); with the roughness
@@ -432,6 +435,7 @@ def geo():
     return _Geometry(7)
 
 
+@pytest.mark.slow
 def test_no_false_alarm_in_100_clean_runs(geo):
     """100 runs of the 52 Chai stations (5200 tests), every measurement synthesised from the
     model's own noise: no change declared, no station held or left out. The window statistic

@@ -17,6 +17,7 @@ from graphcal.models.legs import (
 )
 from graphcal.models.perturb import LegPerturbation, apply_perturbation, link_length_delta
 from graphcal.models.robot import load_robot
+from graphcal.testing import numerical_jacobian
 
 # Fixed joints with rotations inside the chain (so link directions differ between the URDF parent
 # link frame and the Leg's frame), a prismatic and a continuous joint, a joint without origin
@@ -86,15 +87,6 @@ def _random_q(leg, rng, n):
     lo = np.where(np.isfinite(leg.lower), leg.lower, -np.pi)
     hi = np.where(np.isfinite(leg.upper), leg.upper, np.pi)
     return rng.uniform(lo, hi, size=(n, leg.n_joints))
-
-
-def _numerical_param_jacobian(leg, param, q, theta, h=1e-6):
-    cols = []
-    for i in range(param.dim):
-        d = np.zeros(param.dim)
-        d[i] = h
-        cols.append((fk_with_params(leg, param, q, theta + d) - fk_with_params(leg, param, q, theta - d)) / (2 * h))
-    return np.stack(cols, axis=-1)
 
 
 # ----------------------------------------------------------------------------- names and layout
@@ -180,7 +172,7 @@ def test_param_jacobian_matches_central_differences(robots, name):
         q = _random_q(leg, rng, 25)
         theta = rng.normal(scale=[0.05] * p.n_offsets + [0.01] * p.n_trans)
         J = param_jacobian(leg, p, q, theta)
-        np.testing.assert_allclose(J, _numerical_param_jacobian(leg, p, q, theta), atol=1e-8)
+        np.testing.assert_allclose(J, numerical_jacobian(lambda t: fk_with_params(leg, p, q, t), theta), atol=1e-8)
         p1, J1 = fk_and_param_jacobian(leg, p, q, theta)
         np.testing.assert_allclose(p1, fk_with_params(leg, p, q, theta), atol=0)
         np.testing.assert_allclose(J1, J, atol=0)
@@ -196,7 +188,8 @@ def test_single_configuration_shapes(robots):
     # a straight leg (a singular configuration for IK) still has finite, correct parameter columns
     q0 = np.zeros(3)
     np.testing.assert_allclose(
-        param_jacobian(leg, p, q0, p.zeros()), _numerical_param_jacobian(leg, p, q0[None], p.zeros())[0], atol=1e-8
+        param_jacobian(leg, p, q0, p.zeros()),
+        numerical_jacobian(lambda t: fk_with_params(leg, p, q0[None], t), p.zeros())[0], atol=1e-8,
     )
 
 

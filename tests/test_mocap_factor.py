@@ -23,6 +23,7 @@ from graphcal.models.legs import (
 from graphcal.models.perturb import LegPerturbation, apply_perturbation
 from graphcal.models.robot import load_robot
 from graphcal.report.urdf import calibrated_urdf
+from graphcal.testing import factor_jacobians, numerical_jacobian
 
 H_STEP = 1e-6
 SEED = 77
@@ -72,23 +73,6 @@ def _random_pose(rng, t_scale=1.0):
     return se3_exp(np.concatenate([rng.normal(scale=1.5, size=3), rng.normal(scale=t_scale, size=3)]))
 
 
-def _numeric(factor, values, dims, h=H_STEP):
-    """Central differences of the whitened error through Values.retract."""
-    out = []
-    keys = list(factor.keys())
-    for key, d in zip(keys, dims):
-        cols = []
-        for i in range(d):
-            dv = np.zeros(d)
-            dv[i] = h
-            p, m = gtsam.VectorValues(), gtsam.VectorValues()
-            p.insert(key, dv)
-            m.insert(key, -dv)
-            cols.append((factor.whitenedError(values.retract(p)) - factor.whitenedError(values.retract(m))) / (2 * h))
-        out.append(np.array(cols).T)
-    return out
-
-
 def _analytic(factor, values, dims):
     A, _ = factor.linearize(values).jacobian()
     out, off = [], 0
@@ -99,7 +83,7 @@ def _analytic(factor, values, dims):
 
 
 def _check(factor, values, dims, rtol=1e-6):
-    for Hn, Ha in zip(_numeric(factor, values, dims), _analytic(factor, values, dims)):
+    for Hn, Ha in zip(factor_jacobians(factor, values, dims, H_STEP, whitened=True), _analytic(factor, values, dims)):
         scale = max(1.0, np.abs(Hn).max())
         assert np.abs(Hn - Ha).max() <= rtol * scale, np.abs(Hn - Ha).max()
 
@@ -134,18 +118,14 @@ def test_point_kinematics_jacobians_match_central_differences(robots, name):
     marker = np.array([0.02, 0.01, -0.03])
     q = rng.uniform(-1, 1, size=(5, leg.n_joints)) * 0.5
     pk = point_kinematics(leg, m, q, theta, marker)
+    num = numerical_jacobian(lambda t: point_kinematics(leg, m, q, t, marker).p_base_point, theta, H_STEP)
     for i in range(m.dim):
-        d = np.zeros(m.dim)
-        d[i] = H_STEP
-        num = (point_kinematics(leg, m, q, theta + d, marker).p_base_point
-               - point_kinematics(leg, m, q, theta - d, marker).p_base_point) / (2 * H_STEP)
-        assert np.abs(num - pk.J_theta[:, :, i]).max() < 1e-8, m.names[i]
+        assert np.abs(num[:, :, i] - pk.J_theta[:, :, i]).max() < 1e-8, m.names[i]
+    # the same step dq on every row of q: each row's point depends on its own joint angles only
+    num = numerical_jacobian(lambda dq: point_kinematics(leg, m, q + dq, theta, marker).p_base_point,
+                             np.zeros(leg.n_joints), H_STEP)
     for j in range(leg.n_joints):
-        d = np.zeros(leg.n_joints)
-        d[j] = H_STEP
-        num = (point_kinematics(leg, m, q + d, theta, marker).p_base_point
-               - point_kinematics(leg, m, q - d, theta, marker).p_base_point) / (2 * H_STEP)
-        assert np.abs(num - pk.J_q[:, :, j]).max() < 1e-8
+        assert np.abs(num[:, :, j] - pk.J_q[:, :, j]).max() < 1e-8
     # marker Jacobian is the foot rotation: moving the marker by dm moves the point by R dm
     dm = np.array([1e-3, -2e-3, 5e-4])
     moved = point_kinematics(leg, m, q, theta, marker + dm).p_base_point

@@ -110,6 +110,7 @@ def _sigma_and_error(out_dir, sim):
     return doc, np.array(s["covariance"]), sigma_body, xi
 
 
+@pytest.mark.slow
 def test_incremental_with_the_noise_a_batch_run_learned_reports_the_batch_sigma(tmp_path):
     session_a, _ = _session(tmp_path, 3)
     session_b, sim_b = _session(tmp_path, 103)

@@ -242,18 +242,16 @@ def test_bad_simulation_requests_are_named(kwargs, words):
 
 
 def test_a_users_own_hexapod_urdf_is_simulated_and_written_in_the_contract(tmp_path):
-    import custom_hexapod
-
     from graphcal.io.dataset import read_dataset, validate_dataset
     from graphcal.simulation.write import write_simulation
-    from graphcal.simulation.session import CustomRobot
+    from graphcal.testing import HEXAPOD_T_BODY_IMU, custom_hexapod
 
     config = SimulationConfig(robot="sidewinder", program="random", n_stations=10, n_sessions=3, seed=8,
-                              custom_robot=CustomRobot(custom_hexapod.urdf_xml(), custom_hexapod.info()),
+                              custom_robot=custom_hexapod(),
                               tilt_scale=0.6, **FAST)
     res = simulate(config)
     # the IMU is mounted turned by 90 deg: gravity must appear in the IMU frame, not the body's
-    R_body_imu = custom_hexapod.T_BODY_IMU[:3, :3]
+    R_body_imu = HEXAPOD_T_BODY_IMU[:3, :3]
     for r in res.stations:
         g_imu = (r.T_world_body_real[:3, :3] @ R_body_imu).T @ np.array([0, 0, GRAVITY_M_S2])
         assert np.linalg.norm(r.imu_accel - g_imu) < 0.15
@@ -272,17 +270,16 @@ def test_a_station_where_the_camera_saw_nothing_has_no_cloud_file(tmp_path):
     minimum range: an empty cloud. Before: write_simulation refused the whole dataset ("points:
     expected a non-empty (N, 3) array", 2 of the first 8 seeds of bench/calibration_nees.py
     --scenario unseen). Now the station has no cloud file, as a real recording would have none."""
-    import custom_hexapod
     import yaml
 
     from graphcal.calibration.calibrate import calibrate
     from graphcal.io.dataset import read_dataset
     from graphcal.simulation.write import write_simulation
-    from graphcal.simulation.session import CustomRobot
+    from graphcal.testing import custom_hexapod
 
     res = simulate(SimulationConfig(robot="sidewinder", program="random", n_stations=45, n_sessions=3, seed=604,
                                     tilt_scale=0.8, cloud_stride=8,
-                                    custom_robot=CustomRobot(custom_hexapod.urdf_xml(), custom_hexapod.info())))
+                                    custom_robot=custom_hexapod()))
     empty = sorted(k for k, v in res.clouds.items() if len(v) == 0)
     assert empty == [("front_cam", 23)]
     out = tmp_path / "ds"

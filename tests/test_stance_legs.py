@@ -15,7 +15,7 @@ import yaml
 from graphcal.calibration.calibrate import calibrate
 from graphcal.calibration.graph import CalibrationOptions
 from graphcal.commands.simulate import run as simulate_to_folder
-from test_calibration import errors, truth_T
+from graphcal.testing import extrinsic_errors, true_extrinsic
 
 TIBIA_JOINT = "lf_foot_joint"  # its origin is the lf tibia: lf_foot_joint.delta_m is the tibia length
 TIBIA_DELTA_M = 0.015
@@ -77,13 +77,13 @@ def test_every_other_leg_parameter_is_within_3_sigma_of_zero(stance_run):
 @pytest.mark.slow
 def test_extrinsic_keeps_its_accuracy_and_what_the_leg_variables_buy(stance_run):
     truth, with_legs, without_legs = stance_run
-    T_true = truth_T(truth, "depth")
-    ang, dist, z = errors(with_legs.sensors["depth"], T_true)
+    T_true = true_extrinsic(truth, "depth")
+    ang, dist, z = extrinsic_errors(with_legs.sensors["depth"], T_true)
     assert ang < 0.1 and dist < 2.0, (ang, dist)
     assert np.all(np.abs(z) < 3.0), z  # the reported sigma covers the error on every body axis
     assert with_legs.sensors["depth"].unobservable == ()
     # the same data with the nominal legs: the tibia and the offset bend the body poses, the
     # extrinsic absorbs them (measured 0.31 deg, 8 mm) and its sigma does not cover the error
-    ang0, dist0, z0 = errors(without_legs.sensors["depth"], T_true)
+    ang0, dist0, z0 = extrinsic_errors(without_legs.sensors["depth"], T_true)
     assert ang0 > 0.15 and dist0 > 4.0, (ang0, dist0)
     assert np.max(np.abs(z0)) > 10.0, z0

@@ -53,6 +53,7 @@ def test_the_simulated_walk_validates_without_warnings(short_walk):
     assert validate_dataset(short_walk).warnings == ()
 
 
+@pytest.mark.slow
 def test_level_walk_20_m_drift_below_1_percent(level20):
     _, _, m = level20
     assert m["truth"] is True
@@ -62,6 +63,7 @@ def test_level_walk_20_m_drift_below_1_percent(level20):
     assert m["icp_updates"] >= 30 and m["icp_rejected"] <= 0.1 * m["icp_updates"]
 
 
+@pytest.mark.slow
 def test_level_walk_filter_is_consistent(level20):
     """One run: NEES samples are correlated in time, so the single-sample 95 % band is the honest
     check of the mean (the Monte Carlo band is in test_ekf.py), with most samples inside it."""
@@ -74,6 +76,7 @@ def test_level_walk_filter_is_consistent(level20):
     assert m["icp_nis_mean"] < 2 * m["icp_dof_mean"]
 
 
+@pytest.mark.slow
 def test_stairs_drift_below_2_percent(stairs):
     _, out, m = stairs
     assert m["distance_m"] == pytest.approx(5.6, abs=0.2)
@@ -85,6 +88,7 @@ def test_stairs_drift_below_2_percent(stairs):
     assert m["icp_updates"] >= 8
 
 
+@pytest.mark.slow
 def test_stairs_treads_within_5_mm(stairs):
     """The issue's stair accuracy through the command: on the stairs walk, track models the stairs
     from its keyframe clouds placed with its own estimate (graphcal.locomotion.stairs) and stairs.json compares
@@ -234,6 +238,7 @@ def test_timeseries_and_truth_mistakes_are_named_not_integrated(short_walk, tmp_
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_track_output_folder_safety(short_walk, tmp_path, capsys):
     foreign = tmp_path / "foreign"
     foreign.mkdir()

@@ -4,21 +4,12 @@ Yuan et al.'s Table I simulation (A1 left-front leg) and the real TALOS arm data
 from __future__ import annotations
 
 import importlib.metadata
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
 DEG = np.pi / 180.0
-
-
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _has_talos_urdf() -> bool:
@@ -29,8 +20,8 @@ def _has_talos_urdf() -> bool:
     return any(str(f).replace("\\", "/").endswith("talos_data/robots/talos_reduced.urdf") for f in dist.files or ())
 
 
-def test_yuan2023_table_reproduction():
-    mod = _load("yuan2023_a1_identification")
+def test_yuan2023_table_reproduction(load_example):
+    mod = load_example("yuan2023_a1_identification.py")
     out = mod.main()
     mod._print(out)
     rows = {r["yuan"]: r for r in out["table"]}
@@ -73,8 +64,8 @@ def test_yuan2023_table_reproduction():
 
 @pytest.mark.skipif(not _has_talos_urdf(), reason="the TALOS example needs the PyPI package example-robot-data "
                                                   "(pip install 'graphcal[talos]'); it ships talos_reduced.urdf")
-def test_talos_arm_identification_real_data():
-    mod = _load("talos_arm_identification")
+def test_talos_arm_identification_real_data(load_example):
+    mod = load_example("talos_arm_identification.py")
     assert Path(mod.DEFAULT_DATA).is_file(), f"the TALOS measurements belong in the repository: {mod.DEFAULT_DATA}"
     out = mod.main()
     mod._print(out)
