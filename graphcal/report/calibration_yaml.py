@@ -261,7 +261,14 @@ def calibration_yaml_text(result, *, extra: Mapping[str, Any] | None = None) -> 
     doc = calibration_to_dict(result)
     if extra:
         doc.update(extra)
+    frames = doc.pop("frames", None)
     body = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, allow_unicode=True, width=200)
+    if frames is not None:  # a block of sentences, one a line, after base_frame
+        block = yaml.safe_dump({"frames": frames}, sort_keys=False, default_flow_style=False,
+                               allow_unicode=True, width=10_000)
+        at = body.index("\nbase_frame:") + 1
+        at = body.index("\n", at) + 1
+        body = body[:at] + block + body[at:]
     return _header(result) + body
 
 
