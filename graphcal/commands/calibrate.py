@@ -53,7 +53,7 @@ def collapsed_plane_scale_warnings(noise_groups, ground_roughness_m: float) -> t
         if ground_roughness_m > 0:
             why = (f"the planes scatter less than --ground-roughness-mm {1e3 * ground_roughness_m:.3g} alone allows "
                    f"for (their residuals are {g.data_scale:.2g} of their sigma), so the share of the fits' point noise "
-                   "went to zero and the plane noise is the roughness floor; the covariance is conservative. "
+                   "went to zero and the plane noise is the roughness floor, which then sets the extrinsic's sigma. "
                    "The ground looks smoother than that: try a smaller --ground-roughness-mm, or 0")
         else:
             why = (f"the planes scatter far less than the point noise of their fits predicts (their residuals are "
