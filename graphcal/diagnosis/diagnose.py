@@ -257,13 +257,15 @@ def _joint_cov(problem, values, keys) -> np.ndarray:
 
 
 def _params_text(params: dict) -> str:
-    """``{'tilt_rad': np.float64(0.02)}`` as ``tilt_rad=0.02`` (3 significant digits; SI) for progress lines."""
-    def one(v):
+    """``{'tilt_rad': np.float64(0.02)}`` as ``tilt_rad=0.02 (1.15 deg)`` (3 significant digits; SI, an
+    angle also in deg) for progress lines and notes."""
+    def one(k, v):
         try:
-            return f"{float(v):.3g}"
+            text = f"{float(v):.3g}"
         except (TypeError, ValueError):
             return str(v)
-    return ", ".join(f"{k}={one(v)}" for k, v in params.items())
+        return text + (f" ({np.degrees(float(v)):.3g} deg)" if k.endswith("_rad") else "")
+    return ", ".join(f"{k}={one(k, v)}" for k, v in params.items())
 
 
 def _parameters(cand: Candidate, model: DiagnosisModel, problem, values) -> tuple[dict, dict]:
@@ -466,7 +468,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
             say(f"{cand.label()}: significant (log10 p {sc.evidence.log10_p_family:.1f}) but below the catalogue's "
                 f"minimum size {_params_text(params)}: kept in the model as a nuisance, not named")
             notes.append(f"{cand.label()} is significant but below the catalogue's minimum size "
-                         f"({', '.join(f'{k}={v:.3g}' for k, v in params.items())}): estimated, not named")
+                         f"({_params_text(params)}): estimated, not named")
             problem, values = ext_problem, ext_values
             continue
         say(f"found {cand.label()}: {_params_text(params)} (sigma {_params_text(sig)}); LR {ev.statistic:.1f} on {ev.dof} dof"

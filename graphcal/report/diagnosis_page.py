@@ -145,7 +145,8 @@ def diagnosis_html(diag, doc: dict, title: str) -> str:
         Section("Residuals against the revealing covariate, before and after",
                 '<p class="small">θ and e_d here compare each measured plane with the one the model predicts from '
                 "the legs alone (the kinematic body pose), not with the fitted one of the Residuals table: the fitted "
-                "body poses absorb most of a discrepancy. Stations numbered as in stations.csv.</p>",
+                "body poses absorb most of a discrepancy. Stations numbered as in stations.csv.</p>"
+                if doc["findings"] else '<p class="small">Stations numbered as in stations.csv.</p>',
                 *(figure(fig, caption) for caption, fig in diagnosis_figures(diag))),
     ]
     ext = _extended_calibration(doc)
