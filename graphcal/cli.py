@@ -133,7 +133,10 @@ def _build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("extract-planes", help="fit planes to a dataset's clouds and write planes.csv", parents=[common])
     e.add_argument("dataset", type=Path, help=dataset_help)
     e.add_argument("--out", type=Path, default=None,
-                   help="planes.csv to write (default: DATASET/planes.csv, only if it does not exist)")
+                   help="planes file to write (default: DATASET/planes.csv, or DATASET/planes-extracted.csv beside "
+                        "the dataset's own planes.csv, which is kept)")
+    e.add_argument("--overwrite", action="store_true",
+                   help="replace --out (default: DATASET/planes.csv); the old file is kept as NAME.bak")
     e.add_argument("--max-planes", type=int, default=1, metavar="K",
                    help="planes to extract from each cloud, largest first (default 1: the ground; more for stairs)")
     e.add_argument("--plane-points", type=int, default=None, metavar="N",
@@ -223,7 +226,7 @@ def _cmd_extract_planes(args) -> str:
     from graphcal.commands import extract_planes
 
     return extract_planes.run(args.dataset, args.out, max_planes=args.max_planes, progress=not args.quiet,
-                              max_points=args.plane_points)
+                              max_points=args.plane_points, overwrite=args.overwrite)
 
 
 def _cmd_diagnose(args) -> str:

@@ -647,7 +647,7 @@ def test_html_report_is_self_contained_and_complete(html_page):
     assert "Octopus <test>" in text  # escaped in the source, readable in the text
     assert "tilt the body about its x axis" in text  # unobservable direction shown
     assert "lf_femur_joint.offset_rad" in text
-    assert "static_transform_publisher --x" in text
+    assert "static_transform_publisher \\\n    --x" in text  # over four lines, as the shell reads it
     assert "17" in text  # the outlier
     # the noise model: how each group's sigma was set, at the edge in mm / deg
     assert "too few dof" in text and "0.06 mm" in text and "0.038 deg" in text and "x1.01" in text

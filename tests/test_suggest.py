@@ -74,8 +74,9 @@ def test_the_command_reaches_chai_sigmas_with_half_the_stations(chai):
     last = text.splitlines()[-1].split()
     assert int(last[0]) == n
     sig = np.array([float(v) for v in last[7:13]])
-    # the table prints 3 decimals (deg) and 2 (mm): compare at that resolution
-    assert np.all(sig[:3] <= np.round(rot, 3) + 5e-4) and np.all(sig[3:] <= np.round(xyz, 2) + 5e-3), (sig, rot, xyz)
+    # the table prints 2 significant digits (deg: a prediction) and 2 decimals (mm): compare at that
+    # resolution (rounding 2 digits up adds at most 5 %)
+    assert np.all(sig[:3] <= rot * 1.05) and np.all(sig[3:] <= np.round(xyz, 2) + 5e-3), (sig, rot, xyz)
     with pytest.raises(GraphcalError, match="go together"):
         suggest_poses_command(ds.root, 5, sigma_target_deg=[0.01])
 

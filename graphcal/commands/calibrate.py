@@ -14,11 +14,52 @@ from graphcal.calibration.graph import CalibrationOptions, options_for_ground_ro
 from graphcal.errors import GraphcalError
 from graphcal.report.write import check_output_folder, write_calibration_outputs
 
-__all__ = ["run", "GROUP_WORDS"]
+__all__ = ["run", "GROUP_WORDS", "covariance_scale_text", "collapsed_plane_scale_warnings", "COLLAPSED_PLANE_SCALE"]
 
 #: noise groups (noise_estimation.py) in the words of calibrate's summary line
 GROUP_WORDS = {"stance_foot/joint": "joints", "stance_foot/contact": "contact", "imu": "IMU",
                "commanded": "commanded pose"}
+
+#: a learned plane noise scale below this has collapsed: the planes' residuals are explained without
+#: their fits' point noise (measured on the Octopus chai2015 demo: learned x0.64 on a flat floor;
+#: x2.6e-14 with --ground-roughness-mm 3, whose floor alone is 40x the residuals)
+COLLAPSED_PLANE_SCALE = 0.05
+
+
+def covariance_scale_text(scale: float) -> str:
+    """The summary's words for a sensor covariance multiplied by ``scale`` (a variance factor > 1,
+    :func:`graphcal.calibration.noise_check.given_noise_check`): the factor, the sigma factor, and
+    what they mean (it said "covariance x1 (its plane residuals outgrew ...)" for x1.004)."""
+    digits = ".3g" if scale >= 1.01 else ".4f"
+    return (f"covariance x{scale:{digits}} (sigma x{np.sqrt(scale):{digits}}): at their fixed point the plane "
+            f"residuals are {np.sqrt(scale):{digits}} times the given noise, so every sigma was scaled up"
+            + ("; negligible" if scale < 1.01 else ""))
+
+
+def collapsed_plane_scale_warnings(noise_groups, ground_roughness_m: float) -> tuple[str, ...]:
+    """A warning per sensor whose learned plane noise scale collapsed below
+    :data:`COLLAPSED_PLANE_SCALE` (``noise_groups``: :class:`~graphcal.calibration.result.NoiseGroupEstimate`;
+    ``ground_roughness_m``: calibrate's --ground-roughness-mm, in m). The scale multiplies the fit's
+    own point noise; with a roughness floor added to every plane the floor alone can exceed the
+    residuals, and the scale runs to ~0 ("plane:depth x5.49e-09" without a word)."""
+    out = []
+    for g in noise_groups:
+        if not g.group.startswith("plane:") or g.status == "given" or not g.fields:
+            continue
+        scale = g.fields[0][1]
+        if not scale < COLLAPSED_PLANE_SCALE:
+            continue
+        sensor = g.group.split(":", 1)[1]
+        if ground_roughness_m > 0:
+            why = (f"the planes scatter less than --ground-roughness-mm {1e3 * ground_roughness_m:.3g} alone allows "
+                   f"for (their residuals are {g.data_scale:.2g} of their sigma), so the share of the fits' point noise "
+                   "went to zero and the plane noise is the roughness floor, which then sets the extrinsic's sigma. "
+                   "The ground looks smoother than that: try a smaller --ground-roughness-mm, or 0")
+        else:
+            why = (f"the planes scatter far less than the point noise of their fits predicts (their residuals are "
+                   f"{g.data_scale:.2g} of their sigma); check the planes.csv covariances (too large?)")
+        out.append(f"{sensor}: learned plane noise scale x{scale:.2g} (near zero): {why}")
+    return tuple(out)
 
 
 def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,
@@ -63,6 +104,8 @@ def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, increme
             f"{noise_from} has no plane_scale:{name}: the plane noise of {name} is its own noise "
             "model, unscaled" for name in unscaled)
         result = dataclasses.replace(result, noise_source=str(noise_from), warnings=result.warnings + notes)
+    result = dataclasses.replace(result, warnings=result.warnings + collapsed_plane_scale_warnings(
+        result.noise_groups, ground_roughness_m))
     written = write_calibration_outputs(result, out_dir)
     lines = [f"calibrated {len(result.sensors)} sensor(s) from {dataset} ({result.solver}); wrote {out_dir}:"]
     for name, s in result.sensors.items():
@@ -97,11 +140,10 @@ def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, increme
     given = [g for g in result.noise_groups if g.status == "given"]
     if given:
         lines.append("  the residuals point to (given sigma x, one update at the solution): " + ", ".join(
-            f"{g.group} {g.data_scale:.2g}" for g in given))
+            f"{g.group} {g.data_scale:.3g}" for g in given))
     for name, s in result.sensors.items():
         if s.covariance_scale > 1.0:
-            lines.append(f"  {name}: covariance x{s.covariance_scale:.3g} "
-                         "(its plane residuals outgrew the given noise; the planes' variance factor at its fixed point)")
+            lines.append(f"  {name}: {covariance_scale_text(s.covariance_scale)}")
     if held:
         lines.append("  noise not learned: " + "; ".join(
             f"{g.group} {g.values_text()} ({g.status}, {g.dof:.1f} dof; "

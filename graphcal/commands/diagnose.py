@@ -13,7 +13,7 @@ from pathlib import Path
 
 from graphcal.io.atomic import atomic_directory, atomic_write_text, check_command_output
 from graphcal.diagnosis.diagnose import Diagnosis, diagnose
-from graphcal.report.diagnosis_page import diagnosis_html
+from graphcal.report.diagnosis_page import diagnosis_html, parameter_text, where_text
 
 __all__ = ["run", "write_diagnosis", "summary_text", "DIAGNOSIS_FILES"]
 
@@ -32,15 +32,24 @@ def summary_text(doc: dict, out: Path | None = None) -> str:
     if not doc["findings"]:
         lines.append("findings: none (no catalogued effect is significant)")
     for fd in doc["findings"]:
-        where = ", ".join(f"{k}={v}" for k, v in fd["where"].items())
-        params = ", ".join(f"{k}={v:.4g}±{fd['sigma'].get(k, float('nan')):.2g}" for k, v in fd["parameters"].items()
+        where = where_text(fd["where"]) if fd["where"] else ""
+        params = ", ".join(parameter_text(k, v, fd["sigma"].get(k, float("nan"))) for k, v in fd["parameters"].items()
                            if isinstance(v, float))
         g = fd["gain"]
-        gain = f"; held-out RMS {g['heldout_rms_before']:.3g} -> {g['heldout_rms_after']:.3g}" if g else ""
+        gain = (f"; held-out RMS {g['heldout_rms_before']:.3g} -> {g['heldout_rms_after']:.3g} sigma (whitened)"
+                if g else "")
         lines.append(f"found {fd['cause']}" + (f" ({where})" if where else "") + (f": {params}" if params else "")
                      + f"; LR {fd['evidence']['statistic']:.1f} on {fd['evidence']['dof']} dof{gain}")
     if doc["unexplained_structure"]:
         lines.append("structure remains that no catalogued effect explains")
+    for name, sensor in (doc.get("extended_calibration") or {}).get("sensors", {}).items():
+        sig = sensor.get("sigma", {})
+        lines.append(f"sensor pose of the diagnosis model: {name} xyz "
+                     f"{[round(v, 4) for v in sensor['T_body_sensor']['xyz']]} m, sigma rot "
+                     f"{[float(f'{v:.2g}') for v in sig.get('rot_deg', [])]} deg, xyz "
+                     f"{[float(f'{v:.2g}') for v in sig.get('xyz_mm', [])]} mm (noise held at physical defaults, "
+                     "not calibrate's learned noise: its sigma is larger; for the extrinsic use calibrate's "
+                     "calibration.yaml; diagnosis.json extended_calibration.note)")
     if out is not None:
         lines.append(f"wrote {out / 'diagnosis.json'} and {out / 'report.html'}")
     return "\n".join(lines)

@@ -12,10 +12,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from graphcal.errors import GraphcalError
 from graphcal.legs.identify import MOCAP_COMPONENTS, IdentifyOptions, identify_legs_dataset
 
-__all__ = ["run", "parse_mocap_free"]
+__all__ = ["run", "parse_mocap_free", "parameter_text"]
 
 _STAGES = 7  # read, start, before, identifiability, after, covariance, write
 
@@ -81,8 +83,7 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, mocap_fr
         lines.append(f"  {foot}: marker RMSE {b:.2f} mm (nominal legs) -> {a:.2f} mm (identified)")
         for p in params:
             if p.free:
-                unit, f = ("deg", 57.29577951308232) if p.name.endswith("_rad") else ("mm", 1000.0)
-                lines.append(f"    {p.name} = {f * p.value:+.3f} ± {f * p.sigma:.3f} {unit}")
+                lines.append(f"    {parameter_text(p.name, p.value, p.sigma)}")
     held = [p for p in result.identifiability.parameters if not p.free]
     if held:
         lines.append("  held at their nominal value: " + ", ".join(f"{p.name} ({p.status})" for p in held))
@@ -90,3 +91,14 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, mocap_fr
         lines.append(f"  warning: {w}")
     lines.append("  files: " + ", ".join(sorted(p.name for p in written.values())))
     return "\n".join(lines)
+
+
+def parameter_text(name: str, value: float, sigma: float) -> str:
+    """``name`` (a legs.yaml key, SI: ``..._rad`` or ``..._m``) with ``value`` ± ``sigma`` in deg or mm,
+    the unit suffix of the name changed with them (it printed degrees under ``offset_rad``)."""
+    base, _, unit = name.rpartition("_")
+    if unit == "rad":
+        return f"{base}_deg = {np.degrees(value):+.3f} ± {np.degrees(sigma):.3f} deg"
+    if unit == "m":
+        return f"{base}_mm = {1e3 * value:+.3f} ± {1e3 * sigma:.3f} mm"
+    return f"{name} = {value:+.4g} ± {sigma:.2g}"

@@ -183,6 +183,7 @@ def run(
         leg_error_sigma_m=0.003 if leg_errors else 0.0,
         session_heading_step_deg=session_heading_step_deg,
     )
+    _refuse_without_sensors(config)
     combined = Effects()
     for cause, params in effects:
         combined = merge(combined, effect_from_words(cause, params, seed=seed, config=config))
@@ -200,6 +201,19 @@ def run(
         f"({program} program, {ground} ground); sensors: {', '.join(result.sensor_cad) or 'none'}; "
         f"{len(clouds)} clouds, {n_planes} planes; hidden effects: {hidden}; truth in {out_dir / 'truth.yaml'}"
     )
+
+
+def _refuse_without_sensors(config: SimulationConfig) -> None:
+    """A station program simulates what the robot's sensors see of the ground; a robot without an
+    exteroceptive sensor (the a1) gave a dataset that validate called valid and calibrate refused."""
+    from graphcal.models.builtin import builtin_info
+
+    if config.custom_robot is not None or config.sensors:
+        return
+    if not builtin_info(config.robot).sensors:
+        raise GraphcalError(f"--robot {config.robot} has no exteroceptive sensor (camera or laser), so the station "
+                            f"program {config.program} has nothing to calibrate; for the {config.robot} use "
+                            f"--program {MOCAP_PROGRAM} (a leg in a motion-capture room, for identify-legs)")
 
 
 def check_simulation_overwrite(out_dir: Path) -> None:

@@ -12,7 +12,13 @@ from graphcal.calibration.suggest import MIN_SEPARATION_DEG, N_CANDIDATES, PoseI
 from graphcal.errors import GraphcalError
 from graphcal.geometry import xyz_quat_wxyz_from_pose
 
-__all__ = ["run"]
+__all__ = ["run", "POSE_FRAME_TEXT"]
+
+#: the frame of the table's pose columns (suggest.py: ``T_stance_body``)
+POSE_FRAME_TEXT = ("pose columns: the body in the dataset's world frame (that of stations.csv's body_* columns, "
+                   "z up; a simulated dataset's first stance): roll, pitch, yaw as R = Rz(yaw) Ry(pitch) Rx(roll) "
+                   "about its fixed axes (deg); height, x, y the body origin's z, x, y (m); sigma to 2 digits "
+                   "(a prediction)")
 
 
 def run(dataset, k: int, out: str | Path | None = None, *, after_existing: bool = False,
@@ -74,7 +80,7 @@ def run(dataset, k: int, out: str | Path | None = None, *, after_existing: bool 
         s_rot, s_xyz = model.sigmas(model.prior_information() + Lam)
         unseen = len(model.existing_T) - n_done
         head = [f"the dataset's first session: {n_done} station(s) with a plane of {model.sensor}, predicted sigma "
-                f"rot {' '.join(f'{v:.3f}' for v in s_rot)} deg, xyz {' '.join(f'{v:.2f}' for v in s_xyz)} mm"
+                f"rot {' '.join(f'{v:.2g}' for v in s_rot)} deg, xyz {' '.join(f'{v:.2f}' for v in s_xyz)} mm"
                 + (f" ({unseen} more with a plane lie outside the visibility model, {model.visibility_text()}: "
                    "not counted)" if unseen > 0 else ""),
                 f"suggested stations to add: {{n}} (greedy D-optimal; sigma = predicted 1-sigma of the extrinsic "
@@ -98,6 +104,7 @@ def run(dataset, k: int, out: str | Path | None = None, *, after_existing: bool 
             np.all(poses[-1].sigma_xyz_mm <= targets[1] * (1 + 1e-9))
         head.append(f"targets reached with {len(poses)} station(s)" if reached else
                     f"targets not reached with {k} station(s): raise -k, or the targets")
+    head.append(POSE_FRAME_TEXT)
     lines = [noise_line] + head + [
              f"{'rank':>4} {'roll':>7} {'pitch':>7} {'yaw':>7} {'height':>7} {'x':>7} {'y':>7}  "
              f"{'sigma rot x/y/z (deg)':>23}  {'sigma xyz (mm)':>20}",
@@ -105,7 +112,7 @@ def run(dataset, k: int, out: str | Path | None = None, *, after_existing: bool 
     for p in poses:
         x, y = p.T_stance_body[0, 3], p.T_stance_body[1, 3]
         lines.append(f"{p.rank:>4} {p.roll_deg:>7.2f} {p.pitch_deg:>7.2f} {p.yaw_deg:>7.2f} {p.height_m:>7.3f} "
-                     f"{x:>7.3f} {y:>7.3f}  {' '.join(f'{v:7.3f}' for v in p.sigma_rot_deg)}  "
+                     f"{x:>7.3f} {y:>7.3f}  {' '.join(f'{v:7.2g}' for v in p.sigma_rot_deg)}  "
                      f"{' '.join(f'{v:6.2f}' for v in p.sigma_xyz_mm)}")
     if out is not None:
         from graphcal.io.atomic import atomic_write_text, make_parent_folder

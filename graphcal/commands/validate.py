@@ -2,14 +2,31 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from graphcal.io.dataset import validate_dataset
 
-__all__ = ["run"]
+__all__ = ["run", "command_warnings"]
+
+
+def command_warnings(report) -> tuple[str, ...]:
+    """What the commands will refuse in a dataset the contract allows (``report``: a
+    :class:`~graphcal.io.dataset.validate.ValidationReport`): stations without any sensor (a robot
+    without camera or laser) give calibrate, diagnose and suggest-poses nothing to work on."""
+    if report.n_sensors == 0 and report.n_stations > 0 and report.n_mocap_rows == 0:
+        return ("stations but no sensor in dataset.yaml: calibrate, diagnose and suggest-poses need at least one "
+                "camera or laser scanner and refuse this dataset (a leg measured by motion capture: mocap.csv, "
+                "identify-legs)",)
+    return ()
 
 
 def run(dataset: str | Path) -> str:
-    """Validate the dataset folder ``dataset``; returns the report's summary. Bad input raises
+    """Validate the dataset folder ``dataset``; returns the report's summary (with a warning for what
+    the commands would refuse, :func:`command_warnings`). Bad input raises
     :class:`~graphcal.errors.DatasetError` naming the file and field."""
-    return validate_dataset(dataset).summary()
+    report = validate_dataset(dataset)
+    extra = command_warnings(report)
+    if extra:
+        report = dataclasses.replace(report, warnings=tuple(report.warnings) + extra)
+    return report.summary()

@@ -30,7 +30,7 @@ from graphcal.diagnosis.catalogue import Candidate, Finding, relevant
 from graphcal.diagnosis.model import DiagnosisModel, chi2_of, model_options
 from graphcal.diagnosis.scores import CandidateColumns, current_columns, evidence, linear_system, score_candidates
 
-__all__ = ["Diagnosis", "diagnose", "ALPHA", "MAX_FINDINGS"]
+__all__ = ["Diagnosis", "diagnose", "extended_calibration_note", "ALPHA", "MAX_FINDINGS"]
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +70,8 @@ class Diagnosis:
             than outliers can explain, or a fitted cause had an impossible size (wrong data).
         structure_test: (chi2, redundancy, p) of that test, or None when no plane has a covariance.
         screening: per round, the top candidates as (label, log10 family p, statistic, dof).
+        thresholds: per round, the log10 family p a candidate must fall below to be fitted
+            (``log10(alpha / causes tested)``).
         model: the final DiagnosisModel; values: its solution; problem: its graph.
         residuals_before, residuals_after: per-measurement residual records for the plots.
         noise: the learned noise of the final model.
@@ -90,6 +92,7 @@ class Diagnosis:
     stance_after: tuple = ()
     notes: tuple = field(default=())
     nuisance: tuple = field(default=())
+    thresholds: tuple = field(default=())
 
     def to_json(self) -> dict:
         from graphcal.calibration.result import calibration_result
@@ -106,13 +109,29 @@ class Diagnosis:
             "unexplained_structure": bool(self.unexplained_structure),
             "structure_test": None if self.structure_test is None else
             {"chi2": self.structure_test[0], "redundancy": self.structure_test[1], "p_value": self.structure_test[2]},
-            "extended_calibration": {"sensors": cal.get("sensors", {}), "legs": cal.get("legs", {}),
+            "extended_calibration": {"note": extended_calibration_note(self.model.options),
+                                     "sensors": cal.get("sensors", {}), "legs": cal.get("legs", {}),
                                      **_extension_values(self)},
             "screening": [[{"candidate": c, "log10_p_family": p, "statistic": s, "dof": d} for c, p, s, d in r]
                           for r in self.screening],
+            "screening_threshold_log10_p": list(self.thresholds),
             "nuisance": list(self.nuisance),
             "notes": list(self.notes),
         }
+
+
+def extended_calibration_note(options) -> str:
+    """Why ``extended_calibration`` differs from calibrate's calibration.yaml (``options``: the
+    diagnosis model's :class:`~graphcal.calibration.graph.CalibrationOptions`, SI). Measured on the
+    Octopus demo (scripts/demo): rotation sigma 0.035/0.028/0.0028 deg here against calibrate's
+    0.0023/0.0023/0.0026, translation 0.20/0.24/0.75 mm against 0.07/0.08/0.035; poses 0.2 mm apart."""
+    return (f"The diagnosis model's own fit, not calibrate's: it holds the foot-height "
+            f"({1e3 * options.sigma_ground_m:.3g} mm), commanded-pose ({np.degrees(options.sigma_commanded_rad):.3g} deg, "
+            f"{1e3 * options.sigma_commanded_m:.3g} mm) and IMU ({np.degrees(options.sigma_imu_rad):.3g} deg) sigmas at "
+            "physical defaults (calibrate learns them from the data, usually far smaller) and has no robust loss, so "
+            "its sigma is larger (up to ~20x on the Octopus demo) and its pose differs from calibrate's (on the demo by "
+            "0.2 mm, within this sigma; more when a finding modelled here is not modelled there). For the extrinsic "
+            "use calibrate's calibration.yaml; these are the values with the findings modelled.")
 
 
 def _extension_values(diag: Diagnosis) -> dict:
@@ -238,13 +257,15 @@ def _joint_cov(problem, values, keys) -> np.ndarray:
 
 
 def _params_text(params: dict) -> str:
-    """``{'tilt_rad': np.float64(0.02)}`` as ``tilt_rad=0.02`` (3 significant digits; SI) for progress lines."""
-    def one(v):
+    """``{'tilt_rad': np.float64(0.02)}`` as ``tilt_rad=0.02 (1.15 deg)`` (3 significant digits; SI, an
+    angle also in deg) for progress lines and notes."""
+    def one(k, v):
         try:
-            return f"{float(v):.3g}"
+            text = f"{float(v):.3g}"
         except (TypeError, ValueError):
             return str(v)
-    return ", ".join(f"{k}={one(v)}" for k, v in params.items())
+        return text + (f" ({np.degrees(float(v)):.3g} deg)" if k.endswith("_rad") else "")
+    return ", ".join(f"{k}={one(k, v)}" for k, v in params.items())
 
 
 def _parameters(cand: Candidate, model: DiagnosisModel, problem, values) -> tuple[dict, dict]:
@@ -372,6 +393,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         f"chi2/dof {nominal.chi2_per_dof:.2f}")
     findings: list[Finding] = []
     screening = []
+    thresholds: list[float] = []
     notes: list[str] = []
     rejected: set = set()
     too_many_outliers = False
@@ -386,6 +408,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         scores = score_candidates(system, cands)
         causes_tested = len({s.candidate.cause for s in scores}) or 1
         threshold = np.log10(alpha / causes_tested)
+        thresholds.append(float(threshold))
         scores.sort(key=lambda s: (s.evidence.log10_p_family, -s.evidence.statistic))
         screening.append(tuple((s.candidate.label(), s.evidence.log10_p_family, s.evidence.statistic,
                                 s.evidence.dof) for s in scores[:8]))
@@ -445,7 +468,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
             say(f"{cand.label()}: significant (log10 p {sc.evidence.log10_p_family:.1f}) but below the catalogue's "
                 f"minimum size {_params_text(params)}: kept in the model as a nuisance, not named")
             notes.append(f"{cand.label()} is significant but below the catalogue's minimum size "
-                         f"({', '.join(f'{k}={v:.3g}' for k, v in params.items())}): estimated, not named")
+                         f"({_params_text(params)}): estimated, not named")
             problem, values = ext_problem, ext_values
             continue
         say(f"found {cand.label()}: {_params_text(params)} (sigma {_params_text(sig)}); LR {ev.statistic:.1f} on {ev.dof} dof"
@@ -479,7 +502,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     return Diagnosis(nominal, final, tuple(findings), unexplained, st, tuple(screening), model, values, problem,
                      residual_records(nominal_model, nominal_problem, nominal_values),
                      residual_records(model, problem, values), stance_records(nominal_model, nominal_problem, nominal_values),
-                     stance_records(model, problem, values), tuple(notes), tuple(nuisance))
+                     stance_records(model, problem, values), tuple(notes), tuple(nuisance), tuple(thresholds))
 
 
 def _likelihood_ratio(sc, cand: Candidate, significant: list, current: tuple, extended: tuple) -> tuple:

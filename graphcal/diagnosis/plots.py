@@ -5,14 +5,14 @@ before (nominal model) and after (extended model). matplotlib without pyplot, as
 cause                  what is drawn
 =====================  =========================================================================
 sensor_range_scale     distance error e_d (mm) against the measured range d (m)
-session_offset         e_d against the station index, coloured by session
-ground_tilt            angle error theta (deg) against the station index, coloured by session
+session_offset         e_d against the station number, coloured by session
+ground_tilt            angle error theta (deg) against the station number, coloured by session
                        (the heading changes between sessions)
 imu_misalignment       theta against the body tilt (deg)
-joint_offset,          whitened stance-foot residual of the named leg against the station index,
+joint_offset,          whitened stance-foot residual of the named leg against the station number,
 link_length            the other legs in grey
-extrinsic_change       theta and e_d against the station index, the change marked
-outlier_stations       whitened measurement residual against the station index, the stations marked
+extrinsic_change       theta and e_d against the station number, the change marked
+outlier_stations       whitened measurement residual against the station number, the stations marked
 =====================  =========================================================================
 """
 
@@ -27,6 +27,12 @@ from graphcal.report.plots import MARK_COLOR as _MARK
 from graphcal.report.plots import new_figure
 
 __all__ = ["diagnosis_figures"]
+
+#: axis labels: stations numbered as in stations.csv (as calibrate's plots); theta and e_d of the
+#: plane predicted from the legs alone (residuals.py), not the fitted one
+_STATION = "station (as in stations.csv)"
+_THETA = "θ, legs' prediction [deg]"
+_ED = "e_d, legs' prediction [mm]"
 
 
 def _xy(records, x: str, y: str, sensor=None):
@@ -62,27 +68,27 @@ def _finding_figure(diag, f) -> tuple[str, Figure]:
     b, a = diag.residuals_before, diag.residuals_after
     label = c.label()
     if c.cause == "sensor_range_scale":
-        _pair(fig, b, a, "range_m", "distance_mm", "measured plane distance d [m]", "e_d [mm]", label, sensor=c.get("sensor"))
+        _pair(fig, b, a, "range_m", "distance_mm", "measured plane distance d [m]", _ED, label, sensor=c.get("sensor"))
         cap = "distance error against the measured range: a range scale makes it grow with the range"
     elif c.cause == "session_offset":
-        _pair(fig, b, a, "index", "distance_mm", "station (dataset order)", "e_d [mm]", label, color_by="session")
+        _pair(fig, b, a, "station", "distance_mm", _STATION, _ED, label, color_by="session")
         cap = "distance error per station, by session: one session's body height differs"
     elif c.cause == "ground_tilt":
-        _pair(fig, b, a, "index", "angle_deg", "station (dataset order)", "theta [deg]", label, color_by="session")
+        _pair(fig, b, a, "station", "angle_deg", _STATION, _THETA, label, color_by="session")
         cap = "angle error per station, by session: a tilted floor shows as the robot turns between sessions"
     elif c.cause == "imu_misalignment":
-        _pair(fig, b, a, "tilt_deg", "angle_deg", "body tilt [deg]", "theta [deg]", label)
+        _pair(fig, b, a, "tilt_deg", "angle_deg", "body tilt [deg]", _THETA, label)
         cap = "angle error against the body tilt"
     elif c.cause in ("joint_offset", "link_length"):
         axes = fig.subplots(1, 2, sharey=True)
         for ax, recs, name in ((axes[0], diag.stance_before, "nominal model"), (axes[1], diag.stance_after, "extended model")):
             for leg in dict.fromkeys(r.leg for r in recs):
-                xs = [r.index for r in recs if r.leg == leg]
+                xs = [r.station for r in recs if r.leg == leg]
                 ys = [r.whitened for r in recs if r.leg == leg]
                 named = leg == c.get("leg")
                 ax.plot(xs, ys, "o-" if named else ".", ms=3.5 if named else 2.5, lw=0.8,
                         color=_MARK if named else _BEFORE, label=leg if named else None, zorder=3 if named else 1)
-            ax.set_xlabel("station (dataset order)")
+            ax.set_xlabel(_STATION)
             ax.set_title(name, fontsize=9)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
@@ -92,18 +98,18 @@ def _finding_figure(diag, f) -> tuple[str, Figure]:
     elif c.cause == "extrinsic_change":
         # cameras: the plane's angle error; laser scans (no plane angle): the RMS range residual
         has_angle = any(np.isfinite(r.angle_deg) for r in b if r.sensor == c.get("sensor"))
-        y, ylabel = ("angle_deg", "theta [deg]") if has_angle else ("distance_mm", "range residual RMS [mm]")
-        axes = _pair(fig, b, a, "index", y, "station (dataset order)", ylabel, label, sensor=c.get("sensor"))
-        k = next((r.index for r in b if r.station == int(c.get("station"))), None)
-        if k is not None:
+        y, ylabel = ("angle_deg", _THETA) if has_angle else ("distance_mm", "range residual RMS [mm]")
+        axes = _pair(fig, b, a, "station", y, _STATION, ylabel, label, sensor=c.get("sensor"))
+        k = int(c.get("station"))
+        if any(r.station == k for r in b):
             for ax in axes:
                 ax.axvline(k - 0.5, color=_MARK, ls="--", lw=1.0)
         cap = "residual per station: the sensor moved at the dashed line"
     else:  # outlier stations
-        axes = _pair(fig, b, a, "index", "whitened", "station (dataset order)", "measurement residual (whitened RMS)", label)
+        axes = _pair(fig, b, a, "station", "whitened", _STATION, "measurement residual (whitened RMS)", label)
         bad = {int(s) for s in c.get("stations")}
         for ax, recs in zip(axes, (b, a)):
-            xs = [r.index for r in recs if r.station in bad]
+            xs = [r.station for r in recs if r.station in bad]
             ys = [r.whitened for r in recs if r.station in bad]
             ax.plot(xs, ys, "o", mfc="none", mec=_MARK, ms=9)
         cap = "measurement residual per station: the outlier stations circled"
@@ -115,7 +121,7 @@ def diagnosis_figures(diag) -> list[tuple[str, Figure]]:
     out = [_finding_figure(diag, f) for f in diag.findings]
     if not out:
         fig = new_figure(9.0, 3.4)
-        _pair(fig, diag.residuals_before, diag.residuals_after, "index", "whitened", "station (dataset order)",
+        _pair(fig, diag.residuals_before, diag.residuals_after, "station", "whitened", _STATION,
               "measurement residual (whitened RMS)", "no finding")
         out.append(("measurement residual per station (left: nominal model, right: final model)", fig))
     return out

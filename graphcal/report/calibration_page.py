@@ -201,7 +201,8 @@ def report_html(result, *, title: str = "graphcal calibration report") -> str:
                     f"robust loss: {_e(', '.join(str(int(s)) for s in sorted(result.outliers)))}.</p>")
     else:
         outliers = "<p>None: no station was down-weighted by the robust loss.</p>"
-    cmds = "\n".join(static_transform_publisher_command(base, str(n), s.T_body_sensor) for n, s in result.sensors.items())
+    cmds = "\n".join(static_transform_publisher_command(base, str(n), s.T_body_sensor, sep=" \\\n    ")
+                     for n, s in result.sensors.items())  # over four lines: one overflowed its box
     sections = [
         Section("Sensors", *(_sensor_section(str(name), s, base) for name, s in result.sensors.items())),
         Section("Legs", _legs_section(result)),

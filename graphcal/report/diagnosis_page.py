@@ -1,12 +1,18 @@
 """The ``report.html`` of ``graphcal diagnose``: findings, evidence, held-out gain, and per finding the
-residuals against the covariate that reveals its cause, before and after (one page of
+residuals against the covariate that reveals its cause, before and after; the calibration of the
+extended model with why it differs from calibrate's; the screening with its threshold (one page of
 :mod:`graphcal.report.page`)."""
 
 from __future__ import annotations
 
+import math
+
 from graphcal.report.page import Section, esc, figure, render_page
 
-__all__ = ["diagnosis_html"]
+__all__ = ["diagnosis_html", "where_text", "parameter_text", "HELDOUT_UNITS"]
+
+#: what the held-out RMS is measured in (heldout.py: whitened prediction errors)
+HELDOUT_UNITS = "whitened: in sigmas of the held-out measurements"
 
 
 def _fmt(v) -> str:
@@ -15,6 +21,40 @@ def _fmt(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(esc(v))
+
+
+def where_text(where: dict) -> str:
+    """A finding's location as words (``joint rm_tibia_joint, leg rm_foot``; "—" for none), plain text."""
+    if not where:
+        return "—"
+    return ", ".join(f"{k} {', '.join(map(str, v)) if isinstance(v, (list, tuple)) else v}" for k, v in where.items())
+
+
+def _scaled(v, f: float):
+    if isinstance(v, (list, tuple)):
+        return [_scaled(x, f) for x in v]
+    return f * v if isinstance(v, (int, float)) else v
+
+
+def _num(v, spec: str) -> str:
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_num(x, spec) for x in v) + "]"
+    if isinstance(v, (int, float)) and math.isfinite(v):
+        return format(v, spec)
+    return str(v)
+
+
+def parameter_text(name: str, value, sigma=None) -> str:
+    """``name = value ± sigma unit`` (plain text): SI values (``_rad``, ``_m``) also in deg and mm,
+    the name's unit suffix changed with them (``offset_deg = 2.17 ± 0.03 (0.0379 rad)``)."""
+    base, _, unit = name.rpartition("_")
+    conv = {"rad": ("deg", 180.0 / math.pi), "m": ("mm", 1000.0)}.get(unit)
+    sig = "" if sigma is None else f" ± {_num(sigma, '.2g')}"
+    if conv is None or not base:
+        return f"{name} = {_num(value, '.4g')}{sig}"
+    new_unit, f = conv
+    sig_new = "" if sigma is None else f" ± {_num(_scaled(sigma, f), '.2g')}"
+    return f"{base}_{new_unit} = {_num(_scaled(value, f), '.4g')}{sig_new} {new_unit} ({_num(value, '.4g')} {unit})"
 
 
 def _findings(doc: dict) -> list[str]:
@@ -31,18 +71,61 @@ def _findings_table(doc: dict) -> list[str]:
     if not doc["findings"]:
         return ["<p>None: no catalogued effect is significant; the nominal model is adequate.</p>"]
     out = ['<table><tr><th class="l">cause</th><th class="l">where</th><th class="l">parameters (± 1σ)</th>'
-           '<th class="l">evidence</th><th>held-out RMS before → after</th></tr>']
+           '<th class="l">evidence</th><th>held-out RMS before → after [σ] (after / before)</th></tr>']
     for fd in doc["findings"]:
-        params = "<br>".join(f"{esc(k)} = {_fmt(v)} ± {_fmt(fd['sigma'].get(k, float('nan')))}"
+        params = "<br>".join(esc(parameter_text(k, v, fd["sigma"].get(k, float("nan"))))
                              for k, v in fd["parameters"].items())
         ev = fd["evidence"]
         g = fd["gain"]
         gain = f"{_fmt(g['heldout_rms_before'])} → {_fmt(g['heldout_rms_after'])} ({_fmt(g['relative'])})" if g else "-"
-        out.append(f'<tr><td class="l"><b>{esc(fd["cause"])}</b></td><td class="l">{_fmt(fd["where"])}</td>'
+        out.append(f'<tr><td class="l"><b>{esc(fd["cause"])}</b></td><td class="l">{esc(where_text(fd["where"]))}</td>'
                    f'<td class="l">{params}</td><td class="l">LR {_fmt(ev["statistic"])} on {ev["dof"]} dof, '
                    f"p(family) = {_fmt(ev['p_family'])}, ΔBIC {_fmt(ev['delta_bic'])}</td><td>{gain}</td></tr>")
     out.append("</table>")
+    out.append(f'<p class="small">Parameters in SI as in diagnosis.json (rad, m), with deg and mm. Held-out RMS: '
+               f"{HELDOUT_UNITS}, predicted by a model fitted without them (two folds by station), before and "
+               "after the finding is modelled; below 1 in the last column: it predicts unseen data better.</p>")
     return out
+
+
+def _extended_calibration(doc: dict) -> list[str]:
+    ext = doc.get("extended_calibration") or {}
+    sensors = ext.get("sensors") or {}
+    if not sensors:
+        return []
+    out = ['<table><tr><th class="l">sensor</th><th>x [mm]</th><th>y [mm]</th><th>z [mm]</th><th>roll [deg]</th>'
+           "<th>pitch [deg]</th><th>yaw [deg]</th><th>1-σ rot about body x/y/z [deg]</th>"
+           "<th>1-σ along body x/y/z [mm]</th></tr>"]
+    for name, s in sensors.items():
+        pose, sig = s.get("T_body_sensor", {}), s.get("sigma", {})
+        xyz = [1000.0 * v for v in pose.get("xyz", [])]
+        cells = [f"{v:.2f}" for v in xyz] + [f"{v:.3f}" for v in pose.get("rpy_deg", [])]
+        out.append(f'<tr><td class="l"><code>{esc(name)}</code></td>' + "".join(f"<td>{c}</td>" for c in cells)
+                   + f"<td>{' / '.join(f'{v:.2g}' for v in sig.get('rot_deg', []))}</td>"
+                   + f"<td>{' / '.join(f'{v:.2g}' for v in sig.get('xyz_mm', []))}</td></tr>")
+    out.append("</table>")
+    if ext.get("note"):
+        out.append(f'<div class="warn">{esc(ext["note"])}</div>')
+    return out
+
+
+def _screening(doc: dict) -> list[str]:
+    thresholds = doc.get("screening_threshold_log10_p") or []
+    t = thresholds[0] if thresholds else None
+    rows = ['<table><tr><th class="l">candidate</th><th>statistic</th><th>dof</th><th>log10 p (family)</th>'
+            + ("<th>below the threshold</th>" if t is not None else "") + "</tr>"]
+    for r in doc["screening"][0]:
+        below = "" if t is None else f"<td>{'yes' if r['log10_p_family'] < t else 'no'}</td>"
+        rows.append(f'<tr><td class="l">{esc(r["candidate"])}</td><td>{_fmt(r["statistic"])}</td><td>{r["dof"]}</td>'
+                    f"<td>{_fmt(r['log10_p_family'])}</td>{below}</tr>")
+    rows.append("</table>")
+    if t is not None:
+        rows.append(f'<p class="small">The eight strongest candidates of the first round (score tests: chi-square '
+                    f"statistic on dof, p multiplied by the locations tested for that cause). Threshold: log10 p "
+                    f"(family) &lt; {t:.2f}, i.e. alpha = 0.001 divided by the causes tested; the strongest candidate "
+                    "below it is fitted, and named when its likelihood-ratio test agrees and its size reaches the "
+                    "catalogue's minimum (docs/diagnosis.md).</p>")
+    return rows
 
 
 def diagnosis_html(diag, doc: dict, title: str) -> str:
@@ -60,13 +143,15 @@ def diagnosis_html(diag, doc: dict, title: str) -> str:
         Section("Residuals", *res),
         Section("Findings", *_findings(doc)),
         Section("Residuals against the revealing covariate, before and after",
+                '<p class="small">θ and e_d here compare each measured plane with the one the model predicts from '
+                "the legs alone (the kinematic body pose), not with the fitted one of the Residuals table: the fitted "
+                "body poses absorb most of a discrepancy. Stations numbered as in stations.csv.</p>"
+                if doc["findings"] else '<p class="small">Stations numbered as in stations.csv.</p>',
                 *(figure(fig, caption) for caption, fig in diagnosis_figures(diag))),
     ]
+    ext = _extended_calibration(doc)
+    if ext:
+        sections.append(Section("Sensor poses of the diagnosis model (not calibrate's)", *ext))
     if doc["screening"]:
-        rows = ['<table><tr><th class="l">candidate</th><th>statistic</th><th>dof</th><th>log10 p (family)</th></tr>']
-        for r in doc["screening"][0]:
-            rows.append(f'<tr><td class="l">{esc(r["candidate"])}</td><td>{_fmt(r["statistic"])}</td><td>{r["dof"]}</td>'
-                        f"<td>{_fmt(r['log10_p_family'])}</td></tr>")
-        rows.append("</table>")
-        sections.append(Section("Screening (score tests), first round", *rows))
+        sections.append(Section("Screening (score tests), first round", *_screening(doc)))
     return render_page(title, sections, footer="Written by graphcal diagnose. Method: docs/diagnosis.md.")

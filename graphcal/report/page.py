@@ -32,7 +32,7 @@ th{background:#f3f3f3}td.l,th.l{text-align:left}
 ul.facts{padding-left:1.2em}ul.facts li{margin:.15em 0}
 .warn{background:#fff4e5;border:1px solid #f0a030;border-left:6px solid #f0a030;padding:.6em 1em;margin:.6em 0}
 .ok{color:#2a7a2a}
-pre{background:#f6f6f6;border:1px solid #ddd;padding:.6em;overflow-x:auto;font-size:.8em}
+pre{background:#f6f6f6;border:1px solid #ddd;padding:.6em;font-size:.8em;white-space:pre-wrap;overflow-wrap:anywhere}
 code{font-size:.92em}
 figure{margin:1em 0}figure img{max-width:100%;height:auto;border:1px solid #eee}
 figcaption{font-size:.85em;color:#555}

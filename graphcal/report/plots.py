@@ -9,8 +9,8 @@ renders one with the Agg canvas.
 * :func:`plot_distance_errors` -- Chai 2015 Fig. 18: distance error ``e_d = |d_T - d_M|`` (mm).
 * :func:`plot_residual_histogram` -- histograms of theta or e_d, before and after.
 * :func:`plot_covariance_ellipse` / :func:`plot_sensor_covariance` -- 1-sigma and 3-sigma ellipses
-  of pairs of body axes (x-y, x-z, y-z in mm; roll-pitch, roll-yaw, pitch-yaw in deg, i.e.
-  rotations about the body x, y, z axes).
+  of pairs of body axes (x-y, x-z, y-z in mm; the small rotations about body x, y, z in deg: not
+  the roll/pitch/yaw Euler angles of the pose table).
 * :func:`plot_incremental_sigma` -- the incremental solver's 1-sigma per station.
 """
 
@@ -45,7 +45,10 @@ __all__ = [
 
 #: (row, column) index pairs into the body-axis vector [rx, ry, rz, x, y, z], and axis labels.
 ELLIPSE_PAIRS: tuple[tuple[int, int], ...] = ((3, 4), (3, 5), (4, 5), (0, 1), (0, 2), (1, 2))
-_AXIS_LABELS = ("roll (about x) [deg]", "pitch (about y) [deg]", "yaw (about z) [deg]", "x [mm]", "y [mm]", "z [mm]")
+#: small rotations about the body axes (not the roll/pitch/yaw angles of the pose table: those are
+#: Euler angles of the sensor's orientation)
+_AXIS_LABELS = ("rotation about body x [deg]", "rotation about body y [deg]", "rotation about body z [deg]",
+                "along body x [mm]", "along body y [mm]", "along body z [mm]")
 #: the one plot style of every report: before (nominal / prior) in grey, after (estimated) in blue,
 #: marked samples (outliers, a change, a finding's stations) in red
 BEFORE_COLOR = "#999999"
@@ -67,28 +70,32 @@ def _split(rows, outliers: Iterable[int]):
     return bad
 
 
-def _mark_stats(ax, values: np.ndarray, color: str, label: str, unit: str, span: float | None = None) -> None:
-    """Mean (dashed) and max (dotted) lines with their labels; one label for both when they are
-    closer than 6 % of ``span`` (the y range), so the two never overlap."""
+def _mark_stats(ax, values: np.ndarray, color: str, label: str, unit: str, span: float | None = None,
+                log: bool = False) -> None:
+    """Mean (dashed) and max (dotted) lines with their labels, written right of the axes (never over
+    the points); one label for both when they are closer than 6 % of ``span`` (the y range; with
+    ``log``, the ratio of its ends), so the two never overlap."""
     if values.size == 0:
         return
     mean, vmax = float(values.mean()), float(values.max())
     ax.axhline(mean, color=color, linestyle="--", linewidth=1.0)
     ax.axhline(vmax, color=color, linestyle=":", linewidth=1.0)
-    if span is not None and vmax - mean < 0.06 * span:
-        ax.annotate(
-            f"{label} mean {mean:.3g}{unit}, max {vmax:.3g}{unit}", xy=(1.0, vmax), xycoords=("axes fraction", "data"),
-            xytext=(-4, 2), textcoords="offset points", ha="right", va="bottom", fontsize=7, color=color, bbox=_BOX,
-        )  # fmt: skip
+    if log:
+        close = span is not None and mean > 0 and np.log10(vmax / mean) < 0.06 * np.log10(span)
+    else:
+        close = span is not None and vmax - mean < 0.06 * span
+    style = dict(xycoords=("axes fraction", "data"), xytext=(4, 0), textcoords="offset points", ha="left",
+                 va="center", fontsize=7, color=color)
+    if close:
+        ax.annotate(f"{label} mean {mean:.3g}{unit},\nmax {vmax:.3g}{unit}", xy=(1.0, vmax), **style)
         return
-    ax.annotate(
-        f"{label} mean {mean:.3g}{unit}", xy=(1.0, mean), xycoords=("axes fraction", "data"),
-        xytext=(-4, 2), textcoords="offset points", ha="right", va="bottom", fontsize=7, color=color, bbox=_BOX,
-    )  # fmt: skip
-    ax.annotate(
-        f"{label} max {vmax:.3g}{unit}", xy=(1.0, vmax), xycoords=("axes fraction", "data"),
-        xytext=(-4, 2), textcoords="offset points", ha="right", va="bottom", fontsize=7, color=color, bbox=_BOX,
-    )  # fmt: skip
+    ax.annotate(f"{label} mean {mean:.3g}{unit}", xy=(1.0, mean), **style)
+    ax.annotate(f"{label} max {vmax:.3g}{unit}", xy=(1.0, vmax), **style)
+
+
+#: "after" values below this share of the "before" ones are drawn on a log axis (on a linear one
+#: they lay flat on zero: 0.002 deg after against 0.6 deg before on the Octopus demo)
+LOG_AXIS_RATIO = 0.1
 
 
 def _per_station(ax, residuals, sensor, outliers, before_attr, after_attr, unit, ylabel, title):
@@ -108,14 +115,26 @@ def _per_station(ax, residuals, sensor, outliers, before_attr, after_attr, unit,
     finite = np.concatenate([before, after])
     finite = finite[np.isfinite(finite)]
     top = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
-    _mark_stats(ax, before[~bad], _BEFORE, "before", unit, span=1.15 * top)
-    _mark_stats(ax, after[~bad], _AFTER, "after", unit, span=1.15 * top)
+    positive = finite[finite > 0]
+    after_top = np.nanmax(after) if np.isfinite(after).any() else np.nan
+    log = bool(positive.size and np.isfinite(after_top) and after_top < LOG_AXIS_RATIO * top)
+    if log:
+        bottom = float(positive.min()) / 1.5
+        ax.set_yscale("log")
+        ax.set_ylim(bottom, 1.5 * top)
+        span = 1.5 * top / bottom
+        ylabel += " (log scale)"
+    else:
+        ax.set_ylim(0.0, 1.15 * top)
+        span = 1.15 * top
+    _mark_stats(ax, before[~bad], _BEFORE, "before", unit, span=span, log=log)
+    _mark_stats(ax, after[~bad], _AFTER, "after", unit, span=span, log=log)
     ax.set_xlabel("station")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
-    ax.set_ylim(0.0, 1.15 * top)
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left")
+    # below the axes: a legend inside hid the first stations' points
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=3, frameon=False)
 
 
 def plot_angle_errors(ax, residuals, *, sensor: str | None = None, outliers: Iterable[int] = (), title: str | None = None) -> None:
@@ -156,9 +175,20 @@ def plot_residual_histogram(
         ax.text(0.5, 0.5, "no residuals", ha="center", va="center", transform=ax.transAxes)
     else:
         hi = float(both.max()) if both.max() > 0 else 1.0
-        edges = np.linspace(0.0, hi * 1.0001, bins + 1)
-        ax.hist(before[np.isfinite(before)], bins=edges, color=_BEFORE, alpha=0.6, label="before")
-        ax.hist(after[np.isfinite(after)], bins=edges, color=_AFTER, alpha=0.6, label="after")
+        positive = both[both > 0]
+        a_fin = after[np.isfinite(after)]
+        # "after" far below "before": log-spaced bins on a log axis (on a linear one every "after"
+        # station fell into the first bin, at zero)
+        log = bool(positive.size and a_fin.size and a_fin.max() < LOG_AXIS_RATIO * hi)
+        if log:
+            edges = np.geomspace(float(positive.min()) / 1.0001, hi * 1.0001, bins + 1)
+            ax.set_xscale("log")
+            xlabel += " (log scale)"
+        else:
+            edges = np.linspace(0.0, hi * 1.0001, bins + 1)
+        ax.hist(np.clip(before[np.isfinite(before)], edges[0], None), bins=edges, color=_BEFORE, alpha=0.6,
+                label="before")
+        ax.hist(np.clip(a_fin, edges[0], None), bins=edges, color=_AFTER, alpha=0.6, label="after")
         ax.legend(fontsize=7)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("stations")
@@ -279,7 +309,8 @@ def report_figures(result) -> list[tuple[str, Figure]]:
         fig = _fig(8.0, 5.4)
         axes = fig.subplots(2, 3)
         plot_sensor_covariance(axes, result.sensors[s])
-        out.append((f"{s}: 1-σ and 3-σ uncertainty ellipses about the estimate, body axes (mm, deg)", fig))
+        out.append((f"{s}: 1-σ and 3-σ uncertainty ellipses about the estimate: translation along and small "
+                    "rotation about the body axes (mm, deg; not the roll/pitch/yaw angles of the pose table)", fig))
     for s in sensors:
         if any(h.sensor == s for h in result.history):
             fig = _fig(8.0, 5.0)

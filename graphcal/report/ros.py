@@ -26,10 +26,12 @@ def _num(x: float) -> str:
     return "0" if s in ("0", "-0") else s
 
 
-def static_transform_publisher_command(parent: str, child: str, T_parent_child) -> str:
+def static_transform_publisher_command(parent: str, child: str, T_parent_child, *, sep: str = " ") -> str:
     """The one-line ROS 2 command publishing ``T_parent_child`` (4x4, m) as a static transform.
 
-    Frame names are shell-quoted only when they need it (plain names stay as they are).
+    Frame names are shell-quoted only when they need it (plain names stay as they are). ``sep``
+    joins its four parts (program, translation, quaternion, frames); ``" \\\n    "`` gives a
+    shell command over four lines that fits a page.
     """
     T = np.asarray(T_parent_child, dtype=float)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
@@ -42,7 +44,7 @@ def static_transform_publisher_command(parent: str, child: str, T_parent_child) 
         f"--qx {_num(x)} --qy {_num(y)} --qz {_num(z)} --qw {_num(w)}",
         f"--frame-id {shlex.quote(str(parent))} --child-frame-id {shlex.quote(str(child))}",
     ]
-    return " ".join(parts)
+    return sep.join(parts)
 
 
 def static_transforms_script(parent: str, sensors: Mapping[str, np.ndarray], *, dataset: str | None = None) -> str:

@@ -75,8 +75,8 @@ def track_figures(result, truth, nees_t, nees, nees_dof) -> dict[str, bytes]:
     axp.set_title("estimate - truth (solid) and the filter's 3 sigma (dotted)" if truth is not None
                   else "the filter's 3 sigma (no truth)")
     if truth is not None:
-        axp.legend(loc="upper left", fontsize=8)
-        axr.legend(loc="upper left", fontsize=8)
+        axp.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)  # beside: inside it hid the 3 sigma
+        axr.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     out["errors.png"] = figure_png(fig)
 
     # NIS

@@ -1,0 +1,220 @@
+"""What a newcomer tripped on (issue 32, "What a newcomer trips on"): each test fails on the old
+behaviour. The commands are called in process on one small simulated dataset (8 stations, 2
+sessions, a hidden 0.05 rad femur offset on rm_foot) to keep the suite's time small."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from graphcal.errors import GraphcalError
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    from graphcal.commands import simulate
+
+    out = tmp_path_factory.mktemp("frictions") / "octopus"
+    simulate.run(robot="octopus", program="random", ground="level", out_dir=out, n_stations=8, n_sessions=2,
+                 cloud_stride=8, progress=False, effects=[("joint_offset", {"joint": "rm_femur_joint",
+                                                                             "offset_rad": "0.05"})])
+    return out
+
+
+# ----------------------------------------------------------------------------- 4: extract-planes
+def test_extract_planes_writes_beside_the_datasets_planes_and_keeps_them(small, tmp_path):
+    """It exited 2 on every simulated dataset (planes.csv exists); now it writes
+    planes-extracted.csv beside it, prints a summary, and --overwrite keeps the old file as .bak."""
+    import shutil
+
+    from graphcal.commands import extract_planes
+
+    ds = tmp_path / "ds"
+    shutil.copytree(small, ds)
+    theirs = (ds / "planes.csv").read_bytes()
+    text = extract_planes.run(ds)
+    assert (ds / "planes.csv").read_bytes() == theirs
+    assert (ds / "planes-extracted.csv").is_file()
+    assert "depth: 8 plane(s) from 8 of 8 clouds; inliers per plane" in text
+    assert "0 cloud(s) without a plane" in text and "kept" in text and "--overwrite" in text
+    # a second run: refused with the way out, nothing touched
+    with pytest.raises(GraphcalError, match="--overwrite to replace planes.csv"):
+        extract_planes.run(ds)
+    assert (ds / "planes.csv").read_bytes() == theirs
+    # --overwrite: planes.csv replaced, the user's kept as planes.csv.bak (then .bak-2)
+    text = extract_planes.run(ds, overwrite=True)
+    assert (ds / "planes.csv.bak").read_bytes() == theirs
+    assert "previous file kept as planes.csv.bak" in text
+    extract_planes.run(ds, overwrite=True)
+    assert (ds / "planes.csv.bak").read_bytes() == theirs and (ds / "planes.csv.bak-2").is_file()
+    assert (ds / "planes.csv").read_text().startswith("station,sensor,nx")
+
+
+# ----------------------------------------------------------------------------- 5, 9: calibrate
+def test_a_collapsed_plane_noise_scale_is_explained(small, tmp_path):
+    """--ground-roughness-mm 3 on a flat floor: the learned plane scale ran to ~1e-11 without a word."""
+    from graphcal.commands import calibrate
+
+    text = calibrate.run(small, tmp_path / "cal", progress=False, ground_roughness_m=0.003)
+    doc = yaml.safe_load((tmp_path / "cal" / "calibration.yaml").read_text())
+    scale = doc["noise_model"]["plane_scale:depth"]
+    assert scale < calibrate.COLLAPSED_PLANE_SCALE
+    said = [w for w in doc["warnings"] if "learned plane noise scale" in w]
+    assert len(said) == 1 and "--ground-roughness-mm 3" in said[0] and "near zero" in said[0]
+    assert "warning: depth: learned plane noise scale" in text
+    assert "learned plane noise scale" in (tmp_path / "cal" / "report.html").read_text()
+
+
+def test_covariance_scale_is_worded_without_contradiction():
+    """--incremental --noise-from printed 'covariance x1 (its plane residuals outgrew ...)'."""
+    from graphcal.commands.calibrate import covariance_scale_text
+
+    small = covariance_scale_text(1.004)
+    assert "x1.0040" in small and "sigma x1.0020" in small and "negligible" in small
+    assert "x1 " not in small
+    big = covariance_scale_text(1.06)
+    assert big.startswith("covariance x1.06 (sigma x1.03)") and "negligible" not in big
+
+
+# ----------------------------------------------------------------------------- 9: simulate, validate
+def test_simulate_refuses_a_station_program_on_a_robot_without_sensors(tmp_path):
+    from graphcal.commands import simulate
+
+    with pytest.raises(GraphcalError, match="--robot a1 has no exteroceptive sensor.*--program mocap"):
+        simulate.run(robot="a1", program="chai2015", ground="level", out_dir=tmp_path / "a1", progress=False)
+    assert not (tmp_path / "a1").exists()
+
+
+def test_validate_warns_of_a_dataset_without_sensors(small, tmp_path):
+    import shutil
+
+    from graphcal.commands import validate
+
+    ds = tmp_path / "nosensor"
+    shutil.copytree(small, ds, ignore=shutil.ignore_patterns("clouds", "planes.csv"))
+    doc = yaml.safe_load((ds / "dataset.yaml").read_text())
+    doc.pop("sensors")
+    (ds / "dataset.yaml").write_text(yaml.safe_dump(doc))
+    text = validate.run(ds)
+    assert "valid" in text and "warning: stations but no sensor" in text and "calibrate" in text
+    assert "warning: stations but no sensor" not in validate.run(small)
+
+
+# ----------------------------------------------------------------------------- 9: units under their names
+def test_identify_legs_prints_units_under_matching_names():
+    from graphcal.commands.identify_legs import parameter_text
+
+    assert parameter_text("fl_thigh_joint.offset_rad", math.radians(1.5), math.radians(0.05)) == \
+        "fl_thigh_joint.offset_deg = +1.500 ± 0.050 deg"
+    assert parameter_text("fl_calf_joint.delta_m", 0.0099, 0.00013) == "fl_calf_joint.delta_mm = +9.900 ± 0.130 mm"
+
+
+def test_suggest_poses_states_its_frame_and_two_digits(small):
+    from graphcal.commands import suggest_poses
+
+    text = suggest_poses.run(small, 2)
+    assert suggest_poses.POSE_FRAME_TEXT in text and "world frame" in text and "Rz(yaw) Ry(pitch) Rx(roll)" in text
+    rows = [ln.split() for ln in text.splitlines() if ln.strip()[:1].isdigit()]
+    assert len(rows) == 2
+    for r in rows:
+        for v in r[7:10]:  # rotation sigma: 2 significant digits, not 0.001 deg
+            assert len(v.replace("0.", "").lstrip("0").replace(".", "")) <= 2, r
+
+
+# ----------------------------------------------------------------------------- 2, 6: diagnosis
+@pytest.fixture(scope="module")
+def diagnosis(small, tmp_path_factory):
+    from graphcal.commands import diagnose
+
+    out = tmp_path_factory.mktemp("diag") / "d"
+    text = diagnose.run(small, out, progress=False)
+    return text, json.loads((out / "diagnosis.json").read_text()), (out / "report.html").read_text()
+
+
+def test_diagnosis_says_why_its_sensor_pose_differs_from_calibrates(diagnosis):
+    text, doc, page = diagnosis
+    note = doc["extended_calibration"]["note"]
+    assert "not calibrate's" in note and "3 mm" in note and "calibration.yaml" in note
+    assert "sensor pose of the diagnosis model: depth" in text and "calibration.yaml" in text
+    assert "Sensor poses of the diagnosis model (not calibrate&#39;s)" in page or \
+        "Sensor poses of the diagnosis model (not calibrate's)" in page
+    assert "physical defaults" in page
+
+
+def test_diagnosis_report_reads_as_words_with_units(diagnosis):
+    text, doc, page = diagnosis
+    assert [f["cause"] for f in doc["findings"]] == ["joint_offset"]
+    assert "{&#39;" not in page and "{'" not in page  # no raw Python dict in "where"
+    assert "joint rm_femur_joint, leg rm_foot" in page
+    assert "offset_deg = 2.8" in page and " deg (0.04" in page  # degrees beside the radians
+    assert "offset_deg = 2.8" in text and "sigma (whitened)" in text
+    assert "held-out RMS before → after [σ]" in page and "whitened" in page
+    t = doc["screening_threshold_log10_p"][0]
+    assert t == pytest.approx(math.log10(1e-3 / 8), abs=0.5)
+    assert f"&lt; {t:.2f}" in page
+
+
+def test_diagnosis_figures_number_stations_as_stations_csv(small):
+    from graphcal.diagnosis.diagnose import diagnose
+    from graphcal.diagnosis.plots import diagnosis_figures
+
+    diag = diagnose(small, heldout=False)
+    (caption, fig), = diagnosis_figures(diag)
+    xs = np.concatenate([line.get_xdata() for ax in fig.axes for line in ax.lines if len(line.get_xdata()) > 2])
+    assert xs.min() == 1 and xs.max() == 8  # stations 1..8, as calibrate's plots (it drew 0..7)
+    assert all("stations.csv" in ax.get_xlabel() for ax in fig.axes if ax.get_xlabel())
+
+
+# ----------------------------------------------------------------------------- 6: calibration plots
+def _residuals(after_scale: float):
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(0)
+    return [SimpleNamespace(station=i + 1, sensor="depth", outlier=False, angle_before_deg=0.5 + 0.1 * rng.random(),
+                            angle_after_deg=after_scale * rng.random(), distance_before_mm=2.0 + rng.random(),
+                            distance_after_mm=after_scale * rng.random()) for i in range(20)]
+
+
+def test_after_curves_are_not_squashed_and_the_legend_leaves_the_points():
+    from graphcal.report.plots import new_figure, plot_angle_errors, plot_residual_histogram
+
+    fig = new_figure(8, 3)
+    ax = fig.add_subplot(1, 1, 1)
+    plot_angle_errors(ax, _residuals(0.005), sensor="depth")
+    assert ax.get_yscale() == "log" and ax.get_ylim()[0] > 0  # 0.002 deg after 0.6 deg: it lay flat on zero
+    legend = ax.get_legend()
+    fig.canvas.draw()
+    box = legend.get_window_extent()
+    assert box.y1 <= ax.get_window_extent().y0 + 1  # below the axes, not over the first stations
+    ax2 = new_figure(8, 3).add_subplot(1, 1, 1)
+    plot_angle_errors(ax2, _residuals(0.4), sensor="depth")
+    assert ax2.get_yscale() == "linear"  # comparable sizes stay linear
+    ax3 = new_figure(4, 3).add_subplot(1, 1, 1)
+    plot_residual_histogram(ax3, _residuals(0.005), kind="angle", sensor="depth")
+    assert ax3.get_xscale() == "log"
+
+
+def test_ellipse_axes_say_body_axis_rotations():
+    from types import SimpleNamespace
+
+    from graphcal.report.plots import new_figure, plot_sensor_covariance
+
+    fig = new_figure(8, 5)
+    axes = fig.subplots(2, 3)
+    plot_sensor_covariance(axes, SimpleNamespace(T_body_sensor=np.eye(4), covariance=np.eye(6) * 1e-8))
+    labels = [a.get_xlabel() + a.get_ylabel() for a in axes.ravel()]
+    assert not any("roll" in t or "pitch" in t or "yaw" in t for t in labels)
+    assert "rotation about body x [deg]" in labels[3]
+
+
+def test_ros_command_fits_its_box():
+    from graphcal.report.page import CSS
+    from graphcal.report.ros import static_transform_publisher_command
+
+    lines = static_transform_publisher_command("body", "depth", np.eye(4), sep=" \\\n    ").splitlines()
+    assert len(lines) == 4 and max(map(len, lines)) < 90 and all(ln.endswith("\\") for ln in lines[:-1])
+    assert "overflow-x:auto" not in CSS and "pre-wrap" in CSS
