@@ -27,7 +27,7 @@ from graphcal.locomotion.ekf import GRAVITY_WORLD as GRAVITY
 from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim, tangent_pose_covariance
 
 __all__ = ["TrackerConfig", "TrackInputs", "TrackResult", "run_filter", "inputs_from_dataset",
-           "inputs_from_walking", "estimate_trajectory"]
+           "inputs_from_walking", "estimate_trajectory", "still_samples"]
 
 
 @dataclass(frozen=True)
@@ -55,7 +55,13 @@ class TrackerConfig:
             leaves it below ``contact_off_n`` (N; :func:`graphcal.locomotion.support.stance_from_loads`);
             with contacts only (``contact_<foot>`` 0/1 or a probability) a foot is in stance
             when its value exceeds 0.5.
-        init_window_s: accelerometer averaging window for the initial roll and pitch (s).
+        init_window_s: accelerometer averaging window for the initial roll and pitch (s), when the
+            data do not start still.
+        still_start, still_min_s, still_joint_tol_rad: a still start -- the leading samples whose
+            joint angles all stay within ``still_joint_tol_rad`` of their mean over the first 20
+            samples, at least ``still_min_s`` long -- gives the initial roll and pitch (mean
+            accelerometer over it) and the initial gyro bias (mean gyro over it, sigma
+            ``noise.gyro_noise_density / sqrt(duration)``); ``still_start=False`` ignores it.
         sigma_init_*: initial standard deviations (position m; roll/pitch, yaw rad; velocity m/s;
             gyro bias rad/s; accel bias m/s^2). Position x, y and yaw define the world frame; the
             roll/pitch error also carries the accelerometer bias (correlated) and the white noise of
@@ -81,6 +87,9 @@ class TrackerConfig:
     contact_on_n: float = 20.0
     contact_off_n: float = 10.0
     init_window_s: float = 0.1
+    still_start: bool = True
+    still_min_s: float = 0.3
+    still_joint_tol_rad: float = 0.002
     sigma_init_xy_m: float = 1e-6
     sigma_init_z_m: float = 0.0002
     sigma_init_roll_pitch_rad: float = 0.0002
@@ -338,19 +347,38 @@ def _init_window(times: np.ndarray, cfg: TrackerConfig) -> tuple[int, float]:
     return n0, n0 * dt
 
 
-def _initial_state(inp: TrackInputs, pbf: np.ndarray, feet_idx: list[int], cfg: TrackerConfig):
-    n0, _ = _init_window(inp.times, cfg)
+def still_samples(inp: TrackInputs, cfg: TrackerConfig) -> int:
+    """Number of leading samples of a still start (TrackerConfig's ``still_*``), 0 when there is
+    none (the data start in motion, or it lasts less than ``still_min_s``)."""
+    t = np.asarray(inp.times, dtype=float)
+    if not cfg.still_start or len(t) < 40 or not inp.q:
+        return 0
+    n_max = int(np.searchsorted(t, t[0] + 30.0))  # a still start is looked for in the first 30 s
+    Q = np.column_stack([np.asarray(v, dtype=float)[:n_max] for v in inp.q.values()])
+    dev = np.abs(Q - Q[:20].mean(axis=0)).max(axis=1)
+    moved = np.flatnonzero(dev > cfg.still_joint_tol_rad)
+    n = int(moved[0]) if len(moved) else n_max
+    return n if n > 1 and t[n - 1] - t[0] >= cfg.still_min_s else 0
+
+
+def _initial_state(inp: TrackInputs, pbf: np.ndarray, feet_idx: list[int], cfg: TrackerConfig,
+                   n_still: int = 0):
+    """The initial state: roll and pitch from the mean accelerometer over the first
+    ``init_window_s`` or the still start (``n_still`` samples; then the gyro bias is their mean
+    gyro, IMU frame), yaw 0, the body above the stance feet ``feet_idx``."""
+    n0, _ = _init_window(inp.times, cfg) if n_still == 0 else (n_still, 0.0)
     a = inp.T_body_imu[:3, :3] @ inp.accel[:n0].mean(axis=0)
     roll = math.atan2(a[1], a[2])
     pitch = math.atan2(-a[0], math.hypot(a[1], a[2]))
     R0 = matrix_from_rpy([roll, pitch, 0.0])
     feet_world = pbf[feet_idx, 0] @ R0.T
     z0 = -float(feet_world[:, 2].mean())
-    return NominalState(np.array([0.0, 0.0, z0]), np.zeros(3), R0, np.zeros(3), np.zeros(3))
+    bg = np.asarray(inp.gyro[:n_still], dtype=float).mean(axis=0) if n_still else np.zeros(3)
+    return NominalState(np.array([0.0, 0.0, z0]), np.zeros(3), R0, bg, np.zeros(3))
 
 
 def _initial_covariance(cfg: TrackerConfig, n_slots: int, R_body_imu: np.ndarray,
-                        window_s: float | None = None) -> np.ndarray:
+                        window_s: float | None = None, still_s: float = 0.0) -> np.ndarray:
     """P0. Roll and pitch come from the mean accelerometer reading over ``window_s`` (default
     ``cfg.init_window_s``), so their errors are the accelerometer bias seen as a tilt:
     dtheta_x = -b_y / g, dtheta_y = b_x / g (correlated with the bias), plus the white noise of
@@ -367,6 +395,8 @@ def _initial_covariance(cfg: TrackerConfig, n_slots: int, R_body_imu: np.ndarray
     s[6:8] = math.sqrt(cfg.sigma_init_roll_pitch_rad**2 + tilt_noise_var)
     s[8] = cfg.sigma_init_yaw_rad
     s[9:12] = cfg.sigma_init_gyro_bias
+    if still_s > 0:  # the mean gyro over a still start: its white noise (and the bias's walk over it)
+        s[9:12] = math.sqrt(cfg.noise.gyro_noise_density**2 / still_s + cfg.noise.gyro_bias_rw**2 * still_s)
     s[12:15] = 0.0
     P = np.diag(s**2)
     G = np.zeros((D, 3))  # how the accelerometer bias (IMU frame) enters the initial state error
@@ -825,9 +855,11 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
     n_joints = robot.leg(feet[0]).n_joints
 
     first = sup.slot_feet[0][sup.slot_stance[0]] if sup.slot_stance[0].any() else sup.slot_feet[0]
-    x0 = _initial_state(inp, kin.p_body_foot, list(first), cfg)
-    P0 = _initial_covariance(cfg, n_slots, np.asarray(inp.T_body_imu, dtype=float)[:3, :3],
-                             _init_window(times, cfg)[1])
+    n_still = still_samples(inp, cfg)
+    x0 = _initial_state(inp, kin.p_body_foot, list(first), cfg, n_still)
+    still_s = float(times[n_still - 1] - times[0]) if n_still else 0.0
+    window_s = _init_window(times, cfg)[1] if not n_still else n_still * float(np.median(np.diff(times[:n_still])))
+    P0 = _initial_covariance(cfg, n_slots, np.asarray(inp.T_body_imu, dtype=float)[:3, :3], window_s, still_s)
     ekf = LeggedEKF(x0, P0, cfg.noise.process_density(n_slots), np.eye(n_joints) * cfg.noise.encoder_sigma_rad**2,
                     np.eye(3) * cfg.noise.kinematic_sigma_m**2, n_slots=n_slots, T_body_imu=inp.T_body_imu)
     z, Rm = _stance_measurement(kin, list(sup.slot_feet[0]), 0)
