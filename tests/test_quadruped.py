@@ -170,3 +170,23 @@ def test_quadruped_programs_are_the_a1s(tmp_path, capsys):
     assert "pass --robot a1" in capsys.readouterr().err
     with pytest.raises(GraphcalError, match="walks the a1"):
         WalkingConfig(program="walk", robot="qingzhui").resolved()
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda h, rows: h.__setitem__(h.index("force_fl_foot"), "force_fl_toe"), ["column force_fl_toe", "robot.feet"]),
+    (lambda h, rows: rows[3].__setitem__(h.index("force_rr_foot"), "nan"),
+     ["row 4 (line 5), column force_rr_foot", "finite foot load in newtons"]),
+])
+def test_force_columns_are_checked(trot, tmp_path, edit, words):
+    from graphcal.errors import DatasetError
+    from graphcal.io.dataset import validate_dataset
+
+    ds = tmp_path / "bad"
+    shutil.copytree(trot[0], ds)
+    lines = (ds / "timeseries.csv").read_text().splitlines()
+    header, rows = lines[0].split(","), [ln.split(",") for ln in lines[1:6]]
+    edit(header, rows)
+    (ds / "timeseries.csv").write_text("\n".join([",".join(header)] + [",".join(r) for r in rows]) + "\n")
+    with pytest.raises(DatasetError) as exc:
+        validate_dataset(ds)
+    assert all(w in str(exc.value) for w in words), str(exc.value)
