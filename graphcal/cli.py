@@ -61,7 +61,8 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--robot", default="octopus", help="built-in robot model (octopus, qingzhui, messor, a1)")
     s.add_argument("--program", default="chai2015",
                    help="station program (chai2015, labecki2012, random), walk (tripod-walk, tripod-stairs: "
-                        "the qingzhui's tripod gait, 1 kHz timeseries; see docs/state_estimation.md), or mocap "
+                        "the qingzhui's tripod gait; trot, walk: the a1 quadruped with foot-force sensors; 1 kHz "
+                        "timeseries; see docs/state_estimation.md), or mocap "
                         "(a leg in the air in a motion-capture room, Yuan et al.'s set-up, for identify-legs; "
                         "--stations samples, default 1000; see docs/legs.md)")
     s.add_argument("--ground", default="level", help="level, bumpy-little, bumpy-big, stairs, boxes")

@@ -256,7 +256,7 @@ CASES = [
     ("ts-no-time", drop_column(T, "time"), T, ["column time", "required"]),
     ("ts-station-column", add_column(T, "station", "1"), T, ["column station", "stations.csv"]),
     ("ts-time-backwards", set_cell(T, 3, "time", "9.0"), T, ["row 3 (line 4), column time", "never decrease"]),
-    ("ts-contact-value", set_cell(T, 2, "contact_lf_foot", "0.5"), T, ["row 2 (line 3), column contact_lf_foot",
+    ("ts-contact-value", set_cell(T, 2, "contact_lf_foot", "1.5"), T, ["row 2 (line 3), column contact_lf_foot",
                                                                        "0 or 1"]),
     ("ts-contact-foot", rename_column(T, "contact_rf_foot", "contact_rf_toe"), T, ["column contact_rf_toe",
                                                                                    "robot.feet"]),

@@ -242,29 +242,44 @@ def test_cov_pose_tangent_is_the_conventions_order_with_the_same_nees(monte_carl
 
 
 def test_initial_tilt_covariance_covers_the_accelerometer_window():
-    """The initial roll and pitch come from the mean accelerometer over init_window_s (0.1 s): their
-    error is the bias seen as a tilt plus the white noise of that mean, accel_noise_density /
-    sqrt(0.1 s) / g = 0.48 mrad per axis. Given the true bias, the tilt error normalised by P0's
-    conditional covariance (2 dof) averages chi2(2M)/M over M starts. A P0 that leaves the window's
-    noise out (0.2 mrad) gives ~10 here; the 20 m Monte Carlo showed its roll over-confident."""
-    from graphcal.locomotion.estimator import _init_window, _initial_covariance
+    """The initial roll and pitch come from the mean accelerometer over init_window_s (0.1 s), or over
+    the still start (the simulator's 1 s) when there is one: their error is the bias seen as a tilt
+    plus the white noise of that mean, accel_noise_density / sqrt(T) / g per axis (0.48 mrad for
+    0.1 s). Given the true bias, the tilt error normalised by P0's conditional covariance (2 dof)
+    averages chi2(2M)/M over M starts. A P0 that leaves the window's noise out (0.2 mrad) gives ~10
+    here; the 20 m Monte Carlo showed its roll over-confident. With the still start the initial
+    gyro bias (the mean gyro over it) is checked the same way (3 dof)."""
+    from graphcal.locomotion.estimator import _init_window, _initial_covariance, still_samples
 
-    cfg = TrackerConfig(icp=False)
     t_idx, b_idx = [6, 7], [12, 13, 14]
     pose = np.r_[0:3, 6:9]
-    z = []
+    z = {False: [], True: []}
+    zg = []
     for seed in range(200, 225):
         walk = simulate_walking(WalkingConfig(duration_s=5.0, cloud_rate_hz=0.0, seed=seed))
-        res = run_filter(inputs_from_walking(walk), cfg)
-        P0 = _initial_covariance(cfg, 3, walk.T_body_imu[:3, :3], _init_window(walk.times, cfg)[1])
-        assert np.allclose(res.cov_pose[0], P0[np.ix_(pose, pose)])  # what run_filter starts from
-        e = pose_errors(res.T_world_body[:1], walk.T_world_body[:1])[0]
-        Ptb, Pbb = P0[np.ix_(t_idx, b_idx)], P0[np.ix_(b_idx, b_idx)]
-        r = e[3:5] - Ptb @ np.linalg.solve(Pbb, walk.accel_bias[0])  # the tilt error the bias leaves
-        C = P0[np.ix_(t_idx, t_idx)] - Ptb @ np.linalg.solve(Pbb, Ptb.T)
-        z.append(r @ np.linalg.solve(C, r))
-    lo, hi = chi2_band(2, n=len(z), prob=0.999)
-    assert lo <= np.mean(z) <= hi, (np.mean(z), lo, hi)
+        inp = inputs_from_walking(walk)
+        for still in (False, True):
+            cfg = TrackerConfig(icp=False, still_start=still)
+            res = run_filter(inp, cfg)
+            n = still_samples(inp, cfg)
+            assert (n > 900) == still  # the simulator stands still 1 s
+            window = n * float(np.median(np.diff(walk.times[:n]))) if n else _init_window(walk.times, cfg)[1]
+            P0 = _initial_covariance(cfg, 3, walk.T_body_imu[:3, :3], window,
+                                     float(walk.times[n - 1] - walk.times[0]) if n else 0.0)
+            assert np.allclose(res.cov_pose[0], P0[np.ix_(pose, pose)])  # what run_filter starts from
+            e = pose_errors(res.T_world_body[:1], walk.T_world_body[:1])[0]
+            Ptb, Pbb = P0[np.ix_(t_idx, b_idx)], P0[np.ix_(b_idx, b_idx)]
+            r = e[3:5] - Ptb @ np.linalg.solve(Pbb, walk.accel_bias[0])  # the tilt error the bias leaves
+            C = P0[np.ix_(t_idx, t_idx)] - Ptb @ np.linalg.solve(Pbb, Ptb.T)
+            z[still].append(r @ np.linalg.solve(C, r))
+            if still:
+                eg = walk.gyro_bias[0] - res.gyro_bias[0]
+                zg.append(eg @ np.linalg.solve(P0[9:12, 9:12], eg))
+    lo, hi = chi2_band(2, n=len(zg), prob=0.999)
+    for still in (False, True):
+        assert lo <= np.mean(z[still]) <= hi, (still, np.mean(z[still]), lo, hi)
+    lo, hi = chi2_band(3, n=len(zg), prob=0.999)
+    assert lo <= np.mean(zg) <= hi, (np.mean(zg), lo, hi)
 
 
 def test_stance_innovations_are_white_and_nis_matches_its_dof(monte_carlo):

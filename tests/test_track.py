@@ -74,6 +74,11 @@ def test_level_walk_filter_is_consistent(level20):
     assert m["stance_nis_mean"] == pytest.approx(m["stance_nis_dof"], rel=0.1)
     assert m["innovation_whiteness"]["fraction_inside"] >= 0.9
     assert m["icp_nis_mean"] < 2 * m["icp_dof_mean"]
+    # issue 27 item 5: the windowed NIS verdict of a clean walk
+    c = m["consistency"]
+    assert c["verdict"] == "consistent" and c["inconsistent_kinds"] == []
+    assert c["kinds"]["stance"]["n_windows"] >= 4 and c["kinds"]["icp"]["verdict"] == "consistent"
+    assert m["support_model"] == "two tripods"
 
 
 @pytest.mark.slow

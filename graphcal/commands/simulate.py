@@ -129,7 +129,8 @@ def run(
         leg_errors: random joint-offset (0.5 deg) and link-length (3 mm) errors on every leg joint.
         cloud_stride: None = 4 (walking programs: 16 level, 8 stairs).
         distance_m, duration_s, cloud_rate_hz: the walking programs (``tripod-walk``,
-            ``tripod-stairs``: :mod:`graphcal.simulation.walking`) only.
+            ``tripod-stairs`` of the qingzhui, ``trot``, ``walk`` of the a1:
+            :mod:`graphcal.simulation.walking`) only.
     Returns:
         A one-paragraph summary of what was written.
     """
@@ -164,7 +165,7 @@ def run(
                                duration_s=duration_s, cloud_rate_hz=cloud_rate_hz)
     if distance_m is not None or duration_s is not None or cloud_rate_hz is not None:
         raise GraphcalError("--distance, --duration and --cloud-rate belong to the walking programs "
-                            "(tripod-walk, tripod-stairs)")
+                            "(tripod-walk, tripod-stairs, trot, walk)")
     if cloud_stride is None:
         cloud_stride = 4
     if output not in ("clouds", "planes", "both"):
@@ -291,9 +292,12 @@ def _walk_to_folder(*, program, robot, out_dir, seed, output, cloud_stride, leg_
     ) if given]
     if unsupported:
         raise GraphcalError(f"program {program}: {', '.join(unsupported)} not supported by the walking programs")
-    if robot != "qingzhui":
-        raise GraphcalError(f"program {program} walks the qingzhui (Zhao 2020's tripod gait), not {robot!r}: "
-                            f"pass --robot qingzhui")
+    from graphcal.simulation.walking import GAITS
+
+    if robot != GAITS[program].robot:
+        what = "Zhao 2020's tripod gait" if GAITS[program].phase_offsets is None else f"a quadruped {program}"
+        raise GraphcalError(f"program {program} walks the {GAITS[program].robot} ({what}), not {robot!r}: "
+                            f"pass --robot {GAITS[program].robot}")
     return simulate_walking_to_folder(program=program, out_dir=out_dir, robot=robot, seed=seed,
                                       distance_m=distance_m, duration_s=duration_s, cloud_rate_hz=cloud_rate_hz,
                                       cloud_stride=cloud_stride, overwrite=overwrite, progress=progress)

@@ -3,7 +3,9 @@
 * ``trajectory.tum``  -- the estimate, TUM format ``t x y z qx qy qz qw`` (T_world_body), at
   ``tum_rate_hz`` (default 100 Hz; every sample with 0);
 * ``metrics.json``    -- ``ape_rmse_m``, ``rpe_rmse_m``, ``drift_percent``, ``distance_m``,
-  ``nees_mean`` (null when the dataset has no truth), NIS, whiteness, real-time factor, ...;
+  ``nees_mean`` (null when the dataset has no truth), NIS, whiteness, real-time factor, ...,
+  and ``consistency``: the verdict of the NIS of each update kind over 10 s windows
+  (:mod:`graphcal.locomotion.consistency`; a warning on the console when it is ``inconsistent``);
 * ``trajectory.png``, ``errors.png``, ``nis.png`` -- plots;
 * ``report.html``     -- the report (:func:`graphcal.report.track_page.track_html`, the plots embedded);
 * ``stairs.json``     -- on a stairs dataset, the stairs model of :mod:`graphcal.locomotion.stairs` from the
@@ -20,6 +22,7 @@ Truth is read from ``truth.yaml`` beside the dataset (simulated data) by the eva
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +32,9 @@ from graphcal.io.atomic import atomic_directory, atomic_write_bytes, check_comma
 from graphcal.locomotion.track import ascending_flight, stairs_keyframes, track, tum_text
 from graphcal.report.track_page import track_figures, track_html
 
-__all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run"]
+__all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run", "consistency_section", "consistency_warning"]
+
+log = logging.getLogger(__name__)
 
 TRACK_FORMAT = "graphcal-track/1"
 OUTPUT_FILES = ("trajectory.tum", "metrics.json", "trajectory.png", "errors.png", "nis.png", "report.html",
@@ -107,6 +112,31 @@ def _stairs_model(ds, inp, result, truth, *, max_clouds: int = 20):
     return doc
 
 
+def consistency_section(res, *, window_s: float = 10.0) -> dict:
+    """metrics.json's ``consistency``: the verdict of :func:`graphcal.locomotion.consistency.consistency_verdict`
+    on the stance and ICP updates of a :class:`~graphcal.locomotion.estimator.TrackResult` (10 s windows)."""
+    from graphcal.locomotion.consistency import consistency_verdict
+
+    dofs = res.stance_dofs if res.stance_dofs is not None else res.stance_dof
+    return consistency_verdict({"stance": (res.stance_times, res.stance_nis, dofs),
+                                "icp": (res.icp_times, res.icp_nis, res.icp_dof)}, window_s=window_s)
+
+
+def consistency_warning(section: dict) -> str | None:
+    """The console warning for an ``inconsistent`` verdict (None otherwise): which update kinds,
+    their mean NIS per dof, windows outside and p-value, and what it means."""
+    if section.get("verdict") != "inconsistent":
+        return None
+    parts = []
+    for name in section["inconsistent_kinds"]:
+        r = section["kinds"][name]
+        parts.append(f"{name} mean NIS per dof {r['mean_nis_per_dof']:.3g} (1 expected), {r['statistic']} of "
+                     f"{r['n_windows']} windows outside their 95 % interval, p = {r['p_value']:.2g}")
+    return ("the filter's innovations are inconsistent with its covariance: " + "; ".join(parts)
+            + ": the noise settings (encoder, IMU, ICP) or the model (kinematics, contacts) do not fit the data; "
+              "the trajectory's sigma and NEES are not to be trusted")
+
+
 # ----------------------------------------------------------------------------- the command
 def _clean(x):
     if isinstance(x, dict):
@@ -171,14 +201,20 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
                   "nees_mean": None, "nees_dof": nees_dof, "nees_band_95_single": None,
                   "nees_fraction_in_band": None})
     m["distance_estimated_m"] = est_len
+    consistency = consistency_section(res)
+    m["consistency"] = consistency
     white = whiteness(res.stance_innovations)
     white.pop("autocorr", None)
-    lo_s, hi_s = chi2_band(res.stance_dof)
+    dofs = res.stance_dofs if res.stance_dofs is not None else np.full(len(res.stance_nis), res.stance_dof)
+    band = {int(d): chi2_band(int(d)) for d in np.unique(dofs)}  # per update: its dof's 95 % band
+    lo_s = np.array([band[int(d)][0] for d in dofs])
+    hi_s = np.array([band[int(d)][1] for d in dofs])
+    in_band = (res.stance_nis >= lo_s) & (res.stance_nis <= hi_s)
     m.update({
         "stance_nis_mean": float(res.stance_nis.mean()) if len(res.stance_nis) else None,
         "stance_nis_dof": res.stance_dof,
-        "stance_nis_fraction_in_band": float(np.mean((res.stance_nis >= lo_s) & (res.stance_nis <= hi_s)))
-        if len(res.stance_nis) else None,
+        "stance_nis_dof_mean": float(np.mean(dofs)) if len(dofs) else None,
+        "stance_nis_fraction_in_band": float(np.mean(in_band)) if len(res.stance_nis) else None,
         "stance_updates": int(len(res.stance_nis)),
         "innovation_whiteness": white,
         "icp_updates": int(len(res.icp_nis)),
@@ -186,6 +222,7 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
         "icp_nis_mean": float(res.icp_nis.mean()) if len(res.icp_nis) else None,
         "icp_dof_mean": float(res.icp_dof.mean()) if len(res.icp_dof) else None,
         "support_switches": int(np.count_nonzero(np.diff(res.support_group))),
+        "support_model": "two tripods" if res.groups else "stance mask per foot",
         "n_samples": int(len(res.times)),
         "duration_s": res.duration_s,
         "processing_s": res.processing_s,
@@ -222,8 +259,14 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
         for name, data in files.items():
             atomic_write_bytes(tmp / name, data)
         _check_out(out, overwrite)
+    warning = consistency_warning(consistency)
+    if warning is not None:
+        log.warning("WARNING: %s", warning)
     lines = [f"tracked {dataset}: {m['n_samples']} samples, {m['duration_s']:.1f} s in {m['processing_s']:.1f} s "
              f"({m['real_time_factor']:.1f}x real time); wrote {out}"]
+    lines.append(f"  consistency: {consistency['verdict']}" + "".join(
+        f"; {k} {r['verdict']} (mean NIS per dof {r['mean_nis_per_dof']:.3f}, p = {r['p_value']:.2g})"
+        for k, r in consistency["kinds"].items() if r["verdict"] != "not tested"))
     if m["truth"]:
         lines.append(f"  against the truth: APE {1e3 * m['ape_rmse_m']:.1f} mm RMS, drift {m['drift_percent']:.3f} % "
                      f"of {m['distance_m']:.2f} m, NEES mean {m['nees_mean']:.2f} (dof {nees_dof})")

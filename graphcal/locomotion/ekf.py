@@ -358,9 +358,33 @@ class LeggedEKF:
         P[fs, fs] = GP @ G.T + Rz
         self.feet = tuple(feet)
 
-    def update_stance(self, p_body_foot: np.ndarray, R_meas: np.ndarray) -> float:
+    def reset_slots(self, slots, p_body_foot: np.ndarray, R_meas: np.ndarray) -> None:
+        """Start tracking new feet in some ``slots`` (indices) only (a foot touching down while the
+        others stay planted): p_world_foot = p + R p_body_foot for p_body_foot (k, 3) m with
+        measurement covariance R_meas (3 k, 3 k); the other slots keep their estimates."""
+        slots = np.asarray(slots, dtype=np.int64)
+        k = len(slots)
+        P = self.kf.P
+        fs = (15 + 3 * slots[:, None] + np.arange(3)[None]).ravel()
+        P[fs, :] = 0.0
+        P[:, fs] = 0.0
+        G = np.zeros((3 * k, self.dim))
+        for i, s in enumerate(slots):
+            z = p_body_foot[i]
+            self.p_feet[s] = self.p + self.R @ z
+            G[3 * i : 3 * i + 3, 0:3] = np.eye(3)
+            G[3 * i : 3 * i + 3, 6:9] = -self.R @ skew(z)
+        GP = G @ P
+        Gz = np.kron(np.eye(k), self.R)
+        P[fs, :] = GP
+        P[:, fs] = GP.T
+        P[np.ix_(fs, fs)] = GP @ G.T + Gz @ R_meas @ Gz.T
+
+    def update_stance(self, p_body_foot: np.ndarray, R_meas: np.ndarray, slots=None) -> float:
         """Stance update with the measured p_body_foot (n_slots, 3) of the tracked feet (same
-        order as :meth:`reset_feet`), covariance R_meas (3 n_slots, 3 n_slots). Returns the NIS."""
+        order as :meth:`reset_feet`), covariance R_meas (3 n_slots, 3 n_slots). With ``slots``
+        (indices) only those feet are measured: p_body_foot (k, 3), R_meas (3 k, 3 k) of them.
+        Returns the NIS."""
         RT = self.R.T
         h = (self.p_feet - self.p) @ self.R  # rows: R^T (p_world_foot - p)
         H = self._H
@@ -370,6 +394,9 @@ class LeggedEKF:
         Sk[:, self._sk_i, self._sk_j] = h[:, self._sk_k] * self._sk_sign
         H3[:, :, 6:9] = Sk
         H[self._foot_rows, self._foot_cols] = RT.ravel()[self._foot_src]
+        if slots is not None:
+            rows = (3 * np.asarray(slots, dtype=np.int64)[:, None] + np.arange(3)[None]).ravel()
+            return self._update(np.asarray(p_body_foot).ravel(), h.ravel()[rows], H[rows], R_meas)[0]
         return self._update(p_body_foot.ravel(), h.ravel(), H, R_meas)[0]
 
     # ------------------------------------------------------------------ relative pose (ICP)

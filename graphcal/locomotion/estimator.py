@@ -27,7 +27,7 @@ from graphcal.locomotion.ekf import GRAVITY_WORLD as GRAVITY
 from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim, tangent_pose_covariance
 
 __all__ = ["TrackerConfig", "TrackInputs", "TrackResult", "run_filter", "inputs_from_dataset",
-           "inputs_from_walking", "estimate_trajectory"]
+           "inputs_from_walking", "estimate_trajectory", "still_samples"]
 
 
 @dataclass(frozen=True)
@@ -49,8 +49,19 @@ class TrackerConfig:
         icp_min_fitness: an ICP result with a smaller inlier fraction is not fused.
         icp_gate_prob: an ICP measurement whose NIS exceeds this chi-square quantile is not fused.
         icp_max_points: clouds with more points are evenly thinned to this many for ICP.
-        hysteresis_n: support detection hysteresis (N).
-        init_window_s: accelerometer averaging window for the initial roll and pitch (s).
+        hysteresis_n: support detection hysteresis of the two-tripod gait (N).
+        contact_on_n, contact_off_n: any other gait (a quadruped's): a foot enters stance when its
+            load (foot-force sensor, else from its leg's torques) exceeds ``contact_on_n`` and
+            leaves it below ``contact_off_n`` (N; :func:`graphcal.locomotion.support.stance_from_loads`);
+            with contacts only (``contact_<foot>`` 0/1 or a probability) a foot is in stance
+            when its value exceeds 0.5.
+        init_window_s: accelerometer averaging window for the initial roll and pitch (s), when the
+            data do not start still.
+        still_start, still_min_s, still_joint_tol_rad: a still start -- the leading samples whose
+            joint angles all stay within ``still_joint_tol_rad`` of their mean over the first 20
+            samples, at least ``still_min_s`` long -- gives the initial roll and pitch (mean
+            accelerometer over it) and the initial gyro bias (mean gyro over it, sigma
+            ``noise.gyro_noise_density / sqrt(duration)``); ``still_start=False`` ignores it.
         sigma_init_*: initial standard deviations (position m; roll/pitch, yaw rad; velocity m/s;
             gyro bias rad/s; accel bias m/s^2). Position x, y and yaw define the world frame; the
             roll/pitch error also carries the accelerometer bias (correlated) and the white noise of
@@ -73,7 +84,12 @@ class TrackerConfig:
     icp_gate_prob: float = 0.999
     icp_max_points: int = 1500
     hysteresis_n: float = 20.0
+    contact_on_n: float = 20.0
+    contact_off_n: float = 10.0
     init_window_s: float = 0.1
+    still_start: bool = True
+    still_min_s: float = 0.3
+    still_joint_tol_rad: float = 0.002
     sigma_init_xy_m: float = 1e-6
     sigma_init_z_m: float = 0.0002
     sigma_init_roll_pitch_rad: float = 0.0002
@@ -94,10 +110,14 @@ class TrackInputs:
 
     Attributes:
         times: (N,) s, increasing. gyro: (N, 3) rad/s; accel: (N, 3) m/s^2 (IMU frame).
-        robot: :class:`~graphcal.models.robot.RobotModel`; groups: the two tripods (foot names).
-        q: joint name -> (N,) rad (every joint of the tripods' legs).
-        tau: joint name -> (N,) N m, or None (then ``contact`` must be given).
+        robot: :class:`~graphcal.models.robot.RobotModel`; groups: the two tripods (foot names) of
+            a two-tripod gait, or () for any other gait (a stance mask per sample, every foot its
+            own slot in the filter).
+        q: joint name -> (N,) rad (every joint of the legs).
+        tau: joint name -> (N,) N m, or None (then ``force`` or ``contact`` must be given).
         contact: (N, n_feet) bool in ``robot.feet`` order, or None.
+        force: (N, n_feet) foot loads in ``robot.feet`` order (N, foot-force sensors), or None;
+            when given, the stance of every foot is read from it (any gait, not the tripods').
         T_body_imu: (4, 4).
         clouds: sample index -> loader returning (M, 3) points in the sensor frame (m).
         T_body_sensor: (4, 4) of the cloud sensor; sensor_type: its dataset type.
@@ -117,6 +137,7 @@ class TrackInputs:
     T_body_sensor: np.ndarray | None = None
     sensor_type: str = "depth_camera"
     source: str = "data"
+    force: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,11 +154,16 @@ class TrackResult:
             the world frame); it matches :func:`graphcal.locomotion.metrics.pose_errors` (NEES) and
             the report's per-axis world position sigmas. :meth:`cov_pose_tangent` gives the
             ``[omega, v]`` form.
-        stance_nis: (K,) NIS of the stance updates (dof ``stance_dof``); stance_times (K,);
-        stance_innovations: (K, stance_dof) innovations whitened by their covariance (Cholesky).
+        stance_nis: (K,) NIS of the stance updates (dof ``stance_dofs``); stance_times (K,);
+        stance_innovations: (K, stance_dof) innovations whitened by their covariance (Cholesky), in
+            slot order, NaN for the slots an update did not measure (feet in swing).
+        stance_dof: the largest stance dof (3 x the filter's foot slots); stance_dofs: (K,) the
+            dof of each update (3 x the feet it measured).
         icp_nis, icp_dof, icp_times: NIS and number of fused directions of each ICP update.
         n_icp_rejected: ICP results not fused (too few inliers or failed).
-        support_group: (N,) tripod in stance (index into ``groups``); groups.
+        support_group: (N,) tripod in stance (index into ``groups``); for other gaits the stance
+            mask as an integer (bit i: foot i of ``robot.feet``); groups (() for other gaits).
+        stance_mask: (N, n_feet) bool, feet detected in stance (``robot.feet`` order).
         processing_s: wall time of the filter (support detection, kinematics and loop included).
         duration_s: span of the data (s).
     """
@@ -161,6 +187,8 @@ class TrackResult:
     groups: tuple
     processing_s: float
     duration_s: float
+    stance_dofs: np.ndarray | None = None
+    stance_mask: np.ndarray | None = None
 
     def cov_pose_tangent(self) -> np.ndarray:
         """(M, 6, 6) ``cov_pose`` converted to docs/conventions.md's order: covariance of
@@ -183,6 +211,8 @@ MAX_GAP_SAMPLES = 100
 
 
 def _gait_groups(ds, robot) -> tuple:
+    """The two tripods of dataset.yaml's ``gait.groups`` or the built-in model's; () when neither
+    gives any (any other gait: the stance of every foot is read from its own load)."""
     spec = ds.extra.get("gait", {}) if isinstance(ds.extra, dict) else {}
     groups = spec.get("groups") if isinstance(spec, dict) else None
     yaml_file = ds.root / "dataset.yaml" if ds.root is not None else "dataset.yaml"
@@ -191,8 +221,7 @@ def _gait_groups(ds, robot) -> tuple:
 
         groups = builtin_info(ds.robot.model).gait_groups or None
     if groups is None:
-        raise DatasetError(yaml_file, "gait.groups", "the two tripods of the gait (lists of foot frames) for a robot "
-                           "that is not a built-in hexapod", "missing")  # fmt: skip
+        return ()
     if (not isinstance(groups, (list, tuple)) or len(groups) != 2
             or any(not isinstance(g, (list, tuple)) or len(g) != len(groups[0]) or len(g) < 3 for g in groups)):
         raise DatasetError(yaml_file, "gait.groups", "two lists of the same number (>= 3) of foot frames", groups)
@@ -250,12 +279,15 @@ def inputs_from_dataset(ds, *, sensor: str | None = None) -> TrackInputs:
             else:
                 tau = None
     contact = None
-    if tau is None:
+    force = None
+    if all(t.has(f"force_{f}") for f in robot.feet):
+        force = np.column_stack([np.asarray(t[f"force_{f}"], dtype=float) for f in robot.feet])
+    if tau is None and force is None:
         missing = [f for f in robot.feet if not t.has(f"contact_{f}")]
         if missing:
             joint = next(j for f in robot.feet for j in robot.leg(f).joint_names if not t.has(f"tau_{j}"))
             raise DatasetError(ts_file, f"header, column tau_{joint}", "joint torques tau_<joint> of every leg joint "
-                               "(support detection) or contact_<foot> of every foot", "missing")  # fmt: skip
+                               "(support detection), force_<foot> or contact_<foot> of every foot", "missing")  # fmt: skip
         contact = np.column_stack([t[f"contact_{f}"] > 0.5 for f in robot.feet])
         if not contact.any():
             raise DatasetError(ts_file, f"columns contact_{robot.feet[0]}..contact_{robot.feet[-1]}",
@@ -284,7 +316,7 @@ def inputs_from_dataset(ds, *, sensor: str | None = None) -> TrackInputs:
         gyro=np.column_stack([t["imu_gx"], t["imu_gy"], t["imu_gz"]]).astype(float),
         accel=np.column_stack([t["imu_ax"], t["imu_ay"], t["imu_az"]]).astype(float),
         robot=robot, groups=groups, q=q, tau=tau, contact=contact, T_body_imu=T_body_imu,
-        clouds=clouds, T_body_sensor=T_body_sensor, sensor_type=sensor_type, source=str(ts_file),
+        clouds=clouds, T_body_sensor=T_body_sensor, sensor_type=sensor_type, source=str(ts_file), force=force,
     )
 
 
@@ -300,6 +332,7 @@ def inputs_from_walking(result, *, clouds: bool = True) -> TrackInputs:
         times=result.times, gyro=result.imu_gyro, accel=result.imu_accel, robot=result.robot,
         groups=tuple(result.groups), q=result.q_measured, tau=result.tau_measured,
         T_body_imu=np.asarray(info.T_body_imu), clouds=cl, T_body_sensor=T_bs, source="simulation",
+        force=result.foot_force,
     )
 
 
@@ -314,19 +347,38 @@ def _init_window(times: np.ndarray, cfg: TrackerConfig) -> tuple[int, float]:
     return n0, n0 * dt
 
 
-def _initial_state(inp: TrackInputs, pbf: np.ndarray, feet_idx: list[int], cfg: TrackerConfig):
-    n0, _ = _init_window(inp.times, cfg)
+def still_samples(inp: TrackInputs, cfg: TrackerConfig) -> int:
+    """Number of leading samples of a still start (TrackerConfig's ``still_*``), 0 when there is
+    none (the data start in motion, or it lasts less than ``still_min_s``)."""
+    t = np.asarray(inp.times, dtype=float)
+    if not cfg.still_start or len(t) < 40 or not inp.q:
+        return 0
+    n_max = int(np.searchsorted(t, t[0] + 30.0))  # a still start is looked for in the first 30 s
+    Q = np.column_stack([np.asarray(v, dtype=float)[:n_max] for v in inp.q.values()])
+    dev = np.abs(Q - Q[:20].mean(axis=0)).max(axis=1)
+    moved = np.flatnonzero(dev > cfg.still_joint_tol_rad)
+    n = int(moved[0]) if len(moved) else n_max
+    return n if n > 1 and t[n - 1] - t[0] >= cfg.still_min_s else 0
+
+
+def _initial_state(inp: TrackInputs, pbf: np.ndarray, feet_idx: list[int], cfg: TrackerConfig,
+                   n_still: int = 0):
+    """The initial state: roll and pitch from the mean accelerometer over the first
+    ``init_window_s`` or the still start (``n_still`` samples; then the gyro bias is their mean
+    gyro, IMU frame), yaw 0, the body above the stance feet ``feet_idx``."""
+    n0, _ = _init_window(inp.times, cfg) if n_still == 0 else (n_still, 0.0)
     a = inp.T_body_imu[:3, :3] @ inp.accel[:n0].mean(axis=0)
     roll = math.atan2(a[1], a[2])
     pitch = math.atan2(-a[0], math.hypot(a[1], a[2]))
     R0 = matrix_from_rpy([roll, pitch, 0.0])
     feet_world = pbf[feet_idx, 0] @ R0.T
     z0 = -float(feet_world[:, 2].mean())
-    return NominalState(np.array([0.0, 0.0, z0]), np.zeros(3), R0, np.zeros(3), np.zeros(3))
+    bg = np.asarray(inp.gyro[:n_still], dtype=float).mean(axis=0) if n_still else np.zeros(3)
+    return NominalState(np.array([0.0, 0.0, z0]), np.zeros(3), R0, bg, np.zeros(3))
 
 
 def _initial_covariance(cfg: TrackerConfig, n_slots: int, R_body_imu: np.ndarray,
-                        window_s: float | None = None) -> np.ndarray:
+                        window_s: float | None = None, still_s: float = 0.0) -> np.ndarray:
     """P0. Roll and pitch come from the mean accelerometer reading over ``window_s`` (default
     ``cfg.init_window_s``), so their errors are the accelerometer bias seen as a tilt:
     dtheta_x = -b_y / g, dtheta_y = b_x / g (correlated with the bias), plus the white noise of
@@ -343,6 +395,8 @@ def _initial_covariance(cfg: TrackerConfig, n_slots: int, R_body_imu: np.ndarray
     s[6:8] = math.sqrt(cfg.sigma_init_roll_pitch_rad**2 + tilt_noise_var)
     s[8] = cfg.sigma_init_yaw_rad
     s[9:12] = cfg.sigma_init_gyro_bias
+    if still_s > 0:  # the mean gyro over a still start: its white noise (and the bias's walk over it)
+        s[9:12] = math.sqrt(cfg.noise.gyro_noise_density**2 / still_s + cfg.noise.gyro_bias_rw**2 * still_s)
     s[12:15] = 0.0
     P = np.diag(s**2)
     G = np.zeros((D, 3))  # how the accelerometer bias (IMU frame) enters the initial state error
@@ -401,6 +455,57 @@ def _support_group(inp: TrackInputs, feet: tuple, groups: tuple, jacobians: dict
     return group
 
 
+@dataclass(frozen=True, eq=False)
+class _Support:
+    """The feet in stance as the filter's slots see them, per sample: ``slot_feet`` (N, n_slots)
+    the foot (index into robot.feet) in each slot, ``slot_stance`` (N, n_slots) whether it is in
+    stance; ``touchdown`` (N, n_slots) a new foot in the slot at that sample (reset, no update);
+    ``mask`` (N, n_feet) feet in stance; ``code`` (N,) the tripod index (two-tripod gait) or the
+    mask as an integer (bit i: foot i)."""
+
+    slot_feet: np.ndarray
+    slot_stance: np.ndarray
+    touchdown: np.ndarray
+    mask: np.ndarray
+    code: np.ndarray
+
+    @property
+    def n_slots(self) -> int:
+        return self.slot_feet.shape[1]
+
+
+def _support(inp: TrackInputs, feet: tuple, groups: tuple, jacobians: dict, cfg: TrackerConfig) -> _Support:
+    """The support model. Two tripods (``groups``, no foot-force sensors): one slot per foot of a
+    tripod, all of them reset when the other tripod takes over (:func:`_support_group`). Any other
+    gait: one slot per foot, stance from each foot's load (force sensors, else torques; hysteresis
+    ``contact_on_n`` / ``contact_off_n``) or its contact column; a foot touching down is reset."""
+    from graphcal.locomotion.support import foot_loads, stance_from_loads
+
+    N = len(inp.times)
+    if groups and inp.force is None:
+        group = _support_group(inp, feet, groups, jacobians, cfg)
+        group_idx = np.array([[feet.index(f) for f in g] for g in groups])
+        slot_feet = group_idx[group]
+        slot_stance = np.ones(slot_feet.shape, dtype=bool)
+        mask = np.zeros((N, len(feet)), dtype=bool)
+        np.put_along_axis(mask, slot_feet, True, axis=1)
+        code = np.asarray(group)
+    else:
+        if inp.force is not None:
+            mask = stance_from_loads(inp.force, on_n=cfg.contact_on_n, off_n=cfg.contact_off_n)
+        elif inp.tau is not None:
+            mask = stance_from_loads(foot_loads(inp.robot, inp.q, inp.tau, feet, jacobians=jacobians),
+                                     on_n=cfg.contact_on_n, off_n=cfg.contact_off_n)
+        else:
+            mask = np.asarray(inp.contact, dtype=bool)
+        slot_feet = np.broadcast_to(np.arange(len(feet)), mask.shape)
+        slot_stance = mask
+        code = (mask.astype(np.int64) << np.arange(len(feet))).sum(axis=1)
+    touchdown = np.zeros(slot_stance.shape, dtype=bool)
+    touchdown[1:] = slot_stance[1:] & (~slot_stance[:-1] | (slot_feet[1:] != slot_feet[:-1]))
+    return _Support(slot_feet, slot_stance, touchdown, mask, code)
+
+
 def _stance_measurement(kin: _FootKinematics, feet_idx: list[int], k: int) -> tuple[np.ndarray, np.ndarray]:
     """(p_body_foot (n_slots, 3) m, block-diagonal covariance (3 n_slots, 3 n_slots) m^2) of the
     feet ``feet_idx`` at sample k."""
@@ -440,10 +545,12 @@ def _icp_setup(inp: TrackInputs, cfg: TrackerConfig) -> _IcpSetup:
     return _IcpSetup(use_icp, T_bs, T_sb, Ad_inv, sigma_fn)
 
 
-def _events(N: int, every: int, group: np.ndarray, cloud_samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _events(N: int, every: int, sup: _Support, cloud_samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(events, switches): the samples that end an IMU chunk (every ``every``-th sample, support
-    switches, clouds and the last sample; increasing, > 0) and the support switches."""
-    switches = np.flatnonzero(np.diff(group) != 0) + 1
+    changes, clouds and the last sample; increasing, > 0) and the support changes (a foot touching
+    down or lifting off; the tripods' switches)."""
+    changed = np.any(np.diff(sup.slot_feet, axis=0) != 0, axis=1) | np.any(np.diff(sup.slot_stance, axis=0), axis=1)
+    switches = np.flatnonzero(changed) + 1
     events = np.union1d(np.union1d(np.arange(every, N, every), switches), cloud_samples)
     events = np.union1d(events[(events > 0) & (events < N)], [N - 1]).astype(np.int64)
     return events, switches
@@ -470,33 +577,35 @@ def _preintegrated_imu(inp: TrackInputs, times: np.ndarray, events: np.ndarray):
 class _EventInputs:
     """Per event (n_ev of them): the chunk's preintegration stacked as the filter takes it
     (``dR`` (n_ev, 3, 3), ``dpv`` (n_ev, 6) m and m/s, ``J`` (n_ev, 6, 6), ``T`` (n_ev,) s), the
-    stance tripod ``group`` (n_ev,), its measured feet ``z`` (n_ev, n_slots, 3) m (body frame) and
-    their block-diagonal covariance ``R`` (n_ev, 3 n_slots, 3 n_slots) m^2."""
+    foot of each slot ``feet`` (n_ev, n_slots) (index into robot.feet), its measured position ``z``
+    (n_ev, n_slots, 3) m (body frame) and their block-diagonal covariance ``R`` (n_ev, 3 n_slots,
+    3 n_slots) m^2; ``stance`` and ``touchdown`` (n_ev, n_slots) bool per slot (:class:`_Support`)."""
 
     dR: np.ndarray
     dpv: np.ndarray
     J: np.ndarray
     T: np.ndarray
-    group: np.ndarray
+    feet: np.ndarray
     z: np.ndarray
     R: np.ndarray
+    stance: np.ndarray
+    touchdown: np.ndarray
 
 
-def _event_inputs(pre, events: np.ndarray, group: np.ndarray, group_idx: list, kin: _FootKinematics,
-                  n_slots: int) -> _EventInputs:
+def _event_inputs(pre, events: np.ndarray, sup: _Support, kin: _FootKinematics, n_slots: int) -> _EventInputs:
     ev_dR = pre.dR[events]
     ev_dpv = np.concatenate([pre.dp[events], pre.dv[events]], axis=1)
     ev_J = np.concatenate([np.concatenate([pre.Jpg[events], pre.Jpa[events]], axis=2),
                            np.concatenate([pre.Jvg[events], pre.Jva[events]], axis=2)], axis=1)
     ev_T = pre.tau[events]
-    # the stance tripod's measured feet and their block-diagonal covariance (vectorised)
-    ev_group = np.asarray(group)[events]
-    ev_feet = np.asarray(group_idx)[ev_group]  # (n_ev, n_slots) foot indices
+    # the slots' measured feet and their block-diagonal covariance (vectorised)
+    ev_feet = sup.slot_feet[events]  # (n_ev, n_slots) foot indices
     ev_z = kin.p_body_foot[ev_feet, events[:, None]]  # (n_ev, n_slots, 3)
     ev_R = np.zeros((len(events), 3 * n_slots, 3 * n_slots))
     for s_ in range(n_slots):
         ev_R[:, 3 * s_ : 3 * s_ + 3, 3 * s_ : 3 * s_ + 3] = kin.cov[ev_feet[:, s_], events]
-    return _EventInputs(ev_dR, ev_dpv, ev_J, ev_T, ev_group, ev_z, ev_R)
+    return _EventInputs(ev_dR, ev_dpv, ev_J, ev_T, ev_feet, ev_z, ev_R, sup.slot_stance[events],
+                        sup.touchdown[events])
 
 
 def _fuse_icp(ekf: LeggedEKF, pts: np.ndarray, kf_cloud, icp: _IcpSetup, cfg: TrackerConfig) -> tuple[float, int] | None:
@@ -538,7 +647,8 @@ def _needs_keyframe(ekf: LeggedEKF, t_k: float, kf_time: float, cfg: TrackerConf
 class _LoopOutput:
     """What the event loop leaves: the filter state after each event (row 0: the initial state;
     p, v (n_ev + 1, 3), R (n_ev + 1, 3, 3), body-frame biases bg, ba (n_ev + 1, 3)); the stance
-    updates' innovations (K, 3 n_slots), their covariances, NIS and times; the ICP updates' NIS,
+    updates' innovations (K, 3 n_slots; NaN in the slots not measured), their covariances, NIS,
+    dof and times; the ICP updates' NIS,
     dof and times and the number not fused; the sample indices and (6, 6) pose covariances kept."""
 
     S_p: np.ndarray
@@ -550,6 +660,7 @@ class _LoopOutput:
     st_S: np.ndarray
     st_nis: np.ndarray
     st_t: np.ndarray
+    st_dof: np.ndarray
     icp_nis: list
     icp_dof: list
     icp_times: list
@@ -558,12 +669,35 @@ class _LoopOutput:
     cov_pose: list
 
 
+def _stance_step(ekf: LeggedEKF, ev: _EventInputs, e: int, names: tuple, update: bool):
+    """At event ``e``: the feet touching down are reset (all slots at once at a tripod switch); with
+    ``update``, the other feet in stance are measured. Returns (NIS, measured slots) of the update,
+    or None."""
+    touch = ev.touchdown[e]
+    if touch.all():  # a tripod switch (or every foot landing at once)
+        ekf.reset_feet(tuple(names[i] for i in ev.feet[e]), ev.z[e], ev.R[e])
+        return None
+    if touch.any():
+        idx = np.flatnonzero(touch)
+        rows = (3 * idx[:, None] + np.arange(3)[None]).ravel()
+        ekf.reset_slots(idx, ev.z[e][idx], ev.R[e][np.ix_(rows, rows)])
+    meas = ev.stance[e] & ~touch
+    if not update or not meas.any():
+        return None
+    if meas.all():
+        return ekf.update_stance(ev.z[e], ev.R[e]), meas
+    idx = np.flatnonzero(meas)
+    rows = (3 * idx[:, None] + np.arange(3)[None]).ravel()
+    return ekf.update_stance(ev.z[e][idx], ev.R[e][np.ix_(rows, rows)], slots=idx), meas
+
+
 def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.ndarray, switches: np.ndarray,
-                cloud_samples: np.ndarray, ev: _EventInputs, groups: tuple, icp: _IcpSetup, cfg: TrackerConfig, *,
+                cloud_samples: np.ndarray, ev: _EventInputs, icp: _IcpSetup, cfg: TrackerConfig, *,
                 progress: bool) -> _LoopOutput:
-    """The filter over the events (sample indices): propagate over each chunk, then at a support
-    switch take the new feet, else a stance update (every ``stance_every``-th sample), and at a
-    cloud sample (``cloud_samples``) a keyframe and an ICP update."""
+    """The filter over the events (sample indices): propagate over each chunk, then take the feet
+    touching down (a tripod switch: all of them) and update with the others in stance (every
+    ``stance_every``-th sample), and at a cloud sample (``cloud_samples``) a keyframe and an ICP
+    update."""
     if icp.use:
         from graphcal.clouds.icp import prepare_target
 
@@ -572,8 +706,7 @@ def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.
     pose_idx = np.r_[0:3, 6:9]
     st_dof = 3 * n_slots
     every = cfg.stance_every
-    is_switch = np.zeros(N, dtype=bool)
-    is_switch[switches] = True
+    names = tuple(inp.robot.feet)
     is_cloud = np.zeros(N, dtype=bool)
     is_cloud[cloud_samples] = True
     max_st = len(events)
@@ -581,6 +714,7 @@ def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.
     st_S = np.empty((max_st, st_dof, st_dof))
     st_nis = np.empty(max_st)
     st_t = np.empty(max_st)
+    st_k = np.empty(max_st, dtype=np.int64)
     n_st = 0
     cov_index: list[int] = [0]
     cov_pose: list[np.ndarray] = [ekf.kf.P[np.ix_(pose_idx, pose_idx)].copy()]
@@ -607,14 +741,20 @@ def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.
     for e in it:
         k = int(events[e])
         ekf.propagate(ev.dR[e], ev.dpv[e], ev.J[e], ev.T[e])
-        g = int(ev.group[e])
-        if is_switch[k]:
-            ekf.reset_feet(groups[g], ev.z[e], ev.R[e])
-        elif k % every == 0:
-            st_nis[n_st] = ekf.update_stance(ev.z[e], ev.R[e])
-            st_y[n_st] = ekf.last_innovation
-            st_S[n_st] = ekf.last_S
+        upd = _stance_step(ekf, ev, e, names, k % every == 0)
+        if upd is not None:
+            st_nis[n_st] = upd[0]
             st_t[n_st] = times[k]
+            st_k[n_st] = 3 * int(upd[1].sum())
+            if st_k[n_st] == st_dof:
+                st_y[n_st] = ekf.last_innovation
+                st_S[n_st] = ekf.last_S
+            else:  # some slots not measured: NaN innovations there, identity covariance
+                rows = np.flatnonzero(np.repeat(upd[1], 3))
+                st_y[n_st] = np.nan
+                st_y[n_st, rows] = ekf.last_innovation
+                st_S[n_st] = np.eye(st_dof)
+                st_S[n_st][np.ix_(rows, rows)] = ekf.last_S
             n_st += 1
         if is_cloud[k]:
             moved = _needs_keyframe(ekf, times[k], kf_time, cfg)
@@ -646,7 +786,7 @@ def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.
         S_p[e + 1], S_v[e + 1], S_R[e + 1] = ekf.p, ekf.v, ekf.R
         S_bg[e + 1], S_ba[e + 1] = ekf.body_biases()
     return _LoopOutput(S_p, S_v, S_R, S_bg, S_ba, st_y[:n_st], st_S[:n_st], st_nis[:n_st], st_t[:n_st],
-                       icp_nis, icp_dof, icp_times, n_rejected, cov_index, cov_pose)
+                       st_k[:n_st], icp_nis, icp_dof, icp_times, n_rejected, cov_index, cov_pose)
 
 
 def _states_at_samples(pre, events: np.ndarray, out: _LoopOutput, R_bi: np.ndarray, N: int):
@@ -679,11 +819,13 @@ def _whitened_innovations(st_y: np.ndarray, st_S: np.ndarray) -> np.ndarray:
     n_st, st_dof = st_y.shape
     st_w = np.full((n_st, st_dof), np.nan)
     if n_st:
+        missing = np.isnan(st_y)
         try:
             L = np.linalg.cholesky(st_S)
-            st_w = np.linalg.solve(L, st_y[:, :, None])[:, :, 0]
+            st_w = np.linalg.solve(L, np.where(missing, 0.0, st_y)[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:  # pragma: no cover
             pass
+        st_w[missing] = np.nan
     return st_w
 
 
@@ -706,27 +848,29 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
     N = len(times)
     feet = tuple(robot.feet)
     groups = tuple(tuple(g) for g in inp.groups)
-    n_slots = len(groups[0])
 
     kin = _foot_kinematics(inp, feet, cfg, N)
-    group = _support_group(inp, feet, groups, kin.jacobians, cfg)
+    sup = _support(inp, feet, groups, kin.jacobians, cfg)
+    n_slots = sup.n_slots
     n_joints = robot.leg(feet[0]).n_joints
-    group_idx = [[feet.index(f) for f in g] for g in groups]
 
-    x0 = _initial_state(inp, kin.p_body_foot, group_idx[group[0]], cfg)
-    P0 = _initial_covariance(cfg, n_slots, np.asarray(inp.T_body_imu, dtype=float)[:3, :3],
-                             _init_window(times, cfg)[1])
+    first = sup.slot_feet[0][sup.slot_stance[0]] if sup.slot_stance[0].any() else sup.slot_feet[0]
+    n_still = still_samples(inp, cfg)
+    x0 = _initial_state(inp, kin.p_body_foot, list(first), cfg, n_still)
+    still_s = float(times[n_still - 1] - times[0]) if n_still else 0.0
+    window_s = _init_window(times, cfg)[1] if not n_still else n_still * float(np.median(np.diff(times[:n_still])))
+    P0 = _initial_covariance(cfg, n_slots, np.asarray(inp.T_body_imu, dtype=float)[:3, :3], window_s, still_s)
     ekf = LeggedEKF(x0, P0, cfg.noise.process_density(n_slots), np.eye(n_joints) * cfg.noise.encoder_sigma_rad**2,
                     np.eye(3) * cfg.noise.kinematic_sigma_m**2, n_slots=n_slots, T_body_imu=inp.T_body_imu)
-    z, Rm = _stance_measurement(kin, group_idx[group[0]], 0)
-    ekf.reset_feet(groups[group[0]], z, Rm)
+    z, Rm = _stance_measurement(kin, list(sup.slot_feet[0]), 0)
+    ekf.reset_feet(tuple(feet[i] for i in sup.slot_feet[0]), z, Rm)
 
     icp = _icp_setup(inp, cfg)
     cloud_samples = np.array(sorted(inp.clouds), dtype=np.int64) if icp.use else np.zeros(0, dtype=np.int64)
-    events, switches = _events(N, cfg.stance_every, group, cloud_samples)
+    events, switches = _events(N, cfg.stance_every, sup, cloud_samples)
     pre = _preintegrated_imu(inp, times, events)
-    ev = _event_inputs(pre, events, group, group_idx, kin, n_slots)
-    out = _run_events(ekf, inp, times, events, switches, cloud_samples, ev, groups, icp, cfg, progress=progress)
+    ev = _event_inputs(pre, events, sup, kin, n_slots)
+    out = _run_events(ekf, inp, times, events, switches, cloud_samples, ev, icp, cfg, progress=progress)
 
     R_bi = np.asarray(inp.T_body_imu, dtype=float)[:3, :3]
     P_out, V_out, R_out, BG_out, BA_out = _states_at_samples(pre, events, out, R_bi, N)
@@ -742,8 +886,8 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
         stance_nis=out.st_nis, stance_times=out.st_t, stance_innovations=st_w, stance_dof=3 * n_slots,
         icp_nis=np.asarray(out.icp_nis),
         icp_dof=np.asarray(out.icp_dof, dtype=np.int64), icp_times=np.asarray(out.icp_times),
-        n_icp_rejected=out.n_rejected, support_group=np.asarray(group), groups=groups, processing_s=elapsed,
-        duration_s=float(times[-1] - times[0]),
+        n_icp_rejected=out.n_rejected, support_group=np.asarray(sup.code), groups=groups, processing_s=elapsed,
+        duration_s=float(times[-1] - times[0]), stance_dofs=out.st_dof, stance_mask=sup.mask,
     )
 
 

@@ -209,13 +209,19 @@ def chi2_band(dof: float, n: int = 1, prob: float = 0.95) -> tuple[float, float]
 
 
 def whiteness(innovations: np.ndarray, *, lags: int = 20) -> dict:
-    """Whiteness of a whitened innovation sequence (K, m): per component autocorrelations at lags
+    """Whiteness of a whitened innovation sequence (K, m) (rows with NaN are left out; when every
+    row has some, each component's finite entries are taken in order): per component autocorrelations at lags
     1..``lags``; ``fraction_inside`` of them within +-1.96/sqrt(K) (white noise: ~0.95),
     ``max_abs_autocorr``, and the Ljung-Box statistic Q per component with its 95 % chi-square(lags)
     threshold and the smallest p-value."""
     from scipy.stats import chi2
 
     W = np.asarray(innovations, dtype=float)
+    if W.ndim == 2 and W.size and not np.all(np.isfinite(W), axis=1).any():
+        # every update left some slots unmeasured (feet in swing, NaN): each component's own updates
+        cols = [W[np.isfinite(W[:, j]), j] for j in range(W.shape[1])]
+        K = min(len(c) for c in cols)
+        W = np.column_stack([c[:K] for c in cols]) if K else np.zeros((0, W.shape[1]))
     W = W[np.all(np.isfinite(W), axis=1)]
     K, m = W.shape
     if K <= lags + 1:

@@ -10,6 +10,11 @@ that group A is in support phase"). A hysteresis (the other tripod must carry ``
 more before the detection switches) keeps torque noise from flickering the decision during the
 short six-foot support.
 
+Any other gait (a quadruped's trot or walk: any set of feet in stance) is read foot by foot: the
+load of each foot -- from a foot-force sensor, or from its leg's torques as above -- switches it
+into stance above ``on_n`` and out below ``off_n`` (a hysteresis per foot,
+:func:`stance_from_loads`), giving a stance mask per sample.
+
 Everything is vectorised over the samples.
 """
 
@@ -21,7 +26,8 @@ import numpy as np
 
 from graphcal.errors import GraphcalError
 
-__all__ = ["SupportEstimate", "tip_forces", "detect_support", "support_from_torques"]
+__all__ = ["SupportEstimate", "tip_forces", "detect_support", "support_from_torques", "foot_loads",
+           "stance_from_loads"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,3 +128,37 @@ def support_from_torques(robot, q_by_joint, tau_by_joint, groups, *, hysteresis_
         J = jacobians.get(f) if jacobians else None
         loads[:, i] = -tip_forces(leg, q, tau, jacobian=J)[:, 2]
     return SupportEstimate(detect_support(loads, feet, groups, hysteresis_n=hysteresis_n), tuple(groups), loads, feet)
+
+
+def foot_loads(robot, q_by_joint, tau_by_joint, feet, *, jacobians: dict | None = None) -> np.ndarray:
+    """(N, n_feet) load of each of ``feet`` (N, downward along body z: ``-f_z`` of
+    :func:`tip_forces`) from joint angles (rad) and torques (N m), joint name -> (N,)."""
+    loads = np.empty((len(next(iter(q_by_joint.values()))), len(feet)))
+    for i, f in enumerate(feet):
+        leg = robot.leg(f)
+        q = np.column_stack([q_by_joint[j] for j in leg.joint_names])
+        tau = np.column_stack([tau_by_joint[j] for j in leg.joint_names])
+        J = jacobians.get(f) if jacobians else None
+        loads[:, i] = -tip_forces(leg, q, tau, jacobian=J)[:, 2]
+    return loads
+
+
+def stance_from_loads(loads: np.ndarray, *, on_n: float, off_n: float) -> np.ndarray:
+    """(N, n_feet) bool stance mask from foot loads (N, n_feet) in N, a hysteresis per foot: a foot
+    enters stance when its load exceeds ``on_n`` and leaves it when the load falls below ``off_n``
+    (``off_n <= on_n``); it starts in stance when its first load is above the midpoint."""
+    loads = np.asarray(loads, dtype=float)
+    if not off_n <= on_n:
+        raise GraphcalError(f"contact thresholds: off ({off_n} N) must not exceed on ({on_n} N)")
+    N, n = loads.shape
+    out = np.empty((N, n), dtype=bool)
+    for i in range(n):
+        up = loads[:, i] > on_n
+        down = loads[:, i] < off_n
+        # the state is the last decisive sample's: forward-fill the index of the last up/down sample
+        decided = up | down
+        last = np.where(decided, np.arange(N), -1)
+        np.maximum.accumulate(last, out=last)
+        first = bool(loads[0, i] > 0.5 * (on_n + off_n)) if N else False
+        out[:, i] = np.where(last >= 0, up[np.maximum(last, 0)], first)
+    return out

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from graphcal.report.page import Section, esc, figure_png_html, render_page
+from graphcal.report.page import Section, esc, figure_png_html, num, render_page, row, table
 from graphcal.report.plots import figure_png, new_figure
 
 __all__ = ["track_figures", "track_html"]
@@ -83,13 +83,18 @@ def track_figures(result, truth, nees_t, nees, nees_dof) -> dict[str, bytes]:
     fig = new_figure(10, 5)
     ax = fig.add_subplot(2, 1, 1)
     if len(result.stance_nis):
-        lo, hi = chi2_band(result.stance_dof)
-        ax.plot(result.stance_times, result.stance_nis, ".", ms=1.5, alpha=0.4, color="C0", label="stance NIS")
-        w = max(1, len(result.stance_nis) // 200)
+        dofs = result.stance_dofs
+        nis, dof = result.stance_nis, result.stance_dof
+        if dofs is not None and len(dofs) and np.ptp(dofs) > 0:  # feet in stance vary: NIS scaled to the largest dof
+            nis = result.stance_nis * result.stance_dof / dofs
+        lo, hi = chi2_band(dof)
+        ax.plot(result.stance_times, nis, ".", ms=1.5, alpha=0.4, color="C0",
+                label="stance NIS" if nis is result.stance_nis else f"stance NIS x {dof} / dof")
+        w = max(1, len(nis) // 200)
         if w > 1:
-            m = np.convolve(result.stance_nis, np.ones(w * 5) / (w * 5), mode="same")
+            m = np.convolve(nis, np.ones(w * 5) / (w * 5), mode="same")
             ax.plot(result.stance_times, m, "C1-", lw=1, label="running mean")
-        ax.axhline(result.stance_dof, color="k", lw=0.8, label=f"dof {result.stance_dof}")
+        ax.axhline(dof, color="k", lw=0.8, label=f"dof {dof}")
         ax.axhspan(lo, hi, color="g", alpha=0.1, label="95 % band")
         ax.set_ylim(0, max(3 * hi, 1))
     ax.set_ylabel("NIS")
@@ -153,13 +158,33 @@ def _stairs_section(stairs_doc: dict) -> Section:
     return Section("Stairs", *parts)
 
 
+def _verdict_section(c: dict | None) -> Section:
+    """The filter-consistency verdict (metrics.json ``consistency``): overall, then per update kind
+    the statistic, its reference distribution and p-value."""
+    if not c:
+        return Section("Filter consistency", "<p>not computed</p>")
+    rows = [row(["update kind", "verdict", "mean NIS per dof", "windows outside / windows", "reference",
+                 "p-value"], header=True)]
+    for name, r in c["kinds"].items():
+        if r["verdict"] == "not tested":
+            rows.append(row([esc(name), "not tested (no update)", "–", "–", "–", "–"]))
+            continue
+        rows.append(row([esc(name), esc(r["verdict"]), num(r["mean_nis_per_dof"]),
+                         f"{r['statistic']} / {r['n_windows']}", esc(r["reference"]), num(r["p_value"], ".3g")]))
+    first = next((r for r in c["kinds"].values() if r["verdict"] != "not tested"), None)
+    how = (f"Windows of {first['window_s']:g} s; each window's mean NIS per dof against its chi-square "
+           f"{100 * first['interval_probability']:g} % interval; inconsistent when p < {first['alpha']:g} or the "
+           f"whole-run mean lies outside its interval widened by {100 * first['tolerance']:g} %.") if first else ""
+    return Section("Filter consistency: " + c["verdict"], f"<p>{esc(how)}</p>", table(rows))
+
+
 def track_html(m: dict, stairs_doc: dict | None, pngs: dict[str, bytes], *, title: str = "graphcal track") -> str:
     """The page of a track output: ``m`` is metrics.json (SI units; null without truth), ``stairs_doc``
     stairs.json or None, ``pngs`` the plots (file name -> PNG, :func:`track_figures`)."""
     w = m.get("innovation_whiteness") or {}
     subtitle = (f"Dataset: {m['dataset']}; {m['n_samples']} samples over {m['duration_s']:.2f} s, processed in "
                 f"{m['processing_s']:.2f} s ({m['real_time_factor']:.1f}x real time). Filter: error-state EKF "
-                "(filterpy), IMU propagation, stance-tripod kinematics (support from joint torques), ICP between "
+                "(filterpy), IMU propagation, stance-foot kinematics (support from joint torques or foot forces), ICP between "
                 "keyframe clouds as relative-pose measurements (docs/state_estimation.md).")
     accuracy = _facts(esc(x) for x in (
         f"distance: {m['distance_m']:.2f} m ({m['distance_source']})",
@@ -170,7 +195,7 @@ def track_html(m: dict, stairs_doc: dict | None, pngs: dict[str, bytes], *, titl
         f"95 % band: {_value(m.get('nees_fraction_in_band'), '.3f')})",
     ))
     consistency = _facts(esc(x) for x in (
-        f"stance NIS mean {_value(m.get('stance_nis_mean'), '.2f')} (dof {m['stance_nis_dof']}), "
+        f"stance NIS mean {_value(m.get('stance_nis_mean'), '.2f')} (dof {_value(m.get('stance_nis_dof_mean'), '.3g')}), "
         f"{m['stance_updates']} updates, {m['support_switches']} support switches",
         f"innovation whiteness: {_value(w.get('fraction_inside'), '.3f')} of the autocorrelations at lags "
         f"1..{w.get('lags')} inside ±1.96/sqrt(n) (white: 0.95); max |rho| {_value(w.get('max_abs_autocorr'), '.3f')}",
@@ -178,11 +203,15 @@ def track_html(m: dict, stairs_doc: dict | None, pngs: dict[str, bytes], *, titl
         f"{_value(m.get('icp_dof_mean'), '.1f')} directions on average), {m['icp_rejected']} rejected",
     ))
     heading = "Accuracy" + ("" if m["truth"] else " (no truth.yaml beside the dataset: the keys that need it are null)")
-    sections = [Section(heading, accuracy), Section("Consistency", consistency)]
+    sections = [_verdict_section(m.get("consistency")), Section(heading, accuracy), Section("Consistency", consistency)]
     if stairs_doc is not None:
         sections.append(_stairs_section(stairs_doc))
     sections.append(Section("Figures", *(figure_png_html(png, f"{name}: {FIGURE_CAPTIONS.get(name, '')}")
                                          for name, png in pngs.items()),
                             "<p class='small'>Trajectory: trajectory.tum (TUM: t x y z qx qy qz qw); every number "
                             "above: metrics.json.</p>"))
-    return render_page(title, sections, subtitle=subtitle, footer="Written by graphcal track.")
+    c = m.get("consistency") or {}
+    warn = ([f"The filter's innovations are inconsistent with its covariance ({', '.join(c['inconsistent_kinds'])}): "
+             "the noise settings or the model do not fit the data; the trajectory's sigma are not to be trusted."]
+            if c.get("verdict") == "inconsistent" else [])
+    return render_page(title, sections, subtitle=subtitle, warnings=warn, footer="Written by graphcal track.")

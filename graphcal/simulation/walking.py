@@ -1,5 +1,7 @@
 """Simulated walking: the Qingzhui hexapod (Zhao 2020) in the alternating tripod gait, on level
-ground (``tripod-walk``) or up and down three 130 x 300 mm stairs (``tripod-stairs``).
+ground (``tripod-walk``) or up and down three 130 x 300 mm stairs (``tripod-stairs``); the a1
+quadruped in a trot (``trot``: diagonal pairs) or a walk (``walk``: one foot at a time) on level
+ground, with foot-force sensors (:data:`GAITS`).
 
 What is simulated, all vectorised over the samples (numpy, one loop over the legs and the steps):
 
@@ -10,7 +12,8 @@ What is simulated, all vectorised over the samples (numpy, one loop over the leg
   line under its nominal feet (smoothed), at its standing height above it less the depth of the
   lowest foot's ground below that line (pitch like Zhao's Fig. 9b).
 * **Gait** (Zhao Fig. 4): group A = mf, rb, lb; group B = mb, rf, lf, half a cycle apart, duty
-  factor ``duty_factor`` > 0.5 (a short six-foot support at each switch). Each foothold is the
+  factor ``duty_factor`` > 0.5 (a short six-foot support at each switch). The quadruped programs
+  give each foot its phase offset (:class:`GaitSpec`). Each foothold is the
   foot's nominal stance under the body pose at the middle of its stance, dropped vertically onto
   the terrain, and on stairs at least ``edge_margin_m`` from every stair edge. Feet are planted exactly
   during stance. A swing rises to ``swing_clearance_m`` above the highest ground between lift-off and
@@ -24,7 +27,10 @@ What is simulated, all vectorised over the samples (numpy, one loop over the leg
   minimum-norm solution over the feet in contact, the weight of a foot ramping from 0 at
   touch-down to 1 over the double-support time and back to 0 at lift-off (smooth load transfer;
   legs massless). tau = J^T f, with f the force the foot exerts on the ground (body frame) and J
-  the leg's position Jacobian (body frame); white noise ``torque_sigma_nm``.
+  the leg's position Jacobian (body frame); white noise ``torque_sigma_nm``. The quadruped programs
+  share the reaction by weight only (a trot's diagonal pair cannot hold a moment quasi-statically)
+  and read foot-force sensors: the load along the body's -z axis plus white noise
+  ``force_sigma_n`` (``force_<foot>`` columns, N).
 * **IMU** at every sample: gyro = R_world_imu^T-frame angular rate + bias + white noise; accel =
   specific force ``R_world_imu^T (a_imu - g)`` (g = (0, 0, -9.80665) m/s^2) + bias + white
   noise; biases start from a random draw and follow a random walk. Continuous-time densities:
@@ -34,7 +40,8 @@ What is simulated, all vectorised over the samples (numpy, one loop over the leg
   into the terrain (not the robot's own legs) from ``T_world_body @ T_body_sensor`` (the CAD
   extrinsic is the true one here). Default stride 16 on level ground, 8 on the stairs.
 
-The dataset holds ``timeseries.csv`` (time, q_*, tau_*, imu_*, cloud_depth, contact_*) and the clouds;
+The dataset holds ``timeseries.csv`` (time, q_*, tau_*, imu_*, cloud_depth, contact_*, force_* with
+force sensors) and the clouds;
 the truth goes to ``truth.yaml`` and ``truth_trajectory.csv`` (time, body pose, velocity, biases at
 ``truth_rate_hz``), which only evaluations read.
 
@@ -65,7 +72,49 @@ __all__ = [
     "stair_profile",
 ]
 
-WALKING_PROGRAMS = ("tripod-walk", "tripod-stairs")
+WALKING_PROGRAMS = ("tripod-walk", "tripod-stairs", "trot", "walk")
+
+
+@dataclass(frozen=True)
+class GaitSpec:
+    """A walking program's gait: the robot it walks and when each foot swings.
+
+    Attributes:
+        robot: the built-in model the program walks.
+        phase_offsets: foot -> offset (cycles) of its gait phase: the foot swings while
+            ``mod(phase + offset, 1) < 1 - duty_factor`` (phase in cycles since the gait starts).
+            None: the model's two tripod ``gait_groups``, half a cycle apart (offsets 0 and 0.5).
+        speed_m_s, cycle_s, duty_factor, body_mass_kg: the program's defaults (m/s, s, fraction of
+            the cycle on the ground, kg).
+        ramp_cycles: load transfer time at touchdown and lift-off, in cycles; None: the double
+            support of a two-group gait (``duty_factor - 0.5``).
+        force_sensors: the feet carry force sensors (``force_<foot>`` columns, N); their forces
+            are spread over the feet in contact by load weight only (no moment balance: a trot's
+            two feet cannot balance one); without, the zero-moment quasi-static distribution.
+    """
+
+    robot: str
+    phase_offsets: dict | None = None
+    speed_m_s: float = 0.4
+    cycle_s: float = 0.9
+    duty_factor: float = 0.55
+    ramp_cycles: float | None = None
+    force_sensors: bool = False
+    body_mass_kg: float = 40.0
+
+
+#: the gait of each walking program (tripods: Zhao 2020; quadruped trot: diagonal pairs half a cycle
+#: apart; quadruped walk: the lateral sequence rl, fl, rr, fr a quarter cycle apart, 3-4 feet down)
+GAITS = {
+    "tripod-walk": GaitSpec("qingzhui"),
+    "tripod-stairs": GaitSpec("qingzhui", speed_m_s=0.25, cycle_s=1.2),
+    "trot": GaitSpec("a1", {"fl_foot": 0.0, "rr_foot": 0.0, "fr_foot": 0.5, "rl_foot": 0.5},
+                     speed_m_s=0.5, cycle_s=0.5, duty_factor=0.6, ramp_cycles=0.05, force_sensors=True,
+                     body_mass_kg=12.0),
+    "walk": GaitSpec("a1", {"rl_foot": 0.0, "fl_foot": 0.25, "rr_foot": 0.5, "fr_foot": 0.75},
+                     speed_m_s=0.25, cycle_s=0.8, duty_factor=0.8, ramp_cycles=0.05, force_sensors=True,
+                     body_mass_kg=12.0),
+}
 GRAVITY_M_S2 = 9.80665
 _G_WORLD = np.array([0.0, 0.0, -GRAVITY_M_S2])
 TRUTH_TRAJECTORY_FILE = "truth_trajectory.csv"
@@ -84,17 +133,19 @@ class WalkingConfig:
 
     Attributes:
         program: ``tripod-walk`` (level ground, weaving path) or ``tripod-stairs`` (straight up
-            three stairs, over a 1.5 m landing, down three stairs, level run-out).
-        robot: built-in model with tripod gait groups (``qingzhui``).
+            three stairs, over a 1.5 m landing, down three stairs, level run-out) of the qingzhui;
+            ``trot`` or ``walk`` of the a1 quadruped on level ground (weaving path; :data:`GAITS`).
+        robot: the program's built-in model (:data:`GAITS`; None: that one, another is refused).
         seed: every random draw derives from it.
         distance_m: body path length (m). Level default 20; stairs default: from the start to
             1.2 m past the last stair edge.
         duration_s: if given (level walk only), the path length is chosen so that the walk lasts
             about this long (s), overriding ``distance_m``.
-        speed_m_s: cruise speed (m/s); default 0.4 level, 0.25 stairs.
+        speed_m_s: cruise speed (m/s); default 0.4 level, 0.25 stairs, 0.5 trot, 0.25 walk.
         cycle_s: gait cycle period (s); default 0.9 level, 1.2 stairs (stride = speed * cycle:
-            0.3 m = one tread on the stairs).
-        duty_factor: fraction of the cycle a foot is on the ground (0.5 < beta < 0.9).
+            0.3 m = one tread on the stairs), 0.5 trot, 0.8 walk.
+        duty_factor: fraction of the cycle a foot is on the ground (0.5 < beta < 0.9); default
+            0.55 tripods, 0.6 trot, 0.8 walk.
         rate_hz: sample rate of joints, torques and IMU (Hz).
         cloud_rate_hz: depth-cloud rate (Hz); 0 = no clouds.
         cloud_stride: keep every k-th camera pixel row and column; default 16 (40 x 30 rays) on
@@ -108,23 +159,24 @@ class WalkingConfig:
         stairs_start_x_m: x of the first riser (m).
         edge_margin_m: footholds stay this far (along x) from every stair edge (m).
         swing_clearance_m: swing height above the highest ground under the swing (m).
-        body_mass_kg: mass carried by the legs (chosen; Zhao gives none).
+        body_mass_kg: mass carried by the legs (chosen; Zhao gives none): default 40 qingzhui, 12 a1.
         encoder_sigma_rad: joint encoder noise (white, per sample).
         torque_sigma_nm: joint torque sensor noise (white, per sample).
         gyro_noise_density, accel_noise_density: IMU white noise, rad/s/sqrt(Hz) and m/s^2/sqrt(Hz).
         gyro_bias_rw, accel_bias_rw: bias random walks, rad/s^2/sqrt(Hz) and m/s^3/sqrt(Hz).
         gyro_bias_sigma_rad_s, accel_bias_sigma_m_s2: spread of the initial biases.
         truth_rate_hz: rate of ``truth_trajectory.csv``.
+        force_sigma_n: foot-force sensor noise (white, per sample, N; programs with force sensors).
     """
 
     program: str = "tripod-walk"
-    robot: str = "qingzhui"
+    robot: str | None = None
     seed: int = 0
     distance_m: float | None = None
     duration_s: float | None = None
     speed_m_s: float | None = None
     cycle_s: float | None = None
-    duty_factor: float = 0.55
+    duty_factor: float | None = None
     rate_hz: float = 1000.0
     cloud_rate_hz: float = 30.0
     cloud_stride: int | None = None
@@ -139,7 +191,7 @@ class WalkingConfig:
     stairs_start_x_m: float = 1.6
     edge_margin_m: float = 0.05
     swing_clearance_m: float = 0.06
-    body_mass_kg: float = 40.0
+    body_mass_kg: float | None = None
     encoder_sigma_rad: float = float(np.radians(0.02))
     torque_sigma_nm: float = 0.5
     gyro_noise_density: float = 2.5e-4
@@ -149,6 +201,12 @@ class WalkingConfig:
     gyro_bias_sigma_rad_s: float = 1e-3
     accel_bias_sigma_m_s2: float = 0.02
     truth_rate_hz: float = 100.0
+    force_sigma_n: float = 2.0
+
+    @property
+    def gait(self) -> GaitSpec:
+        """The program's :class:`GaitSpec`."""
+        return GAITS[self.program]
 
     @property
     def stairs(self) -> bool:
@@ -160,10 +218,16 @@ class WalkingConfig:
             raise GraphcalError(f"unknown walking program {self.program!r}; expected one of "
                                 f"{', '.join(WALKING_PROGRAMS)}")
         st = self.stairs
+        gait = self.gait
+        if self.robot is not None and self.robot != gait.robot:
+            raise GraphcalError(f"walking program {self.program} walks the {gait.robot}, not {self.robot!r}")
         c = replace(
             self,
-            speed_m_s=self.speed_m_s if self.speed_m_s is not None else (0.25 if st else 0.4),
-            cycle_s=self.cycle_s if self.cycle_s is not None else (1.2 if st else 0.9),
+            robot=gait.robot,
+            speed_m_s=self.speed_m_s if self.speed_m_s is not None else gait.speed_m_s,
+            cycle_s=self.cycle_s if self.cycle_s is not None else gait.cycle_s,
+            duty_factor=self.duty_factor if self.duty_factor is not None else gait.duty_factor,
+            body_mass_kg=self.body_mass_kg if self.body_mass_kg is not None else gait.body_mass_kg,
             cloud_stride=self.cloud_stride if self.cloud_stride is not None else (8 if st else 16),
         )
         if c.distance_m is None:
@@ -223,6 +287,8 @@ class WalkingResult:
         T_body_imu, T_body_sensor: (4, 4) true IMU and depth-camera poses in the body frame.
         cloud_indices: (M,) sample index of each cloud; clouds: M arrays (K, 3), sensor frame, m.
         terrain: the :class:`~graphcal.simulation.terrain.Terrain` (meshes and treads).
+        foot_force: (N, n_feet) measured foot loads (N: the force each foot exerts on the ground
+            along the body's -z axis, plus noise), or None without foot-force sensors.
     """
 
     config: WalkingConfig
@@ -248,6 +314,7 @@ class WalkingResult:
     cloud_indices: np.ndarray
     clouds: list = field(default_factory=list)
     terrain: Terrain | None = None
+    foot_force: np.ndarray | None = None
 
     @property
     def distance_m(self) -> float:
@@ -513,17 +580,24 @@ def _foot_plan(c: WalkingConfig, info, feet: tuple, groups: tuple, tl: _Timeline
     N = len(t)
     Tc, beta = c.cycle_s, c.duty_factor
     p, R = body.p, body.R
-    group_of = {f: gi for gi, g in enumerate(groups) for f in g}
     in_gait = (t >= tl.t_g0) & (t < tl.t_g1)
-    swing_group = [in_gait & (np.mod(tl.phase, 1.0) < 1.0 - beta), in_gait & (np.mod(tl.phase + 0.5, 1.0) < 1.0 - beta)]
+    offsets = c.gait.phase_offsets
+    if offsets is None:  # two tripods half a cycle apart
+        group_of = {f: gi for gi, g in enumerate(groups) for f in g}
+        swing_group = [in_gait & (np.mod(tl.phase, 1.0) < 1.0 - beta),
+                       in_gait & (np.mod(tl.phase + 0.5, 1.0) < 1.0 - beta)]
+        swings = {f: swing_group[group_of[f]] for f in feet}
+    else:
+        swings = {f: in_gait & (np.mod(tl.phase + offsets[f], 1.0) < 1.0 - beta) for f in feet}
     edges = _stair_edges(body.terrain.stairs) if c.stairs else np.zeros(0)
     nf = len(feet)
     contact = np.zeros((N, nf), dtype=bool)
     weight = np.zeros((nf, N))
     p_world_foot = np.zeros((nf, N, 3))
-    ramp_n = max(1, int(round((beta - 0.5) * Tc * c.rate_hz)))
+    ramp = c.gait.ramp_cycles if c.gait.ramp_cycles is not None else beta - 0.5
+    ramp_n = max(1, int(round(ramp * Tc * c.rate_hz)))
     for i, f in enumerate(feet):
-        stance = ~swing_group[group_of[f]]
+        stance = ~swings[f]
         contact[:, i] = stance
         nominal = np.asarray(info.nominal_stance[f], dtype=float)
         nominal = np.r_[nominal[:2], -h0]
@@ -672,6 +746,16 @@ def _quasi_static_forces(c: WalkingConfig, body: _BodyPath, p_body_foot: np.ndar
     return -np.swapaxes(f_ground, 0, 1)  # what each foot exerts on the ground
 
 
+def _shared_forces(c: WalkingConfig, body: _BodyPath, weight: np.ndarray, dt: float) -> np.ndarray:
+    """(n_feet, N, 3) force (N) each foot exerts on the ground, body frame: the ground reaction that
+    carries the body's mass and acceleration, shared by the feet in proportion to their ``weight``
+    (n_feet, N) -- no moment balance (two diagonal feet of a trot cannot hold one quasi-statically);
+    the torques follow from these forces."""
+    F_body = c.body_mass_kg * np.einsum("nji,nj->ni", body.R, _second_difference(body.p, dt) - _G_WORLD)
+    share = weight / np.maximum(weight.sum(axis=0, keepdims=True), 1e-12)
+    return -share[:, :, None] * F_body[None]
+
+
 def _joint_measurements(c: WalkingConfig, robot, feet: tuple, q_leg: dict, jac: dict, force_body_foot: np.ndarray,
                         rng: np.random.Generator) -> tuple[dict, dict]:
     """(joint name -> measured angle (N,) rad, joint name -> measured torque (N,) N m): the true
@@ -727,12 +811,12 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
 
     c = config.resolved()
     info = builtin_info(c.robot)
-    if len(info.gait_groups) != 2:
-        raise GraphcalError(f"robot {c.robot!r} has no tripod gait groups (the walking programs need two)")
+    if c.gait.phase_offsets is None and len(info.gait_groups) != 2:
+        raise GraphcalError(f"robot {c.robot!r} has no tripod gait groups (the {c.program} program needs two)")
     robot = load_robot(model=c.robot)
     rng = np.random.default_rng(c.seed)
     feet = tuple(robot.feet)
-    groups = tuple(tuple(g) for g in info.gait_groups)
+    groups = tuple(tuple(g) for g in info.gait_groups) if c.gait.phase_offsets is None else ()
     tl = _timeline(c, info)
     t = tl.t
     body = _body_path(c, info, feet, tl)
@@ -742,8 +826,15 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
     q_true, q_leg, jac = _joint_angles(robot, info, feet, t, p_body_foot, tl.h0)
     v_world = np.gradient(body.p, tl.dt, axis=0)
     imu = _imu(c, info, body, tl.dt, rng)
-    force_body_foot = _quasi_static_forces(c, body, p_body_foot, plan.weight, tl.dt)
+    if c.gait.force_sensors:
+        force_body_foot = _shared_forces(c, body, plan.weight, tl.dt)
+    else:
+        force_body_foot = _quasi_static_forces(c, body, p_body_foot, plan.weight, tl.dt)
     q_measured, tau_measured = _joint_measurements(c, robot, feet, q_leg, jac, force_body_foot, rng)
+    foot_force = None
+    if c.gait.force_sensors:  # drawn after the joints: the tripod walks' draws are unchanged
+        load = -force_body_foot[:, :, 2].T  # (N, n_feet) along the body's -z
+        foot_force = np.round(load + rng.normal(0, c.force_sigma_n, load.shape), 2)
     T_body_sensor = np.asarray(info.sensors["depth"].T_body_sensor, dtype=float) if "depth" in info.sensors else None
     cloud_idx, clouds = _depth_clouds(c, T_body_sensor, t, T_world_body, body.terrain, rng, progress)
     return WalkingResult(
@@ -752,7 +843,7 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
         q_measured=q_measured, tau_measured=tau_measured, force_body_foot=force_body_foot,
         imu_accel=imu.accel, imu_gyro=imu.gyro, accel_bias=imu.accel_bias, gyro_bias=imu.gyro_bias,
         T_body_imu=imu.T_body_imu, T_body_sensor=T_body_sensor if T_body_sensor is not None else np.eye(4),
-        cloud_indices=cloud_idx, clouds=clouds, terrain=body.terrain,
+        cloud_indices=cloud_idx, clouds=clouds, terrain=body.terrain, foot_force=foot_force,
     )
 
 
@@ -828,6 +919,9 @@ def walking_dataset(result: WalkingResult, cloud_names: list[str] | None = None)
                                       PosePrior.from_matrix(cad.T_body_sensor, cad.sigma_m, cad.sigma_rad))
     for i, f in enumerate(result.feet):
         cols[f"contact_{f}"] = result.contact[:, i].astype(float)
+    if result.foot_force is not None:
+        for i, f in enumerate(result.feet):
+            cols[f"force_{f}"] = result.foot_force[:, i]
     ground = {"type": "stairs"} if result.config.stairs else {"type": "level"}
     return Dataset(
         robot=RobotSpec(urdf=None, model=result.config.robot, base_frame=info.base_frame, feet=tuple(result.feet)),
@@ -858,7 +952,8 @@ def truth_dict(result: WalkingResult) -> dict:
                        "columns": "time, x, y, z, qw, qx, qy, qz (T_world_body), vx, vy, vz (world, m/s), "
                                   "bgx..bgz (gyro bias, rad/s), bax..baz (accel bias, m/s^2)"},
         "distance_m": result.distance_m,
-        "gait": {"groups": [list(g) for g in result.groups], "cycle_s": c.cycle_s, "duty_factor": c.duty_factor},
+        "gait": {"groups": [list(g) for g in result.groups], "cycle_s": c.cycle_s, "duty_factor": c.duty_factor,
+                 **({"phase_offsets": dict(c.gait.phase_offsets)} if c.gait.phase_offsets else {})},
         "sensors": {"depth": {"type": "depth_camera", "T_body_sensor": _pose_yaml(result.T_body_sensor)}},
         "imu": {"T_body_imu": _pose_yaml(result.T_body_imu),
                 "accel_bias_start_m_s2": [float(v) for v in result.accel_bias[0]],
@@ -896,7 +991,7 @@ def simulate_walking_to_folder(
     *,
     program: str,
     out_dir: str | Path,
-    robot: str = "qingzhui",
+    robot: str | None = None,
     seed: int = 0,
     distance_m: float | None = None,
     duration_s: float | None = None,
@@ -905,7 +1000,7 @@ def simulate_walking_to_folder(
     overwrite: bool = False,
     progress: bool = True,
 ) -> str:
-    """``graphcal simulate --program tripod-walk|tripod-stairs``: simulate and write the folder.
+    """``graphcal simulate --program tripod-walk|tripod-stairs|trot|walk``: simulate and write the folder.
     Returns a one-paragraph summary."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():

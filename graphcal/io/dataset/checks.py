@@ -66,7 +66,8 @@ def check_stations(p: ParsedCsv) -> None:
 
 
 def check_timeseries(p: ParsedCsv, header: YamlHeader, root: Path) -> set[Path]:
-    """Checks timeseries.csv (times in s that never decrease, contacts 0/1 of feet of ``header``, cloud
+    """Checks timeseries.csv (times in s that never decrease, contacts 0/1 (or probabilities) and
+    foot loads (N) of feet of ``header``, cloud
     cells naming PLY files inside the dataset folder ``root``); returns the cloud files it references."""
     t = p.table
     time = t["time"]
@@ -82,10 +83,19 @@ def check_timeseries(p: ParsedCsv, header: YamlHeader, root: Path) -> set[Path]:
         if foot not in feet:
             raise DatasetError(p.file, f"header, column {col}", f"contact_<foot> with a foot of robot.feet in "
                                f"dataset.yaml ({', '.join(feet) or 'none'})", col)  # fmt: skip
-        bad = (t[col] != 0.0) & (t[col] != 1.0)
+        bad = ~((t[col] >= 0.0) & (t[col] <= 1.0))
         if bad.any():
             i = int(np.argmax(bad))
-            raise p.err(i, col, "0 or 1", float(t[col][i]))
+            raise p.err(i, col, "0 or 1 (or a contact probability in [0, 1])", float(t[col][i]))
+    for foot in t.suffixes("force_"):
+        col = f"force_{foot}"
+        if foot not in feet:
+            raise DatasetError(p.file, f"header, column {col}", f"force_<foot> with a foot of robot.feet in "
+                               f"dataset.yaml ({', '.join(feet) or 'none'})", col)  # fmt: skip
+        bad = ~np.isfinite(np.asarray(t[col], dtype=float))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise p.err(i, col, "a finite foot load in newtons", t[col][i])
     referenced: set[Path] = set()
     for sensor in t.suffixes("cloud_"):
         col = f"cloud_{sensor}"

@@ -56,7 +56,7 @@ def _allowed_text(kind: str) -> str:
     if kind == "mocap":
         return "time, marker, x, y, z"
     base = "session, time, q_<joint>, tau_<joint>, body_x ... body_qz, imu_ax ... imu_gz"
-    return "station, " + base if kind == "stations" else base + ", cloud_<sensor>, contact_<foot>"
+    return "station, " + base if kind == "stations" else base + ", cloud_<sensor>, contact_<foot>, force_<foot>"
 
 
 def _column_ok(kind: str, name: str) -> bool:
@@ -68,7 +68,7 @@ def _column_ok(kind: str, name: str) -> bool:
         return True
     if kind == "stations" and name == "station":
         return True
-    prefixes = ("q_", "tau_") + (("cloud_", "contact_") if kind == "timeseries" else ())
+    prefixes = ("q_", "tau_") + (("cloud_", "contact_", "force_") if kind == "timeseries" else ())
     return any(name.startswith(p) and len(name) > len(p) for p in prefixes)
 
 
