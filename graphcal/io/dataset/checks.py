@@ -225,6 +225,50 @@ def check_mocap(p: ParsedCsv, header: YamlHeader, times: np.ndarray | None) -> N
         seen[key] = i
 
 
+def check_mocap_poses(p: ParsedCsv, header: YamlHeader, times: np.ndarray | None) -> None:
+    """mocap_poses.csv: ``frame`` a foot (end frame) of robot.feet, positions in metres, unit
+    quaternions, sigmas > 0 (rotation sigmas below pi rad), times among ``times``, each frame once per time."""
+    t = p.table
+    feet = header.robot.feet if header.robot else ()
+    for i, name in enumerate(t["frame"].tolist()):
+        if name not in feet:
+            raise p.err(i, "frame", "a frame of robot.feet (the measured end frame of a leg, arm or tool)", name)
+    for c in ("x", "y", "z"):
+        bad = np.abs(t[c]) > MM_LIMIT_MOCAP_M
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise p.err(i, c, f"metres (|{c}| <= {MM_LIMIT_MOCAP_M:g}); {MILLIMETRES_HINT}", float(t[c][i]))
+    if len(t):
+        norm = np.linalg.norm(np.stack([t[c] for c in ("qw", "qx", "qy", "qz")], axis=1), axis=1)
+        bad = np.abs(norm - 1.0) > UNIT_NORM_TOL
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise p.err(i, "qw..qz", f"a unit quaternion (norm within {UNIT_NORM_TOL:g} of 1)", f"norm {norm[i]:.6g}")
+    if t.has("sigma_x"):
+        for c in ("sigma_rx", "sigma_ry", "sigma_rz", "sigma_x", "sigma_y", "sigma_z"):
+            hi = np.pi if c.startswith("sigma_r") else MM_LIMIT_MOCAP_M
+            bad = ~((t[c] > 0) & (t[c] < hi))
+            if bad.any():
+                i = int(np.argmax(bad))
+                unit = "rad, below pi" if c.startswith("sigma_r") else "m"
+                raise p.err(i, c, f"a standard deviation > 0 ({unit})", float(t[c][i]))
+    if not len(t):
+        return
+    if times is None:
+        raise p.err(0, "time", "the time of a station or sample (stations.csv with a time column, or timeseries.csv)",
+                    "no times to match")  # fmt: skip
+    bad = ~np.isin(t["time"], times)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise p.err(i, "time", "the time of a station of stations.csv or a sample of timeseries.csv (same number)",
+                    float(t["time"][i]))
+    seen: dict[tuple[float, str], int] = {}
+    for i, key in enumerate(zip(t["time"].tolist(), t["frame"].tolist())):
+        if key in seen:
+            raise p.err(i, "frame", f"each frame once per time (already on row {seen[key] + 1})", key[1])
+        seen[key] = i
+
+
 def check_joint_columns(robot, parsed: Mapping[str, ParsedCsv]) -> None:
     """q_/tau_ columns name moving joints of the URDF, and every leg joint has a q_ column (in
     radians). ``robot``: the loaded :class:`~graphcal.models.robot.RobotModel` or None; ``parsed``:
