@@ -60,3 +60,62 @@ def test_pose_error_jacobians_match_central_differences():
     assert np.max(np.abs(HL - num_L)) < 1e-6, np.max(np.abs(HL - num_L))
     # a wrong sign in any block would miss: the Jacobians are not small
     assert np.max(np.abs(HV)) > 0.1 and np.max(np.abs(HL)) > 0.1
+
+
+# ----------------------------------------------------------------------------- contract + identification
+from graphcal.errors import DatasetError  # noqa: E402
+from graphcal.legs.identify import IdentifyOptions, identify_legs_dataset  # noqa: E402
+from graphcal.models.legs import theta_from_perturbation  # noqa: E402
+from graphcal.models.perturb import LegPerturbation  # noqa: E402
+from graphcal.simulation.mocap import simulate_mocap, write_mocap_simulation  # noqa: E402
+
+POSE_SIGMA = [0.2 * DEG] * 3 + [0.001] * 3
+PERT = LegPerturbation({"fl_thigh_joint": 1.5 * DEG, "fl_calf_joint": -2.0 * DEG},
+                       {"fl_thigh_joint": (0.0, 0.004, 0.0), "fl_calf_joint": (0.0, 0.0, -0.010),
+                        "fl_foot_joint": (0.0, 0.0, 0.015)})
+
+
+@pytest.fixture(scope="module")
+def pose_dataset(tmp_path_factory):
+    sim = simulate_mocap("a1", feet=(FOOT,), n_samples=120, perturbation=PERT, body_markers=False, foot_markers=False,
+                         pose_sigma=POSE_SIGMA, seed=7)
+    return write_mocap_simulation(sim, tmp_path_factory.mktemp("poses") / "ds"), sim
+
+
+def test_pose_kind_identifies_the_simulated_leg_within_3_sigma(pose_dataset):
+    path, sim = pose_dataset
+    assert (path / "mocap_poses.csv").is_file() and not (path / "mocap.csv").exists()
+    res = identify_legs_dataset(path, options=IdentifyOptions(noise_source="dataset"))
+    truth = theta_from_perturbation(res.models[FOOT], PERT)
+    checked = 0
+    for p, t in zip(res.legs[FOOT], truth):
+        if p.free:
+            assert abs(p.value - t) < 3 * p.sigma, (p.name, p.value, t, p.sigma)
+            checked += 1
+    assert checked >= 5
+    # the pose of the measurement frame: within 3 sigma too, and far better than the 1 mm per pose
+    xi = np.asarray(gtsam.Pose3(sim.T_body_mocap_true).localCoordinates(gtsam.Pose3(res.T_body_mocap)))
+    s = np.sqrt(np.diag(res.T_body_mocap_covariance))
+    assert np.all(np.abs(xi) < 3 * s) and s[3:].max() < 0.001, (xi, s)
+    # 6 rows per posture, the verdict on clean data
+    assert res.dof == 6 * 120 - sum(p.free for p in res.identifiability.parameters)
+    assert res.adequacy.verdict == "fits" and not res.adequacy.flagged
+
+
+def test_pose_rows_are_validated(pose_dataset, tmp_path):
+    import shutil
+
+    path, _ = pose_dataset
+    text = (path / "mocap_poses.csv").read_text().splitlines()
+    header = text[0].split(",")
+    for col, value, expected in (("qw", "0.5", "a unit quaternion"), ("frame", "fr_foot", "a frame of robot.feet"),
+                                 ("sigma_x", "0", "a standard deviation > 0"), ("x", "300", "metres")):
+        bad = tmp_path / f"bad_{col}"
+        shutil.copytree(path, bad)
+        row = text[3].split(",")
+        row[header.index(col)] = value
+        (bad / "mocap_poses.csv").write_text("\n".join(text[:3] + [",".join(row)] + text[4:]) + "\n")
+        with pytest.raises(DatasetError) as e:
+            identify_legs_dataset(bad)
+        msg = str(e.value)
+        assert "mocap_poses.csv" in msg and "row 3" in msg and expected in msg, msg

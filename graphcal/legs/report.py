@@ -114,18 +114,21 @@ def legs_yaml_dict(result, *, dataset: str | None = None, output_files=None) -> 
 #: what the sigmas of legs.yaml are (written into the file)
 SIGMA_NOTE = ("legs.<foot>.<parameter>.sigma governs: the larger of sigma_model (the model covariance, scaled by "
               "sigma0^2 of the fit) and sigma_jackknife (leave-one-posture-out jackknife, linearised at the "
-              "solution); significance: |value| / sigma against a normal distribution (two-sided p); aliased_with: "
-              "the parameters the identifiability analysis finds in a combination with it. SI units (m, rad).")
+              "solution); significance: |value| / sigma against a normal distribution (two-sided p); aliased_with / "
+              "weakly_aliased_with: the parameters the identifiability analysis finds in an exact / a weakly determined "
+              "combination with it. SI units (m, rad).")
 
 
-def _aliased(result) -> dict[str, list[str]]:
-    """parameter name -> the other parameters of its identifiability combinations (either direction)."""
-    out: dict[str, set] = {}
+def _aliased(result) -> dict[str, dict[str, list[str]]]:
+    """parameter name -> {"aliased_with": exact (structural) partners, "weakly_aliased_with": partners
+    of a combination these data determine only weakly} from the identifiability combinations."""
+    out: dict[str, dict[str, set]] = {}
     for p in result.identifiability.parameters:
         names = [n for n, _ in p.combination]
+        key = "aliased_with" if p.structural else "weakly_aliased_with"
         for n in names:
-            out.setdefault(n, set()).update(x for x in names if x != n)
-    return {k: sorted(v) for k, v in out.items()}
+            out.setdefault(n, {}).setdefault(key, set()).update(x for x in names if x != n)
+    return {k: {kk: sorted(vv) for kk, vv in v.items() if vv} for k, v in out.items()}
 
 
 def _parameter_entry(p, aliased) -> dict:
@@ -133,9 +136,7 @@ def _parameter_entry(p, aliased) -> dict:
     e = {"value": _f(p.value), "sigma": _f(p.sigma), "sigma_model": _f(p.sigma_model),
          "sigma_jackknife": _f(p.sigma_jackknife),
          "significance": {"z": _f(sig["z"]), "p_value": _f(sig["p_value"]), "level": sig["level"]}}
-    alias = aliased.get(p.name, [])
-    if alias:
-        e["aliased_with"] = alias
+    e.update(aliased.get(p.name, {}))
     return e
 
 

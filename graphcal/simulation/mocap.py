@@ -129,6 +129,8 @@ def simulate_mocap(
     marker_xyz_known: bool = True,
     q_ranges: Mapping[str, tuple[float, float]] | None = None,
     seed: int = 0,
+    pose_sigma: Sequence[float] | None = None,
+    foot_markers: bool = True,
 ) -> MocapSimulation:
     """Simulate a motion-capture session of legs held in the air (body fixed).
 
@@ -154,6 +156,10 @@ def simulate_mocap(
             joint limits less the encoder noise, its half-width or 3 sigma, so that the readings stay
             within the limits; +-pi where unlimited).
         seed: random seed.
+        pose_sigma: when given, also measure the 6-D pose of every simulated foot frame
+            (``mocap_poses.csv``): per-axis sigma [rx, ry, rz (rad), x, y, z (m)] of a Gaussian right
+            perturbation ``T_meas = T_true Exp(xi)``, written into the sigma columns.
+        foot_markers: record the foot markers (False with ``pose_sigma``: poses only).
 
     Raises:
         GraphcalError / ModelError: bad arguments (unknown foot or joint, n_samples < 1, bad noise kind).
@@ -186,6 +192,7 @@ def simulate_mocap(
     cols: dict[str, np.ndarray] = {"station": np.arange(n_samples), "time": time}
     q_true = {}
     mocap_rows: list[tuple[float, str, np.ndarray]] = []
+    pose_rows: list[dict] = []
     for foot in feet:
         leg = robot.leg(foot)
         # the encoders read the true angle plus noise: drawn this far inside the limits, a reading
@@ -205,7 +212,10 @@ def simulate_mocap(
         m = markers.get(foot, np.zeros(3))
         p_body = T[:, :3, 3] + T[:, :3, :3] @ m
         p_mocap = p_body @ T_mb[:3, :3].T + T_mb[:3, 3] + _noise(rng, noise, marker_noise_m, (n_samples, 3))
-        mocap_rows += [(float(t), foot, p) for t, p in zip(time, p_mocap)]
+        if foot_markers:
+            mocap_rows += [(float(t), foot, p) for t, p in zip(time, p_mocap)]
+        if pose_sigma is not None:
+            pose_rows += _pose_rows(rng, foot, time, T_mb @ T, pose_sigma)
 
     layout = a1_body_marker_layout() if body_marker_layout is None else np.asarray(body_marker_layout, dtype=float)
     T_err = np.eye(4) if T_layout_error is None else np.asarray(T_layout_error, dtype=float)
@@ -231,7 +241,12 @@ def simulate_mocap(
         for foot in feet:
             mspecs[foot] = MarkerSpec(foot, markers.get(foot, np.zeros(3)))
     spec = RobotSpec(None, model, base_frame, feet) if model is not None else RobotSpec("robot.urdf", None, base_frame, feet)
-    ds = Dataset(root=None, robot=spec, stations=Table.from_columns(cols), mocap=mocap, mocap_markers=mspecs)
+    poses = None
+    if pose_rows:
+        pose_rows.sort(key=lambda r: (r["time"], r["frame"]))
+        poses = Table.from_columns({k: [r[k] for r in pose_rows] for k in pose_rows[0]})
+    ds = Dataset(root=None, robot=spec, stations=Table.from_columns(cols), mocap=mocap if len(mocap) else None,
+                 mocap_markers=mspecs, mocap_poses=poses)
     truth = {
         "format": "graphcal-truth/1",
         "note": "hidden simulation truth; only evaluations read this file",
@@ -246,9 +261,28 @@ def simulate_mocap(
         "body_markers_true": {n: [float(x) for x in layout_true[k]] for k, n in enumerate(BODY_MARKERS)} if body_markers else {},
         "p_foot_marker": {f: [float(x) for x in markers.get(f, np.zeros(3))] for f in feet},
         "noise": {"kind": noise, "joint_rad": float(joint_noise_rad), "marker_m": float(marker_noise_m),
-                  "body_marker_m": float(sb) if body_markers else 0.0},
+                  "body_marker_m": float(sb) if body_markers else 0.0,
+                  "pose_sigma": None if pose_sigma is None else [float(x) for x in pose_sigma]},
     }
     return MocapSimulation(ds, truth, urdf_true, q_true, T_body_meas, None if model is not None else robot.urdf_xml)
+
+
+def _pose_rows(rng, foot: str, time, T_mocap_foot, sigma) -> list[dict]:
+    """Rows of mocap_poses.csv: ``T_meas = T_true Exp(xi)``, ``xi ~ N(0, diag(sigma^2))`` (GTSAM order)."""
+    import gtsam
+
+    s = np.asarray(sigma, dtype=float).reshape(6)
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise GraphcalError(f"pose_sigma must be six numbers > 0 (rad, rad, rad, m, m, m), got {list(s)}")
+    rows = []
+    for t, T in zip(time, T_mocap_foot):
+        Tm = T @ gtsam.Pose3.Expmap(rng.normal(0.0, s)).matrix()
+        xyz, quat = xyz_quat_wxyz_from_pose(Tm)
+        row = {"time": float(t), "frame": foot, "x": xyz[0], "y": xyz[1], "z": xyz[2],
+               "qw": quat[0], "qx": quat[1], "qy": quat[2], "qz": quat[3]}
+        row.update({c: float(v) for c, v in zip(("sigma_rx", "sigma_ry", "sigma_rz", "sigma_x", "sigma_y", "sigma_z"), s)})
+        rows.append(row)
+    return rows
 
 
 def simulate_yuan_session(n_samples: int = 1000, seed: int = 2023, *,
