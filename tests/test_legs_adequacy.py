@@ -148,7 +148,8 @@ def test_clean_simulations_fit_without_false_alarms():
                              noise="gaussian", body_markers=False, seed=100 + seed)
         res = identify_legs_dataset(sim.dataset, options=IdentifyOptions(noise_source="dataset"))
         a = res.adequacy
-        assert "default" in a.noise["source"]  # no sigma declared in dataset.yaml: the documented 1 mm
+        # the simulator declares the noise it drew in dataset.yaml (mocap.sigma_mm), as a producer would
+        assert a.noise["source"] == "marker 1 mm (dataset.yaml mocap.sigma_mm), encoders 0 deg (default)"
         flagged += len(a.flagged)
         not_fit += a.verdict != "fits"
         ratios += [x.sigma_jackknife / x.sigma_model for x in res.legs["fl_foot"] if x.free]
@@ -157,13 +158,15 @@ def test_clean_simulations_fit_without_false_alarms():
 
 
 def test_declared_noise_of_dataset_yaml_is_what_the_verdict_judges(tmp_path):
-    """A set with 3 mm marker noise: judged against the default 1 mm it does not fit (sigma0 ~ 3, the
-    case of a learned sigma0 reported without a warning); with mocap.sigma_mm: 3 declared it fits."""
+    """A set with 3 mm marker noise: with nothing declared it is judged against the default 1 mm and
+    does not fit (sigma0 ~ 3, the case of a learned sigma0 reported without a warning); with
+    mocap.sigma_mm: 3 declared it fits."""
     from dataclasses import replace
 
     sim = simulate_mocap("a1", feet=("fl_foot",), n_samples=80, marker_noise_m=0.003, noise="gaussian",
                          body_markers=False, seed=3)
-    res = identify_legs_dataset(sim.dataset, options=IdentifyOptions(noise_source="dataset"))
+    assert sim.dataset.mocap_noise == {"sigma_m": 0.003}
+    res = identify_legs_dataset(replace(sim.dataset, mocap_noise={}), options=IdentifyOptions(noise_source="dataset"))
     assert res.adequacy.verdict == "does not fit" and 2.5 < res.adequacy.sigma0 < 3.5
     assert res.warnings[0].startswith("the model does NOT fit")
     ds = replace(sim.dataset, mocap_noise={"sigma_m": 0.003})

@@ -160,6 +160,7 @@ def simulate_mocap(
             (``mocap_poses.csv``): per-axis sigma [rx, ry, rz (rad), x, y, z (m)] of a Gaussian right
             perturbation ``T_meas = T_true Exp(xi)``, written into the sigma columns.
         foot_markers: record the foot markers (False with ``pose_sigma``: poses only).
+    dataset.yaml declares the noise drawn (``mocap.sigma_mm``, ``sigma_joint_deg``; :func:`_declared_noise`).
 
     Raises:
         GraphcalError / ModelError: bad arguments (unknown foot or joint, n_samples < 1, bad noise kind).
@@ -184,10 +185,8 @@ def simulate_mocap(
     T_mb = DEFAULT_T_MOCAP_BODY if T_mocap_body is None else np.asarray(T_mocap_body, dtype=float)
     sb = marker_noise_m if body_marker_noise_m is None else float(body_marker_noise_m)
     markers = {} if p_foot_marker is None else {f: np.asarray(v, dtype=float) for f, v in p_foot_marker.items()}
-    unknown_feet = set(markers) - set(feet)
-    if unknown_feet:
-        raise GraphcalError(f"p_foot_marker names feet that are not simulated: {sorted(unknown_feet)}")
-
+    if set(markers) - set(feet):
+        raise GraphcalError(f"p_foot_marker names feet that are not simulated: {sorted(set(markers) - set(feet))}")
     time = np.arange(n_samples) * 0.01
     cols: dict[str, np.ndarray] = {"station": np.arange(n_samples), "time": time}
     q_true = {}
@@ -229,10 +228,8 @@ def simulate_mocap(
     else:
         T_body_meas = invert_pose(T_mb)
     mocap_rows.sort(key=lambda r: (r[0], r[1]))
-    mocap = Table.from_columns({
-        "time": [r[0] for r in mocap_rows], "marker": [r[1] for r in mocap_rows],
-        "x": [r[2][0] for r in mocap_rows], "y": [r[2][1] for r in mocap_rows], "z": [r[2][2] for r in mocap_rows],
-    })
+    mocap = Table.from_columns({"time": [r[0] for r in mocap_rows], "marker": [r[1] for r in mocap_rows],
+                                **{c: [r[2][i] for r in mocap_rows] for i, c in enumerate("xyz")}})
     mspecs = {}
     if body_markers:
         for k, name in enumerate(BODY_MARKERS):
@@ -241,12 +238,8 @@ def simulate_mocap(
         for foot in feet:
             mspecs[foot] = MarkerSpec(foot, markers.get(foot, np.zeros(3)))
     spec = RobotSpec(None, model, base_frame, feet) if model is not None else RobotSpec("robot.urdf", None, base_frame, feet)
-    poses = None
-    if pose_rows:
-        pose_rows.sort(key=lambda r: (r["time"], r["frame"]))
-        poses = Table.from_columns({k: [r[k] for r in pose_rows] for k in pose_rows[0]})
-    ds = Dataset(root=None, robot=spec, stations=Table.from_columns(cols), mocap=mocap if len(mocap) else None,
-                 mocap_markers=mspecs, mocap_poses=poses)
+    ds = Dataset(None, robot=spec, stations=Table.from_columns(cols), mocap=mocap if len(mocap) else None, mocap_markers=mspecs,
+                 mocap_poses=_pose_table(pose_rows), mocap_noise=_declared_noise(noise, marker_noise_m, joint_noise_rad))
     truth = {
         "format": "graphcal-truth/1",
         "note": "hidden simulation truth; only evaluations read this file",
@@ -265,6 +258,29 @@ def simulate_mocap(
                   "pose_sigma": None if pose_sigma is None else [float(x) for x in pose_sigma]},
     }
     return MocapSimulation(ds, truth, urdf_true, q_true, T_body_meas, None if model is not None else robot.urdf_xml)
+
+
+def _declared_noise(kind: str, marker_noise_m: float, joint_noise_rad: float) -> dict:
+    """dataset.yaml's ``mocap.sigma_mm`` / ``sigma_joint_deg`` (SI here) as a producer declares its
+    sensors: the standard deviation of the noise drawn (uniform half-width a: a / sqrt 3); only
+    what is > 0."""
+    f = 1.0 / np.sqrt(3.0) if kind == "uniform" else 1.0
+    out = {}
+    if marker_noise_m > 0:
+        out["sigma_m"] = float(marker_noise_m * f)
+    if joint_noise_rad > 0:
+        out["sigma_joint_rad"] = float(joint_noise_rad * f)
+    return out
+
+
+def _pose_table(pose_rows: list[dict]):
+    """mocap_poses.csv as a Table (rows sorted by time, frame), or None without rows."""
+    from graphcal.io.dataset import Table
+
+    if not pose_rows:
+        return None
+    pose_rows = sorted(pose_rows, key=lambda r: (r["time"], r["frame"]))
+    return Table.from_columns({k: [r[k] for r in pose_rows] for k in pose_rows[0]})
 
 
 def _pose_rows(rng, foot: str, time, T_mocap_foot, sigma) -> list[dict]:
