@@ -305,6 +305,8 @@ def test_cli_identify_legs_writes_the_files(cli_dataset, tmp_path):
     assert np.allclose(p, [cal.fk_pinocchio(FOOT, qq)[:3, 3] for qq in q], atol=1e-12)
     html = (out / "report.html").read_text()
     assert "<img" in html and "fl_hip_joint.offset_rad" in html
+    # the verdict is the report's first section
+    assert html.index("Model adequacy") < html.index("Foot marker error") < html.index("Leg parameters")
     from graphcal.report.page import CSS
 
     assert CSS in html  # the one page template and style sheet of every report

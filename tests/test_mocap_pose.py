@@ -119,3 +119,19 @@ def test_pose_rows_are_validated(pose_dataset, tmp_path):
             identify_legs_dataset(bad)
         msg = str(e.value)
         assert "mocap_poses.csv" in msg and "row 3" in msg and expected in msg, msg
+
+
+def test_poses_beside_markers_in_the_virtual_base():
+    """mocap_poses.csv beside mocap.csv with Yuan's body markers: the poses are re-expressed in the
+    virtual base, both kinds enter one fit, the leg is found within 3 sigma and the fit is judged."""
+    pert = LegPerturbation({"fl_thigh_joint": 1.5 * DEG, "fl_calf_joint": -2.0 * DEG},
+                           {"fl_calf_joint": (0.0, 0.0, -0.010), "fl_foot_joint": (0.0, 0.0, 0.015)})
+    sim = simulate_mocap("a1", feet=(FOOT,), n_samples=100, perturbation=pert, marker_noise_m=0.0005, noise="gaussian",
+                         body_marker_noise_m=0.0, pose_sigma=POSE_SIGMA, seed=5)
+    res = identify_legs_dataset(sim.dataset, options=IdentifyOptions(noise_source="dataset"))
+    assert res.frame == "vbase" and [r.marker for r in res.residuals] == [FOOT, f"pose:{FOOT}"]
+    assert res.dof == (3 + 6) * 100 - sum(p.free for p in res.identifiability.parameters)
+    truth = theta_from_perturbation(res.models[FOOT], pert)
+    free = [(p, t) for p, t in zip(res.legs[FOOT], truth) if p.free]
+    assert len(free) == 5 and all(abs(p.value - t) < 3 * p.sigma for p, t in free), free
+    assert res.adequacy.verdict == "fits" and res.adequacy.flagged == ()

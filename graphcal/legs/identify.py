@@ -3,7 +3,10 @@
 Unknowns: ``T_body_mocap`` (Pose3, key ``V(0)``: the motion-capture frame, or Yuan's virtual base,
 in the body frame), per leg the parameters ``theta`` of :mod:`graphcal.models.legs` (Vector, key
 ``L(l)``), per marker whose position on the foot is not given its ``p_foot_marker`` (Point3, key
-``K(j)``). One :func:`factors.mocap_marker.mocap_marker_factor` per marker holds all its samples.
+``K(j)``). One :func:`factors.mocap_marker.mocap_marker_factor` per marker holds all its samples;
+one :func:`factors.mocap_pose.mocap_pose_factor` per measured frame (a
+:class:`~graphcal.legs.mocap_data.PoseTrack`: 6-D poses, 6 rows per sample). With a robust loss
+(``IdentifyOptions.robust``) every sample is a factor of its own inside a gtsam mEstimator.
 
 Steps of :func:`identify_legs`:
 
@@ -23,7 +26,12 @@ Steps of :func:`identify_legs`:
 5. covariance (:func:`~graphcal.solvers.covariance.marginal_covariances`), multiplied by the
    a-posteriori variance factor ``sigma0^2 = chi^2 / (m - u)`` (m residuals, u free unknowns)
    unless ``IdentifyOptions.scale_covariance`` is False -- the noise level of real data is not
-   known exactly, and ``sigma0 ~ 1`` when the noise model is right.
+   known exactly, and ``sigma0 ~ 1`` when the noise model is right;
+6. the model-adequacy verdict, the per-posture outlier test and the leave-one-posture-out
+   jackknife (:mod:`graphcal.legs.adequacy`) on the residuals whitened by the DECLARED noise (the
+   options' sigmas: dataset.yaml's ``mocap.sigma_mm`` / ``sigma_joint_deg`` or the documented
+   defaults with ``noise_source="dataset"``); each parameter's ``sigma`` is the larger of the model
+   and the jackknife sigma (both kept).
 
 Noise model per sample (mocap frame): ``sigma_marker^2 I + sigma_joint^2 J_q J_q^T`` plus the
 virtual base's uncertainty when body markers are used (:attr:`MarkerTrack.cov_extra`), evaluated

@@ -15,6 +15,9 @@ per marker fixed to a foot:
   the base frame. Without body markers the motion-capture frame is fixed to the base and
   ``T_body_mocap`` is estimated from scratch.
 
+Measured 6-D poses of robot frames (``mocap_poses.csv``, docs/dataset.md) become one
+:class:`PoseTrack` per frame (:func:`pose_tracks_from_table`), beside the marker tracks.
+
 Bad input raises :class:`~graphcal.errors.DatasetError` naming the file and the field.
 Units: metres, radians.
 """
@@ -79,7 +82,8 @@ class PoseTrack:
     """The measured 6-D poses of one robot frame (the end frame of a leg: a foot, hand or tool).
 
     Attributes:
-        marker: name of the track (the measured frame, as in mocap_poses.csv).
+        marker: name of the track (``pose:<frame>`` when read from mocap_poses.csv: distinct from a
+            marker named after the frame).
         foot: the leg's end frame that is measured (a frame of ``robot.feet``).
         time: (N,) sample times, s.
         q: (N, n) measured joint values of the leg (rad / m), ``Leg.joint_names`` order.
@@ -380,5 +384,5 @@ def pose_tracks_from_table(pfile: Path, table, robot, jfile: Path, jt, row_of_ti
         else:
             s = np.tile(np.asarray(DEFAULT_SIGMA_POSE, dtype=float), (len(idx), 1))
         cov = np.einsum("ni,ij->nij", s**2, np.eye(6))
-        out.append(PoseTrack(name, name, np.asarray(ts, dtype=float), q, T, cov))
+        out.append(PoseTrack(f"pose:{name}", name, np.asarray(ts, dtype=float), q, T, cov))
     return out
