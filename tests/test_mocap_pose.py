@@ -135,3 +135,44 @@ def test_poses_beside_markers_in_the_virtual_base():
     free = [(p, t) for p, t in zip(res.legs[FOOT], truth) if p.free]
     assert len(free) == 5 and all(abs(p.value - t) < 3 * p.sigma for p, t in free), free
     assert res.adequacy.verdict == "fits" and res.adequacy.flagged == ()
+
+
+def test_full_covariance_columns_read_like_the_sigmas(pose_dataset, tmp_path):
+    """cov_00 ... cov_55 with diag(sigma^2) give the same identification as the sigma columns; an
+    asymmetric or indefinite covariance is refused with the row named."""
+    import csv
+    import shutil
+
+    path, _ = pose_dataset
+    rows = list(csv.DictReader(open(path / "mocap_poses.csv")))
+    names = ("sigma_rx", "sigma_ry", "sigma_rz", "sigma_x", "sigma_y", "sigma_z")
+    base = ["time", "frame", "x", "y", "z", "qw", "qx", "qy", "qz"]
+    cov_cols = [f"cov_{i}{j}" for i in range(6) for j in range(6)]
+
+    def write(folder, edit=None):
+        shutil.copytree(path, folder)
+        with open(folder / "mocap_poses.csv", "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(base + cov_cols)
+            for k, r in enumerate(rows):
+                C = np.diag([float(r[n]) ** 2 for n in names])
+                if edit is not None and k == 2:
+                    edit(C)
+                w.writerow([r[c] for c in base] + [repr(float(x)) for x in C.reshape(-1)])
+        return folder
+
+    a = identify_legs_dataset(path)
+    b = identify_legs_dataset(write(tmp_path / "cov"))
+    assert np.allclose(a.theta[FOOT], b.theta[FOOT], rtol=0, atol=1e-12)
+    assert a.adequacy.statistic == pytest.approx(b.adequacy.statistic, rel=1e-9)
+
+    def asym(C):
+        C[0, 1] = 1e-6
+
+    def indefinite(C):
+        C[3, 3] = -1e-6
+
+    for edit, words in ((asym, "a symmetric covariance"), (indefinite, "a positive definite covariance")):
+        with pytest.raises(DatasetError) as e:
+            identify_legs_dataset(write(tmp_path / edit.__name__, edit))
+        assert "mocap_poses.csv: row 3 (line 4), column cov_00..cov_55" in str(e.value) and words in str(e.value)

@@ -355,7 +355,7 @@ def pose_tracks_from_table(pfile: Path, table, robot, jfile: Path, jt, row_of_ti
 
     out = []
     frames = table["frame"].tolist()
-    if not table.has("sigma_x"):
+    if not table.has("sigma_x") and not table.has("cov_00"):
         warnings.append(f"{pfile.name}: no sigma columns; every pose has the default sigma of 0.1 deg and 1 mm per axis")
     for name in dict.fromkeys(frames):
         idx = [i for i, f in enumerate(frames) if f == name]
@@ -379,10 +379,12 @@ def pose_tracks_from_table(pfile: Path, table, robot, jfile: Path, jt, row_of_ti
                       for i in idx])
         if T_mocap_vbase is not None:
             T = np.array([np.linalg.inv(T_mocap_vbase[t]) @ Ti for t, Ti in zip(ts.tolist(), T)])
-        if table.has("sigma_x"):
-            s = np.column_stack([table[c][idx] for c in ("sigma_rx", "sigma_ry", "sigma_rz", "sigma_x", "sigma_y", "sigma_z")])
+        if table.has("cov_00"):
+            cov = np.stack([table[f"cov_{i}{j}"][idx] for i in range(6) for j in range(6)], axis=1).reshape(-1, 6, 6)
+            cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
         else:
-            s = np.tile(np.asarray(DEFAULT_SIGMA_POSE, dtype=float), (len(idx), 1))
-        cov = np.einsum("ni,ij->nij", s**2, np.eye(6))
+            s = (np.column_stack([table[c][idx] for c in ("sigma_rx", "sigma_ry", "sigma_rz", "sigma_x", "sigma_y", "sigma_z")])
+                 if table.has("sigma_x") else np.tile(np.asarray(DEFAULT_SIGMA_POSE, dtype=float), (len(idx), 1)))
+            cov = np.einsum("ni,ij->nij", s**2, np.eye(6))
         out.append(PoseTrack(f"pose:{name}", name, np.asarray(ts, dtype=float), q, T, cov))
     return out

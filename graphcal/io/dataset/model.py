@@ -26,6 +26,8 @@ MOCAP_COLUMNS = ("time", "marker", "x", "y", "z")
 MOCAP_POSE_COLUMNS = ("time", "frame", "x", "y", "z", "qw", "qx", "qy", "qz")
 #: its optional per-axis sigmas [rx, ry, rz (rad), x, y, z (m)], the measured frame's axes (all six or none)
 MOCAP_POSE_SIGMA_COLUMNS = ("sigma_rx", "sigma_ry", "sigma_rz", "sigma_x", "sigma_y", "sigma_z")
+#: or its full 6x6 covariance, row-major, same order and axes (rad^2, rad m, m^2; all 36 or none)
+MOCAP_POSE_COV_COLUMNS = tuple(f"cov_{i}{j}" for i in range(6) for j in range(6))
 
 #: Tolerances and "looks like millimetres" limits (metres) of the checks; see docs/dataset.md.
 UNIT_NORM_TOL = 1e-3

@@ -21,6 +21,7 @@ from graphcal.io.dataset.model import (
     IMU_GYRO_COLUMNS,
     MOCAP_COLUMNS,
     MOCAP_POSE_COLUMNS,
+    MOCAP_POSE_COV_COLUMNS,
     MOCAP_POSE_SIGMA_COLUMNS,
     PLANE_COV_COLUMNS,
     PLANE_REQUIRED_COLUMNS,
@@ -59,7 +60,7 @@ def _allowed_text(kind: str) -> str:
     if kind == "mocap":
         return "time, marker, x, y, z"
     if kind == "mocap_poses":
-        return "time, frame, x, y, z, qw, qx, qy, qz, sigma_rx ... sigma_z"
+        return "time, frame, x, y, z, qw, qx, qy, qz, sigma_rx ... sigma_z or cov_00 ... cov_55"
     base = "session, time, q_<joint>, tau_<joint>, body_x ... body_qz, imu_ax ... imu_gz"
     return "station, " + base if kind == "stations" else base + ", cloud_<sensor>, contact_<foot>"
 
@@ -70,7 +71,7 @@ def _column_ok(kind: str, name: str) -> bool:
     if kind == "mocap":
         return name in MOCAP_COLUMNS
     if kind == "mocap_poses":
-        return name in MOCAP_POSE_COLUMNS or name in MOCAP_POSE_SIGMA_COLUMNS
+        return name in MOCAP_POSE_COLUMNS or name in MOCAP_POSE_SIGMA_COLUMNS or name in MOCAP_POSE_COV_COLUMNS
     if name in ("session", "time") or name in BODY_POSE_COLUMNS or name in IMU_ACCEL_COLUMNS + IMU_GYRO_COLUMNS:
         return True
     if kind == "stations" and name == "station":
@@ -91,7 +92,7 @@ _GROUPS = {
     "timeseries": (BODY_POSE_COLUMNS, IMU_ACCEL_COLUMNS, IMU_GYRO_COLUMNS),
     "planes": (PLANE_COV_COLUMNS,),
     "mocap": (),
-    "mocap_poses": (MOCAP_POSE_SIGMA_COLUMNS,),
+    "mocap_poses": (MOCAP_POSE_SIGMA_COLUMNS, MOCAP_POSE_COV_COLUMNS),
 }
 
 
