@@ -172,21 +172,25 @@ def posture_tests(A, r, posture, *, alpha: float = ALPHA, position_errors_mm=Non
     M = _normal_inverse(A)
     times = np.unique(posture)
     n = len(times)
-    out = []
+    stats = []  # (time, k, d, F) per posture; the p-values in one call below
     for t in times:
         rows = np.flatnonzero(posture == t)
         k = len(rows)
         dd = _deletion(A, r, M, rows) if dof - k > 0 else None
         if dd is None:
-            d, F, p = float("nan"), float("nan"), float("nan")
+            stats.append((float(t), k, float("nan"), float("nan")))
         else:
-            d = dd[0]
-            rest = max(chi2 - d, 1e-300)
-            F = (d / k) / (rest / (dof - k))
-            p = float(scipy.stats.f.sf(F, k, dof - k))
-        pb = min(1.0, n * p) if math.isfinite(p) else float("nan")
-        rms = float("nan") if position_errors_mm is None else float(position_errors_mm.get(float(t), float("nan")))
-        out.append(PostureTest(float(t), k, d, F, p, pb, bool(math.isfinite(pb) and pb < alpha), rms))
+            stats.append((float(t), k, dd[0], (dd[0] / k) / (max(chi2 - dd[0], 1e-300) / (dof - k))))
+    ks = np.array([x[1] for x in stats], dtype=float)
+    F = np.array([x[3] for x in stats], dtype=float)
+    ok = np.isfinite(F)
+    p = np.full(n, np.nan)
+    p[ok] = scipy.stats.f.sf(F[ok], ks[ok], dof - ks[ok])
+    out = []
+    for (t, k, d, f), pv in zip(stats, p.tolist()):
+        pb = min(1.0, n * pv) if math.isfinite(pv) else float("nan")
+        rms = float("nan") if position_errors_mm is None else float(position_errors_mm.get(t, float("nan")))
+        out.append(PostureTest(t, k, d, f, pv, pb, bool(math.isfinite(pb) and pb < alpha), rms))
     return tuple(out)
 
 
