@@ -855,6 +855,8 @@ def identify_legs_dataset(dataset, *, options: IdentifyOptions = IdentifyOptions
         sb = options.sigma_marker_m if sigma_body_marker_m is None else sigma_body_marker_m
         data = _mocap_data(ds, sb)
     else:
+        if isinstance(dataset, MocapData) and options.noise_source == "dataset":
+            options = _declared_noise(options, dataset.noise)
         sb = options.sigma_marker_m if sigma_body_marker_m is None else sigma_body_marker_m
         data = dataset if isinstance(dataset, MocapData) else _mocap_data(dataset, sb)
     return identify_legs(data.robot, data.tracks, options=options, T_body_mocap_nominal=data.T_body_mocap_nominal,
