@@ -158,8 +158,12 @@ def _build_parser() -> argparse.ArgumentParser:
                     help="unknown components of T_body_mocap, e.g. 'rz,z' (Yuan's alpha_h, z_h); default all six")
     il.add_argument("--origins", choices=("first", "all", "none"), default="first",
                     help="3-D joint origin changes: first joint only (hip position, default), every joint, none")
-    il.add_argument("--sigma-marker-mm", type=float, default=1.0, help="a-priori marker noise (mm)")
-    il.add_argument("--sigma-joint-deg", type=float, default=0.0, help="a-priori joint encoder noise (deg)")
+    il.add_argument("--sigma-marker-mm", type=float, default=None,
+                    help="physical marker noise (mm); default: dataset.yaml mocap.sigma_mm, else 1")
+    il.add_argument("--sigma-joint-deg", type=float, default=None,
+                    help="physical joint encoder noise (deg); default: dataset.yaml mocap.sigma_joint_deg, else 0")
+    il.add_argument("--robust", choices=("none", "huber", "cauchy"), default="none",
+                    help="robust loss per posture sample (down-weights gross postures); default none")
 
     tr = sub.add_parser("track", help="estimate the body trajectory of a timeseries dataset (EKF: IMU, leg "
                                       "kinematics, ICP): trajectory.tum, metrics.json, plots, report", parents=[common])
@@ -241,7 +245,7 @@ def _cmd_identify_legs(args) -> str:
 
     return identify_legs.run(args.dataset, args.out, progress=not args.quiet, mocap_free=args.mocap_free,
                              origins=args.origins, sigma_marker_mm=args.sigma_marker_mm,
-                             sigma_joint_deg=args.sigma_joint_deg)
+                             sigma_joint_deg=args.sigma_joint_deg, robust=args.robust)
 
 
 def _cmd_track(args) -> str:

@@ -279,7 +279,14 @@ def test_cli_identify_legs_writes_the_files(cli_dataset, tmp_path):
     legs = doc["legs"]
     assert set(legs) == {FOOT}
     for name, v in legs[FOOT].items():
-        assert set(v) == {"value", "sigma"} and isinstance(v["value"], float) and v["sigma"] > 0
+        assert {"value", "sigma", "sigma_model", "sigma_jackknife", "significance"} <= set(v)
+        assert isinstance(v["value"], float) and v["sigma"] > 0
+        # the governing sigma is the larger of the model and the jackknife sigma (issue 27)
+        assert v["sigma"] == max(v["sigma_model"], v["sigma_jackknife"])
+    # the verdict comes first on the console and in the file, judged against the declared 0.5 mm
+    assert proc.stdout.splitlines()[0].startswith(("adequacy: fits", "WARNING: adequacy:"))
+    assert doc["adequacy"]["verdict"] in ("fits", "does not fit") and list(doc)[3] == "adequacy"
+    assert "command line" in doc["adequacy"]["judged_against"]["source"]
     # the injected errors, within 4 sigma (the covariance is scaled by the a-posteriori variance factor)
     for name, true in (("fl_thigh_joint.offset_rad", 1.0 * DEG), ("fl_calf_joint.delta_m", 0.012)):
         v = legs[FOOT][name]
@@ -298,6 +305,8 @@ def test_cli_identify_legs_writes_the_files(cli_dataset, tmp_path):
     assert np.allclose(p, [cal.fk_pinocchio(FOOT, qq)[:3, 3] for qq in q], atol=1e-12)
     html = (out / "report.html").read_text()
     assert "<img" in html and "fl_hip_joint.offset_rad" in html
+    # the verdict is the report's first section
+    assert html.index("Model adequacy") < html.index("Foot marker error") < html.index("Leg parameters")
     from graphcal.report.page import CSS
 
     assert CSS in html  # the one page template and style sheet of every report

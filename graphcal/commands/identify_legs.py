@@ -17,7 +17,7 @@ import numpy as np
 from graphcal.errors import GraphcalError
 from graphcal.legs.identify import MOCAP_COMPONENTS, IdentifyOptions, identify_legs_dataset
 
-__all__ = ["run", "parse_mocap_free", "parameter_text"]
+__all__ = ["run", "parse_mocap_free", "summary_lines", "parameter_text"]
 
 _STAGES = 7  # read, start, before, identifiability, after, covariance, write
 
@@ -34,8 +34,10 @@ def parse_mocap_free(text: str | None) -> tuple[str, ...]:
 
 
 def run(dataset: str | Path, out: str | Path, *, progress: bool = True, mocap_free: str | None = None,
-        origins: str = "first", sigma_marker_mm: float = 1.0, sigma_joint_deg: float = 0.0) -> str:
-    """Run the identification on ``dataset`` and write the outputs into ``out``; returns a summary.
+        origins: str = "first", sigma_marker_mm: float | None = None, sigma_joint_deg: float | None = None,
+        robust: str = "none") -> str:
+    """Run the identification on ``dataset`` and write the outputs into ``out``; returns a summary
+    whose first line is the model-adequacy verdict.
 
     Args:
         dataset: dataset folder.
@@ -43,21 +45,27 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, mocap_fr
         progress: progress bar on stderr (tqdm).
         mocap_free: components of T_body_mocap that are unknown ("rx,ry,rz,x,y,z" default; Yuan: "rz,z").
         origins: leg model (``first``, ``all``, ``none``; :func:`graphcal.models.legs.leg_model`).
-        sigma_marker_mm, sigma_joint_deg: a-priori noise (the covariance is scaled by sigma0^2).
+        sigma_marker_mm, sigma_joint_deg: the physical noise (mm per marker coordinate, deg per
+            encoder) the verdict is judged against; None: dataset.yaml's ``mocap.sigma_mm`` /
+            ``mocap.sigma_joint_deg``, else 1 mm / 0 deg. The covariance is scaled by sigma0^2.
+        robust: robust loss per sample (``none``, ``huber``, ``cauchy``).
     """
     from graphcal.legs.report import check_output_folder, write_identification_outputs
 
     import math
 
-    if not (math.isfinite(sigma_marker_mm) and sigma_marker_mm > 0):
+    if sigma_marker_mm is not None and not (math.isfinite(sigma_marker_mm) and sigma_marker_mm > 0):
         raise GraphcalError(f"--sigma-marker-mm must be a finite number > 0 (mm), got {sigma_marker_mm}")
-    if not (math.isfinite(sigma_joint_deg) and 0 <= sigma_joint_deg <= 360.0):
-        raise GraphcalError(f"--sigma-joint-deg must be a number from 0 to 360 (deg), got {sigma_joint_deg}")
-    if sigma_marker_mm > 1e6:
+    if sigma_marker_mm is not None and sigma_marker_mm > 1e6:
         raise GraphcalError(f"--sigma-marker-mm must be at most 1e6 (mm), got {sigma_marker_mm}")
+    if sigma_joint_deg is not None and not (math.isfinite(sigma_joint_deg) and 0 <= sigma_joint_deg <= 360.0):
+        raise GraphcalError(f"--sigma-joint-deg must be a number from 0 to 360 (deg), got {sigma_joint_deg}")
     check_output_folder(Path(out))  # fail before the work, not after
-    options = IdentifyOptions(sigma_marker_m=sigma_marker_mm / 1000.0, sigma_joint_rad=sigma_joint_deg * 3.141592653589793 / 180.0,
-                              origins=origins, mocap_free=parse_mocap_free(mocap_free))
+    given = sigma_marker_mm is not None or sigma_joint_deg is not None
+    options = IdentifyOptions(sigma_marker_m=(1.0 if sigma_marker_mm is None else sigma_marker_mm) / 1000.0,
+                              sigma_joint_rad=math.radians(0.0 if sigma_joint_deg is None else sigma_joint_deg),
+                              origins=origins, mocap_free=parse_mocap_free(mocap_free), robust=robust,
+                              noise_source="command line" if given else "dataset")
     bar = None
     if progress:
         from tqdm import tqdm
@@ -76,19 +84,39 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, mocap_fr
     finally:
         if bar is not None:
             bar.close()
-    lines = [f"identified the legs of {', '.join(result.legs)} from {dataset} "
-             f"({'virtual base' if result.frame == 'vbase' else 'mocap frame fixed to the base'}); wrote {out}:"]
+    return summary_lines(result, dataset, out, written)
+
+
+def summary_lines(result, dataset, out, written) -> str:
+    """The console summary: the verdict first, flagged postures, then the parameters with their
+    governing sigma and significance, warnings and files."""
+    a = result.adequacy
+    lines = []
+    if a is not None:
+        head = "WARNING: " if not a.fits or a.flagged else ""
+        lines.append(f"{head}adequacy: {a.verdict} ({a.message})")
+        for t in a.postures:
+            if t.flagged:
+                lines.append(f"  outlier posture t = {t.time:g}: F = {t.f_statistic:.1f}, Bonferroni p = {t.p_bonferroni:.2g}, "
+                             f"position error {t.rms_mm:.1f} mm")
+    lines.append(f"identified the legs of {', '.join(result.legs)} from {dataset} "
+                 f"({'virtual base' if result.frame == 'vbase' else 'mocap frame fixed to the base'}); wrote {out}:")
     for foot, params in result.legs.items():
-        b, a = result.rmse_mm(foot)
-        lines.append(f"  {foot}: marker RMSE {b:.2f} mm (nominal legs) -> {a:.2f} mm (identified)")
+        b, aft = result.rmse_mm(foot)
+        lines.append(f"  {foot}: marker RMSE {b:.2f} mm (nominal legs) -> {aft:.2f} mm (identified)")
         for p in params:
             if p.free:
-                lines.append(f"    {parameter_text(p.name, p.value, p.sigma)}")
+                sig = p.significance
+                lvl = "not significant" if sig["level"] == "not significant" else f"significant at {sig['level']}"
+                scale = np.degrees(1.0) if p.name.endswith("_rad") else 1e3
+                lines.append(f"    {parameter_text(p.name, p.value, p.sigma)} (model {scale * p.sigma_model:.3f}, "
+                             f"jackknife {scale * p.sigma_jackknife:.3f}; {lvl})")
     held = [p for p in result.identifiability.parameters if not p.free]
     if held:
         lines.append("  held at their nominal value: " + ", ".join(f"{p.name} ({p.status})" for p in held))
     for w in result.warnings:
-        lines.append(f"  warning: {w}")
+        if a is None or w != a.message:
+            lines.append(f"  warning: {w}")
     lines.append("  files: " + ", ".join(sorted(p.name for p in written.values())))
     return "\n".join(lines)
 

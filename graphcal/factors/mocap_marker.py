@@ -141,6 +141,7 @@ def mocap_marker_factor(
     p_foot_marker=None,
     sigma_m: float = DEFAULT_SIGMA_M,
     cov_m2=None,
+    robust=None,
 ) -> gtsam.NonlinearFactor:
     """Factor on (V[, L][, K]) for N samples of one marker on the foot of ``leg``.
 
@@ -159,6 +160,8 @@ def mocap_marker_factor(
             frame origin).
         sigma_m: isotropic sigma per coordinate (m), when ``cov_m2`` is None.
         cov_m2: (N, 3, 3) per-sample covariance of the error (m^2, mocap frame).
+        robust: a ``gtsam.noiseModel.mEstimator`` (Huber, Cauchy) wrapping the noise model (it
+            weighs the factor as a whole: give one sample per factor for a per-sample loss), or None.
 
     Raises:
         ValueError: inconsistent shapes, non-finite input, a bad sigma or covariance.
@@ -198,6 +201,8 @@ def mocap_marker_factor(
             raise ValueError(f"sigma_m must be > 0, got {sigma_m}")
         L = None
         noise = gtsam.noiseModel.Isotropic.Sigma(m, float(sigma_m))
+    if robust is not None:
+        noise = gtsam.noiseModel.Robust.Create(robust, noise)
     for a in (q, P, theta0, marker0, free_idx):
         a.setflags(write=False)
 

@@ -3,7 +3,10 @@
 Unknowns: ``T_body_mocap`` (Pose3, key ``V(0)``: the motion-capture frame, or Yuan's virtual base,
 in the body frame), per leg the parameters ``theta`` of :mod:`graphcal.models.legs` (Vector, key
 ``L(l)``), per marker whose position on the foot is not given its ``p_foot_marker`` (Point3, key
-``K(j)``). One :func:`factors.mocap_marker.mocap_marker_factor` per marker holds all its samples.
+``K(j)``). One :func:`factors.mocap_marker.mocap_marker_factor` per marker holds all its samples;
+one :func:`factors.mocap_pose.mocap_pose_factor` per measured frame (a
+:class:`~graphcal.legs.mocap_data.PoseTrack`: 6-D poses, 6 rows per sample). With a robust loss
+(``IdentifyOptions.robust``) every sample is a factor of its own inside a gtsam mEstimator.
 
 Steps of :func:`identify_legs`:
 
@@ -23,7 +26,12 @@ Steps of :func:`identify_legs`:
 5. covariance (:func:`~graphcal.solvers.covariance.marginal_covariances`), multiplied by the
    a-posteriori variance factor ``sigma0^2 = chi^2 / (m - u)`` (m residuals, u free unknowns)
    unless ``IdentifyOptions.scale_covariance`` is False -- the noise level of real data is not
-   known exactly, and ``sigma0 ~ 1`` when the noise model is right.
+   known exactly, and ``sigma0 ~ 1`` when the noise model is right;
+6. the model-adequacy verdict, the per-posture outlier test and the leave-one-posture-out
+   jackknife (:mod:`graphcal.legs.adequacy`) on the residuals whitened by the DECLARED noise (the
+   options' sigmas: dataset.yaml's ``mocap.sigma_mm`` / ``sigma_joint_deg`` or the documented
+   defaults with ``noise_source="dataset"``); each parameter's ``sigma`` is the larger of the model
+   and the jackknife sigma (both kept).
 
 Noise model per sample (mocap frame): ``sigma_marker^2 I + sigma_joint^2 J_q J_q^T`` plus the
 virtual base's uncertainty when body markers are used (:attr:`MarkerTrack.cov_extra`), evaluated
@@ -44,15 +52,19 @@ import numpy as np
 
 from graphcal.factors.keys import K, L, V
 from graphcal.factors.mocap_marker import marker_covariance, mocap_marker_error, mocap_marker_factor, sqrt_information
+from graphcal.factors.mocap_pose import (DEFAULT_SIGMA_POSE, frame_kinematics, mocap_pose_error, mocap_pose_factor,
+                                         pose_covariance, sqrt_information6)
 from graphcal.errors import GraphcalError
 from graphcal.geometry import fit_rigid_transform, invert_pose, pose_log_between
+from graphcal.legs.adequacy import Adequacy, adequacy, jackknife_covariance, significance
 from graphcal.legs.identifiability import IdentifiabilityReport, identifiability
-from graphcal.legs.mocap_data import MarkerTrack, MocapData
+from graphcal.legs.mocap_data import MarkerTrack, MocapData, PoseTrack
 from graphcal.models.legs import LegModel, leg_model, point_kinematics
 
 __all__ = [
     "MOCAP_COMPONENTS",
     "HELD_SIGMA",
+    "ROBUST_LOSSES",
     "IdentifyOptions",
     "ParameterEstimate",
     "TrackResiduals",
@@ -66,6 +78,9 @@ MOCAP_COMPONENTS = ("rx", "ry", "rz", "x", "y", "z")
 #: prior sigma (rad / m) holding a pose or marker component at its value
 HELD_SIGMA = 1e-9
 _LOOSE_SIGMA = 1e3
+#: robust losses of ``IdentifyOptions.robust`` and their default thresholds (whitened units, 95 %
+#: efficiency under Gaussian noise), applied per sample of a track (one marker or pose at one posture)
+ROBUST_LOSSES = {"none": None, "huber": 1.345, "cauchy": 2.3849}
 
 
 @dataclass(frozen=True)
@@ -87,6 +102,11 @@ class IdentifyOptions:
         rtol, s_min, f_identifiable: identifiability tolerances (:mod:`graphcal.legs.identifiability`).
         scale_covariance: multiply the covariance by ``sigma0^2``.
         max_iterations: LM limit.
+        robust: robust loss per sample (``"none"``, ``"huber"``, ``"cauchy"``; gtsam mEstimators):
+            down-weights a posture far from the others (:data:`ROBUST_LOSSES`).
+        robust_k: its threshold in noise standard deviations (default: :data:`ROBUST_LOSSES`).
+        noise_source: where ``sigma_marker_m`` / ``sigma_joint_rad`` come from (dataset.yaml, the
+            command line, the documented defaults), named in the verdict.
     """
 
     sigma_marker_m: float = 0.001
@@ -105,8 +125,15 @@ class IdentifyOptions:
     f_identifiable: float = 0.05
     scale_covariance: bool = True
     max_iterations: int = 100
+    robust: str = "none"
+    robust_k: float | None = None
+    noise_source: str = "options"
 
     def __post_init__(self):
+        if self.robust not in ROBUST_LOSSES:
+            raise GraphcalError(f"robust: expected one of {', '.join(ROBUST_LOSSES)}, got {self.robust!r}")
+        if self.robust_k is not None and not (np.isfinite(self.robust_k) and self.robust_k > 0):
+            raise GraphcalError(f"robust_k must be a finite number > 0 (noise standard deviations), got {self.robust_k}")
         bad = [c for c in self.mocap_free if c not in MOCAP_COMPONENTS]
         if bad:
             raise GraphcalError(f"mocap_free: unknown component(s) {bad}; choose from {', '.join(MOCAP_COMPONENTS)}")
@@ -126,7 +153,9 @@ class ParameterEstimate:
         value: estimate (leg parameters: the change from the nominal URDF; pose components: the
             right-perturbation tangent from the reference pose, see
             :attr:`LegIdentificationResult.T_body_mocap_reference`; marker coordinates: the position).
-        sigma: 1-sigma (0 when held).
+        sigma: the governing 1-sigma: the larger of ``sigma_model`` and ``sigma_jackknife`` (0 when held).
+        sigma_model: 1-sigma of the model covariance (scaled by sigma0^2 unless switched off).
+        sigma_jackknife: 1-sigma of the leave-one-posture-out jackknife (nan when not available).
         status: identifiability verdict (``identifiable`` / ``combination`` / ``unidentifiable`` /
             ``known`` for a pose component that is not a candidate).
         free: estimated (True) or held at its nominal value (False).
@@ -139,6 +168,14 @@ class ParameterEstimate:
     status: str
     free: bool
     note: str = ""
+    sigma_model: float = float("nan")
+    sigma_jackknife: float = float("nan")
+
+    @property
+    def significance(self) -> dict:
+        """``{z, p_value, level}`` of ``|value| / sigma`` (:func:`graphcal.legs.adequacy.significance`)."""
+        return significance(self.value, self.sigma) if self.free else {"z": float("nan"), "p_value": float("nan"),
+                                                                        "level": "held"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -201,7 +238,8 @@ class LegIdentificationResult:
         marker_positions: marker -> (3,) position in the foot frame used (known or estimated).
         identifiability: the :class:`~graphcal.legs.identifiability.IdentifiabilityReport`.
         residuals: one :class:`TrackResiduals` per marker.
-        sigma0: a-posteriori standard deviation of unit weight (1 when the noise model fits).
+        sigma0: a-posteriori standard deviation of unit weight (1 when the noise model fits; with a
+            robust loss, of the robust-weighted residuals). Not the verdict: see ``adequacy``.
         dof: residuals minus free unknowns.
         iterations, converged: of the final LM.
         frame: ``"mocap"`` or ``"vbase"``; pose_name: ``"T_body_mocap"`` or ``"T_body_vbase"``.
@@ -209,6 +247,7 @@ class LegIdentificationResult:
         source: dataset path or description.
         options: the :class:`IdentifyOptions`.
         warnings: sentences.
+        adequacy: the :class:`~graphcal.legs.adequacy.Adequacy` verdict (declared noise), or None.
     """
 
     models: dict
@@ -237,6 +276,7 @@ class LegIdentificationResult:
     source: str
     options: IdentifyOptions
     warnings: tuple = field(default_factory=tuple)
+    adequacy: Adequacy | None = None
 
     @property
     def feet(self) -> tuple[str, ...]:
@@ -269,8 +309,33 @@ class _Track:
     model: LegModel
     k_key: int | None
     marker: np.ndarray  # current / fixed position
-    cov: np.ndarray | None = None  # (N,3,3) mocap frame
+    cov: np.ndarray | None = None  # (N,d,d) mocap frame (markers) / measured frame (poses)
     L: np.ndarray | None = None
+
+    @property
+    def is_pose(self) -> bool:
+        return isinstance(self.track, PoseTrack)
+
+    @property
+    def dim(self) -> int:
+        """Error rows per sample: 3 (marker) or 6 (pose)."""
+        return 6 if self.is_pose else 3
+
+
+def _track_error(tr: _Track, T, theta, marker, want: bool):
+    """(e (N, d), [H_V, H_L, H_K or None] or None) of a track, unwhitened (markers: measured minus
+    predicted, mocap axes, m; poses: :func:`~graphcal.factors.mocap_pose.mocap_pose_error`)."""
+    if tr.is_pose:
+        e, H = mocap_pose_error(T, theta, tr.track.q, tr.track.T_meas, tr.leg, tr.model, want)
+        return e, (None if H is None else [H[0], H[1], None])
+    return mocap_marker_error(T, theta, marker, tr.track.q, tr.track.p_meas, tr.leg, tr.model, want)
+
+
+def _whiten(tr: _Track, B: np.ndarray, opts: "IdentifyOptions") -> np.ndarray:
+    """Rows of ``B`` (N, d[, c]) divided by the track's noise (its sqrt information, or sigma)."""
+    if tr.L is not None:
+        return np.einsum("nij,nj->ni", tr.L, B) if B.ndim == 2 else tr.L @ B
+    return B / opts.sigma_marker_m
 
 
 def _fk_points(tr: _Track, theta) -> tuple[np.ndarray, object]:
@@ -309,7 +374,10 @@ def _pose_prior(T, held: Sequence[bool]) -> gtsam.PriorFactorPose3:
 
 
 def _errors_body(tr: _Track, T, theta, marker) -> np.ndarray:
-    e, _ = mocap_marker_error(T, theta, marker, tr.track.q, tr.track.p_meas, tr.leg, tr.model, False)
+    """Measured minus predicted position (N, 3) in body axes, m (a pose track: its origin)."""
+    e, _ = _track_error(tr, T, theta, marker, False)
+    if tr.is_pose:  # e_t = R_meas^T (p_pred - p_meas) -> p_meas - p_pred in mocap axes
+        e = -np.einsum("nij,nj->ni", tr.track.T_meas[:, :3, :3], e[:, 3:])
     return e @ np.asarray(T)[:3, :3].T  # mocap axes -> body axes
 
 
@@ -442,6 +510,11 @@ def _set_noise_models(trs: list[_Track], opts: IdentifyOptions, T0: np.ndarray, 
     fixed for the whole identification (joint noise propagated at the nominal legs, pose ``T0``)."""
     R_bm = T0[:3, :3]
     for tr in trs:
+        if tr.is_pose:
+            R, _, _, _, Jw_q, Jp_q = frame_kinematics(tr.leg, tr.model, tr.track.q, zero[tr.track.foot])
+            tr.cov = pose_covariance(tr.track.cov, R, Jw_q, Jp_q, opts.sigma_joint_rad)
+            tr.L = sqrt_information6(tr.cov)
+            continue
         extra = tr.track.cov_extra
         if opts.sigma_joint_rad > 0 or extra is not None:
             _, pk = _fk_points(tr, zero[tr.track.foot])
@@ -455,22 +528,41 @@ def _graph(trs: list[_Track], feet: list, opts: IdentifyOptions, free_theta: Map
     """The identification graph: one marker factor per track (leg parameters ``free_theta`` free
     when given), a prior holding the ``held_T`` components of ``T_hold`` and the held marker axes."""
     g = gtsam.NonlinearFactorGraph()
+    robust = _m_estimator(opts)
     for tr in trs:
         f = tr.track.foot
-        kw = dict(cov_m2=tr.cov) if tr.cov is not None else dict(sigma_m=opts.sigma_marker_m)
-        if tr.k_key is None:
-            kw["p_foot_marker"] = tr.marker
-        else:
-            kw["k_key"] = tr.k_key
+        kw = {}
         if free_theta is not None and free_theta[f].size:
             kw.update(l_key=L(feet.index(f)), free=free_theta[f])
-        g.add(mocap_marker_factor(V(0), tr.track.q, tr.track.p_meas, tr.leg, tr.model, **kw))
+        # a robust loss acts per sample: one factor per sample (else one factor per track)
+        parts = [np.arange(len(tr.track))] if robust is None else [np.array([i]) for i in range(len(tr.track))]
+        for rows in parts:
+            if tr.is_pose:
+                g.add(mocap_pose_factor(V(0), tr.track.q[rows], tr.track.T_meas[rows], tr.leg, tr.model,
+                                        cov=tr.cov[rows], robust=robust, **kw))
+                continue
+            kw2 = dict(kw, cov_m2=tr.cov[rows]) if tr.cov is not None else dict(kw, sigma_m=opts.sigma_marker_m)
+            if tr.k_key is None:
+                kw2["p_foot_marker"] = tr.marker
+            else:
+                kw2["k_key"] = tr.k_key
+            g.add(mocap_marker_factor(V(0), tr.track.q[rows], tr.track.p_meas[rows], tr.leg, tr.model,
+                                      robust=robust, **kw2))
     if any(held_T):
         g.add(_pose_prior(T_hold, held_T))
     for key, (pos, held) in marker_held.items():
         s = np.where(held, HELD_SIGMA, _LOOSE_SIGMA)
         g.add(gtsam.PriorFactorPoint3(key, np.asarray(pos, dtype=float), gtsam.noiseModel.Diagonal.Sigmas(s)))
     return g
+
+
+def _m_estimator(opts: IdentifyOptions):
+    """The gtsam mEstimator of ``opts.robust`` (None for ``"none"``)."""
+    if opts.robust == "none":
+        return None
+    k = opts.robust_k if opts.robust_k is not None else ROBUST_LOSSES[opts.robust]
+    return (gtsam.noiseModel.mEstimator.Huber.Create(k) if opts.robust == "huber"
+            else gtsam.noiseModel.mEstimator.Cauchy.Create(k))
 
 
 def _fit_before(trs: list[_Track], feet: list, opts: IdentifyOptions, T0: np.ndarray, held_pose: list,
@@ -528,16 +620,15 @@ def _free_set(trs: list[_Track], feet: list, models: Mapping[str, LegModel], opt
     blocks = []
     for tr in trs:
         f = tr.track.foot
-        e, H = mocap_marker_error(TA, zero[f], tr.marker, tr.track.q, tr.track.p_meas, tr.leg, tr.model, True)
+        e, H = _track_error(tr, TA, zero[f], tr.marker, True)
         N = e.shape[0]
-        A = np.zeros((N, 3, len(cand_names)))
+        A = np.zeros((N, tr.dim, len(cand_names)))
         A[:, :, : len(pose_cols)] = H[0][:, :, pose_cols]
         A[:, :, theta_off[f] : theta_off[f] + models[f].dim] = H[1]
         if tr.k_key is not None:
             o = marker_off[tr.track.marker]
             A[:, :, o : o + 3] = H[2]
-        A = tr.L @ A if tr.L is not None else A / opts.sigma_marker_m
-        blocks.append(A.reshape(3 * N, -1))
+        blocks.append(_whiten(tr, A, opts).reshape(tr.dim * N, -1))
     report = identifiability(np.concatenate(blocks), cand_names, scales, rtol=opts.rtol, s_min=opts.s_min,
                              f_identifiable=opts.f_identifiable)
     free_names = set(report.free)
@@ -589,6 +680,72 @@ def _fit_after(trs: list[_Track], feet: list, models: Mapping[str, LegModel], op
     return _After(resB, gB, T_est, theta)
 
 
+@dataclass(frozen=True, eq=False)
+class _System:
+    """The whitened linearised problem at the solution (declared noise): rows of every track."""
+
+    A: np.ndarray  # (m, u) free columns
+    r: np.ndarray  # (m,)
+    posture: np.ndarray  # (m,) time of each row, s
+    track: np.ndarray  # (m,) track name of each row
+    names: list  # (u,) column names (the ParameterEstimate names)
+    weight: np.ndarray  # (m,) robust weight of each row (1 without a robust loss)
+
+
+def _system(trs: list[_Track], feet: list, models: Mapping[str, LegModel], opts: IdentifyOptions, fs: _FreeSet,
+            T: np.ndarray, theta: Mapping[str, np.ndarray]) -> _System:
+    """Whitened residuals and Jacobian of the free unknowns at ``T``, ``theta`` and the current markers."""
+    cols = [fs.cand_names[k] for k, i in enumerate(fs.pose_cols) if not fs.held_T[i]]
+    pose_free = [i for i in fs.pose_cols if not fs.held_T[i]]
+    th_cols = {f: len(cols) for f in feet}
+    for f in feet:
+        th_cols[f] = len(cols)
+        cols += [fs.cand_names[fs.theta_off[f] + i] for i in fs.free_theta[f]]
+    mk_cols: dict[str, tuple[int, np.ndarray]] = {}
+    for tr in trs:
+        if tr.k_key is not None:
+            axes = np.flatnonzero(~fs.marker_held[tr.k_key][1])
+            mk_cols[tr.track.marker] = (len(cols), axes)
+            cols += [fs.cand_names[fs.marker_off[tr.track.marker] + a] for a in axes]
+    est = _m_estimator(opts)
+    As, rs, ps, ts, ws = [], [], [], [], []
+    for tr in trs:
+        f = tr.track.foot
+        e, H = _track_error(tr, T, theta[f], tr.marker, True)
+        N, d = e.shape
+        A = np.zeros((N, d, len(cols)))
+        A[:, :, : len(pose_free)] = H[0][:, :, pose_free]
+        A[:, :, th_cols[f] : th_cols[f] + fs.free_theta[f].size] = H[1][:, :, fs.free_theta[f]]
+        if tr.track.marker in mk_cols:
+            o, axes = mk_cols[tr.track.marker]
+            A[:, :, o : o + axes.size] = H[2][:, :, axes]
+        sign = 1.0 if tr.is_pose else -1.0  # H is d e / d x; the marker's e is measured minus predicted
+        rw = _whiten(tr, e, opts)
+        w = np.ones(N) if est is None else np.array([est.weight(float(x)) for x in np.linalg.norm(rw, axis=1)])
+        As.append(sign * _whiten(tr, A, opts).reshape(N * d, -1))
+        rs.append(sign * rw.reshape(-1))
+        ps.append(np.repeat(tr.track.time, d))
+        ts.append(np.repeat(np.array([tr.track.marker], dtype=object), N * d))
+        ws.append(np.repeat(w, d))
+    return _System(np.concatenate(As), np.concatenate(rs), np.concatenate(ps), np.concatenate(ts), cols,
+                   np.concatenate(ws))
+
+
+def _verdict(trs: list[_Track], sysm: _System, opts: IdentifyOptions, T: np.ndarray, theta) -> Adequacy:
+    """:func:`graphcal.legs.adequacy.adequacy` of the solution, with each posture's 3-D RMS position error."""
+    sq: dict[float, list[float]] = {}
+    for tr in trs:
+        e = _errors_body(tr, T, theta[tr.track.foot], tr.marker)
+        for t, x in zip(tr.track.time.tolist(), np.sum(e**2, axis=1).tolist()):
+            sq.setdefault(float(t), []).append(x)
+    rms = {t: 1e3 * math.sqrt(sum(v) / len(v)) for t, v in sq.items()}
+    noise = {"sigma_marker_m": float(opts.sigma_marker_m), "sigma_joint_rad": float(opts.sigma_joint_rad),
+             "source": opts.noise_source}
+    if any(tr.is_pose for tr in trs):
+        noise["pose"] = "per-row sigma or covariance of mocap_poses.csv"
+    return adequacy(sysm.A, sysm.r, sysm.posture, sysm.track, noise, position_errors_mm=rms)
+
+
 def _result(robot, trs: list[_Track], feet: list, models: Mapping[str, LegModel], opts: IdentifyOptions,
             fs: _FreeSet, before: _Before, after: _After, T_ref: np.ndarray, frame: str, pose_name: str, source: str,
             warnings: list) -> LegIdentificationResult:
@@ -597,10 +754,17 @@ def _result(robot, trs: list[_Track], feet: list, models: Mapping[str, LegModel]
 
     free_theta, held_T, marker_held, cand_names = fs.free_theta, fs.held_T, fs.marker_held, fs.cand_names
     gB, v, resB, T_est, theta = after.graph, after.res.values, after.res, after.T, after.theta
-    m_rows = sum(3 * len(tr.track) for tr in trs)
+    m_rows = sum(tr.dim * len(tr.track) for tr in trs)
     u = sum(not h for h in held_T) + sum(int(free_theta[f].size) for f in feet) + sum(int((~h).sum()) for _, h in marker_held.values())
     dof = m_rows - u
-    chi2 = 2.0 * float(sum(gB.at(i).error(v) for i in range(len(trs))))
+    sysm = _system(trs, feet, models, opts, fs, T_est, theta)
+    chi2 = float(sysm.r @ sysm.r)  # declared noise, no robust weights (2 x the graph's error without a loss)
+    verdict = _verdict(trs, sysm, opts, T_est, theta)
+    sw = np.sqrt(sysm.weight)
+    jk = np.sqrt(np.clip(np.diag(jackknife_covariance(sysm.A * sw[:, None], sysm.r * sw, sysm.posture)), 0.0, None))
+    sigma_jk = dict(zip(sysm.names, jk.tolist()))
+    if opts.robust != "none":  # the robust fit's scale: the weighted residuals (down-weighted postures count less)
+        chi2 = float(np.sum(sysm.weight * sysm.r**2))
     sigma0 = math.sqrt(chi2 / dof) if dof > 0 else float("nan")
     if dof < max(MIN_REDUNDANCY_DOF, u):
         per_marker = math.ceil(2 * u / (3 * max(1, len(trs))))
@@ -625,7 +789,9 @@ def _result(robot, trs: list[_Track], feet: list, models: Mapping[str, LegModel]
             return ParameterEstimate(name, value, 0.0, "known", False, f"{name}: known (held at its nominal value)")
         p = by_name[name]
         s = math.sqrt(max(var, 0.0)) if p.free else 0.0
-        return ParameterEstimate(name, value, s, p.status, p.free, p.text)
+        sj = sigma_jk.get(name, float("nan")) if p.free else float("nan")
+        gov = max(s, sj) if math.isfinite(sj) else s
+        return ParameterEstimate(name, value, gov, p.status, p.free, p.text, s, sj)
 
     mocap = tuple(est(f"{pose_name}.{c}", float(xi[i]), float(cov_T[i, i]), c in opts.mocap_free)
                   for i, c in enumerate(MOCAP_COMPONENTS))
@@ -639,8 +805,8 @@ def _result(robot, trs: list[_Track], feet: list, models: Mapping[str, LegModel]
         theta_cov[f] = Ck
         ests = (est(cand_names[fs.theta_off[f] + i], float(theta[f][i]), float(Ck[i, i]), True) for i in range(k))
         # plain parameter names in the per-leg output (the report may prefix a shared joint with its foot)
-        legs_out[f] = tuple(ParameterEstimate(n, p.value, p.sigma, p.status, p.free, p.note)
-                            for n, p in zip(models[f].names, ests))
+        legs_out[f] = tuple(ParameterEstimate(n, p.value, p.sigma, p.status, p.free, p.note, p.sigma_model,
+                                              p.sigma_jackknife) for n, p in zip(models[f].names, ests))
     markers_out, marker_pos = {}, {}
     for tr in trs:
         marker_pos[tr.track.marker] = tr.marker.copy()
@@ -656,6 +822,8 @@ def _result(robot, trs: list[_Track], feet: list, models: Mapping[str, LegModel]
         for tr in trs)
     if not resB.converged:
         warnings.append(f"Levenberg-Marquardt did not converge: {resB.message}")
+    if not verdict.fits or verdict.flagged:
+        warnings.insert(0, verdict.message)
     return LegIdentificationResult(
         models=models, legs=legs_out, theta=theta, theta_covariance=theta_cov, T_body_mocap=T_est,
         T_body_mocap_covariance=cov_T, T_body_mocap_reference=T_ref, T_body_mocap_before=before.T,
@@ -663,23 +831,49 @@ def _result(robot, trs: list[_Track], feet: list, models: Mapping[str, LegModel]
         marker_positions=marker_pos, identifiability=fs.report, residuals=residuals, sigma0=sigma0, dof=dof,
         iterations=resB.iterations, converged=resB.converged, frame=frame, pose_name=pose_name,
         base_frame=robot.base_frame, robot_name=robot.name, urdf_xml=robot.urdf_xml, source=source,
-        options=opts, warnings=tuple(warnings))
+        options=opts, warnings=tuple(warnings), adequacy=verdict)
 
 
 def identify_legs_dataset(dataset, *, options: IdentifyOptions = IdentifyOptions(), sigma_body_marker_m: float | None = None,
                           progress: Callable[[str], None] | None = None) -> LegIdentificationResult:
-    """:func:`identify_legs` on a dataset folder (``mocap.csv``; :func:`~graphcal.legs.mocap_data.mocap_data_from_dataset`).
+    """:func:`identify_legs` on a dataset folder (``mocap.csv`` and / or ``mocap_poses.csv``;
+    :func:`~graphcal.legs.mocap_data.mocap_data_from_dataset`).
 
-    ``sigma_body_marker_m`` (default: ``options.sigma_marker_m``) is the body markers' noise,
-    propagated through the virtual base when the dataset has body markers.
+    With ``options.noise_source == "dataset"`` the a-priori (physical) noise is the one dataset.yaml
+    declares (``mocap.sigma_mm``, ``mocap.sigma_joint_deg``), else the documented defaults
+    (:data:`~graphcal.legs.adequacy.DEFAULT_SIGMA_MARKER_M`, :data:`~graphcal.legs.adequacy.DEFAULT_SIGMA_JOINT_RAD`);
+    otherwise ``options``' sigmas are used as given. ``sigma_body_marker_m`` (default: the marker
+    sigma) is the body markers' noise, propagated through the virtual base when the dataset has body markers.
     """
     say = progress or (lambda s: None)
     say("read the dataset")
-    sb = options.sigma_marker_m if sigma_body_marker_m is None else sigma_body_marker_m
-    data: MocapData = (dataset if isinstance(dataset, MocapData)
-                       else _mocap_data(dataset, sb))
+    if not isinstance(dataset, MocapData) and options.noise_source == "dataset":
+        from graphcal.io.dataset import Dataset, read_dataset
+
+        ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+        options = _declared_noise(options, ds.mocap_noise)
+        sb = options.sigma_marker_m if sigma_body_marker_m is None else sigma_body_marker_m
+        data = _mocap_data(ds, sb)
+    else:
+        if isinstance(dataset, MocapData) and options.noise_source == "dataset":
+            options = _declared_noise(options, dataset.noise)
+        sb = options.sigma_marker_m if sigma_body_marker_m is None else sigma_body_marker_m
+        data = dataset if isinstance(dataset, MocapData) else _mocap_data(dataset, sb)
     return identify_legs(data.robot, data.tracks, options=options, T_body_mocap_nominal=data.T_body_mocap_nominal,
                          frame=data.frame, source=data.source, warnings=data.warnings, progress=progress)
+
+
+def _declared_noise(options: IdentifyOptions, noise: Mapping[str, float]) -> IdentifyOptions:
+    """``options`` with the declared noise of dataset.yaml, else the documented defaults, and its source named."""
+    from dataclasses import replace
+
+    from graphcal.legs.adequacy import DEFAULT_SIGMA_JOINT_RAD, DEFAULT_SIGMA_MARKER_M
+
+    sm = noise.get("sigma_m", DEFAULT_SIGMA_MARKER_M)
+    sj = noise.get("sigma_joint_rad", DEFAULT_SIGMA_JOINT_RAD)
+    src = (f"marker {sm * 1e3:g} mm ({'dataset.yaml mocap.sigma_mm' if 'sigma_m' in noise else 'default'}), "
+           f"encoders {math.degrees(sj):g} deg ({'dataset.yaml mocap.sigma_joint_deg' if 'sigma_joint_rad' in noise else 'default'})")
+    return replace(options, sigma_marker_m=sm, sigma_joint_rad=sj, noise_source=src)
 
 
 def _mocap_data(dataset, sigma_body_marker_m):

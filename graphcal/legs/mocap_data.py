@@ -15,6 +15,9 @@ per marker fixed to a foot:
   the base frame. Without body markers the motion-capture frame is fixed to the base and
   ``T_body_mocap`` is estimated from scratch.
 
+Measured 6-D poses of robot frames (``mocap_poses.csv``, docs/dataset.md) become one
+:class:`PoseTrack` per frame (:func:`pose_tracks_from_table`), beside the marker tracks.
+
 Bad input raises :class:`~graphcal.errors.DatasetError` naming the file and the field.
 Units: metres, radians.
 """
@@ -35,7 +38,7 @@ from graphcal.legs.virtual_base import (
     virtual_base_covariance,
 )
 
-__all__ = ["MarkerTrack", "MocapData", "mocap_data_from_dataset", "marker_foot"]
+__all__ = ["MarkerTrack", "PoseTrack", "MocapData", "mocap_data_from_dataset", "marker_foot", "pose_tracks_from_table"]
 
 #: fewest samples of a marker for it to be used
 MIN_SAMPLES = 3
@@ -75,6 +78,47 @@ class MarkerTrack:
 
 
 @dataclass(frozen=True, eq=False)
+class PoseTrack:
+    """The measured 6-D poses of one robot frame (the end frame of a leg: a foot, hand or tool).
+
+    Attributes:
+        marker: name of the track (``pose:<frame>`` when read from mocap_poses.csv: distinct from a
+            marker named after the frame).
+        foot: the leg's end frame that is measured (a frame of ``robot.feet``).
+        time: (N,) sample times, s.
+        q: (N, n) measured joint values of the leg (rad / m), ``Leg.joint_names`` order.
+        T_meas: (N, 4, 4) measured pose of the frame in the measurement frame (m).
+        cov: (N, 6, 6) covariance of each measurement, [rx, ry, rz (rad), x, y, z (m)] in the
+            measured frame's own axes (right perturbation, GTSAM order).
+    """
+
+    marker: str
+    foot: str
+    time: np.ndarray
+    q: np.ndarray
+    T_meas: np.ndarray
+    cov: np.ndarray
+    cov_extra = None
+
+    @property
+    def p_foot_marker(self) -> np.ndarray:
+        """The measured point on the frame: its origin (used by the rigid-fit start)."""
+        return np.zeros(3)
+
+    @property
+    def p_meas(self) -> np.ndarray:
+        """(N, 3) measured origins (m)."""
+        return self.T_meas[:, :3, 3]
+
+    def __len__(self) -> int:
+        return int(self.time.shape[0])
+
+    def select(self, rows) -> "PoseTrack":
+        """A track with the chosen rows (boolean mask or index array)."""
+        return PoseTrack(self.marker, self.foot, self.time[rows], self.q[rows], self.T_meas[rows], self.cov[rows])
+
+
+@dataclass(frozen=True, eq=False)
 class MocapData:
     """Everything leg identification needs from a dataset.
 
@@ -86,6 +130,8 @@ class MocapData:
             (``T_body_vbase`` from the body markers' ``xyz`` in dataset.yaml), or None (unknown).
         source: the dataset path, for reports.
         warnings: what was dropped and why.
+        noise: the declared noise of dataset.yaml (``mocap.sigma_mm`` -> ``sigma_m``,
+            ``mocap.sigma_joint_deg`` -> ``sigma_joint_rad``, SI), empty when not declared.
     """
 
     robot: object
@@ -94,6 +140,7 @@ class MocapData:
     T_body_mocap_nominal: np.ndarray | None = None
     source: str = ""
     warnings: tuple[str, ...] = field(default_factory=tuple)
+    noise: dict = field(default_factory=dict)
 
     @property
     def feet(self) -> tuple[str, ...]:
@@ -153,9 +200,9 @@ def mocap_data_from_dataset(dataset, *, sigma_body_marker_m: float | None = None
     if ds.robot is None:
         raise DatasetError(root / "dataset.yaml", "robot", "a robot (urdf or model, base_frame, feet) whose legs to identify",
                            "none")  # fmt: skip
-    if ds.mocap is None:
-        raise DatasetError(root / "mocap.csv", "file", "motion-capture markers (mocap.csv: time, marker, x, y, z)",
-                           "missing")  # fmt: skip
+    if ds.mocap is None and ds.mocap_poses is None:
+        raise DatasetError(root / "mocap.csv", "file", "motion-capture markers (mocap.csv: time, marker, x, y, z) "
+                           "or measured poses (mocap_poses.csv)", "missing")  # fmt: skip
     mocap_file = root / "mocap.csv"
     robot = load_dataset_robot(ds)
     feet = tuple(robot.feet)
@@ -164,13 +211,12 @@ def mocap_data_from_dataset(dataset, *, sigma_body_marker_m: float | None = None
     for i, t in enumerate(jt["time"].tolist()):
         row_of_time.setdefault(t, i)
 
-    m = ds.mocap
-    names = m["marker"].tolist()
-    times = m["time"]
-    xyz = np.column_stack([m["x"], m["y"], m["z"]])
     by_marker: dict[str, dict[float, np.ndarray]] = {}
-    for i, (name, t) in enumerate(zip(names, times.tolist())):
-        by_marker.setdefault(name, {})[t] = xyz[i]
+    if ds.mocap is not None:
+        m = ds.mocap
+        xyz = np.column_stack([m["x"], m["y"], m["z"]])
+        for i, (name, t) in enumerate(zip(m["marker"].tolist(), m["time"].tolist())):
+            by_marker.setdefault(name, {})[t] = xyz[i]
     warnings: list[str] = []
 
     present = [b for b in BODY_MARKERS if b in by_marker]
@@ -267,6 +313,12 @@ def mocap_data_from_dataset(dataset, *, sigma_body_marker_m: float | None = None
         spec = ds.mocap_markers.get(name)
         pfm = None if spec is None or spec.xyz is None else np.array(spec.xyz, dtype=float)
         tracks.append(MarkerTrack(name, foot, t_arr, q, P, pfm, cov_extra))
+    if ds.mocap_poses is not None:
+        T_mv = None
+        if use_vbase:
+            T_mv = {t: virtual_base(np.array([by_marker[b][t] for b in BODY_MARKERS], dtype=float)) for t in body_times}
+        tracks += pose_tracks_from_table(root / "mocap_poses.csv", ds.mocap_poses, robot, jfile, jt, row_of_time,
+                                         T_mv, warnings)
     if not tracks:
         raise DatasetError(mocap_file, "column marker",
                            f"samples of at least one marker on a foot of robot.feet ({', '.join(feet) or 'none'}): "
@@ -275,4 +327,64 @@ def mocap_data_from_dataset(dataset, *, sigma_body_marker_m: float | None = None
                            ("foot markers with too few samples: " + ", ".join(f"{m} ({k})" for m, k in sorted(too_few.items()))
                             if too_few else ", ".join(sorted(by_marker)) or "no markers"))  # fmt: skip
     source = str(root if isinstance(dataset, Dataset) else dataset)
-    return MocapData(robot, tuple(tracks), "vbase" if use_vbase else "mocap", T_nominal, source, tuple(warnings))
+    return MocapData(robot, tuple(tracks), "vbase" if use_vbase else "mocap", T_nominal, source, tuple(warnings),
+                     dict(ds.mocap_noise))
+
+
+def _unit(q) -> np.ndarray:
+    q = np.asarray(q, dtype=float)
+    return q / np.linalg.norm(q)
+
+
+def pose_tracks_from_table(pfile: Path, table, robot, jfile: Path, jt, row_of_time: dict, T_mocap_vbase,
+                           warnings: list) -> list[PoseTrack]:
+    """One :class:`PoseTrack` per frame of ``mocap_poses.csv`` (``table``, checked by the reader).
+
+    Args:
+        pfile: the file, for messages. table: its :class:`~graphcal.io.dataset.Table`.
+        robot: the robot; jfile, jt: the joint table (file, Table); row_of_time: time -> its row.
+        T_mocap_vbase: time -> (4, 4) virtual base in the mocap frame (poses are re-expressed in
+            it; times without it are dropped), or None (mocap frame fixed to the base).
+        warnings: appended to.
+
+    Without sigma columns each pose gets :data:`~graphcal.factors.mocap_pose.DEFAULT_SIGMA_POSE`
+    (0.1 deg, 1 mm per axis).
+    """
+    from graphcal.factors.mocap_pose import DEFAULT_SIGMA_POSE
+    from graphcal.geometry import pose_from_xyz_quat_wxyz
+
+    out = []
+    frames = table["frame"].tolist()
+    if not table.has("sigma_x") and not table.has("cov_00"):
+        warnings.append(f"{pfile.name}: no sigma columns; every pose has the default sigma of 0.1 deg and 1 mm per axis")
+    for name in dict.fromkeys(frames):
+        idx = [i for i, f in enumerate(frames) if f == name]
+        ts = table["time"][idx]
+        if T_mocap_vbase is not None:
+            keep = [k for k, t in enumerate(ts.tolist()) if t in T_mocap_vbase]
+            if len(keep) < len(idx):
+                warnings.append(f"pose {name!r}: {len(idx) - len(keep)} sample(s) without all four body markers dropped")
+            idx, ts = [idx[k] for k in keep], ts[keep]
+        if len(idx) < MIN_SAMPLES:
+            warnings.append(f"pose {name!r}: only {len(idx)} sample(s), not used (at least {MIN_SAMPLES})")
+            continue
+        leg = robot.leg(name)
+        rows = np.asarray([row_of_time[t] for t in ts.tolist()], dtype=int)
+        for j in leg.joint_names:
+            if not jt.has(f"q_{j}"):
+                raise DatasetError(jfile, f"header, column q_{j}", f"joint values of every joint of the leg of {name!r}",
+                                   "missing")  # fmt: skip
+        q = np.column_stack([np.asarray(jt[f"q_{j}"], dtype=float)[rows] for j in leg.joint_names])
+        T = np.array([pose_from_xyz_quat_wxyz([table[c][i] for c in "xyz"], _unit([table[c][i] for c in ("qw", "qx", "qy", "qz")]))
+                      for i in idx])
+        if T_mocap_vbase is not None:
+            T = np.array([np.linalg.inv(T_mocap_vbase[t]) @ Ti for t, Ti in zip(ts.tolist(), T)])
+        if table.has("cov_00"):
+            cov = np.stack([table[f"cov_{i}{j}"][idx] for i in range(6) for j in range(6)], axis=1).reshape(-1, 6, 6)
+            cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+        else:
+            s = (np.column_stack([table[c][idx] for c in ("sigma_rx", "sigma_ry", "sigma_rz", "sigma_x", "sigma_y", "sigma_z")])
+                 if table.has("sigma_x") else np.tile(np.asarray(DEFAULT_SIGMA_POSE, dtype=float), (len(idx), 1)))
+            cov = np.einsum("ni,ij->nij", s**2, np.eye(6))
+        out.append(PoseTrack(f"pose:{name}", name, np.asarray(ts, dtype=float), q, T, cov))
+    return out

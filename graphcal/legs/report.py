@@ -46,8 +46,9 @@ def _f(x) -> float:
 def legs_yaml_dict(result, *, dataset: str | None = None, output_files=None) -> dict:
     """The ``legs.yaml`` document (plain Python values)."""
     legs = {}
+    aliased = _aliased(result)
     for foot, params in result.legs.items():
-        legs[str(foot)] = {p.name: {"value": _f(p.value), "sigma": _f(p.sigma)} for p in params if p.free}
+        legs[str(foot)] = {p.name: _parameter_entry(p, aliased) for p in params if p.free}
     cov = np.asarray(result.T_body_mocap_covariance, dtype=float)
     s = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     pose = pose_to_dict(result.T_body_mocap)
@@ -84,6 +85,15 @@ def legs_yaml_dict(result, *, dataset: str | None = None, output_files=None) -> 
         "format": LEGS_FORMAT,
         "dataset": str(dataset if dataset is not None else result.source),
         "base_frame": str(result.base_frame),
+    }
+    if result.adequacy is not None:
+        doc["adequacy"] = result.adequacy.as_dict()
+        doc["outlier_postures"] = [
+            {"time": float(t.time), "f_statistic": float(t.f_statistic), "p_bonferroni": float(t.p_bonferroni),
+             "deletion_chi2": float(t.statistic), "rows": int(t.rows), "position_error_mm": float(t.rms_mm)}
+            for t in result.adequacy.postures if t.flagged]
+    doc["sigma_note"] = SIGMA_NOTE
+    doc.update({
         "legs": legs,
         "mocap": {"frame": result.frame, result.pose_name: pose, "markers": markers},
         "identifiability": {
@@ -95,10 +105,39 @@ def legs_yaml_dict(result, *, dataset: str | None = None, output_files=None) -> 
         "solver": {"kind": "levenberg-marquardt", "iterations": int(result.iterations), "converged": bool(result.converged),
                    "sigma0": float(result.sigma0), "dof": int(result.dof)},
         "warnings": [str(w) for w in result.warnings],
-    }
+    })
     if output_files is not None:
         doc["output_files"] = list(output_files)
     return doc
+
+
+#: what the sigmas of legs.yaml are (written into the file)
+SIGMA_NOTE = ("legs.<foot>.<parameter>.sigma governs: the larger of sigma_model (the model covariance, scaled by "
+              "sigma0^2 of the fit) and sigma_jackknife (leave-one-posture-out jackknife, linearised at the "
+              "solution); significance: |value| / sigma against a normal distribution (two-sided p); aliased_with / "
+              "weakly_aliased_with: the parameters the identifiability analysis finds in an exact / a weakly determined "
+              "combination with it. SI units (m, rad).")
+
+
+def _aliased(result) -> dict[str, dict[str, list[str]]]:
+    """parameter name -> {"aliased_with": exact (structural) partners, "weakly_aliased_with": partners
+    of a combination these data determine only weakly} from the identifiability combinations."""
+    out: dict[str, dict[str, set]] = {}
+    for p in result.identifiability.parameters:
+        names = [n for n, _ in p.combination]
+        key = "aliased_with" if p.structural else "weakly_aliased_with"
+        for n in names:
+            out.setdefault(n, {}).setdefault(key, set()).update(x for x in names if x != n)
+    return {k: {kk: sorted(vv) for kk, vv in v.items() if vv} for k, v in out.items()}
+
+
+def _parameter_entry(p, aliased) -> dict:
+    sig = p.significance
+    e = {"value": _f(p.value), "sigma": _f(p.sigma), "sigma_model": _f(p.sigma_model),
+         "sigma_jackknife": _f(p.sigma_jackknife),
+         "significance": {"z": _f(sig["z"]), "p_value": _f(sig["p_value"]), "level": sig["level"]}}
+    e.update(aliased.get(p.name, {}))
+    return e
 
 
 def legs_yaml_text(result, *, dataset: str | None = None, output_files=None) -> str:

@@ -68,16 +68,53 @@ def _rmse_table(result) -> list[str]:
     return out
 
 
+def _adequacy_section(result) -> list[str]:
+    """The verdict (declared noise), the flagged postures and the test used."""
+    a = result.adequacy
+    if a is None:
+        return ["<p>No verdict.</p>"]
+    cls = "ok" if a.fits and not a.flagged else "warn"
+    out = [f"<p class='{cls}'><b>{esc(a.verdict)}</b>: {esc(a.message)}</p>",
+           "<table><tr><th class='l'>statistic</th><th class='l'>reference</th><th>p-value</th><th>σ0</th>"
+           "<th>σ0 limit</th><th class='l'>group</th><th class='l'>judged against</th></tr>",
+           f"<tr><td class='l'>χ² = {num(a.statistic, '.1f')}</td><td class='l'>{esc(a.reference)}</td>"
+           f"<td>{num(a.p_value, '.3g')}</td><td>{num(a.sigma0, '.3f')}</td><td>{num(a.sigma0_limit, '.3f')}</td>"
+           f"<td class='l'>{esc(a.group or '–')}</td><td class='l'>{esc(str(a.noise.get('source', '')))}</td></tr></table>"]
+    flagged = [t for t in a.postures if t.flagged]
+    if flagged:
+        out.append("<table><tr><th>outlier posture t [s]</th><th>F</th><th>Bonferroni p</th><th>deletion χ²</th>"
+                   "<th>position error [mm]</th></tr>")
+        out += [f"<tr><td>{num(t.time, 'g')}</td><td>{num(t.f_statistic, '.1f')}</td><td>{num(t.p_bonferroni, '.2g')}</td>"
+                f"<td>{num(t.statistic, '.1f')}</td><td>{num(t.rms_mm, '.1f')}</td></tr>" for t in flagged]
+        out.append("</table>")
+        if a.without_flagged is not None:
+            s, dof, p, v = a.without_flagged
+            out.append(f"<p>Without the flagged postures: χ² = {num(s, '.1f')} for {dof} dof, p = {num(p, '.3g')}: "
+                       f"<b>{esc(v)}</b>.</p>")
+    else:
+        out.append(f"<p>No posture flagged ({len(a.postures)} tested).</p>")
+    out.append("<p class='small'>Verdict: χ² of the residuals whitened by the declared physical noise against χ²(dof), "
+               f"fits when p ≥ {a.alpha:g}. Postures: deletion χ² in an F test against the other postures, "
+               f"Bonferroni over the postures at {a.alpha:g}. σ of each parameter: the larger of the model σ and the "
+               "leave-one-posture-out jackknife σ (docs/legs.md).</p>")
+    return out
+
+
 def _parameter_tables(result) -> tuple[list[str], list[str], list[str]]:
     legs = ["<table><tr><th class='l'>foot</th><th class='l'>parameter</th><th>value</th>"
-            "<th>1-σ</th><th class='l'>unit</th><th class='l'>status</th></tr>"]
+            "<th>1-σ</th><th>model σ</th><th>jackknife σ</th><th class='l'>unit</th><th class='l'>significant at</th>"
+            "<th class='l'>status</th></tr>"]
     for foot, params in result.legs.items():
         for p in params:
             f, u = _unit(p.name)
             val = num(f * p.value, "+.4f") if p.free else "held 0"
             sig = num(f * p.sigma, ".4f") if p.free else ""
+            sm = num(f * p.sigma_model, ".4f") if p.free else ""
+            sj = num(f * p.sigma_jackknife, ".4f") if p.free else ""
+            lvl = p.significance["level"]
             legs.append(f"<tr><td class='l'>{esc(foot)}</td><td class='l'><code>{esc(p.name)}</code></td><td>{val}</td>"
-                        f"<td>{sig}</td><td class='l'>{u}</td><td class='l'>{esc(p.status)}</td></tr>")
+                        f"<td>{sig}</td><td>{sm}</td><td>{sj}</td><td class='l'>{u}</td><td class='l'>{esc(lvl)}</td>"
+                        f"<td class='l'>{esc(p.status)}</td></tr>")
     legs.append("</table>")
     pose = ["<table><tr><th class='l'>component</th><th>change from reference</th>"
             "<th>1-σ</th><th class='l'>unit</th><th class='l'>status</th></tr>"]
@@ -114,7 +151,8 @@ def identification_html(result, pngs: dict[str, bytes], *, title: str) -> str:
              f"error of the a-priori size); identifiable when less than {r.f_identifiable:g} of the parameter lies in "
              f"the null space.</p>",
              "<ul>" + "".join(f"<li>{esc(line)}</li>" for line in r.lines()) + "</ul>"]
-    sections = [Section("Foot marker error (3-D RMSE)", *_rmse_table(result)),
+    sections = [Section("Model adequacy", *_adequacy_section(result)),
+                Section("Foot marker error (3-D RMSE)", *_rmse_table(result)),
                 Section("Leg parameters", *legs),
                 Section(result.pose_name, *pose)]
     if markers:

@@ -129,6 +129,8 @@ def simulate_mocap(
     marker_xyz_known: bool = True,
     q_ranges: Mapping[str, tuple[float, float]] | None = None,
     seed: int = 0,
+    pose_sigma: Sequence[float] | None = None,
+    foot_markers: bool = True,
 ) -> MocapSimulation:
     """Simulate a motion-capture session of legs held in the air (body fixed).
 
@@ -154,6 +156,11 @@ def simulate_mocap(
             joint limits less the encoder noise, its half-width or 3 sigma, so that the readings stay
             within the limits; +-pi where unlimited).
         seed: random seed.
+        pose_sigma: when given, also measure the 6-D pose of every simulated foot frame
+            (``mocap_poses.csv``): per-axis sigma [rx, ry, rz (rad), x, y, z (m)] of a Gaussian right
+            perturbation ``T_meas = T_true Exp(xi)``, written into the sigma columns.
+        foot_markers: record the foot markers (False with ``pose_sigma``: poses only).
+    dataset.yaml declares the noise drawn (``mocap.sigma_mm``, ``sigma_joint_deg``; :func:`_declared_noise`).
 
     Raises:
         GraphcalError / ModelError: bad arguments (unknown foot or joint, n_samples < 1, bad noise kind).
@@ -178,14 +185,13 @@ def simulate_mocap(
     T_mb = DEFAULT_T_MOCAP_BODY if T_mocap_body is None else np.asarray(T_mocap_body, dtype=float)
     sb = marker_noise_m if body_marker_noise_m is None else float(body_marker_noise_m)
     markers = {} if p_foot_marker is None else {f: np.asarray(v, dtype=float) for f, v in p_foot_marker.items()}
-    unknown_feet = set(markers) - set(feet)
-    if unknown_feet:
-        raise GraphcalError(f"p_foot_marker names feet that are not simulated: {sorted(unknown_feet)}")
-
+    if set(markers) - set(feet):
+        raise GraphcalError(f"p_foot_marker names feet that are not simulated: {sorted(set(markers) - set(feet))}")
     time = np.arange(n_samples) * 0.01
     cols: dict[str, np.ndarray] = {"station": np.arange(n_samples), "time": time}
     q_true = {}
     mocap_rows: list[tuple[float, str, np.ndarray]] = []
+    pose_rows: list[dict] = []
     for foot in feet:
         leg = robot.leg(foot)
         # the encoders read the true angle plus noise: drawn this far inside the limits, a reading
@@ -205,7 +211,10 @@ def simulate_mocap(
         m = markers.get(foot, np.zeros(3))
         p_body = T[:, :3, 3] + T[:, :3, :3] @ m
         p_mocap = p_body @ T_mb[:3, :3].T + T_mb[:3, 3] + _noise(rng, noise, marker_noise_m, (n_samples, 3))
-        mocap_rows += [(float(t), foot, p) for t, p in zip(time, p_mocap)]
+        if foot_markers:
+            mocap_rows += [(float(t), foot, p) for t, p in zip(time, p_mocap)]
+        if pose_sigma is not None:
+            pose_rows += _pose_rows(rng, foot, time, T_mb @ T, pose_sigma)
 
     layout = a1_body_marker_layout() if body_marker_layout is None else np.asarray(body_marker_layout, dtype=float)
     T_err = np.eye(4) if T_layout_error is None else np.asarray(T_layout_error, dtype=float)
@@ -219,10 +228,8 @@ def simulate_mocap(
     else:
         T_body_meas = invert_pose(T_mb)
     mocap_rows.sort(key=lambda r: (r[0], r[1]))
-    mocap = Table.from_columns({
-        "time": [r[0] for r in mocap_rows], "marker": [r[1] for r in mocap_rows],
-        "x": [r[2][0] for r in mocap_rows], "y": [r[2][1] for r in mocap_rows], "z": [r[2][2] for r in mocap_rows],
-    })
+    mocap = Table.from_columns({"time": [r[0] for r in mocap_rows], "marker": [r[1] for r in mocap_rows],
+                                **{c: [r[2][i] for r in mocap_rows] for i, c in enumerate("xyz")}})
     mspecs = {}
     if body_markers:
         for k, name in enumerate(BODY_MARKERS):
@@ -231,7 +238,8 @@ def simulate_mocap(
         for foot in feet:
             mspecs[foot] = MarkerSpec(foot, markers.get(foot, np.zeros(3)))
     spec = RobotSpec(None, model, base_frame, feet) if model is not None else RobotSpec("robot.urdf", None, base_frame, feet)
-    ds = Dataset(root=None, robot=spec, stations=Table.from_columns(cols), mocap=mocap, mocap_markers=mspecs)
+    ds = Dataset(None, robot=spec, stations=Table.from_columns(cols), mocap=mocap if len(mocap) else None, mocap_markers=mspecs,
+                 mocap_poses=_pose_table(pose_rows), mocap_noise=_declared_noise(noise, marker_noise_m, joint_noise_rad))
     truth = {
         "format": "graphcal-truth/1",
         "note": "hidden simulation truth; only evaluations read this file",
@@ -246,9 +254,51 @@ def simulate_mocap(
         "body_markers_true": {n: [float(x) for x in layout_true[k]] for k, n in enumerate(BODY_MARKERS)} if body_markers else {},
         "p_foot_marker": {f: [float(x) for x in markers.get(f, np.zeros(3))] for f in feet},
         "noise": {"kind": noise, "joint_rad": float(joint_noise_rad), "marker_m": float(marker_noise_m),
-                  "body_marker_m": float(sb) if body_markers else 0.0},
+                  "body_marker_m": float(sb) if body_markers else 0.0,
+                  "pose_sigma": None if pose_sigma is None else [float(x) for x in pose_sigma]},
     }
     return MocapSimulation(ds, truth, urdf_true, q_true, T_body_meas, None if model is not None else robot.urdf_xml)
+
+
+def _declared_noise(kind: str, marker_noise_m: float, joint_noise_rad: float) -> dict:
+    """dataset.yaml's ``mocap.sigma_mm`` / ``sigma_joint_deg`` (SI here) as a producer declares its
+    sensors: the standard deviation of the noise drawn (uniform half-width a: a / sqrt 3); only
+    what is > 0."""
+    f = 1.0 / np.sqrt(3.0) if kind == "uniform" else 1.0
+    out = {}
+    if marker_noise_m > 0:
+        out["sigma_m"] = float(marker_noise_m * f)
+    if joint_noise_rad > 0:
+        out["sigma_joint_rad"] = float(joint_noise_rad * f)
+    return out
+
+
+def _pose_table(pose_rows: list[dict]):
+    """mocap_poses.csv as a Table (rows sorted by time, frame), or None without rows."""
+    from graphcal.io.dataset import Table
+
+    if not pose_rows:
+        return None
+    pose_rows = sorted(pose_rows, key=lambda r: (r["time"], r["frame"]))
+    return Table.from_columns({k: [r[k] for r in pose_rows] for k in pose_rows[0]})
+
+
+def _pose_rows(rng, foot: str, time, T_mocap_foot, sigma) -> list[dict]:
+    """Rows of mocap_poses.csv: ``T_meas = T_true Exp(xi)``, ``xi ~ N(0, diag(sigma^2))`` (GTSAM order)."""
+    import gtsam
+
+    s = np.asarray(sigma, dtype=float).reshape(6)
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise GraphcalError(f"pose_sigma must be six numbers > 0 (rad, rad, rad, m, m, m), got {list(s)}")
+    rows = []
+    for t, T in zip(time, T_mocap_foot):
+        Tm = T @ gtsam.Pose3.Expmap(rng.normal(0.0, s)).matrix()
+        xyz, quat = xyz_quat_wxyz_from_pose(Tm)
+        row = {"time": float(t), "frame": foot, "x": xyz[0], "y": xyz[1], "z": xyz[2],
+               "qw": quat[0], "qx": quat[1], "qy": quat[2], "qz": quat[3]}
+        row.update({c: float(v) for c, v in zip(("sigma_rx", "sigma_ry", "sigma_rz", "sigma_x", "sigma_y", "sigma_z"), s)})
+        rows.append(row)
+    return rows
 
 
 def simulate_yuan_session(n_samples: int = 1000, seed: int = 2023, *,

@@ -213,6 +213,13 @@ def check_mocap(p: ParsedCsv, header: YamlHeader, times: np.ndarray | None) -> N
         if not _marker_ok(name, feet, header.mocap_markers):
             raise p.err(i, "marker", "a marker named after a foot of robot.feet (lf_foot or lf_foot.1), "
                         "body.1 ... body.4, or a marker of mocap.markers in dataset.yaml", name)  # fmt: skip
+    _check_mocap_rows(p, times, "marker")
+
+
+def _check_mocap_rows(p: ParsedCsv, times: np.ndarray | None, name_column: str) -> None:
+    """mocap.csv / mocap_poses.csv: x, y, z in metres, times among ``times``, each ``name_column``
+    (marker / frame) once per time."""
+    t = p.table
     for c in ("x", "y", "z"):
         bad = np.abs(t[c]) > MM_LIMIT_MOCAP_M
         if bad.any():
@@ -229,10 +236,49 @@ def check_mocap(p: ParsedCsv, header: YamlHeader, times: np.ndarray | None) -> N
         raise p.err(i, "time", "the time of a station of stations.csv or a sample of timeseries.csv (same number)",
                     float(t["time"][i]))
     seen: dict[tuple[float, str], int] = {}
-    for i, key in enumerate(zip(t["time"].tolist(), t["marker"].tolist())):
+    for i, key in enumerate(zip(t["time"].tolist(), t[name_column].tolist())):
         if key in seen:
-            raise p.err(i, "marker", f"each marker once per time (already on row {seen[key] + 1})", key[1])
+            raise p.err(i, name_column, f"each {name_column} once per time (already on row {seen[key] + 1})", key[1])
         seen[key] = i
+
+
+def check_mocap_poses(p: ParsedCsv, header: YamlHeader, times: np.ndarray | None) -> None:
+    """mocap_poses.csv: ``frame`` a foot (end frame) of robot.feet, positions in metres, unit
+    quaternions, sigmas > 0 (rotation sigmas below pi rad), times among ``times``, each frame once per time."""
+    t = p.table
+    feet = header.robot.feet if header.robot else ()
+    for i, name in enumerate(t["frame"].tolist()):
+        if name not in feet:
+            raise p.err(i, "frame", "a frame of robot.feet (the measured end frame of a leg, arm or tool)", name)
+    if len(t):
+        norm = np.linalg.norm(np.stack([t[c] for c in ("qw", "qx", "qy", "qz")], axis=1), axis=1)
+        bad = np.abs(norm - 1.0) > UNIT_NORM_TOL
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise p.err(i, "qw..qz", f"a unit quaternion (norm within {UNIT_NORM_TOL:g} of 1)", f"norm {norm[i]:.6g}")
+    if t.has("sigma_x"):
+        for c in ("sigma_rx", "sigma_ry", "sigma_rz", "sigma_x", "sigma_y", "sigma_z"):
+            hi = np.pi if c.startswith("sigma_r") else MM_LIMIT_MOCAP_M
+            bad = ~((t[c] > 0) & (t[c] < hi))
+            if bad.any():
+                i = int(np.argmax(bad))
+                unit = "rad, below pi" if c.startswith("sigma_r") else "m"
+                raise p.err(i, c, f"a standard deviation > 0 ({unit})", float(t[c][i]))
+    if t.has("cov_00"):
+        if t.has("sigma_x"):
+            raise p.err(0, "sigma_rx ... sigma_z", "either per-axis sigmas or the covariance cov_00 ... cov_55, "
+                        "not both", "both")  # fmt: skip
+        C = np.stack([t[f"cov_{i}{j}"] for i in range(6) for j in range(6)], axis=1).reshape(-1, 6, 6)
+        for i, c in enumerate(C):
+            scale = max(float(np.max(np.abs(c))), 1e-300)
+            if np.max(np.abs(c - c.T)) > 1e-6 * scale:
+                raise p.err(i, "cov_00..cov_55", "a symmetric covariance (cov_ij = cov_ji)",
+                            f"asymmetry {np.max(np.abs(c - c.T)):.3g}")
+            ev = np.linalg.eigvalsh(0.5 * (c + c.T))
+            if ev.min() <= 1e-12 * scale:
+                raise p.err(i, "cov_00..cov_55", "a positive definite covariance (rad^2, m^2)",
+                            f"smallest eigenvalue {ev.min():.3g}")
+    _check_mocap_rows(p, times, "frame")
 
 
 def check_joint_columns(robot, parsed: Mapping[str, ParsedCsv]) -> None:

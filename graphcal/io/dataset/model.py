@@ -22,6 +22,12 @@ IMU_GYRO_COLUMNS = ("imu_gx", "imu_gy", "imu_gz")
 PLANE_REQUIRED_COLUMNS = ("station", "sensor", "nx", "ny", "nz", "d")
 PLANE_COV_COLUMNS = tuple(f"cov_{i}{j}" for i in range(4) for j in range(4))
 MOCAP_COLUMNS = ("time", "marker", "x", "y", "z")
+#: mocap_poses.csv: a measured 6-D pose of a robot frame (m, unit quaternion w x y z) in the measurement frame
+MOCAP_POSE_COLUMNS = ("time", "frame", "x", "y", "z", "qw", "qx", "qy", "qz")
+#: its optional per-axis sigmas [rx, ry, rz (rad), x, y, z (m)], the measured frame's axes (all six or none)
+MOCAP_POSE_SIGMA_COLUMNS = ("sigma_rx", "sigma_ry", "sigma_rz", "sigma_x", "sigma_y", "sigma_z")
+#: or its full 6x6 covariance, row-major, same order and axes (rad^2, rad m, m^2; all 36 or none)
+MOCAP_POSE_COV_COLUMNS = tuple(f"cov_{i}{j}" for i in range(6) for j in range(6))
 
 #: Tolerances and "looks like millimetres" limits (metres) of the checks; see docs/dataset.md.
 UNIT_NORM_TOL = 1e-3
@@ -43,7 +49,7 @@ FEET_FIXED_WITHIN = ("session", "station", "step")
 #: the values of it under which every station is a stance of its own
 FEET_REPLANTED_AT_EACH_STATION = ("station", "step")
 
-_STRING_COLUMNS = ("session", "sensor", "marker")
+_STRING_COLUMNS = ("session", "sensor", "marker", "frame")
 
 
 def is_string_column(name: str) -> bool:
@@ -286,6 +292,9 @@ class Dataset:
         extra: unknown top-level keys of ``dataset.yaml``, kept (forward compatibility).
         stations, timeseries, planes, mocap: the CSV files, or None when absent.
         mocap_markers: ``mocap.markers`` of ``dataset.yaml``: marker name -> :class:`MarkerSpec`.
+        mocap_poses: ``mocap_poses.csv`` (measured 6-D poses of robot frames), or None.
+        mocap_noise: the declared noise of ``mocap`` in dataset.yaml, SI: ``sigma_m`` (marker
+            coordinate, from ``sigma_mm``) and ``sigma_joint_rad`` (encoders, from ``sigma_joint_deg``), when given.
     """
 
     root: Path | None = None
@@ -301,3 +310,5 @@ class Dataset:
     planes: Table | None = None
     mocap: Table | None = None
     mocap_markers: dict = field(default_factory=dict)
+    mocap_poses: Table | None = None
+    mocap_noise: dict = field(default_factory=dict)

@@ -11,6 +11,7 @@ from graphcal.errors import DatasetError
 from graphcal.io.dataset.checks import (
     check_joint_columns,
     check_mocap,
+    check_mocap_poses,
     check_planes,
     check_stations,
     check_timeseries,
@@ -83,6 +84,11 @@ def read_dataset_parts(path: str | Path) -> tuple[Dataset, object | None, dict[s
             parsed[k].table["time"] for k in ("stations", "timeseries") if k in parsed and parsed[k].table.has("time")
         ]
         check_mocap(parsed["mocap"], header, np.concatenate(times) if times else None)
+    if "mocap_poses" in parsed:
+        times = [
+            parsed[k].table["time"] for k in ("stations", "timeseries") if k in parsed and parsed[k].table.has("time")
+        ]
+        check_mocap_poses(parsed["mocap_poses"], header, np.concatenate(times) if times else None)
     station_clouds(root, header.sensors, station_ids, referenced)
 
     ds = Dataset(
@@ -99,6 +105,8 @@ def read_dataset_parts(path: str | Path) -> tuple[Dataset, object | None, dict[s
         planes=parsed["planes"].table if "planes" in parsed else None,
         mocap=parsed["mocap"].table if "mocap" in parsed else None,
         mocap_markers=header.mocap_markers,
+        mocap_poses=parsed["mocap_poses"].table if "mocap_poses" in parsed else None,
+        mocap_noise=header.mocap_noise,
     )
     return ds, robot, parsed, referenced
 

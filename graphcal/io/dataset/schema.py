@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -196,6 +196,7 @@ class YamlHeader:
     stance: dict
     extra: dict
     mocap_markers: dict
+    mocap_noise: dict = field(default_factory=dict)
 
 
 _TOP_KEYS = ("format", "robot", "sensors", "imu", "ground", "stance", "mocap")
@@ -267,9 +268,18 @@ def parse_dataset_yaml(path: Path) -> YamlHeader:
             y.text(stance["feet_fixed_within"], "stance.feet_fixed_within")
 
     markers: dict[str, MarkerSpec] = {}
+    noise: dict[str, float] = {}
     if doc.get("mocap") is not None:
         m = y.mapping(doc["mocap"], "mocap")
-        y.keys(m, "mocap", (), ("markers",))
+        y.keys(m, "mocap", (), ("markers", "sigma_mm", "sigma_joint_deg"))
+        for key, to_si, name in (("sigma_mm", 1e-3, "sigma_m"), ("sigma_joint_deg", math.pi / 180.0, "sigma_joint_rad")):
+            if m.get(key) is not None:
+                v = m[key]
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 or (
+                        key == "sigma_mm" and v == 0):
+                    raise y.err(f"mocap.{key}", "a standard deviation > 0 (mm)" if key == "sigma_mm"
+                                else "a standard deviation >= 0 (deg)", shown_value(v))
+                noise[name] = float(v) * to_si
         if m.get("markers") is not None:
             for name, v in y.mapping(m["markers"], "mocap.markers").items():
                 key = f"mocap.markers.{name}"
@@ -283,7 +293,7 @@ def parse_dataset_yaml(path: Path) -> YamlHeader:
                 markers[name] = MarkerSpec(y.text(mm["link"], f"{key}.link"), xyz)
 
     extra = {k: v for k, v in doc.items() if k not in _TOP_KEYS}
-    return YamlHeader(FORMAT, robot, sensors, imu, ground, stance, extra, markers)
+    return YamlHeader(FORMAT, robot, sensors, imu, ground, stance, extra, markers, noise)
 
 
 def _yaml_document(ds: Dataset) -> dict:
@@ -318,6 +328,12 @@ def _yaml_document(ds: Dataset) -> dict:
         for name, m in ds.mocap_markers.items():
             markers[name] = {"link": m.link} if m.xyz is None else {"link": m.link, "xyz": [float(x) for x in m.xyz]}
         doc["mocap"] = {"markers": markers}
+    if ds.mocap_noise:
+        mo = doc.setdefault("mocap", {})
+        if "sigma_m" in ds.mocap_noise:
+            mo["sigma_mm"] = _file_number(ds.mocap_noise["sigma_m"], _m_to_mm, _mm_to_m)
+        if "sigma_joint_rad" in ds.mocap_noise:
+            mo["sigma_joint_deg"] = _file_number(ds.mocap_noise["sigma_joint_rad"], _rad_to_deg, _deg_to_rad)
     clash = set(_TOP_KEYS) & set(ds.extra)
     if clash:
         raise ValueError(f"Dataset.extra must not hold the contract's keys {sorted(clash)}")

@@ -20,6 +20,9 @@ from graphcal.io.dataset.model import (
     IMU_ACCEL_COLUMNS,
     IMU_GYRO_COLUMNS,
     MOCAP_COLUMNS,
+    MOCAP_POSE_COLUMNS,
+    MOCAP_POSE_COV_COLUMNS,
+    MOCAP_POSE_SIGMA_COLUMNS,
     PLANE_COV_COLUMNS,
     PLANE_REQUIRED_COLUMNS,
     Table,
@@ -47,7 +50,8 @@ class ParsedCsv:
 
 
 #: the CSV files of the contract by kind
-CSV_FILES = {"stations": "stations.csv", "timeseries": "timeseries.csv", "planes": "planes.csv", "mocap": "mocap.csv"}
+CSV_FILES = {"stations": "stations.csv", "timeseries": "timeseries.csv", "planes": "planes.csv", "mocap": "mocap.csv",
+             "mocap_poses": "mocap_poses.csv"}
 
 
 def _allowed_text(kind: str) -> str:
@@ -55,6 +59,8 @@ def _allowed_text(kind: str) -> str:
         return "station, sensor, nx, ny, nz, d, n_points, rms, cov_00 ... cov_33"
     if kind == "mocap":
         return "time, marker, x, y, z"
+    if kind == "mocap_poses":
+        return "time, frame, x, y, z, qw, qx, qy, qz, sigma_rx ... sigma_z or cov_00 ... cov_55"
     base = "session, time, q_<joint>, tau_<joint>, body_x ... body_qz, imu_ax ... imu_gz"
     return "station, " + base if kind == "stations" else base + ", cloud_<sensor>, contact_<foot>, force_<foot>"
 
@@ -64,6 +70,8 @@ def _column_ok(kind: str, name: str) -> bool:
         return name in PLANE_REQUIRED_COLUMNS or name in ("n_points", "rms") or name in PLANE_COV_COLUMNS
     if kind == "mocap":
         return name in MOCAP_COLUMNS
+    if kind == "mocap_poses":
+        return name in MOCAP_POSE_COLUMNS or name in MOCAP_POSE_SIGMA_COLUMNS or name in MOCAP_POSE_COV_COLUMNS
     if name in ("session", "time") or name in BODY_POSE_COLUMNS or name in IMU_ACCEL_COLUMNS + IMU_GYRO_COLUMNS:
         return True
     if kind == "stations" and name == "station":
@@ -77,12 +85,14 @@ _REQUIRED = {
     "timeseries": ("time",),
     "planes": PLANE_REQUIRED_COLUMNS,
     "mocap": MOCAP_COLUMNS,
+    "mocap_poses": MOCAP_POSE_COLUMNS,
 }
 _GROUPS = {
     "stations": (BODY_POSE_COLUMNS, IMU_ACCEL_COLUMNS, IMU_GYRO_COLUMNS),
     "timeseries": (BODY_POSE_COLUMNS, IMU_ACCEL_COLUMNS, IMU_GYRO_COLUMNS),
     "planes": (PLANE_COV_COLUMNS,),
     "mocap": (),
+    "mocap_poses": (MOCAP_POSE_SIGMA_COLUMNS, MOCAP_POSE_COV_COLUMNS),
 }
 
 

@@ -20,7 +20,7 @@ from graphcal.io.dataset.tables import check_table_text, table_csv_text
 from graphcal.io.ply import write_ply
 
 #: the names at the top of a dataset folder that only the contract's files may take
-_RESERVED = {"dataset.yaml", "stations.csv", "timeseries.csv", "planes.csv", "mocap.csv", "clouds"}
+_RESERVED = {"dataset.yaml", "stations.csv", "timeseries.csv", "planes.csv", "mocap.csv", "mocap_poses.csv", "clouds"}
 
 
 def write_dataset(
@@ -93,7 +93,7 @@ def write_dataset(
 
         atomic_write_text(tmp / "dataset.yaml", yaml_text)
         for name, t in (("stations.csv", ds.stations), ("timeseries.csv", ds.timeseries),
-                        ("planes.csv", ds.planes), ("mocap.csv", ds.mocap)):  # fmt: skip
+                        ("planes.csv", ds.planes), ("mocap.csv", ds.mocap), ("mocap_poses.csv", ds.mocap_poses)):  # fmt: skip
             if t is not None:
                 check_table_text(t, f"{out / name} (not written)")
                 atomic_write_text(tmp / name, table_csv_text(t))
