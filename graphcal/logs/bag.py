@@ -1,0 +1,252 @@
+"""Import a ROS 1 bag, ROS 2 bag or bare MCAP file: detect or read the map, then two streaming
+passes. Pass 1 reads the small topics (joints, IMU, feet, /tf_static) and finds the still windows;
+pass 2 reads only the point topics, deserialising only the messages received near a window, and
+keeps per window the one nearest its centre. Memory does not grow with the log's length (except the
+optional timeseries). Times in s, SI units."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from graphcal.errors import DatasetError
+from graphcal.io.dataset.model import ImuSpec, PosePrior, RobotSpec, SensorSpec
+from graphcal.logs import messages as M
+from graphcal.logs.assemble import DatasetParts, SampleSink, StampCheck, write_imported
+from graphcal.logs.mapping import (IMAGE, SCAN, check_map, detect_map, map_yaml_text, read_map, thresholds_of)
+from graphcal.logs.reader import LogReader, types_from_msg_dir
+from graphcal.logs.stations import StationFinder
+
+__all__ = ["import_bag", "urdf_feet_and_root"]
+
+log = logging.getLogger(__name__)
+
+
+def urdf_feet_and_root(urdf_xml: str, source: str) -> tuple[str, tuple[str, ...]]:
+    """(root link, leaf links named like feet: ``*foot*`` or ``*toe*``) of a URDF."""
+    from graphcal.models.urdf_xml import parse_urdf
+
+    try:
+        root = parse_urdf(urdf_xml)
+    except Exception as exc:
+        raise DatasetError(source, "URDF", "a valid URDF", str(exc)) from None
+    links = [e.get("name") for e in root.findall("link")]
+    parents = {j.find("parent").get("link") for j in root.findall("joint") if j.find("parent") is not None}
+    children = {j.find("child").get("link") for j in root.findall("joint") if j.find("child") is not None}
+    roots = [l for l in links if l not in children]
+    feet = tuple(l for l in links if l not in parents and ("foot" in l.lower() or "toe" in l.lower()))
+    return (roots[0] if roots else ""), feet
+
+
+def _first_message(reader: LogReader, topic: str):
+    for topic_, t_ns, raw in reader.messages([topic]):
+        return reader.deserialize(raw, topic_, t_ns)
+    return None
+
+
+def _robot(reader: LogReader, m: dict | None, urdf_file: Path | None) -> tuple[str | None, str | None]:
+    """(URDF text or None, where it came from)."""
+    if urdf_file is not None:
+        try:
+            return Path(urdf_file).read_text(encoding="utf-8"), str(urdf_file)
+        except OSError as exc:
+            raise DatasetError(urdf_file, "file", "a readable URDF", exc.strerror or str(exc)) from None
+    topic = (m or {}).get("robot", {}).get("urdf") if m else ("/robot_description" if "/robot_description" in reader.topics else None)
+    if topic and topic in reader.topics:
+        msg = _first_message(reader, topic)
+        return (msg.data if msg is not None else None), topic
+    if topic and Path(topic).is_file():
+        return Path(topic).read_text(encoding="utf-8"), topic
+    return None, None
+
+
+def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
+    """Joints, IMU, feet, /tf_static -> (joint names, finder, sink, static transforms, imu frame, jumps)."""
+    stamps = StampCheck(reader.path)
+    use_header = m["stamps"] == "header"
+    jt = m["joints"]["topic"]
+    it = (m.get("imu") or {}).get("topic")
+    feet = m.get("feet") or {}
+    foot_topics: dict[str, list[str]] = {}
+    for name, f in feet.items():
+        foot_topics.setdefault(f["topic"], []).append(name)
+    tf = m.get("tf_static")
+    topics = [t for t in [jt, it, tf, *foot_topics] if t]
+    for t in topics:
+        reader.check_type_known(t)
+    th = sink_args["thresholds"]
+    names: tuple[str, ...] | None = None
+    sink = None
+    transforms: dict = {}
+    imu_frame = None
+    total = sum(reader.topics[t].count for t in topics)
+    bar = tqdm(total=total, unit="msg", desc="import: joints, IMU, feet", disable=not progress, mininterval=0.5)
+    for n, (topic, t_ns, raw) in enumerate(reader.messages(topics)):
+        if n % 1000 == 0:
+            bar.update(1000 if n else 0)
+        msg = reader.deserialize(raw, topic, t_ns)
+        if topic == tf:
+            for parent, child, T in M.static_transforms(msg):
+                transforms[child] = (parent, T)
+            continue
+        t = M.header_stamp(msg) if use_header else None
+        t = t_ns * 1e-9 if t is None else t
+        stamps(topic, t)
+        if topic == jt:
+            jn, q = M.joint_state(msg)
+            if names is None:
+                names = jn
+                finder = StationFinder(names, tuple(feet), bool(it), th)
+                sink = SampleSink(finder, {f: float(feet[f].get("threshold_n", th.force_threshold_n)) for f in feet},
+                                  sink_args["timeseries"])
+            if jn != names:
+                index = {j: i for i, j in enumerate(jn)}
+                missing = [j for j in names if j not in index]
+                if missing or len(q) != len(jn):
+                    raise DatasetError(reader.path, f"topic {topic} at t = {t:.6f} s",
+                                       f"positions of the joints {', '.join(names)}", f"missing {missing}")
+                q = q[[index[j] for j in names]]
+            sink.joints(t, q)
+        elif sink is None:
+            continue  # nothing before the first joint sample
+        elif topic == it:
+            imu_frame = imu_frame or msg.header.frame_id.lstrip("/")
+            sink.imu(t, *M.imu_sample(msg))
+        else:
+            for foot in foot_topics[topic]:
+                sink.foot(t, foot, M.foot_value(msg, feet[foot]))
+    bar.close()
+    if sink is None:
+        raise DatasetError(reader.path, f"topic {jt}", "sensor_msgs/msg/JointState messages", "none")
+    sink.finder.finish()
+    return names, sink, transforms, imu_frame, stamps.jumps
+
+
+def _pass2(reader: LogReader, m: dict, windows, progress: bool) -> dict[str, str]:
+    """Fill ``w.clouds[sensor]`` with the points (m, sensor frame) of the message nearest each
+    window's centre among those stamped inside it; returns sensor -> frame id."""
+    sensors = m.get("sensors") or {}
+    if not sensors or not windows:
+        return {}
+    use_header = m["stamps"] == "header"
+    topic_of = {s["topic"]: name for name, s in sensors.items()}
+    info_of = {s["camera_info"]: name for name, s in sensors.items() if s.get("camera_info")}
+    for t in [*topic_of, *info_of]:
+        reader.check_type_known(t)
+    starts = np.array([w.start for w in windows])
+    pad = 1.0  # s: receive time may lag the header stamp
+    K: dict[str, np.ndarray] = {}
+    best: dict[tuple[str, int], float] = {}
+    frames: dict[str, str] = {}
+    total = sum(reader.topics[t].count for t in [*topic_of, *info_of])
+    bar = tqdm(total=total, unit="msg", desc="import: clouds", disable=not progress, mininterval=0.5)
+    for topic, t_ns, raw in reader.messages([*topic_of, *info_of]):
+        bar.update(1)
+        tr = t_ns * 1e-9
+        i = int(np.searchsorted(starts, tr + pad)) - 1
+        near = i >= 0 and (tr - pad <= windows[i].end)
+        if topic in info_of:
+            if info_of[topic] not in K:
+                K[info_of[topic]] = M.camera_matrix(reader.deserialize(raw, topic, t_ns))
+            continue
+        if not near:
+            continue
+        name = topic_of[topic]
+        msg = reader.deserialize(raw, topic, t_ns)
+        t = M.header_stamp(msg) if use_header else tr
+        j = int(np.searchsorted(starts, t, side="right")) - 1
+        if j < 0 or t > windows[j].end:
+            continue
+        dist = abs(t - windows[j].centre)
+        if dist >= best.get((name, j), np.inf):
+            continue
+        s = sensors[name]
+        try:
+            if s["msgtype"] == IMAGE:
+                if name not in K:
+                    continue
+                pts = M.depth_image_points(msg, K[name], int(s.get("stride", 1)))
+            elif s["msgtype"] == SCAN:
+                pts = M.laser_scan_points(msg)
+            else:
+                pts = M.cloud_points(msg)
+        except (ValueError, KeyError) as exc:
+            raise DatasetError(reader.path, f"topic {topic} at t = {t:.6f} s", f"a usable {s['msgtype']}",
+                               str(exc)) from None
+        best[(name, j)] = dist
+        windows[j].clouds[name] = pts
+        frames[name] = msg.header.frame_id.lstrip("/")
+    bar.close()
+    return frames
+
+
+def _prior(m: dict, transforms: dict, base: str, frame: str | None, what: str, source, default_sigma=None):
+    p = m.get("priors") or {}
+    sig_m = 1e-3 * float(p.get("sigma_mm", 50.0))
+    sig_r = np.radians(float(p.get("sigma_rpy_deg", 5.0)))
+    if default_sigma is not None and frame is None:
+        return PosePrior(np.zeros(3), np.zeros(3), *default_sigma)
+    if not transforms:
+        raise DatasetError(source, f"{what} (frame {frame})", f"a static transform from {base} on /tf_static "
+                           "(set tf_static in the import map)", "no /tf_static")
+    return PosePrior.from_matrix(M.chain_pose(transforms, base, frame, str(source)), sig_m, sig_r)
+
+
+def import_bag(log_path: Path, out_dir: Path, *, map_path: Path | None = None, urdf_file: Path | None = None,
+               receive_time: bool = False, msg_dir: Path | None = None, timeseries: bool = False,
+               progress: bool = True, overwrite: bool = False) -> tuple[Path, str]:
+    """``graphcal import`` of a bag or MCAP file (see the module docstring); returns (folder, summary)."""
+    extra = types_from_msg_dir(msg_dir) if msg_dir is not None else None
+    with LogReader(log_path, extra) as reader:
+        given = read_map(map_path) if map_path is not None else None
+        urdf_xml, urdf_src = _robot(reader, given, urdf_file)
+        root, feet_guess = urdf_feet_and_root(urdf_xml, urdf_src) if urdf_xml else ("", ())
+        m = given or detect_map(reader.topics, feet_guess)
+        if receive_time:
+            m["stamps"] = "receive"
+        if urdf_file is not None:
+            m["robot"]["urdf"] = str(urdf_file)
+        m["robot"]["base_frame"] = m["robot"].get("base_frame") or root or None
+        m["robot"]["feet"] = m["robot"].get("feet") or list(feet_guess) or None
+        map_text = map_yaml_text(m, log_path)
+        log.info("import map (%s):\n%s", map_path or "detected", map_text)
+        m = check_map(m, reader.topics, log_path, str(map_path or "the import map (--map)"))
+        rob = m["robot"]
+        if not urdf_xml and not rob.get("model"):
+            raise DatasetError(log_path, "robot", "a URDF (/robot_description, --urdf) or robot.model in the map",
+                               "none")
+        if not rob.get("feet") or not rob.get("base_frame"):
+            raise DatasetError(map_path or log_path, "robot.feet / robot.base_frame",
+                               "the robot's foot frames and base frame (set them in the import map)", None)
+        th = thresholds_of(m, str(map_path or "import map"))
+        names, sink, transforms, imu_frame, jumps = _pass1(reader, m, {"thresholds": th, "timeseries": timeseries},
+                                                           progress)
+        frames = _pass2(reader, m, sink.finder.accepted, progress)
+    base = rob["base_frame"]
+    sensors = {}
+    for name, s in (m.get("sensors") or {}).items():
+        prior = s.get("prior")
+        if isinstance(prior, dict):
+            pp = PosePrior(prior.get("xyz", [0, 0, 0]), np.radians(prior.get("rpy_deg", [0, 0, 0])),
+                           1e-3 * float(prior.get("sigma_mm", 50)), np.radians(float(prior.get("sigma_rpy_deg", 5))))
+        elif name in frames:
+            pp = _prior(m, transforms, base, frames[name], f"sensors.{name}", log_path)
+        else:
+            pp = PosePrior(np.zeros(3), np.zeros(3), 0.05, np.radians(5.0))
+        sensors[name] = SensorSpec(name, s["type"], pp)
+    imu = None
+    notes = []
+    if m.get("imu"):
+        if imu_frame and transforms and imu_frame != base:
+            imu = ImuSpec(_prior(m, transforms, base, imu_frame, "imu", log_path))
+        else:
+            imu = ImuSpec(PosePrior(np.zeros(3), np.zeros(3), 0.0, np.radians(1.0)))
+            if imu_frame and imu_frame != base:
+                notes.append(f"no /tf_static from {base} to the IMU frame {imu_frame}: IMU prior identity, 1 deg")
+    robot = RobotSpec("robot.urdf" if urdf_xml else None, None if urdf_xml else rob["model"], base, rob["feet"])
+    parts = DatasetParts(robot, urdf_xml, names, sensors, imu, sink.finder, sink, notes=notes,
+                         source=str(log_path), map_text=map_text)
+    return write_imported(parts, Path(out_dir), overwrite=overwrite, jumps=jumps)
