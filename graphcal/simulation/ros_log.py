@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LogPlan", "write_station_log", "still_windows"]
+__all__ = ["LogPlan", "write_station_log", "write_station_csv", "still_windows", "depth_image"]
 
 
 @dataclass(frozen=True)
@@ -245,3 +245,41 @@ def write_station_log(dataset: str | Path, out: str | Path, plan: LogPlan = LogP
                     o.write("/camera/depth/camera_info", "sensor_msgs/msg/CameraInfo", info, tc)
                     o.write("/camera/depth/image_raw", "sensor_msgs/msg/Image", img, tc)
     return still_windows(len(q_st), plan)
+
+
+def write_station_csv(dataset: str | Path, out: str | Path, plan: LogPlan = LogPlan()) -> tuple[list, str]:
+    """The same session as :func:`write_station_log` as a Unitree-style CSV export (``time_ms``,
+    ``acc_x..z`` in g, ``gyro_x..z`` in rad/s, ``q0..q<n-1>`` in rad, ``foot_force_<i>`` raw counts:
+    raw = force / raw_scale + raw_offset); returns (the true still windows in s, the column map YAML)."""
+    import csv
+
+    from graphcal.io.dataset import read_dataset
+
+    ds = read_dataset(dataset)
+    st = ds.stations.data
+    joints = [c[2:] for c in ds.stations.columns if c.startswith("q_")]
+    q_st = np.stack([st[f"q_{j}"] for j in joints], axis=1)
+    acc = np.stack([st[f"imu_a{a}"] for a in "xyz"], axis=1)
+    gyr = np.stack([st[f"imu_g{a}"] for a in "xyz"], axis=1)
+    feet = ds.robot.feet
+    g0 = 9.80665
+    with open(out, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["time_ms", "acc_x", "acc_y", "acc_z", "gyro_x", "gyro_y", "gyro_z",
+                    *[f"q{i}" for i in range(len(joints))], *[f"foot_force_{i}" for i in range(len(feet))]])
+        for t, q, still, k, unloaded in _timeline(q_st, plan):
+            kk = k if k >= 0 else len(q_st) - 1
+            g = gyr[kk] if still else np.array([0.0, 0.0, 0.3])
+            force = np.array([0.0 if i == unloaded else 150.0 for i in range(len(feet))])
+            raw = np.round(force / plan.raw_scale + plan.raw_offset).astype(int)
+            w.writerow([repr(float((t - plan.t0) * 1e3)), *[repr(float(x)) for x in (*(acc[kk] / g0), *g, *q)], *raw.tolist()])
+    cmap = {"format": "graphcal-csv-map/1", "time": {"column": "time_ms", "unit": "ms"},
+            "robot": {"model": ds.robot.model},
+            "joints": {"unit": "rad", "columns": {j: f"q{i}" for i, j in enumerate(joints)}},
+            "imu": {"accel": ["acc_x", "acc_y", "acc_z"], "accel_unit": "g", "gyro": ["gyro_x", "gyro_y", "gyro_z"],
+                    "gyro_unit": "rad/s"},
+            "feet": {foot: {"column": f"foot_force_{i}", "offset": plan.raw_offset, "scale": plan.raw_scale,
+                            "threshold_n": 20.0} for i, foot in enumerate(feet)}}
+    import yaml
+
+    return [(a - plan.t0, b - plan.t0) for a, b in still_windows(len(q_st), plan)], yaml.safe_dump(cmap, sort_keys=False)
