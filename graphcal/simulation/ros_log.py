@@ -234,14 +234,14 @@ def write_station_log(dataset: str | Path, out: str | Path, plan: LogPlan = LogP
                 arr = T["std_msgs/msg/Float32MultiArray"](layout=T["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0),
                                                           data=raw)
                 o.write("/foot_force", "std_msgs/msg/Float32MultiArray", arr, t + 2e-4)
-            if still and k >= 0 and n % cloud_every == cloud_every // 2:
+            if still and n % cloud_every == cloud_every // 2:  # the decoys see the last station's view
                 tc = t + 3e-4
                 if plan.points == "cloud":
-                    if k not in cache:
-                        cache = {k: read_ply(Path(dataset) / "clouds" / sensor / f"{ids[k]}.ply")}
-                    o.write("/camera/points", "sensor_msgs/msg/PointCloud2", _cloud_msg(o, tc, sensor, cache[k]), tc)
+                    if kk not in cache:
+                        cache = {kk: read_ply(Path(dataset) / "clouds" / sensor / f"{ids[kk]}.ply")}
+                    o.write("/camera/points", "sensor_msgs/msg/PointCloud2", _cloud_msg(o, tc, sensor, cache[kk]), tc)
                 else:
-                    img, info = _image_msgs(o, tc, sensor, depth_image(planes[int(ids[k])], K), K)
+                    img, info = _image_msgs(o, tc, sensor, depth_image(planes[int(ids[kk])], K), K)
                     o.write("/camera/depth/camera_info", "sensor_msgs/msg/CameraInfo", info, tc)
                     o.write("/camera/depth/image_raw", "sensor_msgs/msg/Image", img, tc)
     return still_windows(len(q_st), plan)
