@@ -19,6 +19,7 @@ from graphcal.io.dataset import read_dataset, validate_dataset
 from graphcal.simulation.ros_log import LogPlan, write_station_csv, write_station_log
 
 N_STATIONS = 6
+OCTOPUS_JOINTS = [f"{leg}_{j}_joint" for leg in ("lf", "lm", "lr", "rf", "rm", "rr") for j in ("coxa", "femur", "tibia")]
 
 
 @pytest.fixture(scope="module")
@@ -120,3 +121,200 @@ def test_csv_import_with_raw_foot_counts(tmp_path):
     # the decoy with fl_foot in the air: contact 0 there, 1 elsewhere
     assert 0.0 in set(ts.data["contact_fl_foot"]) and set(ts.data["contact_fr_foot"]) == {1.0}
     assert "valid" in validate_dataset(ds).summary()
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def _tiny_bag(path: Path, stamps, *, fmt: str = "ros1", imu_only: bool = False, version: int = 9,
+              custom: bool = False) -> Path:
+    """A small log written with rosbags: JointState (or only Imu) at ``stamps`` (s); ``custom``: a
+    foot-force message of a type no store knows (``my_msgs/msg/FootForce``)."""
+    from rosbags.typesys import get_types_from_msg
+
+    from graphcal.logs.reader import default_typestore
+
+    ts = default_typestore("ros1" if fmt == "ros1" else "ros2")
+    foot_def = "std_msgs/Header header\nfloat32[4] force\n"
+    if custom:
+        ts.register(get_types_from_msg(foot_def, "my_msgs/msg/FootForce"))
+    T = ts.types
+    if fmt == "ros1":
+        from rosbags.rosbag1 import Writer
+
+        w = Writer(path)
+    else:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        w = Writer(path, version=version, storage_plugin=StoragePlugin.SQLITE3)
+    ser = ts.serialize_ros1 if fmt == "ros1" else ts.serialize_cdr
+
+    def header(t):
+        stamp = T["builtin_interfaces/msg/Time"](sec=int(t), nanosec=int(round((t % 1) * 1e9)))
+        return T["std_msgs/msg/Header"](**({"seq": 0} if fmt == "ros1" else {}), stamp=stamp, frame_id="")
+
+    with w:
+        typ = "sensor_msgs/msg/Imu" if imu_only else "sensor_msgs/msg/JointState"
+        c = w.add_connection("/imu" if imu_only else "/joint_states", typ, typestore=ts)
+        cf = w.add_connection("/foot_force", "my_msgs/msg/FootForce", typestore=ts) if custom else None
+        v = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=9.81)
+        for i, t in enumerate(stamps):
+            if imu_only:
+                msg = T[typ](header=header(t), orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                             orientation_covariance=np.zeros(9), angular_velocity=v,
+                             angular_velocity_covariance=np.zeros(9), linear_acceleration=v,
+                             linear_acceleration_covariance=np.zeros(9))
+            else:
+                msg = T[typ](header=header(t), name=OCTOPUS_JOINTS, position=np.zeros(len(OCTOPUS_JOINTS)),
+                             velocity=np.zeros(0), effort=np.zeros(0))
+            w.write(c, int(1e9 * (100 + 0.01 * i)), ser(msg, typ))
+            if cf is not None:
+                foot = T["my_msgs/msg/FootForce"](header=header(t), force=np.full(4, 100.0, dtype=np.float32))
+                w.write(cf, int(1e9 * (100 + 0.01 * i)) + 1, ser(foot, "my_msgs/msg/FootForce"))
+    return path
+
+
+@pytest.fixture(scope="module")
+def urdf_file(tmp_path_factory):
+    from graphcal.models.builtin import builtin_urdf
+
+    p = tmp_path_factory.mktemp("urdf") / "robot.urdf"
+    p.write_text(builtin_urdf("octopus"))
+    return p
+
+
+@pytest.fixture(scope="module")
+def small_logs(sim, tmp_path_factory):
+    """A short ROS 1 bag and a ROS 2 MCAP bag of the simulated session."""
+    d = tmp_path_factory.mktemp("logs")
+    plan = dict(rate_hz=50.0, cloud_rate_hz=2.0, still_s=1.5, move_s=0.5, decoys=False)
+    write_station_log(sim, d / "log.bag", LogPlan(fmt="ros1", **plan))
+    write_station_log(sim, d / "mcap", LogPlan(fmt="mcap", **plan))
+    write_station_log(sim, d / "sqlite", LogPlan(fmt="sqlite3", **plan))
+    return d
+
+
+def _fails(capsys, tmp_path, args, *words):
+    """graphcal import ... exits 2 with one line naming ``words`` and leaves no dataset behind."""
+    out = tmp_path / "ds"
+    rc = main(["import", *map(str, args), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert len(err.splitlines()) == 1, err
+    for w in words:
+        assert w in err, (w, err)
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".ds")]
+    return err
+
+
+def _map_with(tmp_path, log, **changes) -> Path:
+    """The detected map of ``log`` with top-level entries replaced."""
+    from graphcal.logs.mapping import detect_map, map_yaml_text
+    from graphcal.logs.reader import LogReader
+
+    with LogReader(log) as r:
+        m = detect_map(r.topics, ("lf_foot",))
+    m["robot"].update(base_frame="body", feet=[f"{leg}_foot" for leg in ("lf", "lm", "lr", "rf", "rm", "rr")])
+    m.update(changes)
+    p = tmp_path / "map.yaml"
+    p.write_text(map_yaml_text(m))
+    return p
+
+
+def test_topic_missing_or_of_the_wrong_type(small_logs, tmp_path, capsys):
+    log = small_logs / "log.bag"
+    _fails(capsys, tmp_path, [log, "--map", _map_with(tmp_path, log, joints={"topic": "/nope"})],
+           "topic /nope (joints.topic)", "expected a topic of the log")
+    _fails(capsys, tmp_path, [log, "--map", _map_with(tmp_path, log, imu={"topic": "/joint_states"})],
+           "topic /joint_states (imu.topic)", "sensor_msgs/msg/Imu", "got sensor_msgs/msg/JointState")
+    imu_only = _tiny_bag(tmp_path / "imu.bag", [100.0, 100.01], imu_only=True)
+    _fails(capsys, tmp_path, [imu_only], "joints.topic", "sensor_msgs/msg/JointState", "none in the log")
+
+
+@pytest.mark.parametrize("stamps, words", [([100.0, 100.01, 100.01], "a duplicated stamp"),
+                                           ([100.0, 100.02, 100.01], "a stamp 0.010000 s before the previous one")])
+def test_duplicated_or_backwards_stamps(stamps, words, urdf_file, tmp_path, capsys):
+    log = _tiny_bag(tmp_path / "j.bag", stamps)
+    err = _fails(capsys, tmp_path, [log, "--urdf", urdf_file], "/joint_states", words, "strictly increasing")
+    assert f"t = {stamps[2]:.6f} s" in err
+
+
+def test_truncated_or_corrupt_logs(small_logs, tmp_path, capsys):
+    bag = small_logs / "log.bag"
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
+    _fails(capsys, tmp_path, [cut], "cut.bag", "expected a readable ROS 1 bag")
+    mcap = next((small_logs / "mcap").glob("*.mcap"))
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 2 // 3])
+    _fails(capsys, tmp_path, [cut], "cut.mcap", "MCAP")
+    bad = tmp_path / "sqlite"
+    shutil.copytree(small_logs / "sqlite", bad)
+    db = next(bad.glob("*.db3"))
+    data = bytearray(db.read_bytes())
+    data[4096: 4096 + 20000] = b"\xff" * 20000
+    db.write_bytes(bytes(data))
+    _fails(capsys, tmp_path, [bad], "sqlite", "ROS 2 bag")
+
+
+def test_unknown_message_type_needs_its_definition(urdf_file, tmp_path, capsys):
+    """A ROS 2 bag without message definitions (as older recorders wrote them): the custom foot-force
+    type is unknown until --msg-dir gives its .msg."""
+    import sqlite3
+
+    log = _tiny_bag(tmp_path / "custom", [100 + 0.01 * i for i in range(300)], fmt="sqlite3", custom=True)
+    with sqlite3.connect(next(log.glob("*.db3"))) as db:
+        db.execute("DELETE FROM message_definitions")
+    m = _map_with(tmp_path, log, feet={"lf_foot": {"topic": "/foot_force", "kind": "array", "field": "force",
+                                                  "index": 0}}, imu=None, sensors={})
+    _fails(capsys, tmp_path, [log, "--map", m, "--urdf", urdf_file], "topic /foot_force",
+           "expected a known message type", "--msg-dir", "my_msgs/msg/FootForce")
+    msg = tmp_path / "msgs" / "my_msgs" / "msg"
+    msg.mkdir(parents=True)
+    (msg / "FootForce.msg").write_text("std_msgs/Header header\nfloat32[4] force\n")
+    summary = import_log.run(log, tmp_path / "ok", map_path=m, urdf=urdf_file, msg_dir=tmp_path / "msgs",
+                             progress=False)
+    assert "1 station(s)" in summary
+
+
+@pytest.fixture(scope="module")
+def csv_log(tmp_path_factory):
+    d = tmp_path_factory.mktemp("csv")
+    simulate.run(robot="a1", program="random", ground="level", out_dir=d / "a1", seed=2, n_stations=2, n_sessions=1,
+                 progress=False)
+    _, cmap = write_station_csv(d / "a1", d / "log.csv", LogPlan(rate_hz=100.0, still_s=1.5, move_s=0.5, decoys=False))
+    return d / "log.csv", yaml.safe_load(cmap)
+
+
+@pytest.mark.parametrize("change, words", [
+    (lambda m: m["imu"].update(gyro=["gyro_x", "gyro_y", "gyro_q"]), ["column 'gyro_q' (imu.gyro[2]"]),
+    (lambda m: m["time"].update(unit="s"), ["column time_ms", "median step 10 s", "another unit"]),
+    (lambda m: m["imu"].update(accel_unit="m/s^2"), ["columns acc_x, acc_y, acc_z", "median 1 m/s²"]),
+    (lambda m: m["feet"]["fl_foot"].pop("column"), ["feet.fl_foot.column", "a column None"]),
+])
+def test_csv_columns_missing_or_in_the_wrong_unit(csv_log, change, words, tmp_path, capsys):
+    log, cmap = csv_log
+    cmap = yaml.safe_load(yaml.safe_dump(cmap))
+    change(cmap)
+    (tmp_path / "map.yaml").write_text(yaml.safe_dump(cmap))
+    _fails(capsys, tmp_path, [log, "--map", tmp_path / "map.yaml"], "log.csv", *words)
+
+
+def test_csv_joint_column_in_degrees(csv_log, tmp_path, capsys):
+    log, cmap = csv_log
+    rows = log.read_text().splitlines()
+    header = rows[0].split(",")
+    j = header.index("q2")
+    bad = []
+    for r in rows[1:]:
+        cells = r.split(",")
+        cells[j] = repr(float(np.degrees(float(cells[j]))))
+        bad.append(",".join(cells))
+    p = tmp_path / "deg.csv"
+    p.write_text("\n".join([rows[0], *bad]) + "\n")
+    (tmp_path / "map.yaml").write_text(yaml.safe_dump(cmap))
+    _fails(capsys, tmp_path, [p, "--map", tmp_path / "map.yaml"], "row 1, column q2", "within ±2π rad",
+           "another unit")
+    rows[4] = "x" + rows[4][rows[4].index(","):]
+    p.write_text("\n".join(rows) + "\n")
+    _fails(capsys, tmp_path, [p, "--map", tmp_path / "map.yaml"], "row 4, column time_ms", "expected a number", "got x")
