@@ -74,10 +74,12 @@ class SampleSink:
         self.finder.imu(t, accel, gyro)
         self._imu = np.concatenate([accel, gyro])
 
-    def foot(self, t: float, name: str, force: float) -> None:
-        loaded = force > self.thresholds[name]
-        self._contact[name] = float(loaded)
-        self.finder.foot(t, name, loaded)
+    def feet(self, t: float, forces: dict[str, float]) -> None:
+        """Foot loads at ``t`` (s): foot -> force (N; raw counts with a raw threshold)."""
+        loaded = {name: f > self.thresholds[name] for name, f in forces.items()}
+        for name, ok in loaded.items():
+            self._contact[name] = float(ok)
+        self.finder.feet(t, loaded)
 
     def timeseries_table(self, joint_names) -> Table | None:
         if not self.timeseries or not self.rows:

@@ -1,12 +1,13 @@
 """Import a ROS 1 bag, ROS 2 bag or bare MCAP file: detect or read the map, then two streaming
-passes. Pass 1 reads the small topics (joints, IMU, feet, /tf_static) and finds the still windows;
-pass 2 reads only the point topics, deserialising only the messages received near a window, and
-keeps per window the one nearest its centre. Memory does not grow with the log's length (except the
-optional timeseries). Times in s, SI units."""
+passes. Pass 1 reads the log once: joints, IMU, feet and /tf_static are deserialised and the still windows
+found; of the point topics only the receive times are kept (8 bytes a message). Pass 2 reads, through
+the log's index, only the message nearest each window's centre. Memory does not grow with the log's
+length (except those receive times and the optional timeseries). Times in s, SI units."""
 
 from __future__ import annotations
 
 import logging
+from array import array
 from pathlib import Path
 
 import numpy as np
@@ -64,29 +65,45 @@ def _robot(reader: LogReader, m: dict | None, urdf_file: Path | None) -> tuple[s
 
 
 def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
-    """Joints, IMU, feet, /tf_static -> (joint names, finder, sink, static transforms, imu frame, jumps)."""
+    """Every topic of the map in one read: joints, IMU, feet and /tf_static deserialised; the point
+    topics only timed (receive times, ns) and each camera's first CameraInfo kept. Returns
+    (joint names, sink, static transforms, IMU frame, clock jumps, sensor -> receive times,
+    sensor -> (fx, fy, cx, cy))."""
     stamps = StampCheck(reader.path)
     use_header = m["stamps"] == "header"
     jt = m["joints"]["topic"]
     it = (m.get("imu") or {}).get("topic")
     feet = m.get("feet") or {}
-    foot_topics: dict[str, list[str]] = {}
+    foot_topics: dict[str, dict] = {}
     for name, f in feet.items():
-        foot_topics.setdefault(f["topic"], []).append(name)
+        foot_topics.setdefault(f["topic"], {})[name] = f
     tf = m.get("tf_static")
+    sensors = m.get("sensors") or {}
+    point_topics = {s["topic"]: name for name, s in sensors.items()}
+    info_topics = {s["camera_info"]: name for name, s in sensors.items() if s.get("camera_info")}
     topics = [t for t in [jt, it, tf, *foot_topics] if t]
-    for t in topics:
+    for t in [*topics, *point_topics, *info_topics]:
         reader.check_type_known(t)
     th = sink_args["thresholds"]
     names: tuple[str, ...] | None = None
     sink = None
     transforms: dict = {}
     imu_frame = None
-    total = sum(reader.topics[t].count for t in topics)
-    bar = tqdm(total=total, unit="msg", desc="import: joints, IMU, feet", disable=not progress, mininterval=0.5)
-    for n, (topic, t_ns, raw) in enumerate(reader.messages(topics)):
+    received: dict[str, array] = {name: array("q") for name in sensors}
+    K: dict[str, np.ndarray] = {}
+    every = [*topics, *point_topics, *info_topics]
+    bar = tqdm(total=sum(reader.topics[t].count for t in every), unit="msg", desc="import", disable=not progress,
+               mininterval=0.5)
+    for n, (topic, t_ns, raw) in enumerate(reader.messages(every)):
         if n % 1000 == 0:
             bar.update(1000 if n else 0)
+        if topic in point_topics:
+            received[point_topics[topic]].append(t_ns)
+            continue
+        if topic in info_topics:
+            if info_topics[topic] not in K:
+                K[info_topics[topic]] = M.camera_matrix(reader.deserialize(raw, topic, t_ns))
+            continue
         msg = reader.deserialize(raw, topic, t_ns)
         if topic == tf:
             for parent, child, T in M.static_transforms(msg):
@@ -103,12 +120,7 @@ def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
                 sink = SampleSink(finder, {f: float(feet[f].get("threshold_n", th.force_threshold_n)) for f in feet},
                                   sink_args["timeseries"])
             if jn != names:
-                index = {j: i for i, j in enumerate(jn)}
-                missing = [j for j in names if j not in index]
-                if missing or len(q) != len(jn):
-                    raise DatasetError(reader.path, f"topic {topic} at t = {t:.6f} s",
-                                       f"positions of the joints {', '.join(names)}", f"missing {missing}")
-                q = q[[index[j] for j in names]]
+                q = _reorder(reader, topic, t, names, jn, q)
             sink.joints(t, q)
         elif sink is None:
             continue  # nothing before the first joint sample
@@ -116,70 +128,59 @@ def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
             imu_frame = imu_frame or msg.header.frame_id.lstrip("/")
             sink.imu(t, *M.imu_sample(msg))
         else:
-            for foot in foot_topics[topic]:
-                sink.foot(t, foot, M.foot_value(msg, feet[foot]))
+            sink.feet(t, M.foot_values(msg, foot_topics[topic]))
     bar.close()
     if sink is None:
         raise DatasetError(reader.path, f"topic {jt}", "sensor_msgs/msg/JointState messages", "none")
     sink.finder.finish()
-    return names, sink, transforms, imu_frame, stamps.jumps
+    return names, sink, transforms, imu_frame, stamps.jumps, received, K
 
 
-def _pass2(reader: LogReader, m: dict, windows, progress: bool) -> dict[str, str]:
+def _reorder(reader: LogReader, topic: str, t: float, names, jn, q) -> np.ndarray:
+    """``q`` (in the order ``jn``) in the order ``names``; DatasetError when one is missing."""
+    index = {j: i for i, j in enumerate(jn)}
+    missing = [j for j in names if j not in index]
+    if missing or len(q) != len(jn):
+        raise DatasetError(reader.path, f"topic {topic} at t = {t:.6f} s",
+                           f"positions of the joints {', '.join(names)}", f"missing {missing}")
+    return q[[index[j] for j in names]]
+
+
+def _points(reader: LogReader, s: dict, topic: str, msg, K, t: float) -> np.ndarray:
+    try:
+        if s["msgtype"] == IMAGE:
+            return M.depth_image_points(msg, K, int(s.get("stride", 1)))
+        if s["msgtype"] == SCAN:
+            return M.laser_scan_points(msg)
+        return M.cloud_points(msg)
+    except (ValueError, KeyError) as exc:
+        raise DatasetError(reader.path, f"topic {topic} at t = {t:.6f} s", f"a usable {s['msgtype']}", str(exc)) from None
+
+
+def _pass2(reader: LogReader, m: dict, windows, received: dict, K: dict, progress: bool) -> dict[str, str]:
     """Fill ``w.clouds[sensor]`` with the points (m, sensor frame) of the message nearest each
-    window's centre among those stamped inside it; returns sensor -> frame id."""
+    window's centre among those stamped inside it: the candidates are read by receive time through
+    the log's index (nearest first, a few at most), nothing else. Returns sensor -> frame id."""
     sensors = m.get("sensors") or {}
-    if not sensors or not windows:
-        return {}
     use_header = m["stamps"] == "header"
-    topic_of = {s["topic"]: name for name, s in sensors.items()}
-    info_of = {s["camera_info"]: name for name, s in sensors.items() if s.get("camera_info")}
-    for t in [*topic_of, *info_of]:
-        reader.check_type_known(t)
-    starts = np.array([w.start for w in windows])
-    pad = 1.0  # s: receive time may lag the header stamp
-    K: dict[str, np.ndarray] = {}
-    best: dict[tuple[str, int], float] = {}
+    pad_ns = 1_000_000_000  # receive time may lag the header stamp (s -> ns)
     frames: dict[str, str] = {}
-    total = sum(reader.topics[t].count for t in [*topic_of, *info_of])
-    bar = tqdm(total=total, unit="msg", desc="import: clouds", disable=not progress, mininterval=0.5)
-    for topic, t_ns, raw in reader.messages([*topic_of, *info_of]):
-        bar.update(1)
-        tr = t_ns * 1e-9
-        i = int(np.searchsorted(starts, tr + pad)) - 1
-        near = i >= 0 and (tr - pad <= windows[i].end)
-        if topic in info_of:
-            if info_of[topic] not in K:
-                K[info_of[topic]] = M.camera_matrix(reader.deserialize(raw, topic, t_ns))
-            continue
-        if not near:
-            continue
-        name = topic_of[topic]
-        msg = reader.deserialize(raw, topic, t_ns)
-        t = M.header_stamp(msg) if use_header else tr
-        j = int(np.searchsorted(starts, t, side="right")) - 1
-        if j < 0 or t > windows[j].end:
-            continue
-        dist = abs(t - windows[j].centre)
-        if dist >= best.get((name, j), np.inf):
-            continue
-        s = sensors[name]
-        try:
-            if s["msgtype"] == IMAGE:
-                if name not in K:
+    for w in tqdm(windows, desc="import: clouds", unit="station", disable=not progress or not sensors):
+        for name, s in sensors.items():
+            r = np.frombuffer(received[name], dtype=np.int64) if len(received[name]) else np.zeros(0, np.int64)
+            lo, hi = np.searchsorted(r, [int(w.start * 1e9) - pad_ns, int(w.end * 1e9) + pad_ns])
+            cand = r[lo:hi]
+            for t_ns in cand[np.argsort(np.abs(cand * 1e-9 - w.centre))][:5]:
+                got = next(reader.messages([s["topic"]], int(t_ns), int(t_ns) + 1), None)
+                if got is None:
                     continue
-                pts = M.depth_image_points(msg, K[name], int(s.get("stride", 1)))
-            elif s["msgtype"] == SCAN:
-                pts = M.laser_scan_points(msg)
-            else:
-                pts = M.cloud_points(msg)
-        except (ValueError, KeyError) as exc:
-            raise DatasetError(reader.path, f"topic {topic} at t = {t:.6f} s", f"a usable {s['msgtype']}",
-                               str(exc)) from None
-        best[(name, j)] = dist
-        windows[j].clouds[name] = pts
-        frames[name] = msg.header.frame_id.lstrip("/")
-    bar.close()
+                msg = reader.deserialize(got[2], s["topic"], int(t_ns))
+                t = M.header_stamp(msg) if use_header else t_ns * 1e-9
+                if not w.start <= t <= w.end or (s["msgtype"] == IMAGE and name not in K):
+                    continue
+                w.clouds[name] = _points(reader, s, s["topic"], msg, K.get(name), t)
+                frames[name] = msg.header.frame_id.lstrip("/")
+                break
     return frames
 
 
@@ -222,9 +223,9 @@ def import_bag(log_path: Path, out_dir: Path, *, map_path: Path | None = None, u
             raise DatasetError(map_path or log_path, "robot.feet / robot.base_frame",
                                "the robot's foot frames and base frame (set them in the import map)", None)
         th = thresholds_of(m, str(map_path or "import map"))
-        names, sink, transforms, imu_frame, jumps = _pass1(reader, m, {"thresholds": th, "timeseries": timeseries},
-                                                           progress)
-        frames = _pass2(reader, m, sink.finder.accepted, progress)
+        names, sink, transforms, imu_frame, jumps, received, K = _pass1(
+            reader, m, {"thresholds": th, "timeseries": timeseries}, progress)
+        frames = _pass2(reader, m, sink.finder.accepted, received, K, progress)
     base = rob["base_frame"]
     sensors = {}
     for name, s in (m.get("sensors") or {}).items():
@@ -240,11 +241,11 @@ def import_bag(log_path: Path, out_dir: Path, *, map_path: Path | None = None, u
     imu = None
     notes = []
     if m.get("imu"):
-        if imu_frame and transforms and imu_frame != base:
-            imu = ImuSpec(_prior(m, transforms, base, imu_frame, "imu", log_path))
-        else:
-            imu = ImuSpec(PosePrior(np.zeros(3), np.zeros(3), 0.0, np.radians(1.0)))
-            if imu_frame and imu_frame != base:
+        imu = ImuSpec(PosePrior(np.zeros(3), np.zeros(3), 0.0, np.radians(1.0)))
+        if imu_frame and imu_frame != base:
+            try:
+                imu = ImuSpec(_prior(m, transforms, base, imu_frame, "imu", log_path))
+            except DatasetError:
                 notes.append(f"no /tf_static from {base} to the IMU frame {imu_frame}: IMU prior identity, 1 deg")
     robot = RobotSpec("robot.urdf" if urdf_xml else None, None if urdf_xml else rob["model"], base, rob["feet"])
     parts = DatasetParts(robot, urdf_xml, names, sensors, imu, sink.finder, sink, notes=notes,

@@ -138,8 +138,8 @@ def import_csv(path: Path, out_dir: Path, *, map_path: Path, urdf_file: Path | N
                     _plausible(path, m, first)
             if m.get("imu"):
                 sink.imu(t, acc, gyr)
-            for foot, value in forces.items():
-                sink.foot(t, foot, value)
+            if forces:
+                sink.feet(t, forces)
             sink.joints(t, q)
     if len(first) < 200:
         _plausible(path, m, first)

@@ -13,7 +13,7 @@ from graphcal.errors import DatasetError
 from graphcal.geometry import pose_from_xyz_quat_wxyz
 
 __all__ = ["header_stamp", "joint_state", "imu_sample", "cloud_points", "laser_scan_points",
-           "depth_image_points", "camera_matrix", "foot_value", "static_transforms", "chain_pose"]
+           "depth_image_points", "camera_matrix", "foot_value", "foot_values", "static_transforms", "chain_pose"]
 
 # sensor_msgs/PointField datatypes -> numpy
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -90,6 +90,16 @@ def depth_image_points(msg: Any, fx_fy_cx_cy: np.ndarray, stride: int = 1) -> np
     fx, fy, cx, cy = fx_fy_cx_cy
     z = z[ok]
     return np.stack([(u[ok] - cx) * z / fx, (v[ok] - cy) * z / fy, z], axis=1)
+
+
+def foot_values(msg: Any, specs: dict[str, dict]) -> dict[str, float]:
+    """:func:`foot_value` of every foot in ``specs`` (foot -> its map entry) from one message."""
+    first = next(iter(specs.values()))
+    if len(specs) > 1 and first.get("kind", "array") == "array":
+        values = np.asarray(getattr(msg, first.get("field", "data")), dtype=np.float64).reshape(-1)
+        return {f: (values[int(s.get("index", 0))] - float(s.get("offset", 0.0))) * float(s.get("scale", 1.0))
+                for f, s in specs.items()}
+    return {f: foot_value(msg, s) for f, s in specs.items()}
 
 
 def foot_value(msg: Any, spec: dict) -> float:

@@ -163,14 +163,16 @@ class LogReader:
             raise DatasetError(self.path, f"topic {topic}", f"a known message type (give the .msg of "
                                f"{t.msgtype} with --msg-dir)", t.msgtype)
 
-    def messages(self, topics: Sequence[str]) -> Iterator[tuple[str, int, Any]]:
+    def messages(self, topics: Sequence[str], start_ns: int | None = None,
+                 stop_ns: int | None = None) -> Iterator[tuple[str, int, Any]]:
         """``(topic, receive time in ns, raw bytes)`` of the ``topics``, in the log's order (receive
-        time); read lazily. Use :meth:`deserialize` on the bytes of the messages wanted."""
+        time), received in [start_ns, stop_ns) when given (the log's index finds them without reading
+        the rest); read lazily. Use :meth:`deserialize` on the bytes of the messages wanted."""
         conns = [c for c in self._connections if c.topic in set(topics)]
         if not conns:
             return
         try:
-            it = iter(self._reader.messages(connections=conns))
+            it = iter(self._reader.messages(connections=conns, start=start_ns, stop=stop_ns))
         except Exception as exc:
             raise DatasetError(self.path, "file", f"a readable {self._what()}", _reason(exc)) from None
         n = 0

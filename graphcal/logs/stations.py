@@ -62,12 +62,12 @@ class Window:
 
 
 class StationFinder:
-    """Feed samples in time order (:meth:`joints`, :meth:`imu`, :meth:`foot`), then :meth:`finish`;
+    """Feed samples in time order (:meth:`joints`, :meth:`imu`, :meth:`feet`), then :meth:`finish`;
     ``accepted`` and ``rejected`` hold the windows.
 
     Args:
         joint_names: the joints, in the order of the ``q`` arrays given to :meth:`joints`.
-        feet: the feet that must be loaded (their loads come through :meth:`foot`); empty: no condition.
+        feet: the feet that must be loaded (their loads come through :meth:`feet`); empty: no condition.
         has_imu: whether IMU samples come (without, only the joints tell stillness).
         thresholds: :class:`StationThresholds`.
     """
@@ -137,11 +137,12 @@ class StationFinder:
                 self._sums["gyro"] += v[1]
                 self._good.n_imu += 1
 
-    def foot(self, t: float, name: str, loaded: bool) -> None:
-        """Whether foot ``name`` is loaded at ``t`` (s)."""
-        if self.loaded[name] and not loaded:
-            self.lifts += 1
-        self.loaded[name] = bool(loaded)
+    def feet(self, t: float, loaded: dict[str, bool]) -> None:
+        """Whether each foot named in ``loaded`` is loaded at ``t`` (s)."""
+        for name, ok in loaded.items():
+            if self.loaded[name] and not ok:
+                self.lifts += 1
+            self.loaded[name] = bool(ok)
         self._step(t)
 
     # -- the state machine
