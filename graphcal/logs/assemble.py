@@ -142,10 +142,13 @@ def _stations_table(parts: DatasetParts, windows: list[Window]) -> tuple[Table, 
     return Table(tuple(data), data), ("session" if feet_known else "station")
 
 
-def write_imported(parts: DatasetParts, out_dir: Path, *, overwrite: bool = False, jumps=()) -> tuple[Path, str]:
+def write_imported(parts: DatasetParts, out_dir: Path, *, overwrite: bool = False, jumps=(),
+                   staging: Path | None = None) -> tuple[Path, str]:
     """Write the dataset (stations from the accepted windows that have a cloud of every sensor,
     timeseries when gathered), ``import_map.yaml`` and ``import_report.yaml``; returns the folder
-    and a summary. DatasetError when there is neither a station nor a timeseries."""
+    and a summary. A window's cloud is (N, 3) points or a PLY file under ``staging`` (a folder on
+    the same file system, renamed into ``staging/clouds`` and copied from there). DatasetError when
+    there is neither a station nor a timeseries."""
     from graphcal.io.dataset.write import write_dataset
 
     kept, rejected = [], list(parts.finder.rejected)
@@ -164,9 +167,17 @@ def write_imported(parts: DatasetParts, out_dir: Path, *, overwrite: bool = Fals
                            "(see the stations thresholds of the import map)",
                            f"none ({len(rejected)} rejected{': ' + reasons if reasons else ''})")
     stations, within = _stations_table(parts, kept) if kept else (None, "session")
-    clouds = {(s, i + 1): w.clouds[s] for i, w in enumerate(kept) for s in parts.sensors}
-    ds = Dataset(robot=parts.robot, sensors=dict(parts.sensors), imu=parts.imu, stations=stations, timeseries=ts,
-                 stance={"feet_fixed_within": within})
+    clouds = {}
+    for i, w in enumerate(kept):
+        for s in parts.sensors:
+            if isinstance(w.clouds[s], Path):
+                target = staging / "clouds" / s / f"{i + 1}.ply"
+                target.parent.mkdir(parents=True, exist_ok=True)
+                w.clouds[s].rename(target)
+            else:
+                clouds[(s, i + 1)] = w.clouds[s]
+    ds = Dataset(root=staging, robot=parts.robot, sensors=dict(parts.sensors), imu=parts.imu, stations=stations,
+                 timeseries=ts, stance={"feet_fixed_within": within})
     report = {"format": "graphcal-import-report/1", "source": str(parts.source),
               "units": "times in s (the log's stamps); stations.csv, clouds and timeseries.csv in SI units",
               "stations": [_window_dict(w, i + 1) for i, w in enumerate(kept)],

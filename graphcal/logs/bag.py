@@ -157,10 +157,14 @@ def _points(reader: LogReader, s: dict, topic: str, msg, K, t: float) -> np.ndar
         raise DatasetError(reader.path, f"topic {topic} at t = {t:.6f} s", f"a usable {s['msgtype']}", str(exc)) from None
 
 
-def _pass2(reader: LogReader, m: dict, windows, received: dict, K: dict, progress: bool) -> dict[str, str]:
-    """Fill ``w.clouds[sensor]`` with the points (m, sensor frame) of the message nearest each
-    window's centre among those stamped inside it: the candidates are read by receive time through
-    the log's index (nearest first, a few at most), nothing else. Returns sensor -> frame id."""
+def _pass2(reader: LogReader, m: dict, windows, received: dict, K: dict, progress: bool,
+           staging: Path) -> dict[str, str]:
+    """Set ``w.clouds[sensor]`` to a PLY file under ``staging`` holding the points (m, sensor
+    frame) of the message nearest each window's centre among those stamped inside it (so that no
+    cloud stays in memory): the candidates are read by receive time through the log's index
+    (nearest first, a few at most), nothing else. Returns sensor -> frame id."""
+    from graphcal.io.ply import write_ply
+
     sensors = m.get("sensors") or {}
     use_header = m["stamps"] == "header"
     pad_ns = 1_000_000_000  # receive time may lag the header stamp (s -> ns)
@@ -178,7 +182,10 @@ def _pass2(reader: LogReader, m: dict, windows, received: dict, K: dict, progres
                 t = M.header_stamp(msg) if use_header else t_ns * 1e-9
                 if not w.start <= t <= w.end or (s["msgtype"] == IMAGE and name not in K):
                     continue
-                w.clouds[name] = _points(reader, s, s["topic"], msg, K.get(name), t)
+                path = staging / "pending" / name / f"{len(frames)}_{int(t_ns)}.ply"
+                path.parent.mkdir(parents=True, exist_ok=True)
+                write_ply(path, _points(reader, s, s["topic"], msg, K.get(name), t), binary=True)
+                w.clouds[name] = path
                 frames[name] = msg.header.frame_id.lstrip("/")
                 break
     return frames
@@ -200,7 +207,18 @@ def import_bag(log_path: Path, out_dir: Path, *, map_path: Path | None = None, u
                receive_time: bool = False, msg_dir: Path | None = None, timeseries: bool = False,
                progress: bool = True, overwrite: bool = False) -> tuple[Path, str]:
     """``graphcal import`` of a bag or MCAP file (see the module docstring); returns (folder, summary)."""
+    import tempfile
+
     extra = types_from_msg_dir(msg_dir) if msg_dir is not None else None
+    Path(out_dir).absolute().parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".graphcal-import-", dir=Path(out_dir).absolute().parent) as staging:
+        return _import_bag(log_path, Path(out_dir), Path(staging), map_path=map_path, urdf_file=urdf_file,
+                           receive_time=receive_time, extra=extra, timeseries=timeseries, progress=progress,
+                           overwrite=overwrite)
+
+
+def _import_bag(log_path: Path, out_dir: Path, staging: Path, *, map_path, urdf_file, receive_time, extra,
+                timeseries, progress, overwrite) -> tuple[Path, str]:
     with LogReader(log_path, extra) as reader:
         given = read_map(map_path) if map_path is not None else None
         urdf_xml, urdf_src = _robot(reader, given, urdf_file)
@@ -225,7 +243,7 @@ def import_bag(log_path: Path, out_dir: Path, *, map_path: Path | None = None, u
         th = thresholds_of(m, str(map_path or "import map"))
         names, sink, transforms, imu_frame, jumps, received, K = _pass1(
             reader, m, {"thresholds": th, "timeseries": timeseries}, progress)
-        frames = _pass2(reader, m, sink.finder.accepted, received, K, progress)
+        frames = _pass2(reader, m, sink.finder.accepted, received, K, progress, staging)
     base = rob["base_frame"]
     sensors = {}
     for name, s in (m.get("sensors") or {}).items():
@@ -250,4 +268,4 @@ def import_bag(log_path: Path, out_dir: Path, *, map_path: Path | None = None, u
     robot = RobotSpec("robot.urdf" if urdf_xml else None, None if urdf_xml else rob["model"], base, rob["feet"])
     parts = DatasetParts(robot, urdf_xml, names, sensors, imu, sink.finder, sink, notes=notes,
                          source=str(log_path), map_text=map_text)
-    return write_imported(parts, Path(out_dir), overwrite=overwrite, jumps=jumps)
+    return write_imported(parts, Path(out_dir), overwrite=overwrite, jumps=jumps, staging=staging)
