@@ -318,3 +318,18 @@ def test_csv_joint_column_in_degrees(csv_log, tmp_path, capsys):
     rows[4] = "x" + rows[4][rows[4].index(","):]
     p.write_text("\n".join(rows) + "\n")
     _fails(capsys, tmp_path, [p, "--map", tmp_path / "map.yaml"], "row 4, column time_ms", "expected a number", "got x")
+
+
+def test_receive_time_and_clock_jumps(small_logs, urdf_file, tmp_path):
+    """--receive-time finds the same stations (receive times are the header stamps plus < 1 ms
+    here); a 5 s gap in the stamps is reported as a clock jump, not refused."""
+    by_header = import_log.run(small_logs / "log.bag", tmp_path / "a", progress=False)
+    by_receive = import_log.run(small_logs / "log.bag", tmp_path / "b", receive_time=True, progress=False)
+    assert f"{N_STATIONS} station(s)" in by_header and f"{N_STATIONS} station(s)" in by_receive
+    assert "stamps: receive" in (tmp_path / "b" / "import_map.yaml").read_text()
+    stamps = [100 + 0.01 * i for i in range(50)] + [106 + 0.01 * i for i in range(50)]
+    log = _tiny_bag(tmp_path / "gap.bag", stamps)
+    summary = import_log.run(log, tmp_path / "c", urdf=urdf_file, timeseries=True, progress=False)
+    report = yaml.safe_load((tmp_path / "c" / "import_report.yaml").read_text())
+    assert len(report["clock"]) == 1 and "clock jump of 5.510 s at t = 100.490000 s" in report["clock"][0]
+    assert "warning: /joint_states: clock jump" in summary

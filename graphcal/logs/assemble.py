@@ -66,8 +66,9 @@ class SampleSink:
     def joints(self, t: float, q: np.ndarray) -> None:
         self.n_joint += 1
         self.finder.joints(t, q)
-        if self.timeseries and np.isfinite(self._imu[0]):
-            self.rows.append(np.concatenate([[t], q, self._imu, list(self._contact.values())]))
+        if self.timeseries and (np.isfinite(self._imu[0]) or not self.finder.has_imu):
+            imu = self._imu if self.finder.has_imu else ()
+            self.rows.append(np.concatenate([[t], q, imu, list(self._contact.values())]))
 
     def imu(self, t: float, accel: np.ndarray, gyro: np.ndarray) -> None:
         self.n_imu += 1
@@ -85,8 +86,8 @@ class SampleSink:
         if not self.timeseries or not self.rows:
             return None
         a = np.vstack(self.rows)
-        cols = (["time"] + [f"q_{j}" for j in joint_names] + ["imu_ax", "imu_ay", "imu_az", "imu_gx", "imu_gy",
-                "imu_gz"] + [f"contact_{f}" for f in self._contact])
+        imu = ["imu_ax", "imu_ay", "imu_az", "imu_gx", "imu_gy", "imu_gz"] if self.finder.has_imu else []
+        cols = ["time"] + [f"q_{j}" for j in joint_names] + imu + [f"contact_{f}" for f in self._contact]
         return Table(tuple(cols), {c: a[:, i] for i, c in enumerate(cols)})
 
 
