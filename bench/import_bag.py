@@ -122,6 +122,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, nargs="+", default=[20.0, 40.0])
     ap.add_argument("--dir", type=Path, default=Path("/tmp/gc_bench_import"))
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--repeats", type=int, default=3, help="runs of each, alternated; medians reported")
     args = ap.parse_args()
     args.dir.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -132,14 +133,17 @@ def main() -> None:
             generate(log, s)
             print(f"generated {log} in {time.perf_counter() - t:.1f} s", file=sys.stderr)
         size = sum(f.stat().st_size for f in log.iterdir())
-        base_wall, base_mem, _ = timed([sys.executable, __file__, "--rosbags-alone", str(log)])
-        out = args.dir / f"ds_{int(s)}s"
-        shutil.rmtree(out, ignore_errors=True)
-        imp_wall, imp_mem, summary = timed([sys.executable, "-m", "graphcal", "import", str(log), "--out", str(out),
-                                            "--quiet"])
-        rows.append({"seconds": s, "size_MB": size / 1e6, "rosbags_s": base_wall, "rosbags_MiB": base_mem,
-                     "import_s": imp_wall, "import_MiB": imp_mem, "speed_ratio": base_wall / imp_wall,
-                     "summary": summary.splitlines()[0]})
+        base, imp = [], []
+        for _ in range(args.repeats):  # alternated, so that load changes hit both alike
+            base.append(timed([sys.executable, __file__, "--rosbags-alone", str(log)]))
+            out = args.dir / f"ds_{int(s)}s"
+            shutil.rmtree(out, ignore_errors=True)
+            imp.append(timed([sys.executable, "-m", "graphcal", "import", str(log), "--out", str(out), "--quiet"]))
+        base_wall, imp_wall = float(np.median([b[0] for b in base])), float(np.median([i[0] for i in imp]))
+        rows.append({"seconds": s, "size_MB": size / 1e6, "rosbags_s": base_wall,
+                     "rosbags_MiB": max(b[1] for b in base), "import_s": imp_wall, "import_MiB": max(i[1] for i in imp),
+                     "speed_ratio": base_wall / imp_wall, "rosbags_all_s": [b[0] for b in base],
+                     "import_all_s": [i[0] for i in imp], "summary": imp[0][2].splitlines()[0]})
         print(json.dumps(rows[-1]))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
@@ -148,6 +152,19 @@ def main() -> None:
     for r in rows:
         print(f"| {r['seconds']:g} s | {r['size_MB']:.0f} | {r['rosbags_s']:.1f} | {r['import_s']:.1f} | "
               f"{r['speed_ratio']:.2f} | {r['rosbags_MiB']:.0f} | {r['import_MiB']:.0f} |")
+    if len(rows) >= 2:
+        a, b = rows[0], rows[-1]
+        per_s_base = (b["rosbags_s"] - a["rosbags_s"]) / (b["seconds"] - a["seconds"])
+        per_s_imp = (b["import_s"] - a["import_s"]) / (b["seconds"] - a["seconds"])
+        mb_per_s = (b["size_MB"] - a["size_MB"]) / (b["seconds"] - a["seconds"])
+        log_s = 10e3 / mb_per_s
+        fixed_imp = a["import_s"] - per_s_imp * a["seconds"]
+        fixed_base = a["rosbags_s"] - per_s_base * a["seconds"]
+        print(f"margin: rosbags {per_s_base:.3f} s, import {per_s_imp:.3f} s per log second "
+              f"({mb_per_s:.1f} MB/s of log): ratio {per_s_base / per_s_imp:.2f}; fixed costs {fixed_base:.1f} s, "
+              f"{fixed_imp:.1f} s; 10 GB = {log_s:.0f} s of log: rosbags {fixed_base + per_s_base * log_s:.0f} s, "
+              f"import {fixed_imp + per_s_imp * log_s:.0f} s, ratio "
+              f"{(fixed_base + per_s_base * log_s) / (fixed_imp + per_s_imp * log_s):.2f}")
 
 
 if __name__ == "__main__":

@@ -62,6 +62,8 @@ class SampleSink:
         self._contact = {f: 0.0 for f in feet_thresholds}
         self.n_joint = 0
         self.n_imu = 0
+        self._thr: dict = {}
+        self._last_feet: set = set()
 
     def joints(self, t: float, q: np.ndarray) -> None:
         self.n_joint += 1
@@ -70,17 +72,31 @@ class SampleSink:
             imu = self._imu if self.finder.has_imu else ()
             self.rows.append(np.concatenate([[t], q, imu, list(self._contact.values())]))
 
-    def imu(self, t: float, accel: np.ndarray, gyro: np.ndarray) -> None:
+    def imu(self, t: float, accel, gyro) -> None:
+        """Specific force (m/s²) and rate (rad/s) at ``t`` (s), each three numbers."""
         self.n_imu += 1
         self.finder.imu(t, accel, gyro)
-        self._imu = np.concatenate([accel, gyro])
+        if self.timeseries:
+            self._imu = np.array([*accel, *gyro], dtype=np.float64)
 
     def feet(self, t: float, forces: dict[str, float]) -> None:
         """Foot loads at ``t`` (s): foot -> force (N; raw counts with a raw threshold)."""
-        loaded = {name: f > self.thresholds[name] for name, f in forces.items()}
-        for name, ok in loaded.items():
+        self.feet_array(t, tuple(forces), np.array(list(forces.values()), dtype=np.float64))
+
+    def feet_array(self, t: float, names: tuple[str, ...], forces: np.ndarray) -> None:
+        """Loads ``forces`` (N, or raw counts with a raw threshold) of the feet ``names`` at ``t``
+        (s); the finder hears of it only when a foot's state changes."""
+        thr = self._thr.get(names)
+        if thr is None:
+            thr = self._thr[names] = np.array([self.thresholds[n] for n in names])
+        loaded = forces > thr
+        key = (names, loaded.tobytes())
+        if key in self._last_feet:
+            return
+        self._last_feet = {k for k in self._last_feet if k[0] != names} | {key}
+        for name, ok in zip(names, loaded):
             self._contact[name] = float(ok)
-        self.finder.feet(t, loaded)
+        self.finder.feet(t, dict(zip(names, loaded.tolist())))
 
     def timeseries_table(self, joint_names) -> Table | None:
         if not self.timeseries or not self.rows:

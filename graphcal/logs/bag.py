@@ -21,7 +21,7 @@ from graphcal.logs.mapping import (IMAGE, SCAN, check_map, detect_map, map_yaml_
 from graphcal.logs.reader import LogReader, types_from_msg_dir
 from graphcal.logs.stations import StationFinder
 
-__all__ = ["import_bag", "urdf_feet_and_root"]
+__all__ = ["import_bag", "urdf_feet_and_root", "staged_ply"]
 
 log = logging.getLogger(__name__)
 
@@ -74,9 +74,10 @@ def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
     jt = m["joints"]["topic"]
     it = (m.get("imu") or {}).get("topic")
     feet = m.get("feet") or {}
-    foot_topics: dict[str, dict] = {}
+    by_topic: dict[str, dict] = {}
     for name, f in feet.items():
-        foot_topics.setdefault(f["topic"], {})[name] = f
+        by_topic.setdefault(f["topic"], {})[name] = f
+    foot_topics = {t: M.FootForces(specs) for t, specs in by_topic.items()}
     tf = m.get("tf_static")
     sensors = m.get("sensors") or {}
     point_topics = {s["topic"]: name for name, s in sensors.items()}
@@ -128,7 +129,8 @@ def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
             imu_frame = imu_frame or msg.header.frame_id.lstrip("/")
             sink.imu(t, *M.imu_sample(msg))
         else:
-            sink.feet(t, M.foot_values(msg, foot_topics[topic]))
+            reader_ = foot_topics[topic]
+            sink.feet_array(t, reader_.names, reader_(msg))
     bar.close()
     if sink is None:
         raise DatasetError(reader.path, f"topic {jt}", "sensor_msgs/msg/JointState messages", "none")
@@ -157,13 +159,25 @@ def _points(reader: LogReader, s: dict, topic: str, msg, K, t: float) -> np.ndar
         raise DatasetError(reader.path, f"topic {topic} at t = {t:.6f} s", f"a usable {s['msgtype']}", str(exc)) from None
 
 
+def staged_ply(path: Path, points: np.ndarray) -> None:
+    """(N, 3) points (m) as a binary little-endian float64 PLY (x, y, z), without Open3D or fsync:
+    a staging file, copied into the dataset (which is written atomically) at the end."""
+    pts = np.ascontiguousarray(points, dtype="<f8")
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise ValueError(f"{path}: points must be a non-empty (N, 3) array, got shape {pts.shape}")
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment frame: sensor, units: m\nelement vertex {len(pts)}\n"
+              "property double x\nproperty double y\nproperty double z\nend_header\n")
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(pts.tobytes())
+
+
 def _pass2(reader: LogReader, m: dict, windows, received: dict, K: dict, progress: bool,
            staging: Path) -> dict[str, str]:
     """Set ``w.clouds[sensor]`` to a PLY file under ``staging`` holding the points (m, sensor
     frame) of the message nearest each window's centre among those stamped inside it (so that no
     cloud stays in memory): the candidates are read by receive time through the log's index
     (nearest first, a few at most), nothing else. Returns sensor -> frame id."""
-    from graphcal.io.ply import write_ply
 
     sensors = m.get("sensors") or {}
     use_header = m["stamps"] == "header"
@@ -184,7 +198,7 @@ def _pass2(reader: LogReader, m: dict, windows, received: dict, K: dict, progres
                     continue
                 path = staging / "pending" / name / f"{len(frames)}_{int(t_ns)}.ply"
                 path.parent.mkdir(parents=True, exist_ok=True)
-                write_ply(path, _points(reader, s, s["topic"], msg, K.get(name), t), binary=True)
+                staged_ply(path, _points(reader, s, s["topic"], msg, K.get(name), t))
                 w.clouds[name] = path
                 frames[name] = msg.header.frame_id.lstrip("/")
                 break

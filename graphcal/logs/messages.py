@@ -13,7 +13,7 @@ from graphcal.errors import DatasetError
 from graphcal.geometry import pose_from_xyz_quat_wxyz
 
 __all__ = ["header_stamp", "joint_state", "imu_sample", "cloud_points", "laser_scan_points",
-           "depth_image_points", "camera_matrix", "foot_value", "foot_values", "static_transforms", "chain_pose"]
+           "depth_image_points", "camera_matrix", "foot_value", "foot_values", "FootForces", "static_transforms", "chain_pose"]
 
 # sensor_msgs/PointField datatypes -> numpy
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -32,10 +32,10 @@ def joint_state(msg: Any) -> tuple[tuple[str, ...], np.ndarray]:
     return tuple(msg.name), np.asarray(msg.position, dtype=np.float64)
 
 
-def imu_sample(msg: Any) -> tuple[np.ndarray, np.ndarray]:
-    """``sensor_msgs/Imu`` -> (specific force (3,) m/s², angular rate (3,) rad/s), IMU frame."""
+def imu_sample(msg: Any) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """``sensor_msgs/Imu`` -> (specific force m/s², angular rate rad/s), x y z of the IMU frame."""
     a, w = msg.linear_acceleration, msg.angular_velocity
-    return np.array([a.x, a.y, a.z], dtype=np.float64), np.array([w.x, w.y, w.z], dtype=np.float64)
+    return (a.x, a.y, a.z), (w.x, w.y, w.z)
 
 
 def cloud_points(msg: Any) -> np.ndarray:
@@ -90,6 +90,28 @@ def depth_image_points(msg: Any, fx_fy_cx_cy: np.ndarray, stride: int = 1) -> np
     fx, fy, cx, cy = fx_fy_cx_cy
     z = z[ok]
     return np.stack([(u[ok] - cx) * z / fx, (v[ok] - cy) * z / fy, z], axis=1)
+
+
+class FootForces:
+    """The loads of the feet read from one topic (foot -> map entry, all of one topic), as an
+    array in the order of ``names`` (N, or raw counts with a raw threshold)."""
+
+    def __init__(self, specs: dict[str, dict]):
+        self.names = tuple(specs)
+        self.specs = specs
+        first = next(iter(specs.values()))
+        self.array = first.get("kind", "array") == "array"
+        if self.array:
+            self.field = first.get("field", "data")
+            self.index = np.array([int(s.get("index", 0)) for s in specs.values()])
+            self.offset = np.array([float(s.get("offset", 0.0)) for s in specs.values()])
+            self.scale = np.array([float(s.get("scale", 1.0)) for s in specs.values()])
+
+    def __call__(self, msg: Any) -> np.ndarray:
+        if self.array:
+            values = np.asarray(getattr(msg, self.field), dtype=np.float64).reshape(-1)
+            return (values[self.index] - self.offset) * self.scale
+        return np.array([foot_value(msg, s) for s in self.specs.values()])
 
 
 def foot_values(msg: Any, specs: dict[str, dict]) -> dict[str, float]:

@@ -176,16 +176,15 @@ class LogReader:
         except Exception as exc:
             raise DatasetError(self.path, "file", f"a readable {self._what()}", _reason(exc)) from None
         n = 0
-        while True:
-            try:
-                conn, t_ns, raw = next(it)
-            except StopIteration:
-                return
-            except Exception as exc:
-                raise DatasetError(self.path, f"after message {n} of {', '.join(topics)}",
-                                   f"a complete {self._what()} (truncated or corrupt?)", _reason(exc)) from None
-            n += 1
-            yield conn.topic, t_ns, raw
+        try:
+            # exceptions of the consumer are not raised here (a generator's caller gets them), so
+            # this catches only the reader's
+            for conn, t_ns, raw in it:
+                n += 1
+                yield conn.topic, t_ns, raw
+        except Exception as exc:
+            raise DatasetError(self.path, f"after message {n} of {', '.join(topics)}",
+                               f"a complete {self._what()} (truncated or corrupt?)", _reason(exc)) from None
 
     def deserialize(self, raw, topic: str, t_ns: int) -> Any:
         """The message object of ``raw`` (bytes of ``topic`` received at ``t_ns``)."""

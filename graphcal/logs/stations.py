@@ -5,6 +5,7 @@ is kept with its reason. Times in seconds, angles in rad, rates in rad/s, forces
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -79,7 +80,7 @@ class StationFinder:
         self.loaded: dict[str, bool] = {f: False for f in feet}
         self._q: deque = deque()
         self._g: deque = deque()
-        self._g_sum = np.zeros(3)
+        self._g_sum = [0.0, 0.0, 0.0]
         self._joint_still = False
         self._gyro_still = not has_imu
         self.accepted: list[Window] = []
@@ -110,15 +111,23 @@ class StationFinder:
             self._pending.append((t, "q", q))
             self._commit(t)
 
-    def imu(self, t: float, accel: np.ndarray, gyro: np.ndarray) -> None:
-        """IMU specific force (m/s²) and rate (rad/s) at ``t`` (s)."""
-        self._g.append((t, gyro))
-        self._g_sum += gyro
-        while self._g and self._g[0][0] < t - self.th.baseline_s:
-            self._g_sum -= self._g.popleft()[1]
+    def imu(self, t: float, accel, gyro) -> None:
+        """IMU specific force (m/s²) and rate (rad/s) at ``t`` (s), each three numbers."""
+        gx, gy, gz = gyro
+        self._g.append((t, gx, gy, gz))
+        s = self._g_sum
+        s[0] += gx
+        s[1] += gy
+        s[2] += gz
+        while self._g[0][0] < t - self.th.baseline_s:
+            _, ox, oy, oz = self._g.popleft()
+            s[0] -= ox
+            s[1] -= oy
+            s[2] -= oz
         span = t - self._g[0][0]
-        mean = self._g_sum / len(self._g)
-        self._gyro_still = bool(span >= 0.5 * self.th.baseline_s and np.linalg.norm(mean) <= self.th.gyro_max_rad_s)
+        n = len(self._g)
+        self._gyro_still = (span >= 0.5 * self.th.baseline_s
+                            and math.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2]) <= self.th.gyro_max_rad_s * n)
         self._step(t)
         if self._good is not None:
             self._pending.append((t, "imu", (accel, gyro)))
@@ -133,8 +142,8 @@ class StationFinder:
                 self._sums["q"] += v
                 self._good.n_joint += 1
             else:
-                self._sums["accel"] += v[0]
-                self._sums["gyro"] += v[1]
+                self._sums["accel"] += np.asarray(v[0], dtype=np.float64)
+                self._sums["gyro"] += np.asarray(v[1], dtype=np.float64)
                 self._good.n_imu += 1
 
     def feet(self, t: float, loaded: dict[str, bool]) -> None:
