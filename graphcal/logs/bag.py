@@ -49,19 +49,24 @@ def _first_message(reader: LogReader, topic: str):
 
 
 def _robot(reader: LogReader, m: dict | None, urdf_file: Path | None) -> tuple[str | None, str | None]:
-    """(URDF text or None, where it came from)."""
+    """(URDF text or None, where it came from): ``urdf_file``, else the map's ``robot.urdf`` (a
+    topic of the log or a file), else (no map) the log's ``/robot_description``."""
+    if m is not None:
+        source = (m.get("robot") or {}).get("urdf")
+    else:
+        source = "/robot_description" if "/robot_description" in reader.topics else None
     if urdf_file is not None:
-        try:
-            return Path(urdf_file).read_text(encoding="utf-8"), str(urdf_file)
-        except OSError as exc:
-            raise DatasetError(urdf_file, "file", "a readable URDF", exc.strerror or str(exc)) from None
-    topic = (m or {}).get("robot", {}).get("urdf") if m else ("/robot_description" if "/robot_description" in reader.topics else None)
-    if topic and topic in reader.topics:
-        msg = _first_message(reader, topic)
-        return (msg.data if msg is not None else None), topic
-    if topic and Path(topic).is_file():
-        return Path(topic).read_text(encoding="utf-8"), topic
-    return None, None
+        source = str(urdf_file)
+    if not source:
+        return None, None
+    if source in reader.topics:
+        msg = _first_message(reader, source)
+        return (msg.data if msg is not None else None), source
+    try:
+        return Path(source).read_text(encoding="utf-8"), source
+    except OSError as exc:
+        raise DatasetError(source, "file", "a readable URDF (robot.urdf of the map, or --urdf)",
+                           exc.strerror or str(exc)) from None
 
 
 def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
@@ -248,6 +253,12 @@ def _import_bag(log_path: Path, out_dir: Path, staging: Path, *, map_path, urdf_
         log.info("import map (%s):\n%s", map_path or "detected", map_text)
         m = check_map(m, reader.topics, log_path, str(map_path or "the import map (--map)"))
         rob = m["robot"]
+        if not urdf_xml and rob.get("model"):
+            from graphcal.models.builtin import builtin_info
+
+            info = builtin_info(rob["model"])  # ModelError (one line) for an unknown name
+            rob["base_frame"] = rob.get("base_frame") or info.base_frame
+            rob["feet"] = rob.get("feet") or list(info.feet)
         if not urdf_xml and not rob.get("model"):
             raise DatasetError(log_path, "robot", "a URDF (/robot_description, --urdf) or robot.model in the map",
                                "none")
