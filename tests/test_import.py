@@ -111,7 +111,10 @@ def test_csv_import_with_raw_foot_counts(tmp_path):
     simulate.run(robot="a1", program="random", ground="level", out_dir=sim_a1, seed=1, n_stations=4, n_sessions=1,
                  progress=False)
     windows, cmap = write_station_csv(sim_a1, tmp_path / "log.csv", LogPlan(decoys=True))
-    (tmp_path / "map.yaml").write_text(cmap)
+    cmap = yaml.safe_load(cmap)
+    # fl_foot (the one lifted in the decoy) by a threshold on its raw count instead of offset and scale
+    cmap["feet"]["fl_foot"] = {"column": "foot_force_0", "threshold_raw": 250}
+    (tmp_path / "map.yaml").write_text(yaml.safe_dump(cmap))
     ds = tmp_path / "ds"
     summary = import_log.run(tmp_path / "log.csv", ds, map_path=tmp_path / "map.yaml", timeseries=True, progress=False)
     assert "4 station(s), 2 window(s) rejected" in summary
@@ -333,3 +336,37 @@ def test_receive_time_and_clock_jumps(small_logs, urdf_file, tmp_path):
     report = yaml.safe_load((tmp_path / "c" / "import_report.yaml").read_text())
     assert len(report["clock"]) == 1 and "clock jump of 5.510 s at t = 100.490000 s" in report["clock"][0]
     assert "warning: /joint_states: clock jump" in summary
+
+
+def test_points_from_messages():
+    """PointCloud2 with an extra field and row padding, LaserScan with out-of-range beams, a 16UC1
+    depth image: the points (m) each message type means, exactly."""
+    from graphcal.logs import messages as M
+    from graphcal.logs.reader import default_typestore
+
+    T = default_typestore("ros2").types
+    hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=5, nanosec=250_000_000), frame_id="s")
+    # x y z float32, intensity float32 first: point_step 16, 2 x 2 points, each row padded by 8 bytes
+    pts = np.array([[1, 2, 3], [4, 5, np.nan], [7, 8, 9], [-1, -2, -3]], dtype=np.float32)
+    rows = []
+    for r in range(2):
+        rec = b"".join(np.float32(0.5).tobytes() + pts[2 * r + c].tobytes() for c in range(2))
+        rows.append(rec + b"\0" * 8)
+    fields = [T["sensor_msgs/msg/PointField"](name=n, offset=o, datatype=7, count=1)
+              for n, o in (("intensity", 0), ("x", 4), ("y", 8), ("z", 12))]
+    cloud = T["sensor_msgs/msg/PointCloud2"](header=hdr, height=2, width=2, fields=fields, is_bigendian=False,
+                                             point_step=16, row_step=40, data=np.frombuffer(b"".join(rows), np.uint8),
+                                             is_dense=False)
+    np.testing.assert_array_equal(M.cloud_points(cloud), [[1, 2, 3], [7, 8, 9], [-1, -2, -3]])
+    scan = T["sensor_msgs/msg/LaserScan"](header=hdr, angle_min=0.0, angle_max=np.pi, angle_increment=np.pi / 2,
+                                          time_increment=0.0, scan_time=0.0, range_min=0.1, range_max=10.0,
+                                          ranges=np.array([1.0, 20.0, 2.0], np.float32), intensities=np.zeros(0, np.float32))
+    np.testing.assert_allclose(M.laser_scan_points(scan), [[1, 0, 0], [-2, 0, 0]], atol=1e-12)
+    depth = np.zeros((3, 4), "<u2")
+    depth[2, 3] = 1500  # 1.5 m at pixel (u=3, v=2)
+    img = T["sensor_msgs/msg/Image"](header=hdr, height=3, width=4, encoding="16UC1", is_bigendian=0, step=8,
+                                     data=np.frombuffer(depth.tobytes(), np.uint8))
+    fx, fy, cx, cy = 100.0, 50.0, 1.0, 0.5
+    np.testing.assert_allclose(M.depth_image_points(img, np.array([fx, fy, cx, cy])),
+                               [[(3 - cx) * 1.5 / fx, (2 - cy) * 1.5 / fy, 1.5]])
+    assert M.header_stamp(img) == 5.25
