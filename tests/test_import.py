@@ -323,13 +323,19 @@ def test_csv_joint_column_in_degrees(csv_log, tmp_path, capsys):
     _fails(capsys, tmp_path, [p, "--map", tmp_path / "map.yaml"], "row 4, column time_ms", "expected a number", "got x")
 
 
-def test_receive_time_and_clock_jumps(small_logs, urdf_file, tmp_path):
+def test_receive_time_and_clock_jumps(sim, small_logs, urdf_file, tmp_path):
     """--receive-time finds the same stations (receive times are the header stamps plus < 1 ms
     here); a 5 s gap in the stamps is reported as a clock jump, not refused."""
     by_header = import_log.run(small_logs / "log.bag", tmp_path / "a", progress=False)
     by_receive = import_log.run(small_logs / "log.bag", tmp_path / "b", receive_time=True, progress=False)
     assert f"{N_STATIONS} station(s)" in by_header and f"{N_STATIONS} station(s)" in by_receive
     assert "stamps: receive" in (tmp_path / "b" / "import_map.yaml").read_text()
+    # a recorder whose clock is 100 s ahead of the robot's: the stations by header stamps still find
+    # their clouds (looked for at the receive times the offset predicts)
+    plan = LogPlan(fmt="ros1", rate_hz=50.0, cloud_rate_hz=2.0, still_s=1.5, move_s=0.5, decoys=False,
+                   receive_offset_s=100.0)
+    write_station_log(sim, tmp_path / "late.bag", plan)
+    assert f"{N_STATIONS} station(s)" in import_log.run(tmp_path / "late.bag", tmp_path / "d", progress=False)
     stamps = [100 + 0.01 * i for i in range(50)] + [106 + 0.01 * i for i in range(50)]
     log = _tiny_bag(tmp_path / "gap.bag", stamps)
     summary = import_log.run(log, tmp_path / "c", urdf=urdf_file, timeseries=True, progress=False)

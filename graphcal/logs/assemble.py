@@ -64,6 +64,8 @@ class SampleSink:
         self.n_imu = 0
         self._thr: dict = {}
         self._last_feet: set = set()
+        #: receive time minus header stamp of the first joint message (s), set by the bag reader
+        self.receive_offset_s = 0.0
 
     def joints(self, t: float, q: np.ndarray) -> None:
         self.n_joint += 1

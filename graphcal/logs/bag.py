@@ -93,6 +93,7 @@ def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
     th = sink_args["thresholds"]
     names: tuple[str, ...] | None = None
     sink = None
+    offset = 0.0
     transforms: dict = {}
     imu_frame = None
     received: dict[str, array] = {name: array("q") for name in sensors}
@@ -122,6 +123,7 @@ def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
             jn, q = M.joint_state(msg)
             if names is None:
                 names = jn
+                offset = t_ns * 1e-9 - t  # receive time minus stamp (s): where to look for clouds
                 finder = StationFinder(names, tuple(feet), bool(it), th)
                 sink = SampleSink(finder, {f: float(feet[f].get("threshold_n", th.force_threshold_n)) for f in feet},
                                   sink_args["timeseries"])
@@ -140,6 +142,7 @@ def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
     if sink is None:
         raise DatasetError(reader.path, f"topic {jt}", "sensor_msgs/msg/JointState messages", "none")
     sink.finder.finish()
+    sink.receive_offset_s = offset
     return names, sink, transforms, imu_frame, stamps.jumps, received, K
 
 
@@ -178,11 +181,13 @@ def staged_ply(path: Path, points: np.ndarray) -> None:
 
 
 def _pass2(reader: LogReader, m: dict, windows, received: dict, K: dict, progress: bool,
-           staging: Path) -> dict[str, str]:
+           staging: Path, offset: float = 0.0) -> dict[str, str]:
     """Set ``w.clouds[sensor]`` to a PLY file under ``staging`` holding the points (m, sensor
     frame) of the message nearest each window's centre among those stamped inside it (so that no
     cloud stays in memory): the candidates are read by receive time through the log's index
-    (nearest first, a few at most), nothing else. Returns sensor -> frame id."""
+    (nearest first, a few at most), nothing else; ``offset`` (s) is the receive time minus the stamp
+    of the first joint message (a recorder whose clock differs from the robot's). Returns sensor ->
+    frame id."""
 
     sensors = m.get("sensors") or {}
     use_header = m["stamps"] == "header"
@@ -191,9 +196,9 @@ def _pass2(reader: LogReader, m: dict, windows, received: dict, K: dict, progres
     for w in tqdm(windows, desc="import: clouds", unit="station", disable=not progress or not sensors):
         for name, s in sensors.items():
             r = np.frombuffer(received[name], dtype=np.int64) if len(received[name]) else np.zeros(0, np.int64)
-            lo, hi = np.searchsorted(r, [int(w.start * 1e9) - pad_ns, int(w.end * 1e9) + pad_ns])
+            lo, hi = np.searchsorted(r, [int((w.start + offset) * 1e9) - pad_ns, int((w.end + offset) * 1e9) + pad_ns])
             cand = r[lo:hi]
-            for t_ns in cand[np.argsort(np.abs(cand * 1e-9 - w.centre))][:5]:
+            for t_ns in cand[np.argsort(np.abs(cand * 1e-9 - offset - w.centre))][:5]:
                 got = next(reader.messages([s["topic"]], int(t_ns), int(t_ns) + 1), None)
                 if got is None:
                     continue
@@ -247,18 +252,18 @@ def _import_bag(log_path: Path, out_dir: Path, staging: Path, *, map_path, urdf_
             m["stamps"] = "receive"
         if urdf_file is not None:
             m["robot"]["urdf"] = str(urdf_file)
-        m["robot"]["base_frame"] = m["robot"].get("base_frame") or root or None
-        m["robot"]["feet"] = m["robot"].get("feet") or list(feet_guess) or None
-        map_text = map_yaml_text(m, log_path)
-        log.info("import map (%s):\n%s", map_path or "detected", map_text)
-        m = check_map(m, reader.topics, log_path, str(map_path or "the import map (--map)"))
         rob = m["robot"]
         if not urdf_xml and rob.get("model"):
             from graphcal.models.builtin import builtin_info
 
             info = builtin_info(rob["model"])  # ModelError (one line) for an unknown name
-            rob["base_frame"] = rob.get("base_frame") or info.base_frame
-            rob["feet"] = rob.get("feet") or list(info.feet)
+            root, feet_guess = info.base_frame, tuple(info.feet)
+        rob["base_frame"] = rob.get("base_frame") or root or None
+        rob["feet"] = rob.get("feet") or list(feet_guess) or None
+        map_text = map_yaml_text(m, log_path)
+        log.info("import map (%s):\n%s", map_path or "detected", map_text)
+        m = check_map(m, reader.topics, log_path, str(map_path or "the import map (--map)"))
+        rob = m["robot"]
         if not urdf_xml and not rob.get("model"):
             raise DatasetError(log_path, "robot", "a URDF (/robot_description, --urdf) or robot.model in the map",
                                "none")
@@ -268,7 +273,7 @@ def _import_bag(log_path: Path, out_dir: Path, staging: Path, *, map_path, urdf_
         th = thresholds_of(m, str(map_path or "import map"))
         names, sink, transforms, imu_frame, jumps, received, K = _pass1(
             reader, m, {"thresholds": th, "timeseries": timeseries}, progress)
-        frames = _pass2(reader, m, sink.finder.accepted, received, K, progress, staging)
+        frames = _pass2(reader, m, sink.finder.accepted, received, K, progress, staging, sink.receive_offset_s)
     base = rob["base_frame"]
     sensors = {}
     for name, s in (m.get("sensors") or {}).items():

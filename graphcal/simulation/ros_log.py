@@ -31,6 +31,7 @@ class LogPlan:
         decoys: append a 0.4 s still period and a 2 s still with one foot unloaded (both rejected).
         raw_offset, raw_scale: the ``array`` feet's count offset and N per count.
         embed_robot: publish the URDF on /robot_description.
+        receive_offset_s: the recorder's clock minus the robot's (receive time = stamp + this).
     """
 
     fmt: str = "ros1"
@@ -45,6 +46,7 @@ class LogPlan:
     raw_offset: float = 100.0
     raw_scale: float = 0.5
     embed_robot: bool = True
+    receive_offset_s: float = 0.0
     extra: dict = field(default_factory=dict)
 
 
@@ -73,6 +75,7 @@ class _Out:
             self.w = Writer(path, version=9, storage_plugin=plugin)
         self.conns: dict = {}
         self.T = self.ts.types
+        self.shift = 0.0
 
     def __enter__(self):
         self.w.open()
@@ -86,7 +89,7 @@ class _Out:
             kw = {"typestore": self.ts}
             self.conns[topic] = self.w.add_connection(topic, msgtype, **kw)
         ser = self.ts.serialize_ros1 if self.fmt == "ros1" else self.ts.serialize_cdr
-        self.w.write(self.conns[topic], int(round(t * 1e9)), ser(msg, msgtype))
+        self.w.write(self.conns[topic], int(round((t + self.shift) * 1e9)), ser(msg, msgtype))
 
     def header(self, t: float, frame: str):
         T = self.T
@@ -203,6 +206,7 @@ def write_station_log(dataset: str | Path, out: str | Path, plan: LogPlan = LogP
     K = (100.0, 100.0, 80.0, 60.0)
     with _Out(Path(out), plan.fmt) as o:
         T = o.T
+        o.shift = plan.receive_offset_s
         if plan.embed_robot:
             o.write("/robot_description", "std_msgs/msg/String", T["std_msgs/msg/String"](data=builtin_urdf(ds.robot.model)),
                     plan.t0 - 0.5)
