@@ -13,7 +13,6 @@ import yaml
 
 from graphcal.cli import main
 from graphcal.commands import calibrate, import_log, simulate
-from graphcal.errors import DatasetError
 from graphcal.geometry import matrix_from_quat_wxyz, rotation_angle_between
 from graphcal.io.dataset import read_dataset, validate_dataset
 from graphcal.simulation.ros_log import LogPlan, write_station_csv, write_station_log

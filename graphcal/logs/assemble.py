@@ -13,7 +13,7 @@ import numpy as np
 import yaml
 
 from graphcal.errors import DatasetError
-from graphcal.io.dataset.model import Dataset, ImuSpec, PosePrior, RobotSpec, SensorSpec, Table
+from graphcal.io.dataset.model import Dataset, ImuSpec, RobotSpec, SensorSpec, Table
 from graphcal.logs.stations import StationFinder, Window
 
 __all__ = ["SampleSink", "StampCheck", "DatasetParts", "write_imported"]
