@@ -173,6 +173,21 @@ def _build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--tum-rate", type=float, default=100.0,
                     help="poses per second in trajectory.tum (default 100; 0 = every sample)")
     tr.add_argument("--no-icp", action="store_true", help="proprioception only (no ICP between clouds)")
+
+    im = sub.add_parser("import", help="a robot log (ROS 1/2 bag, MCAP, CSV) -> dataset: stations found in still "
+                                       "windows, import_map.yaml and import_report.yaml (docs/import.md)",
+                        parents=[common])
+    im.add_argument("log", type=Path, help="a .bag file, a ROS 2 bag folder, a .mcap file or a .csv file")
+    im.add_argument("--out", required=True, type=Path, help="dataset folder to write (must not exist or be empty)")
+    im.add_argument("--map", type=Path, default=None, help="import map (the import_map.yaml of an earlier import, "
+                    "edited; for a CSV log its column map)")
+    im.add_argument("--urdf", type=Path, default=None, help="the robot's URDF (instead of /robot_description)")
+    im.add_argument("--receive-time", action="store_true", help="time messages by receive time, not header stamps")
+    im.add_argument("--msg-dir", type=Path, default=None,
+                    help="folder of .msg definitions (<pkg>/msg/<Name>.msg) for message types rosbags does not know")
+    im.add_argument("--timeseries", action="store_true",
+                    help="also write timeseries.csv (every joint sample, for track; memory grows with the log)")
+    im.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
     return p
 
 
@@ -256,6 +271,14 @@ def _cmd_track(args) -> str:
                      config=TrackerConfig(icp=not args.no_icp))
 
 
+def _cmd_import(args) -> str:
+    from graphcal.commands import import_log
+
+    return import_log.run(args.log, args.out, map_path=args.map, urdf=args.urdf, receive_time=args.receive_time,
+                          msg_dir=args.msg_dir, timeseries=args.timeseries, progress=not args.quiet,
+                          overwrite=args.overwrite)
+
+
 #: the handler attached to the ``graphcal`` logger by :func:`configure_logging` (replaced on each call)
 _HANDLER_MARK = "_graphcal_cli_handler"
 
@@ -301,6 +324,7 @@ def main(argv: list[str] | None = None) -> int:
         "extract-planes": _cmd_extract_planes,
         "identify-legs": _cmd_identify_legs,
         "diagnose": _cmd_diagnose,
+        "import": _cmd_import,
     }
     try:
         print(handlers[args.command](args))

@@ -1,0 +1,49 @@
+"""``graphcal import LOG --out DATASET``: a robot log (ROS 1 bag, ROS 2 bag in sqlite3 or MCAP, bare
+MCAP, CSV export with a column map) becomes a dataset folder, written atomically, with the import
+map (``import_map.yaml``) and the import report (``import_report.yaml``) beside it (docs/import.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from graphcal.errors import DatasetError
+from graphcal.io.atomic import check_output_location
+from graphcal.logs.reader import log_kind
+
+__all__ = ["run"]
+
+
+def run(log: str | Path, out_dir: str | Path, *, map_path: str | Path | None = None, urdf: str | Path | None = None,
+        receive_time: bool = False, msg_dir: str | Path | None = None, timeseries: bool = False,
+        progress: bool = True, overwrite: bool = False) -> str:
+    """The ``graphcal import`` command; returns its summary.
+
+    Args:
+        log: the log: a ``.bag`` file, a ROS 2 bag folder, a ``.mcap`` file or a ``.csv`` file.
+        out_dir: the dataset folder to write (must not exist or be empty unless ``overwrite``).
+        map_path: an import map (``import_map.yaml`` of an earlier import, edited); required for CSV.
+        urdf: the robot's URDF file (instead of the log's ``/robot_description``).
+        receive_time: time messages by their receive (log) time instead of their header stamps.
+        msg_dir: a folder of ``.msg`` definitions for message types rosbags does not know.
+        timeseries: also write ``timeseries.csv`` (every joint sample; memory grows with the log).
+        progress: tqdm progress bars.
+        overwrite: replace an existing dataset folder.
+    """
+    log, out_dir = Path(log), Path(out_dir)
+    check_output_location(out_dir)
+    kind = log_kind(log)
+    if kind == "csv":
+        from graphcal.logs.csv_log import import_csv
+
+        if map_path is None:
+            raise DatasetError(log, "--map", "a column map YAML for a CSV log (docs/import.md)", None)
+        _, summary = import_csv(log, out_dir, map_path=Path(map_path), urdf_file=Path(urdf) if urdf else None,
+                                timeseries=timeseries, progress=progress, overwrite=overwrite)
+        return summary
+    from graphcal.logs.bag import import_bag
+
+    _, summary = import_bag(log, out_dir, map_path=Path(map_path) if map_path else None,
+                            urdf_file=Path(urdf) if urdf else None, receive_time=receive_time,
+                            msg_dir=Path(msg_dir) if msg_dir else None, timeseries=timeseries,
+                            progress=progress, overwrite=overwrite)
+    return summary

@@ -1,0 +1,218 @@
+"""The import: samples (from a bag or a CSV log) -> stations, timeseries and the dataset folder,
+written atomically through :func:`graphcal.io.dataset.write_dataset` with ``import_map.yaml`` and
+``import_report.yaml`` beside it. Times in seconds, SI units throughout."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from graphcal.errors import DatasetError
+from graphcal.io.dataset.model import Dataset, ImuSpec, RobotSpec, SensorSpec, Table
+from graphcal.logs.stations import StationFinder, Window
+
+__all__ = ["SampleSink", "StampCheck", "DatasetParts", "write_imported"]
+
+log = logging.getLogger(__name__)
+
+
+class StampCheck:
+    """Stamps of each topic/column must increase: a duplicated or backwards stamp is a DatasetError
+    naming the source, the topic and the time; forward jumps (a gap of more than ``max(1 s, 50x the
+    typical step)``) are kept in ``jumps`` (reported, not refused)."""
+
+    def __init__(self, source: str | Path):
+        self.source = source
+        self._last: dict[str, float] = {}
+        self._step: dict[str, float] = {}
+        self.jumps: list[str] = []
+
+    def __call__(self, topic: str, t: float, where: str = "") -> None:
+        prev = self._last.get(topic)
+        if prev is not None:
+            dt = t - prev
+            if dt <= 0:
+                what = "a duplicated stamp" if dt == 0 else f"a stamp {-dt:.6f} s before the previous one"
+                raise DatasetError(self.source, f"{topic}, {where or 'message'} at t = {t:.6f} s",
+                                   "strictly increasing stamps", what)
+            typical = self._step.get(topic)
+            if typical is not None and dt > max(1.0, 50.0 * typical):
+                self.jumps.append(f"{topic}: clock jump of {dt:.3f} s at t = {prev:.6f} s "
+                                  f"(typical step {typical * 1e3:.3g} ms)")
+            else:
+                self._step[topic] = dt if typical is None else 0.95 * typical + 0.05 * dt
+        self._last[topic] = t
+
+
+class SampleSink:
+    """Where samples go, in time order: the :class:`StationFinder` and (with ``timeseries``) the
+    rows of ``timeseries.csv`` (one per joint sample, the latest IMU sample and foot contacts held)."""
+
+    def __init__(self, finder: StationFinder, feet_thresholds: dict[str, float], timeseries: bool):
+        self.finder = finder
+        self.thresholds = feet_thresholds
+        self.timeseries = timeseries
+        self.rows: list[np.ndarray] = []
+        self._imu = np.full(6, np.nan)
+        self._contact = {f: 0.0 for f in feet_thresholds}
+        self.n_joint = 0
+        self.n_imu = 0
+        self._thr: dict = {}
+        self._last_feet: set = set()
+        #: receive time minus header stamp of the first joint message (s), set by the bag reader
+        self.receive_offset_s = 0.0
+
+    def joints(self, t: float, q: np.ndarray) -> None:
+        self.n_joint += 1
+        self.finder.joints(t, q)
+        if self.timeseries and (np.isfinite(self._imu[0]) or not self.finder.has_imu):
+            imu = self._imu if self.finder.has_imu else ()
+            self.rows.append(np.concatenate([[t], q, imu, list(self._contact.values())]))
+
+    def imu(self, t: float, accel, gyro) -> None:
+        """Specific force (m/s²) and rate (rad/s) at ``t`` (s), each three numbers."""
+        self.n_imu += 1
+        self.finder.imu(t, accel, gyro)
+        if self.timeseries:
+            self._imu = np.array([*accel, *gyro], dtype=np.float64)
+
+    def feet(self, t: float, forces: dict[str, float]) -> None:
+        """Foot loads at ``t`` (s): foot -> force (N; raw counts with a raw threshold)."""
+        self.feet_array(t, tuple(forces), np.array(list(forces.values()), dtype=np.float64))
+
+    def feet_array(self, t: float, names: tuple[str, ...], forces: np.ndarray) -> None:
+        """Loads ``forces`` (N, or raw counts with a raw threshold) of the feet ``names`` at ``t``
+        (s); the finder hears of it only when a foot's state changes."""
+        thr = self._thr.get(names)
+        if thr is None:
+            thr = self._thr[names] = np.array([self.thresholds[n] for n in names])
+        loaded = forces > thr
+        key = (names, loaded.tobytes())
+        if key in self._last_feet:
+            return
+        self._last_feet = {k for k in self._last_feet if k[0] != names} | {key}
+        for name, ok in zip(names, loaded):
+            self._contact[name] = float(ok)
+        self.finder.feet(t, dict(zip(names, loaded.tolist())))
+
+    def timeseries_table(self, joint_names) -> Table | None:
+        if not self.timeseries or not self.rows:
+            return None
+        a = np.vstack(self.rows)
+        imu = ["imu_ax", "imu_ay", "imu_az", "imu_gx", "imu_gy", "imu_gz"] if self.finder.has_imu else []
+        cols = ["time"] + [f"q_{j}" for j in joint_names] + imu + [f"contact_{f}" for f in self._contact]
+        return Table(tuple(cols), {c: a[:, i] for i, c in enumerate(cols)})
+
+
+@dataclass
+class DatasetParts:
+    """What an import gathered (SI units): the robot, sensor and IMU priors, the joint names, the
+    finder's windows, the stations' points per sensor (``(sensor, window index) -> (N, 3)`` m in
+    the sensor frame), notes for the report."""
+
+    robot: RobotSpec
+    urdf_xml: str | None
+    joint_names: tuple[str, ...]
+    sensors: dict[str, SensorSpec]
+    imu: ImuSpec | None
+    finder: StationFinder
+    sink: SampleSink
+    points: dict = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    source: str = ""
+    map_text: str = ""
+
+
+def _window_dict(w: Window, station: int | None = None) -> dict:
+    d: dict[str, Any] = {}
+    if station is not None:
+        d["station"] = station
+    d.update({"start_s": round(w.start, 6), "end_s": round(w.end, 6), "duration_s": round(w.duration, 3)})
+    if station is not None:
+        d.update({"joint_samples": w.n_joint, "imu_samples": w.n_imu, "clouds": sorted(w.clouds)})
+    else:
+        d["reason"] = w.reason
+    return d
+
+
+def _stations_table(parts: DatasetParts, windows: list[Window]) -> tuple[Table, str]:
+    """stations.csv from the accepted windows, and ``stance.feet_fixed_within``: windows between which
+    no foot was lifted share a session; without foot topics every station is a stance of its own."""
+    feet_known = bool(parts.finder.loaded)
+    lifts = sorted({w.lifts for w in windows})
+    session = [f"s{lifts.index(w.lifts) + 1}" if feet_known else f"s{i + 1}" for i, w in enumerate(windows)]
+    data: dict[str, Any] = {"station": np.arange(1, len(windows) + 1), "session": np.array(session),
+                            "time": np.array([w.centre for w in windows])}
+    q = np.vstack([w.q for w in windows])
+    for i, j in enumerate(parts.joint_names):
+        data[f"q_{j}"] = q[:, i]
+    if parts.imu is not None:
+        acc = np.vstack([w.accel for w in windows])
+        gyr = np.vstack([w.gyro for w in windows])
+        for i, ax in enumerate("xyz"):
+            data[f"imu_a{ax}"] = acc[:, i]
+        for i, ax in enumerate("xyz"):
+            data[f"imu_g{ax}"] = gyr[:, i]
+    return Table(tuple(data), data), ("session" if feet_known else "station")
+
+
+def write_imported(parts: DatasetParts, out_dir: Path, *, overwrite: bool = False, jumps=(),
+                   staging: Path | None = None) -> tuple[Path, str]:
+    """Write the dataset (stations from the accepted windows that have a cloud of every sensor,
+    timeseries when gathered), ``import_map.yaml`` and ``import_report.yaml``; returns the folder
+    and a summary. A window's cloud is (N, 3) points or a PLY file under ``staging`` (a folder on
+    the same file system, renamed into ``staging/clouds`` and copied from there). DatasetError when
+    there is neither a station nor a timeseries."""
+    from graphcal.io.dataset.write import write_dataset
+
+    kept, rejected = [], list(parts.finder.rejected)
+    for w in parts.finder.accepted:
+        missing = [s for s in parts.sensors if s not in w.clouds]
+        if missing:
+            w.reason = f"no cloud of {', '.join(missing)} inside the window"
+            rejected.append(w)
+        else:
+            kept.append(w)
+    rejected.sort(key=lambda w: w.start)
+    ts = parts.sink.timeseries_table(parts.joint_names)
+    if not kept and ts is None:
+        reasons = "; ".join(f"{w.start:.2f}-{w.end:.2f} s: {w.reason}" for w in rejected[:3])
+        raise DatasetError(parts.source, "stations", "at least one still window with every foot loaded "
+                           "(see the stations thresholds of the import map)",
+                           f"none ({len(rejected)} rejected{': ' + reasons if reasons else ''})")
+    stations, within = _stations_table(parts, kept) if kept else (None, "session")
+    clouds = {}
+    for i, w in enumerate(kept):
+        for s in parts.sensors:
+            if isinstance(w.clouds[s], Path):
+                target = staging / "clouds" / s / f"{i + 1}.ply"
+                target.parent.mkdir(parents=True, exist_ok=True)
+                w.clouds[s].rename(target)
+            else:
+                clouds[(s, i + 1)] = w.clouds[s]
+    ds = Dataset(root=staging, robot=parts.robot, sensors=dict(parts.sensors), imu=parts.imu, stations=stations,
+                 timeseries=ts, stance={"feet_fixed_within": within})
+    report = {"format": "graphcal-import-report/1", "source": str(parts.source),
+              "units": "times in s (the log's stamps); stations.csv, clouds and timeseries.csv in SI units",
+              "stations": [_window_dict(w, i + 1) for i, w in enumerate(kept)],
+              "rejected": [_window_dict(w) for w in rejected], "clock": list(jumps), "notes": list(parts.notes)}
+    report_text = yaml.safe_dump(report, sort_keys=False, default_flow_style=None)
+    out = write_dataset(ds, out_dir, clouds=clouds, robot_urdf_xml=parts.urdf_xml, overwrite=overwrite,
+                        extra_files={"import_map.yaml": parts.map_text, "import_report.yaml": report_text})
+    for i, w in enumerate(kept):
+        log.info("station %d: %.3f-%.3f s (%.2f s, %d joint and %d IMU samples)", i + 1, w.start, w.end,
+                 w.duration, w.n_joint, w.n_imu)
+    for w in rejected:
+        log.info("rejected %.3f-%.3f s: %s", w.start, w.end, w.reason)
+    for j in jumps:
+        log.warning("%s", j)
+    lines = [f"imported {parts.source} -> {out}: {len(kept)} station(s), {len(rejected)} window(s) rejected"
+             + (f", timeseries of {ts.n_rows if hasattr(ts, 'n_rows') else len(ts.data['time'])} samples" if ts else "")]
+    lines.append(f"  map: {out / 'import_map.yaml'}; report: {out / 'import_report.yaml'}")
+    lines += [f"  warning: {j}" for j in jumps] + [f"  note: {n}" for n in parts.notes]
+    return out, "\n".join(lines)
