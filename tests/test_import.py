@@ -105,10 +105,20 @@ def test_bag_import_validate_calibrate(fmt, sim, reference_error, tmp_path):
     assert rot <= rot0 + slack_deg and trans <= trans0 + slack_mm, (rot, trans, rot0, trans0)
 
 
+def _sensorless_stations(out, *, seed, n_stations):
+    """Stations of the a1 (no camera or laser: `graphcal simulate` refuses that combination, since
+    there is nothing to calibrate; a CSV log of joints, IMU and foot forces only needs the poses)."""
+    from graphcal.simulation.session import SimulationConfig, simulate as simulate_session
+    from graphcal.simulation.write import write_simulation
+
+    res = simulate_session(SimulationConfig(robot="a1", program="random", ground="level", seed=seed,
+                                            n_stations=n_stations, n_sessions=1))
+    write_simulation(res, out, output="both")
+
+
 def test_csv_import_with_raw_foot_counts(tmp_path):
     sim_a1 = tmp_path / "a1"
-    simulate.run(robot="a1", program="random", ground="level", out_dir=sim_a1, seed=1, n_stations=4, n_sessions=1,
-                 progress=False)
+    _sensorless_stations(sim_a1, seed=1, n_stations=4)
     windows, cmap = write_station_csv(sim_a1, tmp_path / "log.csv", LogPlan(decoys=True))
     cmap = yaml.safe_load(cmap)
     # fl_foot (the one lifted in the decoy) by a threshold on its raw count instead of offset and scale
@@ -282,8 +292,7 @@ def test_unknown_message_type_needs_its_definition(urdf_file, tmp_path, capsys):
 @pytest.fixture(scope="module")
 def csv_log(tmp_path_factory):
     d = tmp_path_factory.mktemp("csv")
-    simulate.run(robot="a1", program="random", ground="level", out_dir=d / "a1", seed=2, n_stations=2, n_sessions=1,
-                 progress=False)
+    _sensorless_stations(d / "a1", seed=2, n_stations=2)
     _, cmap = write_station_csv(d / "a1", d / "log.csv", LogPlan(rate_hz=100.0, still_s=1.5, move_s=0.5, decoys=False))
     return d / "log.csv", yaml.safe_load(cmap)
 
