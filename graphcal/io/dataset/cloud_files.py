@@ -42,8 +42,11 @@ def station_clouds(
             continue
         plys = sorted(
             f for f in sdir.iterdir()
-            if f.suffix.lower() == ".ply" and not f.name.startswith(".") and (f.is_file() or f.is_symlink())
+            if f.suffix.lower() == ".ply" and not f.name.startswith(".") and not (f.is_dir() and not f.is_symlink())
         )  # fmt: skip
+        for f in plys:  # a FIFO or device named .ply: refused by name, never opened (a read would block)
+            if not f.is_symlink() and not f.is_file():
+                raise DatasetError(f, "file", "a PLY file (a regular file)", "a named pipe, device or socket")
         # a file that is no link resolves within its folder: one resolve per folder, not per file
         sdir_res = sdir.resolve()
         resolved = {f: resolved_or_none(f) if f.is_symlink() else sdir_res / f.name for f in plys}
@@ -117,6 +120,9 @@ def read_cloud(path: Path) -> np.ndarray:
     if med > MM_LIMIT_CLOUD_MEDIAN_M:
         raise DatasetError(path, "points", f"metres (median range <= {MM_LIMIT_CLOUD_MEDIAN_M:g} m); {MILLIMETRES_HINT}",
                            f"median range {med:.4g}")
+    if len(pts) > 1 and not (pts != pts[0]).any():
+        raise DatasetError(path, "points", "points spread over what the sensor saw (a sensor does not measure "
+                           f"one point {len(pts)} times)", f"{len(pts)} copies of {pts[0].tolist()}")
     return pts
 
 
