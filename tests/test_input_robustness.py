@@ -171,6 +171,15 @@ def test_a_cloud_of_one_point_repeated_is_refused(ds):
     refused(ds, "1.ply", "points", "copies of", fn=validate_dataset)
 
 
+@pytest.mark.parametrize("scale", [1e-12, 1e-280, 0.0])
+def test_a_cloud_huddled_at_the_sensor_origin_is_refused(ds, scale):
+    """Found by tests/test_fuzz_commands.py: a depth cloud scaled by 1e-12 made calibrate's plane
+    covariance singular (ValueError), a laser scan scaled by 1e-280 left no ground points (ValueError)."""
+    pts = read_ply(ds / "clouds/depth/1.ply")
+    write_ply(ds / "clouds/depth/1.ply", pts * scale)
+    refused(ds, "1.ply", "points", "median range >= 0.01 m", fn=validate_dataset)
+
+
 # ------------------------------------------------------------------ FIFOs, links, echoes
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
 @pytest.mark.parametrize("name", ["stations.csv", "dataset.yaml", "planes.csv", "clouds/depth/1.ply"])

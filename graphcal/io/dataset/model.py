@@ -30,6 +30,9 @@ MM_LIMIT_PRIOR_M = 10.0
 MM_LIMIT_PLANE_D_M = 100.0
 MM_LIMIT_MOCAP_M = 100.0
 MM_LIMIT_CLOUD_MEDIAN_M = 100.0
+#: a cloud's median range (m) is at least this: a sensor does not measure its points at its own
+#: origin (a cloud scaled by 1e-12 made the plane fit's covariance singular)
+MIN_CLOUD_MEDIAN_M = 0.01
 #: What physics allows (the readers refuse the rest before any number reaches the solvers, where
 #: 1e300 overflowed and LAPACK failed): a time (s), a body position of a walk (m, "within
 #: kilometres"), IMU specific force (m/s², ~200 g) and rate (rad/s), a joint value (rad or m; up to
