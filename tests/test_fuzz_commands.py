@@ -10,8 +10,10 @@ columns scaled (1e-280, 1e12...), rows and columns deleted, duplicated or swappe
 removed, a file emptied, deleted, replaced by a folder, a named pipe or a link out of the dataset,
 a YAML alias bomb, a cloud of one repeated point.
 
-Seeded (``derandomize``): the same cases every run. The default run is ~250 cases (under ~2
-minutes on 2 cores); ``GRAPHCAL_FUZZ_EXAMPLES=N`` runs N instead.
+Seeded (``derandomize``): the same cases every run. The default run is 250 cases (about 2 minutes
+on 2 cores); ``GRAPHCAL_FUZZ_EXAMPLES=N`` runs N instead, and ``GRAPHCAL_FUZZ_SEED=K`` draws
+other cases (seed K) than the default run's. A failure prints the mutation (the ``Draw`` lines)
+and a ``@reproduce_failure`` line to replay it.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from hypothesis import HealthCheck, event, given, settings
+from hypothesis import HealthCheck, event, given, seed, settings
 from hypothesis import strategies as st
 from test_dataset_fuzz import byte_op, corrupt
 
@@ -37,6 +39,7 @@ from graphcal.cli import main
 from graphcal.io import read_ply, write_ply
 
 EXAMPLES = int(os.environ.get("GRAPHCAL_FUZZ_EXAMPLES", "250"))
+SEED = os.environ.get("GRAPHCAL_FUZZ_SEED")
 #: a command taking longer than this (s) on a dataset of 6 stations is a hang
 HANG_S = 60
 
@@ -250,8 +253,9 @@ def snapshot(d: Path) -> dict:
 _RUNS = itertools.count()
 
 
-@settings(max_examples=EXAMPLES, derandomize=True, database=None, deadline=None, print_blob=True,
+@settings(max_examples=EXAMPLES, derandomize=SEED is None, database=None, deadline=None, print_blob=True,
           suppress_health_check=list(HealthCheck))  # fmt: skip
+@seed(int(SEED or 0))
 @given(data=st.data())
 def test_commands_on_a_corrupted_dataset_exit_0_or_2_in_one_line(sources, tmp_path_factory, capfd, data):
     source = data.draw(st.sampled_from(sorted(sources)), label="dataset")
