@@ -6,6 +6,16 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def excerpt(text: str, limit: int = 80) -> str:
+    """``text`` for a message: shown as it is when printable, else with its control characters
+    escaped (as in a repr), cut to ``limit`` characters: a value read from a file never reaches the
+    terminal raw (no escape sequence, no NUL, no page of someone else's file)."""
+    text = str(text)
+    if not text.isprintable():
+        text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 class GraphcalError(Exception):
     """Base class of every error graphcal raises on purpose (bad input, impossible request)."""
 
@@ -25,12 +35,9 @@ class DatasetError(GraphcalError):
         self.where = where
         self.expected = expected
         self.got = got
-        msg = f"{self.file}: {where}: expected {expected}"
+        msg = f"{self.file}: {excerpt(where, 120)}: expected {expected}"
         if got is not None:
-            text = repr(got) if not isinstance(got, str) else got
-            if len(text) > 80:
-                text = text[:77] + "..."
-            msg += f", got {text}"
+            msg += f", got {excerpt(repr(got) if not isinstance(got, str) else got, 80)}"
         super().__init__(msg)
 
     def __reduce__(self):

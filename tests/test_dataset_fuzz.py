@@ -1,7 +1,7 @@
 """Corrupted datasets: read_dataset / validate_dataset either succeed or raise DatasetError, nothing else.
 
 Random byte flips, truncations and insertions, and cell/token replacements with 'nan', 'inf', '',
-'1e400', text..., in dataset.yaml, the CSV files and the PLY clouds (one ASCII, one binary) of the
+'1e400', extreme finite numbers ('1e300', '1.7e308', '5e-324'), YAML aliases, text..., in dataset.yaml, the CSV files and the PLY clouds (one ASCII, one binary) of the
 hand-made fixture tests/data/octopus_small.
 """
 
@@ -29,7 +29,8 @@ TARGETS = [
     "clouds/depth/t10.01.ply",  # rewritten as binary below
 ]
 REPLACEMENTS = ["nan", "inf", "-inf", "", "1e400", "-1e400", "abc", "1_0", " ", '"', ",", "0x10", "NaN", "1e-400",
-                "-0", "999999999999999999999", "body.9", "..", "/etc/passwd", "\x00", "é", "[", ":", "- a"]  # fmt: skip
+                "-0", "999999999999999999999", "body.9", "..", "/etc/passwd", "\x00", "é", "[", ":", "- a",
+                "1e300", "-1e300", "1.7e308", "1e15", "-1e15", "1e-300", "5e-324", "0", "1e6", "*a", "&a [1]"]  # fmt: skip
 
 fraction = st.floats(min_value=0.0, max_value=1.0, exclude_max=True)
 byte_op = st.one_of(
@@ -43,7 +44,8 @@ byte_op = st.one_of(
 )
 
 
-def _corrupt(data: bytes, op) -> bytes:
+def corrupt(data: bytes, op) -> bytes:
+    """``data`` with one ``byte_op`` applied (also used by tests/test_fuzz_commands.py)."""
     kind = op[0]
     if kind == "flip":
         if not data:
@@ -77,7 +79,7 @@ def test_corrupted_dataset_raises_only_dataset_error(target, ops):
         f = d / target
         data = f.read_bytes()
         for op in ops:
-            data = _corrupt(data, op)
+            data = corrupt(data, op)
         f.write_bytes(data)
         for fn in (read_dataset, validate_dataset):
             try:

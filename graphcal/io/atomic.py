@@ -45,6 +45,31 @@ class OutputLocationError(GraphcalError):
     """An output cannot be written where it was asked for (its parent is a file, or not writable)."""
 
 
+class OutputWriteError(OutputLocationError, OSError):
+    """Writing an output failed part-way (the disk is full, a quota or file-size limit, a read-only
+    or failing file system): nothing was written, and what was there before is unchanged. Still an
+    OSError for callers that catch those; the command line prints it as one line (a GraphcalError).
+    ``reason``: the system's words (``"No space left on device"``)."""
+
+    def __init__(self, message: str, reason: str = ""):
+        super().__init__(message)
+        self.reason = reason
+
+
+#: the errors of a write that ran out of room or of a file system that failed: reported as one line
+#: naming the output (OutputWriteError), not as a traceback
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EIO}
+
+
+def _write_error(path: Path, exc: OSError, what: str = "file") -> OutputWriteError:
+    if isinstance(exc, OutputWriteError):
+        reason = exc.reason
+    else:
+        reason = exc.strerror or str(exc) or type(exc).__name__
+    return OutputWriteError(f"{path}: cannot write this output {what}: {reason} (nothing was written; "
+                            f"what was there before is unchanged)", reason)
+
+
 def _location_error(path: Path, exc: OSError, folder: Path | None = None) -> OutputLocationError:
     """The error for an output ``path`` that could not be created in ``folder`` (default: its parent)."""
     return OutputLocationError(f"{path}: cannot write in {folder or path.parent}: {exc.strerror or exc}")
@@ -149,9 +174,12 @@ def atomic_file(path: str | Path, *, overwrite: bool = True, suffix: str = ".tmp
         if not overwrite and (path.exists() or path.is_symlink()):
             raise OutputExistsError(f"{path}: already exists; refusing to replace it (overwrite=False)")
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and not isinstance(exc, GraphcalError):
+            # a full disk, a quota, a failing file system, or a writer (Open3D) that gave up
+            raise _write_error(path, exc) from None
         raise
     fsync_directory(path.parent)
 
@@ -234,8 +262,12 @@ def atomic_directory(final_dir: str | Path, *, overwrite: bool = False) -> Itera
         os.chmod(tmp, 0o777 & ~_current_umask())
         with _sigint_held() as held:
             _commit_directory(tmp, final, overwrite)
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(exc, OutputWriteError) or (
+            isinstance(exc, OSError) and not isinstance(exc, GraphcalError) and exc.errno in _WRITE_ERRNOS
+        ):  # a file of the folder could not be written (named inside the hidden folder): name the folder
+            raise _write_error(final, exc, "folder") from None
         raise
     fsync_directory(final.parent)
     if held:

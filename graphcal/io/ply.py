@@ -23,8 +23,9 @@ frame). :func:`write_ply` writes binary (exact float64) by default; Open3D's ASC
 
 from __future__ import annotations
 
-import math
+import errno
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,8 +33,9 @@ import numpy as np
 
 from graphcal.errors import DatasetError
 from graphcal.io.atomic import atomic_file
+from graphcal.io.files import check_regular_file, file_kind, read_regular_file
 
-__all__ = ["read_ply", "write_ply", "read_ply_header", "PlyHeader"]
+__all__ = ["read_ply", "write_ply", "read_ply_header", "PlyHeader", "MAX_COORDINATE_M"]
 
 _NUMPY_TYPES = {  # PLY scalar type -> numpy type
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -44,6 +46,10 @@ _NUMPY_TYPES = {  # PLY scalar type -> numpy type
 _TYPE_SIZES = {name: np.dtype(t).itemsize for name, t in _NUMPY_TYPES.items()}
 _FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 _MAX_HEADER_BYTES = 1 << 16
+#: the largest coordinate (m) :func:`read_ply` accepts: no sensor measures points 1000 km away (a
+#: scene of 100 m written in millimetres stays below it, for the unit check of a dataset to name);
+#: beyond it, squares and sums of the plane fit overflow (a point at 1e300 made LAPACK fail)
+MAX_COORDINATE_M = 1e6
 
 
 @dataclass(frozen=True)
@@ -81,7 +87,7 @@ def read_ply_header(path: str | Path, data: bytes | None = None, *, file_size: i
     path = Path(path)
     if data is None:
         try:
-            data = path.read_bytes()
+            data = read_regular_file(path)
         except OSError as exc:
             raise _bad(path, "file", "a readable PLY file", exc.strerror or str(exc)) from None
     end = data.find(b"end_header", 0, _MAX_HEADER_BYTES)
@@ -165,12 +171,16 @@ def read_ply(path: str | Path) -> np.ndarray:
             empty PLY"), or a non-finite coordinate (names the 1-based point number).
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise _bad(path, "file", "an existing PLY file", "no such file")
     try:
-        with open(path, "rb") as f:
+        check_regular_file(path)  # a FIFO would block the read forever, a device never end
+        with open(path, "rb", opener=_nonblocking_opener) as f:
+            st = os.fstat(f.fileno())
+            if not stat.S_ISREG(st.st_mode):
+                raise OSError(errno.EINVAL, f"{file_kind(st.st_mode)}, not a regular file")
             head = f.read(_MAX_HEADER_BYTES)
-            size = os.fstat(f.fileno()).st_size
+            size = st.st_size
             header = read_ply_header(path, head, file_size=size)
             points = None
             if _xyz_only(header):
@@ -200,13 +210,21 @@ def read_ply(path: str | Path) -> np.ndarray:
         if points is None:
             points = _read_with_open3d(path, header)
     with np.errstate(over="ignore", invalid="ignore"):  # garbage bytes overflow: the check below names them
-        total = float(np.add.reduce(points, axis=None))  # one pass, no temporary
-    if not math.isfinite(total):
+        lo, hi = float(points.min()), float(points.max())  # NaN if any is NaN
+    if not (-MAX_COORDINATE_M <= lo and hi <= MAX_COORDINATE_M):
         finite = np.isfinite(points).all(axis=1)
         if not finite.all():
             i = int(np.argmin(finite))
             raise _bad(path, f"point {i + 1} (1-based)", "finite coordinates", f"{points[i].tolist()}")
+        i = int(np.argmax((np.abs(points) > MAX_COORDINATE_M).any(axis=1)))
+        raise _bad(path, f"point {i + 1} (1-based)", f"coordinates a sensor can measure (|x|, |y|, |z| <= "
+                   f"{MAX_COORDINATE_M:g} m)", f"{points[i].tolist()}")
     return points
+
+
+def _nonblocking_opener(path, flags):
+    """``open``'s opener that never blocks on opening (a FIFO swapped in after the check)."""
+    return os.open(path, flags | getattr(os, "O_NONBLOCK", 0))
 
 
 def _xyz_only(header: PlyHeader) -> bool:

@@ -22,15 +22,20 @@ used to test the vectorised kinematics in :mod:`graphcal.models.kinematics`.
 
 from __future__ import annotations
 
+import contextlib
 import difflib
+import os
+import stat
+import sys
+import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 
-from graphcal.errors import ModelError
+from graphcal.errors import ModelError, excerpt
 from graphcal.geometry import from_pinocchio_se3, invert_pose, tangent_from_pinocchio
 
 __all__ = ["Leg", "RobotModel", "load_robot", "leg_q_from_dict"]
@@ -38,6 +43,10 @@ __all__ = ["Leg", "RobotModel", "load_robot", "leg_q_from_dict"]
 _REVOLUTE_SHORTNAMES = ("JointModelRX", "JointModelRY", "JointModelRZ", "JointModelRevoluteUnaligned")
 _UNBOUNDED_SHORTNAMES = ("JointModelRUBX", "JointModelRUBY", "JointModelRUBZ", "JointModelRevoluteUnboundedUnaligned")
 _PRISMATIC_SHORTNAMES = ("JointModelPX", "JointModelPY", "JointModelPZ", "JointModelPrismaticUnaligned")
+#: what an origin of a URDF may hold: a robot is smaller than a kilometre, and an angle is written
+#: within a few turns (an origin at 1e300 reached the solvers as a noise error)
+_MAX_URDF_XYZ_M = 1e3
+_MAX_URDF_RPY_RAD = 8 * np.pi
 
 
 def _readonly(a) -> np.ndarray:
@@ -235,6 +244,8 @@ def _read_urdf_text(urdf, urdf_xml, model) -> tuple[str, str | None, str]:
     if urdf is not None:
         path = Path(urdf)
         try:
+            if path.exists() and not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO would block the read
+                raise OSError(f"{str(path)!r} is not a regular file (a named pipe, device or folder)")
             return path.read_text(encoding="utf-8"), None, f"URDF file {str(path)!r}"
         except (OSError, UnicodeDecodeError) as exc:
             raise ModelError(f"cannot read URDF file {str(path)!r}: {exc}") from None
@@ -246,7 +257,7 @@ def _check_urdf_numbers(root: ET.Element, what: str) -> None:
     an axis is not zero: :class:`ModelError` naming the joint or link (urdfdom would print a page of
     C++ errors and say only that the model is invalid; a zero axis became NaN)."""
     for parent in root.iter():
-        owner = parent.get("name") or parent.tag
+        owner = excerpt(parent.get("name") or parent.tag, 60)
         for child in parent:
             if child.tag == "origin":
                 attrs = ("xyz", "rpy")
@@ -264,9 +275,47 @@ def _check_urdf_numbers(root: ET.Element, what: str) -> None:
                     v = []
                 if len(v) != 3 or not all(np.isfinite(v)):
                     raise ModelError(f"{what}: {parent.tag} {owner!r}: <{child.tag} {attr}>: expected three finite "
-                                     f"numbers, got {raw!r}")
+                                     f"numbers, got {excerpt(repr(raw), 60)}")
+                limit = _MAX_URDF_RPY_RAD if attr == "rpy" else _MAX_URDF_XYZ_M
+                if child.tag == "origin" and max(abs(x) for x in v) > limit:
+                    unit = "rad, a few turns" if attr == "rpy" else "m, a robot's size"
+                    raise ModelError(f"{what}: {parent.tag} {owner!r}: <origin {attr}>: expected values within "
+                                     f"+-{limit:g} ({unit}), got {excerpt(repr(raw), 60)}")
                 if child.tag == "axis" and not any(v) and parent.get("type") in ("revolute", "continuous", "prismatic"):
                     raise ModelError(f"{what}: joint {owner!r}: <axis xyz>: expected a nonzero axis, got {raw!r}")
+
+
+@contextlib.contextmanager
+def _parser_stderr() -> Iterator[list[str]]:
+    """Hold what the URDF parser (urdfdom, C++) writes to the process's standard error, file
+    descriptor 2, during the block (it prints 2-8 lines per error, before graphcal's own line):
+    yields a list that holds the text once the block is over. Python's ``sys.stderr`` is flushed
+    first, so nothing of graphcal's own is caught."""
+    said: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no fd 2 (an embedded interpreter): leave it
+        yield said
+        return
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield said
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            held.seek(0)
+            said.append(held.read(1 << 16).decode("utf-8", "replace"))
+
+
+def _parser_errors(text: str) -> str:
+    """The urdfdom messages of ``text`` in one line, most specific first ('Joint [j] is of type
+    REVOLUTE but it does not specify limits; joint xml is not initialized correctly'), without the
+    C++ source lines ('at line 607 in .../joint.cpp')."""
+    lines = [ln.strip() for ln in text.splitlines()]
+    errors = [ln[len("Error:"):].strip() for ln in lines if ln.startswith("Error:")]
+    return "; ".join(dict.fromkeys(e for e in errors if e))
 
 
 def load_robot(
@@ -304,10 +353,12 @@ def load_robot(
         raise ModelError(f"{what} is not a URDF: root element is <{root.tag}>, expected <robot>")
     _check_urdf_numbers(root, what)
     try:
-        m = pin.buildModelFromXML(text)
+        with _parser_stderr() as parser_said:
+            m = pin.buildModelFromXML(text)
     except (ValueError, RuntimeError) as exc:
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ModelError(f"{what} is not a valid URDF model: {msg}") from None
+        said = _parser_errors(parser_said[0] if parser_said else "")
+        raise ModelError(f"{what} is not a valid URDF model: {excerpt(said or msg, 200)}") from None
 
     frame_names = tuple(f.name for f in m.frames)
     link_names = tuple(f.name for f in m.frames if f.type == pin.FrameType.BODY)

@@ -427,7 +427,9 @@ def read_calibration_yaml(path: str | Path) -> dict:
     """
     path = Path(path)
     try:
-        raw = path.read_bytes()
+        from graphcal.io.files import read_regular_file
+
+        raw = read_regular_file(path)  # a FIFO or device is refused, not read forever
     except OSError as exc:
         raise DatasetError(path, "file", "a readable calibration.yaml", exc.strerror or str(exc)) from None
     try:

@@ -13,6 +13,18 @@ from graphcal.errors import DatasetError
 from graphcal.io.dataset.model import (
     BODY_POSE_COLUMNS,
     IMU_ACCEL_COLUMNS,
+    IMU_GYRO_COLUMNS,
+    MAX_ABS_ACCEL_MPS2,
+    MAX_ABS_BODY_M,
+    MAX_ABS_EFFORT,
+    MAX_ABS_GYRO_RADPS,
+    MAX_ABS_JOINT,
+    MAX_ABS_PLANE_COV,
+    MAX_ABS_TIME_S,
+    MAX_PLANE_POINTS,
+    MAX_PLANE_RMS_M,
+    MIN_PLANE_COV_EIG,
+    MIN_PLANE_D_M,
     MM_LIMIT_BODY_M,
     MM_LIMIT_MOCAP_M,
     MM_LIMIT_PLANE_D_M,
@@ -24,6 +36,35 @@ from graphcal.io.dataset.paths import path_inside
 from graphcal.io.dataset.schema import YamlHeader
 from graphcal.io.dataset.tables import ParsedCsv
 from graphcal.io.dataset.text import MILLIMETRES_HINT, did_you_mean
+
+
+#: (columns, largest magnitude, what it is) of the values a robot can have, checked first
+_MAGNITUDES = (
+    (("time",), MAX_ABS_TIME_S, "seconds"),
+    (BODY_POSE_COLUMNS[:3], MAX_ABS_BODY_M, "a body position in metres"),
+    (BODY_POSE_COLUMNS[3:], 2.0, "a quaternion component"),
+    (IMU_ACCEL_COLUMNS, MAX_ABS_ACCEL_MPS2, "a specific force in m/s² (an IMU saturates far below)"),
+    (IMU_GYRO_COLUMNS, MAX_ABS_GYRO_RADPS, "a rate in rad/s (an IMU saturates far below)"),
+    (("nx", "ny", "nz"), 2.0, "a unit-normal component"),
+    (("n_points",), MAX_PLANE_POINTS, "a number of points"),
+    (("rms",), MAX_PLANE_RMS_M, "an rms distance in metres"),
+    (PLANE_COV_COLUMNS, MAX_ABS_PLANE_COV, "a plane covariance entry (rad², rad m, m²)"),
+)
+
+
+def check_magnitudes(p: ParsedCsv) -> None:
+    """Every number of a CSV file within what a robot can have (:data:`_MAGNITUDES`; the joint
+    values and efforts are checked with the robot, :func:`check_joint_columns`): a value such as
+    1e300 is refused here, naming its row, before it reaches a solver (where it overflowed)."""
+    t = p.table
+    for columns, limit, what in _MAGNITUDES:
+        for c in columns:
+            if not t.has(c) or not len(t):
+                continue
+            bad = ~(np.abs(t[c]) <= limit)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise p.err(i, c, f"{what} (|{c}| <= {limit:g})", float(t[c][i]))
 
 
 def _check_body_imu(p: ParsedCsv, stations: bool) -> None:
@@ -138,6 +179,11 @@ def check_planes(p: ParsedCsv, header: YamlHeader, station_ids: np.ndarray | Non
     if bad.any():
         i = int(np.argmax(bad))
         raise p.err(i, "d", f"metres (d <= {MM_LIMIT_PLANE_D_M:g}); {MILLIMETRES_HINT}", float(d[i]))
+    bad = d < MIN_PLANE_D_M
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise p.err(i, "d", f"d >= {MIN_PLANE_D_M:g} m (the distance from the sensor to the plane: a sensor does not "
+                    "see a plane through its own origin)", float(d[i]))  # fmt: skip
     if t.has("n_points"):
         npts = t["n_points"]
         bad = (npts < 0) | (npts != np.round(npts))
@@ -182,6 +228,12 @@ def check_planes(p: ParsedCsv, header: YamlHeader, station_ids: np.ndarray | Non
             raise p.err(i, "cov_00..cov_33", "a covariance of full rank 3 across the plane (two tilts and d); "
                         "without a covariance leave out the cov_ columns (a default is used), never zeros",
                         f"eigenvalues {np.array2string(w[i], precision=3)}")
+        bad = w[:, 0] < MIN_PLANE_COV_EIG
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise p.err(i, "cov_00..cov_33", f"a covariance whose eigenvalues across the plane are >= "
+                        f"{MIN_PLANE_COV_EIG:g} (a sigma of a picometre or a nanoradian: smaller ones overflow "
+                        "the solver's whitening)", f"eigenvalues {np.array2string(w[i], precision=3)}")
     for i, s in enumerate(t["sensor"].tolist()):
         if s not in header.sensors:
             raise p.err(i, "sensor", f"a sensor of dataset.yaml ({', '.join(header.sensors) or 'none'})", s)
@@ -309,6 +361,14 @@ def check_joint_columns(robot, parsed: Mapping[str, ParsedCsv]) -> None:
                                        f"a column for every moving joint on a leg (joint {j!r} of foot {foot!r})",
                                        "missing")  # fmt: skip
                 _check_radians(p, j, leg.joint_types[k], leg.lower[k], leg.upper[k])
+        for c in p.table.columns:
+            if c.startswith(("q_", "tau_")) and len(p.table):
+                limit = MAX_ABS_JOINT if c.startswith("q_") else MAX_ABS_EFFORT
+                what = "a joint value in rad or m" if c.startswith("q_") else "a joint effort in N m or N"
+                bad = ~(np.abs(p.table[c]) <= limit)
+                if bad.any():
+                    i = int(np.argmax(bad))
+                    raise p.err(i, c, f"{what} (|{c}| <= {limit:.4g})", float(p.table[c][i]))
 
 
 #: the values of dataset.yaml's stance.feet_fixed_within graphcal knows: the feet stay planted within

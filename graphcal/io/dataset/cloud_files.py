@@ -11,7 +11,13 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from graphcal.errors import DatasetError
-from graphcal.io.dataset.model import MM_LIMIT_CLOUD_MEDIAN_M, SCAN_PLANE_MAX_Z_M, Dataset, SensorSpec
+from graphcal.io.dataset.model import (
+    MIN_CLOUD_MEDIAN_M,
+    MM_LIMIT_CLOUD_MEDIAN_M,
+    SCAN_PLANE_MAX_Z_M,
+    Dataset,
+    SensorSpec,
+)
 from graphcal.io.dataset.paths import path_inside, resolved_or_none
 from graphcal.io.dataset.text import MILLIMETRES_HINT
 from graphcal.io.ply import read_ply
@@ -42,8 +48,11 @@ def station_clouds(
             continue
         plys = sorted(
             f for f in sdir.iterdir()
-            if f.suffix.lower() == ".ply" and not f.name.startswith(".") and (f.is_file() or f.is_symlink())
+            if f.suffix.lower() == ".ply" and not f.name.startswith(".") and not (f.is_dir() and not f.is_symlink())
         )  # fmt: skip
+        for f in plys:  # a FIFO or device named .ply: refused by name, never opened (a read would block)
+            if not f.is_symlink() and not f.is_file():
+                raise DatasetError(f, "file", "a PLY file (a regular file)", "a named pipe, device or socket")
         # a file that is no link resolves within its folder: one resolve per folder, not per file
         sdir_res = sdir.resolve()
         resolved = {f: resolved_or_none(f) if f.is_symlink() else sdir_res / f.name for f in plys}
@@ -110,13 +119,20 @@ def load_cloud(ds: Dataset, sensor: str, station: int) -> np.ndarray:
 
 def read_cloud(path: Path) -> np.ndarray:
     """The points ``(N, 3)`` (sensor frame, m) of the PLY file ``path``; DatasetError if unreadable,
-    empty, non-finite or in millimetres (median range above :data:`MM_LIMIT_CLOUD_MEDIAN_M`)."""
+    empty, non-finite, in millimetres (median range above :data:`MM_LIMIT_CLOUD_MEDIAN_M`), huddled
+    at the sensor origin (median range below :data:`MIN_CLOUD_MEDIAN_M`) or one point repeated."""
     pts = read_ply(path)
     sample = pts[:: max(1, len(pts) // 20000)]  # the unit check needs no more than ~20k points
     med = float(np.median(np.sqrt(np.einsum("ij,ij->i", sample, sample))))
     if med > MM_LIMIT_CLOUD_MEDIAN_M:
         raise DatasetError(path, "points", f"metres (median range <= {MM_LIMIT_CLOUD_MEDIAN_M:g} m); {MILLIMETRES_HINT}",
                            f"median range {med:.4g}")
+    if med < MIN_CLOUD_MEDIAN_M:
+        raise DatasetError(path, "points", f"metres (median range >= {MIN_CLOUD_MEDIAN_M:g} m: a sensor does not "
+                           "measure its points at its own origin)", f"median range {med:.4g}")
+    if len(pts) > 1 and not (pts != pts[0]).any():
+        raise DatasetError(path, "points", "points spread over what the sensor saw (a sensor does not measure "
+                           f"one point {len(pts)} times)", f"{len(pts)} copies of {pts[0].tolist()}")
     return pts
 
 

@@ -36,6 +36,33 @@ MM_LIMIT_PRIOR_M = 10.0
 MM_LIMIT_PLANE_D_M = 100.0
 MM_LIMIT_MOCAP_M = 100.0
 MM_LIMIT_CLOUD_MEDIAN_M = 100.0
+#: a cloud's median range (m) is at least this: a sensor does not measure its points at its own
+#: origin (a cloud scaled by 1e-12 made the plane fit's covariance singular)
+MIN_CLOUD_MEDIAN_M = 0.01
+#: What physics allows (the readers refuse the rest before any number reaches the solvers, where
+#: 1e300 overflowed and LAPACK failed): a time (s), a body position of a walk (m, "within
+#: kilometres"), IMU specific force (m/s², ~200 g) and rate (rad/s), a joint value (rad or m; up to
+#: 1000 so that a few values in degrees by mistake stay a warning, outside the URDF limits, and
+#: a column of them the degrees error) and effort (N m or N), a plane's distance (m; at least 1 mm: a sensor does not see a plane
+#: through its own origin), fit rms (m) and point count, and a plane covariance's entries (rad², m²)
+#: and its smallest eigenvalue across the plane (a sigma of a picometre).
+MAX_ABS_TIME_S = 1e10
+MAX_ABS_BODY_M = 1e4
+MAX_ABS_ACCEL_MPS2 = 2000.0
+MAX_ABS_GYRO_RADPS = 100.0
+MAX_ABS_JOINT = 1e3
+MAX_ABS_EFFORT = 1e5
+MIN_PLANE_D_M = 1e-3
+MAX_PLANE_RMS_M = 10.0
+MAX_PLANE_POINTS = 1e9
+MAX_ABS_PLANE_COV = 1e2
+MIN_PLANE_COV_EIG = 1e-24
+#: dataset.yaml's prior sigmas: at most the size of a robot (sigma_mm, like MM_LIMIT_PRIOR_M) and a
+#: full turn (sigma_rpy_deg); a sigma > 0 at least a nanometre and a nano-degree (a tighter prior is
+#: written 0: fixed)
+MAX_PRIOR_SIGMA_MM = 1e4
+MAX_PRIOR_SIGMA_DEG = 360.0
+MIN_PRIOR_SIGMA = 1e-6
 #: a laser scanner's points lie in its scan plane, z = 0 of its frame (as a ROS LaserScan turned
 #: into points); a cloud whose 90th percentile of |z| is above this (m) is a 3-D cloud (a depth
 #: camera declared laser_scanner) or a scan written in another frame

@@ -9,6 +9,7 @@ import numpy as np
 
 from graphcal.errors import DatasetError
 from graphcal.io.dataset.checks import (
+    check_magnitudes,
     check_joint_columns,
     check_mocap,
     check_mocap_poses,
@@ -23,20 +24,40 @@ from graphcal.io.dataset.robot import load_robot_spec
 from graphcal.io.dataset.schema import parse_dataset_yaml
 from graphcal.io.dataset.tables import CSV_FILES, ParsedCsv, read_csv
 from graphcal.io.dataset.text import did_you_mean
+from graphcal.io.files import check_regular_file
 
 
 def _dataset_root(path: str | Path) -> Path:
     """The dataset folder of ``path`` (the folder or its dataset.yaml), checked to hold dataset.yaml."""
     root = Path(path)
-    if root.name == "dataset.yaml" and root.is_file():
+    if root.name == "dataset.yaml" and (root.is_file() or root.is_symlink()):
         root = root.parent
     if not root.exists():
         raise DatasetError(root, "folder", "a dataset folder containing dataset.yaml", "no such folder")
     if not root.is_dir():
         raise DatasetError(root, "folder", "a dataset folder containing dataset.yaml", "not a folder")
-    if not (root / "dataset.yaml").is_file():
-        raise DatasetError(root / "dataset.yaml", "file", f"dataset.yaml (required by {FORMAT})", "missing")
+    yaml_file = root / "dataset.yaml"
+    if not yaml_file.exists() and not yaml_file.is_symlink():
+        raise DatasetError(yaml_file, "file", f"dataset.yaml (required by {FORMAT})", "missing")
+    _check_dataset_file(root, yaml_file)
     return root
+
+
+def _check_dataset_file(root: Path, f: Path) -> None:
+    """A file of the dataset folder ``root`` (dataset.yaml, a CSV file): a regular file, and a link
+    only to a file inside the folder (a link leading out would let a dataset read, and a message
+    show, any file of the machine); DatasetError naming it otherwise. A FIFO or device is refused
+    here, unopened (reading one would block forever)."""
+    if f.is_symlink():
+        try:
+            path_inside(root, f.name, f, "file")
+        except DatasetError:
+            raise DatasetError(f, "file", "a file of the dataset folder, or a link to one inside it",
+                               "a link leading out of the dataset folder") from None
+    try:
+        check_regular_file(f)
+    except OSError as exc:
+        raise DatasetError(f, "file", f"a regular file ({f.name} of the dataset)", exc.strerror or str(exc)) from None
 
 
 def read_dataset_parts(path: str | Path) -> tuple[Dataset, object | None, dict[str, ParsedCsv], set[Path]]:
@@ -48,9 +69,14 @@ def read_dataset_parts(path: str | Path) -> tuple[Dataset, object | None, dict[s
     header = parse_dataset_yaml(yaml_file)
     if header.robot is not None and header.robot.urdf is not None:
         urdf = path_inside(root, header.robot.urdf, yaml_file, "robot.urdf")
-        if not urdf.is_file():
+        if not urdf.exists():
             raise DatasetError(yaml_file, "robot.urdf", "an existing URDF file inside the dataset folder",
                                f"{header.robot.urdf} (no such file)")  # fmt: skip
+        try:
+            check_regular_file(urdf)
+        except OSError as exc:
+            raise DatasetError(yaml_file, "robot.urdf", "a URDF file (a regular file)",
+                               f"{header.robot.urdf}: {exc.strerror}") from None  # fmt: skip
 
     robot = None
     if header.robot is not None:
@@ -65,7 +91,9 @@ def read_dataset_parts(path: str | Path) -> tuple[Dataset, object | None, dict[s
     for kind, name in CSV_FILES.items():
         f = root / name
         if f.exists() or f.is_symlink():
+            _check_dataset_file(root, f)
             parsed[kind] = read_csv(f, kind)
+            check_magnitudes(parsed[kind])
     if "stations" not in parsed and "timeseries" not in parsed:
         raise DatasetError(root, "files", "stations.csv or timeseries.csv (or both)", "neither")
     check_joint_columns(robot, parsed)

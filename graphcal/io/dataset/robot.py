@@ -30,6 +30,8 @@ def load_robot_spec(root: Path | None, spec: RobotSpec, yaml_file: Path | str):
         msg = str(exc)
         if spec.urdf is not None:
             msg = msg.replace(str(kwargs["urdf"]), spec.urdf)
+            if msg.startswith("URDF string"):  # the second load, from the file's text: name the file
+                msg = f"URDF file {spec.urdf!r}" + msg[len("URDF string"):]
         return one_line(msg)
 
     try:

@@ -18,6 +18,9 @@ import yaml
 from graphcal.errors import DatasetError
 from graphcal.io.dataset.model import (
     FORMAT,
+    MAX_PRIOR_SIGMA_DEG,
+    MAX_PRIOR_SIGMA_MM,
+    MIN_PRIOR_SIGMA,
     MM_LIMIT_PRIOR_M,
     SENSOR_TYPES,
     Dataset,
@@ -28,13 +31,18 @@ from graphcal.io.dataset.model import (
     SensorSpec,
 )
 from graphcal.io.dataset.text import MILLIMETRES_HINT, decode_utf8, did_you_mean, one_line, shown_value
+from graphcal.io.files import read_regular_file
 from graphcal.io.yaml_strict import StrictSafeLoader as _YamlLoader
 
 _NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*")
 
 
 class _YamlDumper(yaml.SafeDumper):
-    """``yaml.SafeDumper`` that quotes text the loader would read as a YAML 1.2 float (``1e3``)."""
+    """``yaml.SafeDumper`` that quotes text the loader would read as a YAML 1.2 float (``1e3``) and
+    writes no aliases (the loader refuses them): a value used twice is written out twice."""
+
+    def ignore_aliases(self, data):
+        return True
 
 
 _YamlDumper.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeDumper.yaml_implicit_resolvers.items()}
@@ -47,7 +55,7 @@ for _first, _resolvers in _YamlLoader.yaml_implicit_resolvers.items():
 
 def _load_yaml(path: Path) -> Any:
     try:
-        raw = path.read_bytes()
+        raw = read_regular_file(path)
     except OSError as exc:
         raise DatasetError(path, "file", "a readable dataset.yaml", exc.strerror or str(exc)) from None
     text = decode_utf8(raw, path)
@@ -128,9 +136,12 @@ def _parse_prior(y: _Y, v, key: str) -> PosePrior:
             raise y.err(f"{key}.rpy_deg[{i}]", "degrees in [-360, 360]", a)
     sigma_mm = y.number(m["sigma_mm"], f"{key}.sigma_mm")
     sigma_deg = y.number(m["sigma_rpy_deg"], f"{key}.sigma_rpy_deg")
-    for k, s in (("sigma_mm", sigma_mm), ("sigma_rpy_deg", sigma_deg)):
+    for k, s, top in (("sigma_mm", sigma_mm, MAX_PRIOR_SIGMA_MM), ("sigma_rpy_deg", sigma_deg, MAX_PRIOR_SIGMA_DEG)):
         if s < 0:
             raise y.err(f"{key}.{k}", "a standard deviation >= 0", s)
+        if s > top or 0 < s < MIN_PRIOR_SIGMA:
+            raise y.err(f"{key}.{k}", f"a standard deviation of 0 (fixed) or within [{MIN_PRIOR_SIGMA:g}, {top:g}]",
+                        shown_value(s))
     return PosePrior(
         np.array(xyz), np.array([_deg_to_rad(a) for a in rpy_deg]), _mm_to_m(sigma_mm), _deg_to_rad(sigma_deg)
     )

@@ -14,7 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
-from graphcal.errors import DatasetError
+from graphcal.errors import DatasetError, excerpt
 from graphcal.io.dataset.model import (
     BODY_POSE_COLUMNS,
     IMU_ACCEL_COLUMNS,
@@ -29,6 +29,7 @@ from graphcal.io.dataset.model import (
     is_string_column,
 )
 from graphcal.io.dataset.text import cell_text, decode_utf8, did_you_mean, one_line
+from graphcal.io.files import read_regular_file
 
 _NUMBER_RE = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 
@@ -101,7 +102,7 @@ def read_csv(path: Path, kind: str) -> ParsedCsv:
     contract's columns, required ones and complete groups) and cells (numbers, integer station
     ids, labels). The values' checks are in :mod:`graphcal.io.dataset.checks`."""
     try:
-        raw = path.read_bytes()
+        raw = read_regular_file(path)
     except OSError as exc:
         raise DatasetError(path, "file", f"a readable {CSV_FILES[kind]}", exc.strerror or str(exc)) from None
     text = decode_utf8(raw, path)
@@ -123,6 +124,9 @@ def read_csv(path: Path, kind: str) -> ParsedCsv:
         raise DatasetError(path, f"line {max(reader.line_num, 1)}", "well-formed CSV", one_line(str(exc))) from None
     if header is None:
         raise DatasetError(path, "header", "a first line with the column names", "an empty file")
+    if rows and not text.endswith(("\n", "\r")) and lines[-1] == reader.line_num:
+        raise DatasetError(path, f"row {len(rows)} (line {lines[-1]})", "a line end after the last row (a file "
+                           "that stops inside a row was cut off, e.g. while being copied)", "no line end")
     if len(header) == 1 and (";" in header[0] or "\t" in header[0]):
         sep = "semicolons" if ";" in header[0] else "tabs"
         raise DatasetError(path, "header", f"column names separated by commas (this file uses {sep}: the "
@@ -134,14 +138,14 @@ def read_csv(path: Path, kind: str) -> ParsedCsv:
         if not name.isprintable():
             raise DatasetError(path, f"header, column {j + 1}", "a column name of printable characters", cell_text(name))
         if name in header[:j]:
-            raise DatasetError(path, f"header, column {j + 1}", "each column name once", f"{name!r} again")
+            raise DatasetError(path, f"header, column {j + 1}", "each column name once", f"{excerpt(repr(name), 40)} again")
         if kind == "timeseries" and name == "station":
             raise DatasetError(path, "header, column station", "no station column in timeseries.csv "
                                "(static stations go to stations.csv)", "station")  # fmt: skip
         if not _column_ok(kind, name):
             raise DatasetError(
-                path, f"header, column {name}", f"a column of the contract ({_allowed_text(kind)})",
-                f"unknown column {name!r}{did_you_mean(name, _REQUIRED[kind] + BODY_POSE_COLUMNS)}",
+                path, f"header, column {excerpt(name, 40)}", f"a column of the contract ({_allowed_text(kind)})",
+                f"unknown column {excerpt(repr(name), 40)}{did_you_mean(name, _REQUIRED[kind] + BODY_POSE_COLUMNS)}",
             )  # fmt: skip
     for r in _REQUIRED[kind]:
         if r not in header:
@@ -165,11 +169,13 @@ def read_csv(path: Path, kind: str) -> ParsedCsv:
         col = cells[j]
         if is_string_column(name):
             vals = [c.strip() for c in col]
-            if not name.startswith("cloud_"):
-                for i, v in enumerate(vals):
-                    if not v:
-                        raise DatasetError(path, f"row {i + 1} (line {lines[i]}), column {name}",
-                                           f"a {name} label", "an empty cell")
+            for i, v in enumerate(vals):
+                if not v and not name.startswith("cloud_"):
+                    raise DatasetError(path, f"row {i + 1} (line {lines[i]}), column {name}",
+                                       f"a {name} label", "an empty cell")
+                if not v.isprintable():  # a NUL or a line break would make another label that looks the same
+                    raise DatasetError(path, f"row {i + 1} (line {lines[i]}), column {name}",
+                                       f"a {name} of printable characters (no control characters)", cell_text(v))
             data[name] = np.array(vals, dtype=np.str_) if vals else np.array([], dtype="<U1")
         else:
             data[name] = _numbers(col, path, name, lines)
