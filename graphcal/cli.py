@@ -7,6 +7,7 @@ bug and keeps its traceback."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import sys
@@ -310,6 +311,26 @@ def configure_logging(quiet: bool = False, verbose: bool = False) -> None:
     logger.setLevel(level)
 
 
+#: commands whose --out is an analysis of DATASET: it may not lie inside DATASET
+_OUT_OUTSIDE_DATASET = ("calibrate", "diagnose", "identify-legs", "track")
+
+
+@contextlib.contextmanager
+def _output_guard(args):
+    """SIGTERM stops the command cleanly (as Ctrl-C), and its --out is locked against a second
+    command writing the same output, and refused inside the dataset it analyses."""
+    from graphcal.io.atomic import check_output_outside, output_lock, sigterm_as_interrupt
+
+    out = getattr(args, "out", None)
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(sigterm_as_interrupt())
+        if out is not None:
+            if args.command in _OUT_OUTSIDE_DATASET:
+                check_output_outside(out, args.dataset)
+            stack.enter_context(output_lock(out))
+        yield
+
+
 def main(argv: list[str] | None = None) -> int:
     from graphcal.errors import GraphcalError
 
@@ -327,7 +348,8 @@ def main(argv: list[str] | None = None) -> int:
         "import": _cmd_import,
     }
     try:
-        print(handlers[args.command](args))
+        with _output_guard(args):
+            print(handlers[args.command](args))
         return 0
     except GraphcalError as exc:
         print(f"graphcal {args.command}: error: {exc}", file=sys.stderr)
@@ -335,9 +357,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         from graphcal.io.atomic import InterruptedAfterWrite
 
+        from graphcal.io.atomic import Terminated
+
         said = f"interrupted {exc}" if isinstance(exc, InterruptedAfterWrite) else "interrupted; nothing was written"
         print(f"graphcal {args.command}: {said}", file=sys.stderr)
-        return 130
+        return 143 if isinstance(exc, Terminated) else 130
     except BrokenPipeError:
         # the reader of stdout went away (``graphcal validate D | head -1``): stop quietly, as
         # command-line tools do (no traceback, nor one at exit when Python flushes stdout)

@@ -34,7 +34,8 @@ from typing import Callable, Iterable, Iterator
 from graphcal.errors import GraphcalError
 
 __all__ = ["OutputExistsError", "InterruptedAfterWrite", "atomic_file", "atomic_write_text", "atomic_write_bytes", "atomic_directory",
-           "fsync_directory", "check_output_folder", "check_command_output", "previous_output_files"]
+           "fsync_directory", "check_output_folder", "check_command_output", "previous_output_files",
+           "Terminated", "sigterm_as_interrupt", "output_lock", "check_output_outside"]
 
 
 class OutputExistsError(GraphcalError, FileExistsError):
@@ -282,23 +283,92 @@ class InterruptedAfterWrite(KeyboardInterrupt):
         self.path = path
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM arrived while a command ran (raised by :func:`sigterm_as_interrupt`): the command stops
+    as on Ctrl-C, its hidden temporary folder removed, nothing half-written left behind."""
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated("terminated (SIGTERM)")
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """During the block SIGTERM raises :class:`Terminated` (a KeyboardInterrupt), so ``finally``
+    blocks and :func:`atomic_directory`'s clean-up run, instead of the process dying where it stands
+    and leaving its hidden ``.NAME.tmp-PID-*`` folder beside the output. Main thread only."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 @contextlib.contextmanager
 def _sigint_held() -> Iterator[list]:
-    """Hold back SIGINT during the block (main thread only: Python runs signal handlers there, and
-    only there can they be changed); yields a list that is non-empty if one arrived."""
+    """Hold back SIGINT (and SIGTERM, where a Python handler is installed) during the block (main
+    thread only: Python runs signal handlers there, and only there can they be changed); yields a list
+    that is non-empty if one arrived."""
     held: list = []
     if threading.current_thread() is not threading.main_thread():
         yield held
         return
-    previous = signal.getsignal(signal.SIGINT)
-    if previous in (signal.SIG_IGN, None):  # ignored, or a handler not installed from Python
-        yield held
-        return
-    signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        handler = signal.getsignal(sig)
+        if callable(handler):  # not ignored, default or a handler installed outside Python
+            previous[sig] = signal.signal(sig, lambda signum, frame: held.append(signum))
     try:
         yield held
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def check_output_outside(out_dir: str | Path, input_dir: str | Path, *, what: str = "the dataset") -> None:
+    """Refuse an output folder that is the input folder or lies inside it: a command never writes
+    into what it reads (``--out DATASET/results`` would add files to the dataset)."""
+    out, src = Path(out_dir).resolve(), Path(input_dir).resolve()
+    if src.is_dir() and (out == src or src in out.parents):
+        raise OutputLocationError(f"--out {out_dir} is inside {what} {input_dir}: graphcal does not write into "
+                                  "its input; choose a folder outside it")
+
+
+@contextlib.contextmanager
+def output_lock(out_dir: str | Path) -> Iterator[None]:
+    """Hold an exclusive lock on the output ``out_dir`` for the block (``flock`` on a hidden
+    ``.NAME.lock`` file beside it, released when the process ends, however it ends): a second command
+    writing the same output is refused at once with a clear message instead of silently replacing
+    the first one's result when both finish. Where the lock file cannot be made (the parent folder
+    does not exist yet, or is not writable) the block runs unlocked and the command's own checks
+    report the location."""
+    import fcntl
+
+    final = Path(out_dir)
+    if final.name in ("", ".", ".."):
+        final = final.resolve()
+    lock_path = final.parent / f".{final.name}.lock"
+    try:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:  # no parent folder yet, or not writable: the command's own checks say so, by name
+        yield
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise OutputLocationError(f"{final} is being written by another graphcal command right now "
+                                      "(it holds the lock): wait for it to finish or choose another --out") from None
+        try:
+            yield
+        finally:
+            with contextlib.suppress(OSError):
+                os.unlink(lock_path)
+    finally:
+        os.close(fd)
 
 
 _RENAME_EXCHANGE = 2  # linux/fs.h
