@@ -270,3 +270,21 @@ def test_track_refuses_a_negative_tum_rate_before_any_work(tmp_path):
     with pytest.raises(GraphcalError, match="--tum-rate must be a finite number >= 0"):
         run_track(tmp_path / "no-such-dataset", tmp_path / "out", tum_rate_hz=-5.0)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_cloud_track_reads_gets_validates_checks(short_walk, tmp_path, capsys):
+    """A cloud whose points all coincide (validate refuses it) is refused by track too, by name,
+    when track reads it (issue 32: track read clouds without the reader's checks)."""
+    from graphcal.io.ply import read_ply, write_ply
+
+    ds = tmp_path / "walk"
+    shutil.copytree(short_walk, ds)
+    clouds = sorted((ds / "clouds").rglob("*.ply"))
+    assert clouds
+    for path in clouds:  # every cloud: whichever ones track opens, each is bad
+        pts = read_ply(path)
+        write_ply(path, np.repeat(pts[:1], len(pts), axis=0))
+    assert main(["track", str(ds), "--out", str(tmp_path / "t"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and ".ply" in err[0] and "copies of" in err[0], err
+    assert not (tmp_path / "t").exists()

@@ -302,7 +302,7 @@ def inputs_from_dataset(ds, *, sensor: str | None = None) -> TrackInputs:
         raise DatasetError(ts_file, f"header, column cloud_{sensor}", "the clouds of the requested sensor", "missing")
     name = sensor or (cloud_sensors[0] if cloud_sensors else None)
     if name is not None:
-        from graphcal.io.ply import read_ply
+        from graphcal.io.dataset.cloud_files import read_cloud  # the same checks as validate's
 
         spec = ds.sensors[name]
         T_body_sensor = spec.T_body_sensor_prior.matrix
@@ -310,7 +310,7 @@ def inputs_from_dataset(ds, *, sensor: str | None = None) -> TrackInputs:
         for i, rel in enumerate(t[f"cloud_{name}"].tolist()):
             if rel:
                 path = Path(root) / rel.replace("\\", "/")
-                clouds[i] = (lambda p=path: read_ply(p))
+                clouds[i] = (lambda p=path: read_cloud(p))
     return TrackInputs(
         times=times,
         gyro=np.column_stack([t["imu_gx"], t["imu_gy"], t["imu_gz"]]).astype(float),
