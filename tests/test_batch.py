@@ -66,6 +66,7 @@ def test_local_pool_batch_reports_failure_and_writes_summary_and_fleet(local_run
     assert not (out / "bad").exists()  # nothing half-written
     page = (out / "fleet.html").read_text()
     assert "robot_a" in page and "Sensor depth" in page and "warning: depth" in page
+    assert "Datasets without a result" in page and "not-a-dataset" in page
     rows = (out / "fleet.csv").read_text().splitlines()
     assert rows[1] == "robot,group,dof,value,sigma,unit,t,p,flagged" and len(rows) == 2 + 2 * 6
 
@@ -98,7 +99,7 @@ def test_dask_localcluster_equals_local_pool_and_survives_a_killed_worker(datase
     from dask.distributed import LocalCluster
 
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}), \
-            LocalCluster(processes=True, n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster:
+            LocalCluster(processes=True, n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster:
         out = tmp_path / "dask"
         text = batch.run("calibrate", [str(datasets / "robot_*"), str(datasets / "bad")], out,
                          scheduler=cluster.scheduler_address, progress=False)
@@ -132,7 +133,7 @@ def dask_cli_cluster(tmp_path):
     procs = [subprocess.Popen([str(DASK), "scheduler", "--host", "127.0.0.1", "--port", str(port),
                                "--dashboard-address", ":0"], env=env, stdout=log, stderr=log)]
     try:
-        procs.append(subprocess.Popen([str(DASK), "worker", addr, "--nthreads", "1", "--nworkers", "1",
+        procs.append(subprocess.Popen([str(DASK), "worker", addr, "--nthreads", "1", "--no-nanny",
                                        "--no-dashboard", "--local-directory", str(tmp_path / "w")],
                                       env=env, stdout=log, stderr=log))
         from dask.distributed import Client
@@ -153,7 +154,7 @@ def dask_cli_cluster(tmp_path):
             p.terminate()
         for p in reversed(procs):
             try:
-                p.wait(timeout=20)
+                p.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 p.kill()
         log.close()
@@ -217,3 +218,27 @@ def test_read_robot_reads_calibration_outputs(local_run):
     assert any("not determined" in w for w in r.warnings) and r.notes == ()
     y = next(v for v in r.values if v.name == "y")
     assert math.isclose(y.value, 2.27, abs_tol=0.1) and y.unit == "mm"
+
+
+# ----------------------------------------------------------------------------- graphcal study
+@pytest.mark.slow
+def test_study_two_seeds_on_the_local_pool(tmp_path):
+    import csv
+
+    from graphcal.commands import study
+
+    out = tmp_path / "study"
+    text = study.run(robot="octopus", program="random", runs=2, n_stations=12, out_dir=out, workers=2, progress=False)
+    assert "2 of 2 runs" in text
+    doc = yaml.safe_load((out / "study.yaml").read_text())
+    assert doc["format"] == "graphcal-study/1" and doc["setup"]["seeds"] == [0, 1] and doc["runs_failed"] == []
+    rows = list(csv.DictReader(line for line in (out / "runs.csv").read_text().splitlines() if not line.startswith("#")))
+    assert [r["seed"] for r in rows] == ["0", "1"]
+    s = doc["sensors"]["depth"]
+    assert s["nees_mean"] == pytest.approx(np.mean([float(r["nees"]) for r in rows]), rel=1e-5)
+    for a in study.AXES:
+        errs = np.array([float(r[f"error_{a}"]) for r in rows])
+        assert s["per_axis"][a]["rms_error"] == pytest.approx(np.sqrt(np.mean(errs**2)), rel=1e-5)
+        assert np.all(np.abs(errs) < (0.5 if a.startswith("r") else 5.0))  # deg, mm: a working calibration
+    assert sorted(p.name for p in out.iterdir()) == sorted(doc["output_files"])
+    assert "NEES" in (out / "report.html").read_text()

@@ -213,8 +213,9 @@ def run_batch(tasks: list[BatchTask], out: Path, *, scheduler: str | None = None
     return summary.doc
 
 
-def write_fleet(tasks: list[BatchTask], out: Path, command: str) -> tuple[Path, Path, list]:
-    """fleet.html and fleet.csv over the finished outputs of ``tasks``; returns their paths and the flags."""
+def write_fleet(tasks: list[BatchTask], out: Path, command: str, doc: dict | None = None) -> tuple[Path, Path, list]:
+    """fleet.html and fleet.csv over the finished outputs of ``tasks``; returns their paths and the
+    flags. ``doc`` (batch.yaml's document) adds the tasks that did not finish to the page."""
     from graphcal.batch.fleet import ALPHA, fleet_flags, read_robot
     from graphcal.report.fleet_page import fleet_csv, fleet_html
 
@@ -222,8 +223,10 @@ def write_fleet(tasks: list[BatchTask], out: Path, command: str) -> tuple[Path, 
     table, flags = fleet_flags(robots)
     html_path, csv_path = out / "fleet.html", out / "fleet.csv"
     atomic_write_text(csv_path, fleet_csv(robots, table, ALPHA))
+    unfinished = [(e["dataset"], e["status"], e["error"] or "") for e in (doc or {}).get("tasks", [])
+                  if e["status"] not in ("done", "skipped")]
     atomic_write_text(html_path, fleet_html(robots, table, flags, title=f"graphcal fleet: {command} over "
-                                            f"{len(robots)} dataset(s) in {out}"))
+                                            f"{len(robots)} dataset(s) in {out}", unfinished=unfinished))
     return html_path, csv_path, flags
 
 
@@ -247,7 +250,7 @@ def run(command: str, datasets: list[str], out_dir: str | Path, *, scheduler: st
         raise GraphcalError(f"--out {out}: exists and is not a folder")
     tasks = plan_tasks(command, list(datasets), out, options=options)
     doc = run_batch(tasks, out, scheduler=scheduler, workers=workers, redo=redo, progress=progress)
-    html, csv, flags = write_fleet(tasks, out, command)
+    html, csv, flags = write_fleet(tasks, out, command, doc)
     counts = ", ".join(f"{n} {s}" for s, n in doc["counts"].items())
     lines = [f"batch {command}: {len(tasks)} dataset(s) on {doc['executor']['kind']} ({counts}); wrote {out}"]
     for e in doc["tasks"]:

@@ -75,9 +75,11 @@ def _notes_list(robots) -> Markup:
     return Markup('<ul class="facts">' + "".join(items) + "</ul>")
 
 
-def fleet_html(robots, table_: dict, flags, *, title: str, alpha: float | None = None) -> str:
+def fleet_html(robots, table_: dict, flags, *, title: str, alpha: float | None = None,
+               unfinished: list[tuple[str, str, str]] = ()) -> str:
     """The page: flagged robots first, then one table per sensor and leg, then each robot's warnings
-    and findings. ``table_`` and ``flags`` from :func:`graphcal.batch.fleet.fleet_flags`."""
+    and findings, then the tasks that did not finish (``unfinished``: (dataset, status, error)).
+    ``table_`` and ``flags`` from :func:`graphcal.batch.fleet.fleet_flags`."""
     from graphcal.batch.fleet import ALPHA, MIN_OTHERS
 
     alpha = ALPHA if alpha is None else alpha
@@ -102,7 +104,14 @@ def fleet_html(robots, table_: dict, flags, *, title: str, alpha: float | None =
         heading = f"Leg {group[4:]}" if group.startswith("leg ") else f"Sensor {group}: T_body_sensor"
         sections.append(Section(heading, _group_table(robots, table_, group, gk, alpha)))
     sections.append(Section("Verdicts, warnings and findings", _notes_list(robots)))
+    if unfinished:
+        urows = [row(["dataset", "status", "error"], header=True)]
+        urows += [row([str(esc(d)), str(esc(st)), f'<span class="l">{esc(err)}</span>'], first_left=True)
+                  for d, st, err in unfinished]
+        sections.append(Section("Datasets without a result in this batch", table(urows)))
     names = ", ".join(sorted({f.robot for f in flags}))
+    warn = [f"outside the fleet's spread: {names}"] if flags else []
+    warn += [f"{len(unfinished)} dataset(s) without a result (failed or worker died): see the end"] if unfinished else []
     return render_page(title, sections, subtitle=f"{len(robots)} robot(s); {len(flags)} flag(s)",
-                       warnings=[f"outside the fleet's spread: {names}"] if flags else [],
+                       warnings=warn,
                        footer="graphcal batch (docs/batch.md)")
