@@ -209,7 +209,11 @@ def _add_executor_args(parser) -> None:
 
 def _cmd_batch(args) -> str:
     from graphcal.commands import batch
+    from graphcal.errors import GraphcalError
 
+    for flag, given, owner in (("--legs", args.legs, "calibrate"), ("--no-icp", args.no_icp, "track")):
+        if given and args.batch_command != owner:
+            raise GraphcalError(f"batch {args.batch_command}: {flag} applies to {owner} only")
     options = {"calibrate": {"legs": args.legs or None}, "track": {"icp": False if args.no_icp else None}}
     return batch.run(args.batch_command, args.datasets, args.out, scheduler=args.scheduler, workers=args.workers,
                      redo=args.redo, options=options.get(args.batch_command), progress=not args.quiet)

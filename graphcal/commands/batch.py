@@ -139,7 +139,9 @@ def plan_tasks(command: str, patterns: list[str], out: Path, *, options: dict | 
     if bad:
         raise GraphcalError(f"batch {command}: option(s) {', '.join(bad)} do not apply to {command}")
     datasets = expand_datasets(patterns)
-    return [BatchTask(command, str(d), str(out / n), opts) for d, n in zip(datasets, folder_names(datasets))]
+    # absolute paths: a Dask worker runs in its own working folder (the cluster must mount the same paths)
+    return [BatchTask(command, str(d.absolute()), str((out / n).absolute()), opts)
+            for d, n in zip(datasets, folder_names(datasets))]
 
 
 def _now() -> str:
