@@ -106,7 +106,8 @@ def _legs_values(legs: dict) -> list[Value]:
             angle = str(pname).endswith("_rad")
             f, unit = (180.0 / math.pi, "deg") if angle else (1e3, "mm")
             v, s = e.get("value"), e.get("sigma")
-            out.append(Value(f"leg {foot}", str(pname), f * float(v) if v is not None else math.nan,
+            shown = str(pname).removesuffix("_rad").removesuffix("_m")  # the unit is in ``unit``
+            out.append(Value(f"leg {foot}", shown, f * float(v) if v is not None else math.nan,
                              f * float(s) if s is not None else math.nan, unit))
     return out
 

@@ -28,7 +28,7 @@ import yaml
 from graphcal.batch.executor import local_executor, open_executor
 from graphcal.batch.run import TaskOutcome, run_tasks
 from graphcal.errors import GraphcalError
-from graphcal.io.atomic import atomic_write_text, previous_output_files
+from graphcal.io.atomic import InterruptedAfterWrite, atomic_write_text, previous_output_files
 
 __all__ = ["COMMANDS", "OPTIONS", "BATCH_FORMAT", "BatchTask", "expand_datasets", "folder_names", "is_finished", "run_task",
            "plan_tasks", "run_batch", "write_fleet", "run"]
@@ -207,10 +207,14 @@ def run_batch(tasks: list[BatchTask], out: Path, *, scheduler: str | None = None
         if info.kind == "local":
             fresh = local_executor
         cap = None if info.kind == "local" else (workers or None)
-        run_tasks(task, [tasks[i] for i in todo], executor,
-                  on_outcome=lambda o: summary.record(todo[o.index], o), progress=progress,
-                  desc=f"batch {tasks[0].command if tasks else ''}", max_in_flight=cap, fresh_pool=fresh,
-                  pool_size=info.workers)
+        try:
+            run_tasks(task, [tasks[i] for i in todo], executor,
+                      on_outcome=lambda o: summary.record(todo[o.index], o), progress=progress,
+                      desc=f"batch {tasks[0].command if tasks else ''}", max_in_flight=cap, fresh_pool=fresh,
+                      pool_size=info.workers)
+        except KeyboardInterrupt:  # what finished is in place; the rest stays "pending" for a rerun
+            summary.write(final=True)
+            raise InterruptedAfterWrite(summary.path) from None
     summary.write(final=True)
     return summary.doc
 
