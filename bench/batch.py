@@ -16,7 +16,8 @@ The configurations run round-robin ``--repeats`` times (so that changes of the m
 of them alike). Reported per configuration: wall (s), the mean compute time of one calibration in its
 worker (``compute_s`` of batch.yaml), and the overhead per task = (wall x workers - sum of compute)
 / tasks: what a task costs beyond its calibration (queueing, pickling, start-up, writing batch.yaml).
-Speed-up = wall(1 worker) / wall(2 workers). The Dask overhead per task against the pool's =
+Speed-up = wall(1 worker) / wall(2 workers). The CPU time of each calibration (``cpu_s``) is printed
+beside its wall time: when the two differ, other processes had the cores. The Dask overhead per task against the pool's =
 (overhead_dask - overhead_pool) / mean compute, with 1 worker (no competition for the cores). Also,
 ``--noop`` empty tasks through each executor with 1 worker (round-trip latency per task, no
 calibration). Load average before and after each run is recorded: on a shared machine it matters.
@@ -63,8 +64,10 @@ def _batch(datasets: list[Path], out: Path, scheduler: str | None, workers: int)
     doc = run_batch(tasks, out, scheduler=scheduler, workers=None if scheduler else workers, progress=False)
     wall = time.perf_counter() - t0
     comp = [t["compute_s"] for t in doc["tasks"] if t["status"] == "done"]
+    cpu = [t["cpu_s"] for t in doc["tasks"] if t["status"] == "done"]
     assert len(comp) == len(tasks), doc["counts"]
     return {"wall_s": wall, "compute_mean_s": float(np.mean(comp)), "compute_sum_s": float(np.sum(comp)),
+            "cpu_mean_s": float(np.mean(cpu)),
             "overhead_per_task_s": (wall * workers - float(np.sum(comp))) / len(tasks),
             "load_start": load0, "load_end": os.getloadavg()[0]}
 
@@ -115,7 +118,7 @@ def main(argv=None) -> dict:
                     r = _batch(datasets, args.scratch / "out" / name.replace(" ", "_"), sched, w)
                     results.setdefault(name, []).append(r)
                     print(f"[pass {rep + 1}] {name} worker(s): wall {r['wall_s']:.1f} s, calibration "
-                          f"{r['compute_mean_s']:.2f} s, overhead/task {r['overhead_per_task_s']:.3f} s "
+                          f"{r['compute_mean_s']:.2f} s ({r['cpu_mean_s']:.2f} s CPU), overhead/task {r['overhead_per_task_s']:.3f} s "
                           f"(load {r['load_start']:.1f} -> {r['load_end']:.1f})", file=sys.stderr, flush=True)
         with local_executor(1) as pool:
             lat_pool = _noop_latency(pool, args.noop)
@@ -144,7 +147,8 @@ def main(argv=None) -> dict:
     s = summary
     print(f"\nbatch bench: {args.tasks} calibrations ({comp1:.2f} s each in a worker), {args.repeats} pass(es)")
     for n in results:
-        print(f"  {n:8s} worker(s): wall {med(n, 'wall_s'):6.1f} s, overhead per task {med(n, 'overhead_per_task_s'):.3f} s")
+        print(f"  {n:8s} worker(s): wall {med(n, 'wall_s'):6.1f} s, calibration {med(n, 'compute_mean_s'):.2f} s wall, "
+              f"{med(n, 'cpu_mean_s'):.2f} s CPU; overhead per task {med(n, 'overhead_per_task_s'):.3f} s")
     print(f"  speed-up 2 workers over 1: local pool {s['speedup_local_2_over_1']:.2f}x, "
           f"Dask {s['speedup_dask_2_over_1']:.2f}x (goal >= 1.7x)")
     print(f"  Dask overhead per task minus the pool's: "

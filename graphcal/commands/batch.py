@@ -123,11 +123,12 @@ def _call(command: str, dataset: str, out: str, opts: dict) -> str:
 
 def run_task(task: BatchTask) -> dict:
     """Run one task (in a worker process): the command's ``run`` writes ``task.out`` atomically.
-    Returns ``{"summary": text, "compute_s": s, "host": name, "pid": id}``; exceptions propagate."""
-    t0 = time.perf_counter()
+    Returns ``{"summary": text, "compute_s": wall s, "cpu_s": CPU s of the worker process, "host": name,
+    "pid": id}``; exceptions propagate."""
+    t0, c0 = time.perf_counter(), time.process_time()
     summary = _call(task.command, task.dataset, task.out, dict(task.options))
-    return {"summary": summary, "compute_s": time.perf_counter() - t0, "host": socket.gethostname(),
-            "pid": os.getpid()}
+    return {"summary": summary, "compute_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+            "host": socket.gethostname(), "pid": os.getpid()}
 
 
 def plan_tasks(command: str, patterns: list[str], out: Path, *, options: dict | None = None) -> list[BatchTask]:
@@ -156,7 +157,9 @@ class _Summary:
         self.doc = {
             "format": BATCH_FORMAT,
             "units": {"wall_s": "s, from submission to result, seen by the caller (includes queueing)",
-                      "compute_s": "s, the command's run in its worker"},
+                      "compute_s": "s, the command's run in its worker (wall clock)",
+                      "cpu_s": "s, CPU time of the worker process during the run (below compute_s when the "
+                               "machine is busy)"},
             "command": tasks[0].command if tasks else None,
             "options": {k: v for k, v in (tasks[0].options if tasks else ())},
             "executor": executor,
@@ -164,7 +167,7 @@ class _Summary:
             "finished": None,
             "counts": {},
             "tasks": [{"dataset": t.dataset, "output": t.out, "status": s, "error": None, "wall_s": None,
-                       "compute_s": None, "worker": None} for t, s in zip(tasks, statuses)],
+                       "compute_s": None, "cpu_s": None, "worker": None} for t, s in zip(tasks, statuses)],
         }
         self.write()
 
@@ -175,6 +178,7 @@ class _Summary:
         e["wall_s"] = round(float(outcome.wall_s), 3) if outcome.wall_s == outcome.wall_s else None
         if outcome.value:
             e["compute_s"] = round(float(outcome.value["compute_s"]), 3)
+            e["cpu_s"] = round(float(outcome.value["cpu_s"]), 3)
             e["worker"] = f"{outcome.value['host']}:{outcome.value['pid']}"
         if outcome.detail:
             e["traceback"] = outcome.detail
