@@ -154,7 +154,7 @@ def dask_cli_cluster(tmp_path):
             p.terminate()
         for p in reversed(procs):
             try:
-                p.wait(timeout=10)
+                p.wait(timeout=3)
             except subprocess.TimeoutExpired:
                 p.kill()
         log.close()
