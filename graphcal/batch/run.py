@@ -12,6 +12,7 @@ that is reported as "worker died" too.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
 import time
@@ -122,10 +123,19 @@ def run_tasks(fn: Callable[[Any], Any], items: Sequence[Any], executor: Executor
         pool_size: the size of the fresh pool that replaces a broken one.
     """
     bar = None
+    redirect = contextlib.nullcontext()
     if progress:
         from tqdm import tqdm
+        from tqdm.contrib.logging import logging_redirect_tqdm
 
         bar = tqdm(total=len(items), desc=desc, unit="task", file=sys.stderr, leave=True)
+        redirect = logging_redirect_tqdm([logging.getLogger("graphcal")])  # messages above the bar
+    with redirect:
+        return _run(fn, items, executor, on_outcome, bar, max_in_flight, fresh_pool, pool_size)
+
+
+def _run(fn, items, executor, on_outcome, bar, max_in_flight, fresh_pool, pool_size) -> list[TaskOutcome]:
+    """:func:`run_tasks` without the bar's set-up."""
     loop = _Loop(fn, items, on_outcome, bar)
     cap = max(1, max_in_flight or len(items) or 1)
     queue = list(range(len(items)))
