@@ -279,7 +279,8 @@ def main(argv=None) -> dict:
     # worker) or, with --scheduler, a Dask cluster
     with open_executor(args.scheduler or "", args.workers) as (executor, info):
         run_tasks(_one_run, jobs, executor, on_outcome=report_run, progress=False,
-                  fresh_pool=local_executor if info.kind == "local" else None, pool_size=info.workers)
+                  fresh_pool=local_executor if info.kind == "local" else None, pool_size=info.workers,
+                  max_in_flight=info.workers if info.kind == "local" else None)
     wall = time.perf_counter() - t0
     load1 = os.getloadavg()
     runs.sort(key=lambda r: r["seed"])

@@ -116,7 +116,9 @@ def run_tasks(fn: Callable[[Any], Any], items: Sequence[Any], executor: Executor
         on_outcome: called with each outcome as it arrives (e.g. to write a summary file).
         progress: a tqdm bar over the tasks on stderr.
         desc: the bar's label.
-        max_in_flight: tasks submitted at once (default: all; a cap keeps the queue short on a pool).
+        max_in_flight: tasks submitted at once (default: all). On a local pool give its size: a dead
+            worker breaks the pool for every task queued in it, and those all become suspects that are
+            rerun one at a time.
         fresh_pool: ``fresh_pool(n)`` -> a new local pool of ``n`` processes, to go on after a worker
             died and broke ``executor`` (a ``ProcessPoolExecutor``); None: those tasks are reported
             as "worker died" with no retry.

@@ -210,7 +210,9 @@ def run_batch(tasks: list[BatchTask], out: Path, *, scheduler: str | None = None
         fresh = None
         if info.kind == "local":
             fresh = local_executor
-        cap = None if info.kind == "local" else (workers or None)
+        # local: no more in flight than workers, so that a dead worker makes suspects of the tasks
+        # that were running only (a broken pool fails every task queued in it)
+        cap = info.workers if info.kind == "local" else (workers or None)
         try:
             run_tasks(task, [tasks[i] for i in todo], executor,
                       on_outcome=lambda o: summary.record(todo[o.index], o), progress=progress,

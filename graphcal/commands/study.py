@@ -218,7 +218,8 @@ def run(*, robot: str, program: str, runs: int, out_dir: str | Path, first_seed:
     t0 = time.perf_counter()
     with open_executor(scheduler, workers) as (executor, info):
         outcomes = run_tasks(study_task, jobs, executor, progress=progress, desc="study",
-                             fresh_pool=local_executor if info.kind == "local" else None, pool_size=info.workers)
+                             fresh_pool=local_executor if info.kind == "local" else None, pool_size=info.workers,
+                             max_in_flight=info.workers if info.kind == "local" else None)
     wall = time.perf_counter() - t0
     done = [o.value for o in outcomes if o.status == "done"]
     failed = [{"seed": jobs[o.index].seed, "status": o.status, "error": o.error} for o in outcomes if o.status != "done"]
