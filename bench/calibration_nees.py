@@ -28,7 +28,10 @@ is not the NEES (the axes are correlated).
 Per variant the bench reports the mean NEES over the runs, its 95 % interval for N honest 6-dof values,
 ``chi2.ppf([0.025, 0.975], 6 N) / N``, whether the mean is inside, the per-axis means with their own
 95 % interval (``chi2.ppf(., N) / N``), the mean |error| (deg, mm) and the time. Runs are spread over
-``--workers`` processes (default 2, start method spawn, OPENBLAS_NUM_THREADS=1 in each); inside a
+``--workers`` processes (default 2, start method spawn, OPENBLAS_NUM_THREADS=1 in each) by graphcal's
+batch executor (graphcal.batch, the engine of ``graphcal study``; ``--scheduler tcp://HOST:PORT`` runs
+them on a Dask cluster instead), and each run is compared with the truth by ``graphcal study``'s
+``extrinsic_errors``; inside a
 worker (a daemon process) the plane fit of ``write_simulation`` uses two threads instead of forked
 processes, as ``planes_rows`` does wherever it cannot fork. Progress (runs done / total) goes to
 stderr. Scratch datasets go to ``--scratch`` (default /tmp/nees) and are removed after each run.
@@ -42,7 +45,6 @@ os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy: in the parent and in e
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import multiprocessing  # noqa: E402
 import platform  # noqa: E402
 import shutil  # noqa: E402
 import subprocess  # noqa: E402
@@ -75,10 +77,6 @@ def _options(variant: str):
     return SIMULATOR_NOISE
 
 
-def _worker_init() -> None:
-    os.environ["OPENBLAS_NUM_THREADS"] = "1"
-
-
 def _config(scenario: str, seed: int):
     from graphcal.simulation.session import SimulationConfig
 
@@ -97,14 +95,12 @@ def _one_run(job: tuple[int, tuple[str, ...], str, str]) -> dict:
     out: dict = {"seed": int(seed), "variants": {}}
     tmp = Path(tempfile.mkdtemp(prefix=f"s{seed}_", dir=scratch))
     try:
-        import gtsam
-
         from graphcal.calibration.calibrate import calibrate
-        from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between, to_gtsam_pose
+        from graphcal.commands.study import extrinsic_errors
+        from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between
         from graphcal.io.dataset import read_dataset
         from graphcal.simulation.write import write_simulation
         from graphcal.simulation.session import simulate
-        from graphcal.solvers.covariance import body_axis_sigmas, nees
 
         t0 = time.perf_counter()
         res = simulate(_config(scenario, seed))
@@ -120,15 +116,12 @@ def _one_run(job: tuple[int, tuple[str, ...], str, str]) -> dict:
                 result = calibrate(ds, options=_options(v))
                 rec["calibrate_s"] = time.perf_counter() - t1
                 est = result.sensors[sensor]
-                T, C = np.asarray(est.T_body_sensor, float), np.asarray(est.covariance, float)
-                xi = np.asarray(gtsam.Pose3.Logmap(to_gtsam_pose(T).between(to_gtsam_pose(T_true))), float)
-                R = T[:3, :3]
-                e_body = np.concatenate([R @ xi[:3], R @ xi[3:]])  # [rx, ry, rz (rad), x, y, z (m)]
-                s_rot_deg, s_xyz_mm, _, cov_body = body_axis_sigmas(T, C)
-                rec["nees"] = nees(T_true, T, C)
-                rec["z2_body"] = (e_body**2 / np.diag(cov_body)).tolist()
-                rec["error_body"] = np.concatenate([np.degrees(e_body[:3]), 1e3 * e_body[3:]]).tolist()
-                rec["sigma_body"] = np.concatenate([s_rot_deg, s_xyz_mm]).tolist()  # deg, mm
+                T = np.asarray(est.T_body_sensor, float)
+                e = extrinsic_errors(T, est.covariance, T_true)  # graphcal study's per-run comparison
+                rec["nees"] = e["nees"]
+                rec["z2_body"] = e["z2"]
+                rec["error_body"] = e["error"]  # deg, mm along the body axes
+                rec["sigma_body"] = e["sigma"]  # deg, mm
                 rec["error_deg"] = float(np.degrees(rotation_angle_between(T[:3, :3], T_true[:3, :3])))
                 rec["error_mm"] = float(1e3 * np.linalg.norm(T[:3, 3] - T_true[:3, 3]))
                 if v == "learned":
@@ -239,6 +232,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--first-seed", type=int, default=None,
                     help="seeds first-seed .. first-seed+runs-1 (default 300 for chai, 600 for unseen)")
     ap.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
+    ap.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                    help="run on a Dask cluster (tcp://HOST:PORT; graphcal.batch.executor) instead of local processes")
     ap.add_argument("--scratch", type=Path, default=Path("/tmp/nees"), help="scratch folder for the datasets")
     ap.add_argument("--json", type=Path, default=None, help="write the summary and every run to this JSON file")
     args = ap.parse_args(argv)
@@ -258,19 +253,31 @@ def main(argv=None) -> dict:
     jobs = [(args.first_seed + i, variants, str(args.scratch), args.scenario) for i in range(args.runs)]
     runs: list[dict] = []
     t0 = time.perf_counter()
-    ctx = multiprocessing.get_context("spawn")
+    from graphcal.batch.executor import local_executor, open_executor
+    from graphcal.batch.run import run_tasks
+
     print(f"calibration_nees: {args.runs} runs (seeds {args.first_seed}..{args.first_seed + args.runs - 1}), "
-          f"scenario {args.scenario}, variants {', '.join(variants)}, {args.workers} worker processes",
+          f"scenario {args.scenario}, variants {', '.join(variants)}, "
+          + (f"Dask scheduler {args.scheduler}" if args.scheduler else f"{args.workers} worker processes"),
           file=sys.stderr, flush=True)
-    with ctx.Pool(args.workers, initializer=_worker_init, maxtasksperchild=None) as pool:
-        for r in pool.imap_unordered(_one_run, jobs, chunksize=1):
-            runs.append(r)
-            el = time.perf_counter() - t0
-            msg = "; ".join(f"{v} {r['variants'][v]['nees']:.2f}" if "nees" in r["variants"].get(v, {})
-                            else f"{v} FAILED" for v in variants) if not r.get("failed") else "FAILED"
-            eta = el / len(runs) * (args.runs - len(runs))
-            print(f"[{len(runs)}/{args.runs}] seed {r['seed']}: NEES {msg}  ({el:.0f} s, ~{eta:.0f} s left)",
-                  file=sys.stderr, flush=True)
+
+    def report_run(outcome) -> None:
+        r = outcome.value if outcome.status == "done" else {"seed": jobs[outcome.index][0], "variants": {},
+                                                            "failed": outcome.error}
+        runs.append(r)
+        el = time.perf_counter() - t0
+        msg = "; ".join(f"{v} {r['variants'][v]['nees']:.2f}" if "nees" in r["variants"].get(v, {})
+                        else f"{v} FAILED" for v in variants) if not r.get("failed") else "FAILED"
+        eta = el / len(runs) * (args.runs - len(runs))
+        print(f"[{len(runs)}/{args.runs}] seed {r['seed']}: NEES {msg}  ({el:.0f} s, ~{eta:.0f} s left)",
+              file=sys.stderr, flush=True)
+
+    # graphcal's batch executor (graphcal study's): the local process pool (spawn, one BLAS thread per
+    # worker) or, with --scheduler, a Dask cluster
+    with open_executor(args.scheduler or "", args.workers) as (executor, info):
+        run_tasks(_one_run, jobs, executor, on_outcome=report_run, progress=False,
+                  fresh_pool=local_executor if info.kind == "local" else None, pool_size=info.workers,
+                  max_in_flight=info.workers if info.kind == "local" else None)
     wall = time.perf_counter() - t0
     load1 = os.getloadavg()
     runs.sort(key=lambda r: r["seed"])
@@ -282,7 +289,7 @@ def main(argv=None) -> dict:
                   "config": {k: v for k, v in vars(_config(args.scenario, args.first_seed)).items()
                              if k != "custom_robot" and isinstance(v, (int, float, str, bool, type(None)))},
                   "seeds": [args.first_seed, args.first_seed + args.runs - 1], "workers": args.workers,
-                  "start_method": "spawn", "OPENBLAS_NUM_THREADS": 1},
+                  "executor": info.to_dict(), "start_method": "spawn", "OPENBLAS_NUM_THREADS": 1},
         "machine": {**machine, "load_average_start": list(load0), "load_average_end": list(load1)},
         "wall_s": wall,
         "simulate_s_mean": float(np.mean([r["simulate_s"] for r in runs if "simulate_s" in r])) if runs else None,

@@ -189,7 +189,66 @@ def _build_parser() -> argparse.ArgumentParser:
     im.add_argument("--timeseries", action="store_true",
                     help="also write timeseries.csv (every joint sample, for track; memory grows with the log)")
     im.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    _add_batch_parsers(sub, common)
     return p
+
+
+def _add_batch_parsers(sub, common) -> None:
+    """``graphcal batch`` and ``graphcal study`` (docs/batch.md)."""
+    b = sub.add_parser("batch", help="run calibrate, diagnose, identify-legs or track over many datasets (local "
+                                     "processes or a Dask cluster): one folder each, batch.yaml, fleet.html",
+                       parents=[common], formatter_class=_DefaultsHelpFormatter)
+    b.add_argument("batch_command", metavar="COMMAND", choices=("calibrate", "diagnose", "identify-legs", "track"),
+                   help="calibrate, diagnose, identify-legs or track")
+    b.add_argument("datasets", nargs="+", metavar="DATASET", help="dataset folders or glob patterns (quoted)")
+    b.add_argument("--out", required=True, type=Path,
+                   help="batch folder: one output folder per dataset, batch.yaml, fleet.html, fleet.csv")
+    _add_executor_args(b)
+    b.add_argument("--redo", action="store_true", help="run again the datasets whose output is already finished")
+    b.add_argument("--legs", action="store_true", help="calibrate: also estimate the leg parameters")
+    b.add_argument("--no-icp", action="store_true", help="track: proprioception only")
+
+    st = sub.add_parser("study", help="Monte Carlo of a station program: simulate + calibrate over N seeds, "
+                                      "accuracy and NEES per DoF (study.yaml, plots)", parents=[common],
+                        formatter_class=_DefaultsHelpFormatter)
+    st.add_argument("--robot", default="octopus", help="built-in robot model (octopus, qingzhui, messor, a1)")
+    st.add_argument("--program", default="chai2015", help="station program (chai2015, labecki2012, random)")
+    st.add_argument("--runs", type=int, default=20, help="simulated calibrations, one seed each")
+    st.add_argument("--first-seed", type=int, default=0, help="seeds first-seed .. first-seed+runs-1")
+    st.add_argument("--stations", type=int, default=None, help="number of stations (random program)")
+    st.add_argument("--effect", action="append", type=_effect_arg, default=[],
+                    help="hide an effect in every run: CAUSE or CAUSE:key=value,... (docs/simulation.md)")
+    st.add_argument("--out", required=True, type=Path, help="study folder: study.yaml, runs.csv, plots")
+    _add_executor_args(st)
+
+
+def _add_executor_args(parser) -> None:
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="Dask scheduler, tcp://HOST:PORT (default: $DASK_SCHEDULER_ADDRESS; none: a local "
+                             "process pool)")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="local worker processes (default: the machine's CPUs); with --scheduler, the most "
+                             "tasks in flight")
+
+
+def _cmd_batch(args) -> str:
+    from graphcal.commands import batch
+    from graphcal.errors import GraphcalError
+
+    for flag, given, owner in (("--legs", args.legs, "calibrate"), ("--no-icp", args.no_icp, "track")):
+        if given and args.batch_command != owner:
+            raise GraphcalError(f"batch {args.batch_command}: {flag} applies to {owner} only")
+    options = {"calibrate": {"legs": args.legs or None}, "track": {"icp": False if args.no_icp else None}}
+    return batch.run(args.batch_command, args.datasets, args.out, scheduler=args.scheduler, workers=args.workers,
+                     redo=args.redo, options=options.get(args.batch_command), progress=not args.quiet)
+
+
+def _cmd_study(args) -> str:
+    from graphcal.commands import study
+
+    return study.run(robot=args.robot, program=args.program, runs=args.runs, out_dir=args.out,
+                     first_seed=args.first_seed, n_stations=args.stations, effects=args.effect,
+                     scheduler=args.scheduler, workers=args.workers, progress=not args.quiet)
 
 
 def _cmd_simulate(args) -> str:
@@ -346,6 +405,8 @@ def main(argv: list[str] | None = None) -> int:
         "identify-legs": _cmd_identify_legs,
         "diagnose": _cmd_diagnose,
         "import": _cmd_import,
+        "batch": _cmd_batch,
+        "study": _cmd_study,
     }
     try:
         with _output_guard(args):

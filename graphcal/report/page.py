@@ -37,6 +37,7 @@ code{font-size:.92em}
 figure{margin:1em 0}figure img{max-width:100%;height:auto;border:1px solid #eee}
 figcaption{font-size:.85em;color:#555}
 .small{font-size:.85em;color:#555}
+.flag{color:#a00000;font-weight:bold}
 """
 
 _TEMPLATE = """<!DOCTYPE html>
