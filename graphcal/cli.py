@@ -40,6 +40,24 @@ class _DefaultsHelpFormatter(argparse.HelpFormatter):
         return text
 
 
+def _add_import_parser(sub, common) -> None:
+    """``graphcal import LOG --out DATASET`` (docs/import.md)."""
+    im = sub.add_parser("import", help="a robot log (ROS 1/2 bag, MCAP, CSV) -> dataset: stations found in still "
+                                       "windows, import_map.yaml and import_report.yaml (docs/import.md)",
+                        parents=[common])
+    im.add_argument("log", type=Path, help="a .bag file, a ROS 2 bag folder, a .mcap file or a .csv file")
+    im.add_argument("--out", required=True, type=Path, help="dataset folder to write (must not exist or be empty)")
+    im.add_argument("--map", type=Path, default=None, help="import map (the import_map.yaml of an earlier import, "
+                    "edited; for a CSV log its column map)")
+    im.add_argument("--urdf", type=Path, default=None, help="the robot's URDF (instead of /robot_description)")
+    im.add_argument("--receive-time", action="store_true", help="time messages by receive time, not header stamps")
+    im.add_argument("--msg-dir", type=Path, default=None,
+                    help="folder of .msg definitions (<pkg>/msg/<Name>.msg) for message types rosbags does not know")
+    im.add_argument("--timeseries", action="store_true",
+                    help="also write timeseries.csv (every joint sample, for track; memory grows with the log)")
+    im.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+
+
 def _build_parser() -> argparse.ArgumentParser:
     from graphcal import __version__
 
@@ -175,20 +193,7 @@ def _build_parser() -> argparse.ArgumentParser:
                     help="poses per second in trajectory.tum (default 100; 0 = every sample)")
     tr.add_argument("--no-icp", action="store_true", help="proprioception only (no ICP between clouds)")
 
-    im = sub.add_parser("import", help="a robot log (ROS 1/2 bag, MCAP, CSV) -> dataset: stations found in still "
-                                       "windows, import_map.yaml and import_report.yaml (docs/import.md)",
-                        parents=[common])
-    im.add_argument("log", type=Path, help="a .bag file, a ROS 2 bag folder, a .mcap file or a .csv file")
-    im.add_argument("--out", required=True, type=Path, help="dataset folder to write (must not exist or be empty)")
-    im.add_argument("--map", type=Path, default=None, help="import map (the import_map.yaml of an earlier import, "
-                    "edited; for a CSV log its column map)")
-    im.add_argument("--urdf", type=Path, default=None, help="the robot's URDF (instead of /robot_description)")
-    im.add_argument("--receive-time", action="store_true", help="time messages by receive time, not header stamps")
-    im.add_argument("--msg-dir", type=Path, default=None,
-                    help="folder of .msg definitions (<pkg>/msg/<Name>.msg) for message types rosbags does not know")
-    im.add_argument("--timeseries", action="store_true",
-                    help="also write timeseries.csv (every joint sample, for track; memory grows with the log)")
-    im.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    _add_import_parser(sub, common)
     _add_batch_parsers(sub, common)
     return p
 
