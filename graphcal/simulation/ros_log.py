@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LogPlan", "write_station_log", "write_station_csv", "still_windows", "depth_image"]
+__all__ = ["LogPlan", "write_station_log", "write_station_csv", "write_walk_csv", "still_windows", "depth_image"]
 
 
 @dataclass(frozen=True)
@@ -287,3 +287,38 @@ def write_station_csv(dataset: str | Path, out: str | Path, plan: LogPlan = LogP
     import yaml
 
     return [(a - plan.t0, b - plan.t0) for a, b in still_windows(len(q_st), plan)], yaml.safe_dump(cmap, sort_keys=False)
+
+
+def write_walk_csv(dataset: str | Path, out: str | Path, *, raw_scale: float = 0.25, raw_offset: float = 40.0) -> str:
+    """A simulated walk's ``timeseries.csv`` (with ``force_<foot>`` columns, e.g. ``graphcal simulate
+    --robot a1 --program trot``) as a Unitree-style CSV export: ``time_ms``, ``acc_x..z`` in g,
+    ``gyro_x..z`` in rad/s, ``q0..q<n-1>`` in rad and ``foot_force_<i>`` raw counts (raw = force N /
+    ``raw_scale`` + ``raw_offset``, rounded); returns the column map YAML for ``graphcal import``."""
+    import csv
+
+    import yaml
+
+    from graphcal.io.dataset import read_dataset
+
+    ds = read_dataset(dataset)
+    data = ds.timeseries.data
+    joints = [c[2:] for c in ds.timeseries.columns if c.startswith("q_")]
+    feet = list(ds.robot.feet)
+    g0 = 9.80665
+    acc = np.stack([data[f"imu_a{a}"] for a in "xyz"], axis=1) / g0
+    gyr = np.stack([data[f"imu_g{a}"] for a in "xyz"], axis=1)
+    q = np.stack([data[f"q_{j}"] for j in joints], axis=1)
+    raw = np.round(np.stack([data[f"force_{f}"] for f in feet], axis=1) / raw_scale + raw_offset).astype(int)
+    with open(out, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["time_ms", "acc_x", "acc_y", "acc_z", "gyro_x", "gyro_y", "gyro_z",
+                    *[f"q{i}" for i in range(len(joints))], *[f"foot_force_{i}" for i in range(len(feet))]])
+        for k, t in enumerate(data["time"]):
+            w.writerow([repr(1e3 * float(t)), *map(repr, map(float, (*acc[k], *gyr[k], *q[k]))), *raw[k].tolist()])
+    cmap = {"format": "graphcal-csv-map/1", "time": {"column": "time_ms", "unit": "ms"}, "robot": {"model": ds.robot.model},
+            "joints": {"unit": "rad", "columns": {j: f"q{i}" for i, j in enumerate(joints)}},
+            "imu": {"accel": ["acc_x", "acc_y", "acc_z"], "accel_unit": "g", "gyro": ["gyro_x", "gyro_y", "gyro_z"],
+                    "gyro_unit": "rad/s"},
+            "feet": {foot: {"column": f"foot_force_{i}", "offset": raw_offset, "scale": raw_scale, "threshold_n": 20.0}
+                     for i, foot in enumerate(feet)}}
+    return yaml.safe_dump(cmap, sort_keys=False)
