@@ -25,6 +25,24 @@ SMALL = REPO / "tests" / "data" / "octopus_small"
 DASK = Path(sys.executable).with_name("dask")
 
 
+@pytest.fixture(scope="module", autouse=True)
+def no_dask_threads_left():
+    """After this module, stop the thread pool that dask.distributed keeps for the process once a
+    client has run in it ("Dask-Offload"): with another thread alive, graphcal may not fork its
+    plane-fitting workers (clouds.plane_table), and every later test would fit on threads instead."""
+    yield
+    import threading
+
+    import distributed.utils
+
+    offload = getattr(distributed.utils, "_offload_executor", None)
+    if offload is not None:
+        offload.shutdown(wait=True)
+    deadline = time.monotonic() + 10
+    while any(t.name.startswith("Dask-") for t in threading.enumerate()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
 def crash_or_run(task):
     """The batch's task, except that a dataset named ``crash*`` kills its worker process."""
     if Path(task.dataset).name.startswith("crash"):

@@ -347,7 +347,7 @@ _DELETE = object()
         (("sensors", "depth", "T_body_sensor", "xyz"), [1.0, 2.0], "sensors.depth.T_body_sensor.xyz"),
         (("sensors", "depth", "T_body_sensor", "quaternion_wxyz"), [1.0, 1.0, 0.0, 0.0], "sensors.depth.T_body_sensor.quaternion_wxyz"),
         (("sensors", "depth", "T_body_sensor", "rpy_deg"), [0.0, 0.0, 0.0], "sensors.depth.T_body_sensor.rpy_deg"),
-        (("sensors", "lidar", "covariance"), [[1.0] * 6] * 5, "sensors.lidar.covariance"),
+        (("sensors", "lidar", "covariance"), [[1.0] * 6 for _ in range(5)], "sensors.lidar.covariance"),
         (("sensors", "lidar", "sigma"), {"rot_deg": [1, 2, 3]}, "sensors.lidar.sigma.xyz_mm"),
         (("sensors", "lidar", "unobservable"), "none", "sensors.lidar.unobservable"),
         (("sensors", "depth", "T_body_sensor_prior", "xyz"), ["a", 0, 0], "sensors.depth.T_body_sensor_prior.xyz"),
