@@ -314,6 +314,19 @@ def judge_result(inputs: BatchInputs, state: BatchState, options: CalibrationOpt
     return dataclasses.replace(result, adequacy=verdict, warnings=first + result.warnings)
 
 
+def adequacy_at(ds, options: CalibrationOptions, problem: CalibrationProblem, values):
+    """The :class:`~graphcal.calibration.adequacy.Adequacy` of a solved graph (``problem`` at
+    ``values``, gtsam.Values) under the noise ``options`` it used: every noise group's statistics
+    at the solution (one variance-component update), judged against dataset ``ds``'s physical
+    noise. For a model other than calibrate's (diagnose's extended one); no gross-station test."""
+    from graphcal.calibration.adequacy import adequacy_verdict, group_checks
+
+    stats = noise_update(options, problem, values, converge=False).stats
+    groups, _ = noise_groups_report(stats, options, given=True)
+    physical, sources = dataset_physical_noise(ds, options)
+    return adequacy_verdict(group_checks(groups, physical, sources), legs=options.legs)
+
+
 def dataset_physical_noise(ds, options: CalibrationOptions) -> tuple[dict, dict]:
     """(key -> physical sigma in deg / mm, key -> source) of dataset ``ds``'s ``physical_noise:``
     (defaults where it declares none; the ground at least ``options.ground_unevenness_m``)."""

@@ -100,6 +100,7 @@ class Diagnosis:
         cal = calibration_dict(result)
         return {
             "format": "graphcal-diagnosis/1",
+            "adequacy": _final_adequacy(self),
             "nominal": self.nominal.to_dict(),
             "final": self.final.to_dict(),
             "findings": [f.to_dict() for f in self.findings],
@@ -113,6 +114,19 @@ class Diagnosis:
             "nuisance": list(self.nuisance),
             "notes": list(self.notes),
         }
+
+
+def _final_adequacy(diag: "Diagnosis") -> dict:
+    """The verdict on the final (extended) model, judged against the dataset's physical noise as
+    calibrate's (calibration.yaml ``adequacy:``, docs/calibration.md); a note when it cannot be read."""
+    from graphcal.calibration.calibrate import adequacy_at
+    from graphcal.report.calibration_yaml import adequacy_dict
+
+    try:
+        return {"model": "final (extended)",
+                **adequacy_dict(adequacy_at(diag.model.ds, diag.model.options, diag.problem, diag.values))}
+    except (RuntimeError, ValueError, KeyError) as exc:  # a graph the variance components cannot read
+        return {"model": "final (extended)", "verdict": "not judged", "reason": str(exc)}
 
 
 def _extension_values(diag: Diagnosis) -> dict:
