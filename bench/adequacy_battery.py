@@ -110,7 +110,7 @@ def held_out(name: str, folder: Path) -> None:
             for k in fields:
                 if k.startswith("q_") and "femur" in k and r[k] not in ("", None):
                     q = float(r[k])
-                    r[k] = repr(q - c * np.cos(q))
+                    r[k] = repr(float(q - c * np.cos(q)))
         with open(path, "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=fields)
             w.writeheader()
@@ -194,7 +194,9 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
-    effects = HELD_OUT if args.held_out else tuple(args.effects.split(","))
+    effects = tuple(args.effects.split(","))
+    if args.held_out:  # the held-out effects (all, or those of --effects that are held out)
+        effects = tuple(e for e in effects if e in HELD_OUT) or HELD_OUT
     scratch = tempfile.mkdtemp(prefix="adequacy-")
     specs = []
     for eff in effects:
