@@ -808,18 +808,18 @@ def calibrate_incremental(
 
 
 def batch_noise_groups(ds, robot, data, options: CalibrationOptions, values) -> tuple:
-    """The noise groups (given) of the batch graph of ``data`` under ``options`` linearised at the
-    incremental solution ``values``: the graph iSAM2 holds has groups only for the planes."""
+    """The noise groups of the batch graph of ``data`` under ``options`` at the incremental
+    solution ``values``, each σ what its residuals converge to
+    (:func:`~graphcal.calibration.calibrate.noise_groups_pointed_to`): the graph iSAM2 holds has
+    groups only for the planes."""
+    from graphcal.calibration.calibrate import noise_groups_pointed_to
     from graphcal.calibration.graph import build_problem
-    from graphcal.calibration.noise_estimation import noise_groups_report, noise_update
 
     try:
         full = build_problem(ds, robot, data, options, exclude=frozenset(), initial=values)
-        stats = noise_update(options, full, full.initial, converge=False).stats
-    except (RuntimeError, KeyError, ValueError):  # a graph the batch cannot linearise there: planes only
+    except (RuntimeError, KeyError, ValueError):  # a graph the batch cannot build there: planes only
         return ()
-    groups, _ = noise_groups_report(stats, options, given=True)
-    return groups
+    return noise_groups_pointed_to(options, full, full.initial)
 
 
 def judge_incremental(ds, options: CalibrationOptions, problem, values, result, *, batch_groups: tuple = ()):
