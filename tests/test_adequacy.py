@@ -115,6 +115,12 @@ def test_joint_offset_warns_and_its_governing_sigma_covers_the_error(joint_offse
     assert nees_model > 1000  # measured 5181: the model's sigma does not cover the error
     assert nees_gov < NEES_LIMIT  # measured 1.0: the governing one does
     assert "robust (the model does not fit)" in (tmp_path / "cal" / "static_transforms.sh").read_text()
+    from graphcal.report.calibration_yaml import read_calibration_yaml, validate_calibration_dict
+
+    assert read_calibration_yaml(tmp_path / "cal" / "calibration.yaml")["adequacy"]["verdict"] == "does not fit"
+    doc["adequacy"]["verdict"] = "maybe"
+    with pytest.raises(DatasetError, match=r"adequacy.verdict: expected fits or does not fit"):
+        validate_calibration_dict(doc)
     html = (tmp_path / "cal" / "report.html").read_text()
     assert html.index("Does the model fit?") < html.index("Sensor <code>depth</code>")
     assert "1-σ model (the model does not fit)" in html

@@ -139,21 +139,30 @@ class GroupCheck:
     p_value: float
     misfit: bool = False
 
+    def learned_text(self) -> str:
+        """The learned sigma in words, e.g. ``0.239 deg, 1.08 mm``."""
+        return ", ".join(_value_text(n, v) for n, v in self.learned)
+
+    def physical_text(self) -> str:
+        """The physical sigma in words, e.g. ``0.02 deg, 0.1 mm``."""
+        return ", ".join(_value_text(n, v) for n, v in self.physical)
+
     def text(self) -> str:
-        """E.g. ``foot_on_ground: learned 6.23 mm, physical 0.1 mm (x62)``."""
-        def fmt(name, v):
-            if name.endswith("_rad"):
-                return f"{np.degrees(v):.3g} deg"
-            if name.endswith("_m"):
-                return f"{1e3 * v:.3g} mm"
-            if name.endswith("_deg"):
-                return f"{v:.3g} deg"
-            if name.endswith("_mm"):
-                return f"{v:.3g} mm"
-            return f"x{v:.3g}"
-        learned = ", ".join(fmt(n, v) for n, v in self.learned)
-        physical = ", ".join(fmt(n, v) for n, v in self.physical)
-        return f"{self.group}: learned {learned}, physical {physical} (x{self.ratio:.2g})"
+        """E.g. ``foot_on_ground: learned 6.23 mm, physical 0.5 mm (x12)``."""
+        return f"{self.group}: learned {self.learned_text()}, physical {self.physical_text()} (x{self.ratio:.2g})"
+
+
+def _value_text(name: str, v: float) -> str:
+    """A value named by its unit suffix (``_rad``, ``_m`` SI; ``_deg``, ``_mm``; else a scale) in words."""
+    if name.endswith("_rad"):
+        return f"{np.degrees(v):.3g} deg"
+    if name.endswith("_m"):
+        return f"{1e3 * v:.3g} mm"
+    if name.endswith("_deg"):
+        return f"{v:.3g} deg"
+    if name.endswith("_mm"):
+        return f"{v:.3g} mm"
+    return f"x{v:.3g}"
 
 
 @dataclass(frozen=True)

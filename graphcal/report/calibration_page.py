@@ -205,13 +205,11 @@ def _adequacy_section(result) -> str:
               "the model's is beside it.") + "</p>"]
     rows = [_row(["group", "learned", "physical", "ratio", "T", "dof", "p", "misfit"], header=True)]
     for g in a.groups:
-        learned, _, rest = g.text().partition(": learned ")[2].partition(", physical ")
-        physical = rest.rsplit(" (x", 1)[0]
-        rows.append(_row([g.group, learned, physical, _n(g.ratio, ".3g"), _n(g.statistic, ".4g"), _n(g.dof, ".1f"),
-                          _n(g.p_value, ".2g"), "yes" if g.misfit else "no"]))
+        rows.append(_row([g.group, g.learned_text(), g.physical_text(), _n(g.ratio, ".3g"), _n(g.statistic, ".4g"),
+                          _n(g.dof, ".1f"), _n(g.p_value, ".2g"), "yes" if g.misfit else "no"]))
     out.append("<table>" + "".join(rows) + "</table>")
     if a.gross:
-        out.append("<p>Gross stations left out: " + ", ".join(
+        out.append(f"<p>Gross stations {'left out' if a.gross_left_out else 'found (not left out)'}: " + ", ".join(
             f"{int(s.station)} (χ² per dof {_n(s.factor, '.3g')} times a typical station's, p = {_n(s.p_value, '.2g')})"
             for s in a.gross) + ".</p>")
     if a.next_steps:

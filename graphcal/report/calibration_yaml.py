@@ -450,6 +450,10 @@ def validate_calibration_dict(doc, path: str | Path = "calibration.yaml") -> dic
             c.fail(f"residuals.{k}", "a number", res[k])
     if "warnings" in doc:
         c.strings(doc["warnings"], "warnings", "warning sentences")
+    if "adequacy" in doc:
+        a = c.mapping(doc["adequacy"], "adequacy", ("verdict",))
+        if a["verdict"] not in ("fits", "does not fit"):
+            c.fail("adequacy.verdict", "fits or does not fit", a["verdict"])
     if "robot" in doc and not isinstance(doc["robot"], str):
         c.fail("robot", "the robot's name (text)", doc["robot"])
     return doc
