@@ -4,7 +4,9 @@ Batch mode: build the graph (graph.py), solve it with Levenberg–Marquardt driv
 (solvers/batch.py) under a Huber loss, list the measurements that fail a chi-square test as outliers
 and solve again without them, learn the noise (noise_estimation.py), then read the result with its
 marginal covariances (result.py, solvers/covariance.py). Each solve is a plain function of a frozen
-:class:`BatchState`.
+:class:`BatchState`. Last, :func:`judge_result` gives the result its adequacy verdict (adequacy.py:
+the noise judged against the physical noise, gross stations left out) and, when the model does not
+fit, the robust covariance (robust.py).
 """
 
 from __future__ import annotations
