@@ -3,7 +3,8 @@
 The data hide a plane noise model that understates the planes' scatter (the given plane scale is
 0.25 where the fits' own noise is about right): the run must see it in its residuals, say so, and
 widen the sensor's covariance by exactly the variance factor it reports; a noise model that
-overstates the scatter must leave the covariance alone."""
+overstates the scatter must leave the covariance alone. ``judge=False``: the noise check's own
+covariance, without the adequacy verdict's robust one (tests/test_adequacy.py)."""
 
 from __future__ import annotations
 
@@ -39,9 +40,9 @@ def _plane_group(result):
 
 
 def test_understated_plane_noise_widens_the_covariance_by_the_variance_factor(dataset):
-    on = calibrate(dataset, options=_given(0.25, True))
-    off = calibrate(dataset, options=_given(0.25, False))
-    right = calibrate(dataset, options=_given(1.0, False))  # the fits' own noise: what the planes point to
+    on = calibrate(dataset, options=_given(0.25, True), judge=False)
+    off = calibrate(dataset, options=_given(0.25, False), judge=False)
+    right = calibrate(dataset, options=_given(1.0, False), judge=False)  # the fits' own noise: what the planes point to
     s_on, s_off = on.sensors["depth"], off.sensors["depth"]
     g = _plane_group(on)
     assert g.status == "given" and g.data_scale > 1.5 and g.p_high < 0.01
@@ -65,7 +66,7 @@ def test_understated_plane_noise_widens_the_covariance_by_the_variance_factor(da
 
 @pytest.mark.parametrize("plane_scale, warned", [(0.45, True), (0.6, False)])
 def test_a_large_factor_is_warned_about_even_when_the_test_is_not_significant(dataset, plane_scale, warned):
-    r = calibrate(dataset, options=_given(plane_scale, True))
+    r = calibrate(dataset, options=_given(plane_scale, True), judge=False)
     f = r.sensors["depth"].covariance_scale
     assert _plane_group(r).p_high > 0.01 and f > 1.2
     assert (f > 2.0) == warned
@@ -73,15 +74,15 @@ def test_a_large_factor_is_warned_about_even_when_the_test_is_not_significant(da
 
 
 def test_planes_with_too_little_redundancy_are_warned_about_not_scaled(dataset):
-    r = calibrate(dataset, options=_given(0.1, True))
+    r = calibrate(dataset, options=_given(0.1, True), judge=False)
     assert _plane_group(r).dof < 3.0
     assert r.sensors["depth"].covariance_scale == 1.0
     assert any("too few to check the given noise model" in w for w in r.warnings)
 
 
 def test_overstated_plane_noise_leaves_the_covariance_alone(dataset):
-    on = calibrate(dataset, options=_given(3.0, True))
-    off = calibrate(dataset, options=_given(3.0, False))
+    on = calibrate(dataset, options=_given(3.0, True), judge=False)
+    off = calibrate(dataset, options=_given(3.0, False), judge=False)
     assert _plane_group(on).data_scale < 1.0
     assert on.sensors["depth"].covariance_scale == 1.0
     np.testing.assert_array_equal(on.sensors["depth"].covariance, off.sensors["depth"].covariance)
@@ -89,9 +90,9 @@ def test_overstated_plane_noise_leaves_the_covariance_alone(dataset):
 
 
 def test_incremental_scales_its_final_covariance_not_its_history(dataset):
-    on = calibrate_incremental(dataset, options=_given(0.25, True))
-    off = calibrate_incremental(dataset, options=_given(0.25, False))
-    batch = calibrate(dataset, options=_given(0.25, True))
+    on = calibrate_incremental(dataset, options=_given(0.25, True), judge=False)
+    off = calibrate_incremental(dataset, options=_given(0.25, False), judge=False)
+    batch = calibrate(dataset, options=_given(0.25, True), judge=False)
     assert [g.group for g in on.noise_groups] == ["plane:depth"]  # the iSAM2 graph names its planes only
     f = on.sensors["depth"].covariance_scale
     assert f > 4 and f == pytest.approx(batch.sensors["depth"].covariance_scale, rel=1e-3)  # the same graph

@@ -4,7 +4,9 @@ Batch mode: build the graph (graph.py), solve it with Levenberg–Marquardt driv
 (solvers/batch.py) under a Huber loss, list the measurements that fail a chi-square test as outliers
 and solve again without them, learn the noise (noise_estimation.py), then read the result with its
 marginal covariances (result.py, solvers/covariance.py). Each solve is a plain function of a frozen
-:class:`BatchState`.
+:class:`BatchState`. Last, :func:`judge_result` gives the result its adequacy verdict (adequacy.py:
+the noise judged against the physical noise, gross stations left out) and, when the model does not
+fit, the robust covariance (robust.py).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from graphcal.errors import GraphcalError
 from graphcal.io.dataset import off_plane_scan_warning
 from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem, build_problem
 from graphcal.calibration.ground_selection import ground_choice_warnings
@@ -183,6 +186,7 @@ def calibrate(
     progress: bool = False,
     data: CalibrationData | None = None,
     plane_max_points: int | None = None,
+    judge: bool = True,
 ) -> CalibrationResult:
     """Calibrate every sensor of a dataset (and the legs with ``options.legs``) in batch.
 
@@ -195,6 +199,8 @@ def calibrate(
             None: all). Ignored when the dataset has planes.csv or ``data`` is given. Measured on
             Chai-scale clouds (258k points): 50000 took 0.5-0.6x the time, the translation error grew
             35 % (RMS over 24 datasets, docs/calibration.md).
+        judge: give the result its adequacy verdict (:func:`judge_result`; False: the ``--legs``
+            solve inside it).
     """
     from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
 
@@ -205,6 +211,7 @@ def calibrate(
     if data is None:
         data = calibration_data(ds, robot, progress=progress, plane_max_points=plane_max_points)
     inputs = BatchInputs(ds, robot, data, progress)
+    base_options = options
     problem = build_problem(ds, robot, data, options)
     lm = solve_problem(problem, progress=progress, stage="first solve (closed-form start, default noise)")
     state = BatchState(problem, lm.values, lm.iterations)
@@ -238,9 +245,21 @@ def calibrate(
         warnings += more
         if state.outliers != screened and options.estimate_noise:
             state, options = estimate_noise(inputs, state, options)
+    result = read_result(inputs, state, options, warnings)
+    if judge:
+        result = judge_result(inputs, state, options, result, warnings, base_options=base_options)
+    return result
+
+
+def read_result(inputs: BatchInputs, state: BatchState, options: CalibrationOptions,
+                warnings: list[str]) -> CalibrationResult:
+    """The :class:`CalibrationResult` of the final ``state`` under the final ``options`` (learned
+    noise), with its noise groups, and ``warnings`` (the run's so far) put first."""
+    data, robot = inputs.data, inputs.robot
     problem, values = state.problem, state.values
-    result = calibration_result(ds, robot, data, problem, values, set(state.outliers), state.iterations, options)
-    warnings += implausible_leg_data_warnings(data, robot, options)
+    result = calibration_result(inputs.ds, robot, data, problem, values, set(state.outliers), state.iterations,
+                                options)
+    warnings = list(warnings) + implausible_leg_data_warnings(data, robot, options)
     if options.estimate_noise:
         noise_stats = state.noise_stats
         if not noise_stats:  # the rounds ran out (or outliers were left out) after the last update
@@ -257,6 +276,83 @@ def calibrate(
     if warnings:
         result = dataclasses.replace(result, warnings=tuple(warnings) + result.warnings)
     return result
+
+
+def judge_result(inputs: BatchInputs, state: BatchState, options: CalibrationOptions, result: CalibrationResult,
+                 warnings: list[str], *, base_options: CalibrationOptions) -> CalibrationResult:
+    """``result`` with its adequacy verdict (adequacy.py): gross stations left out (their planes
+    join the outliers, the graph is solved and the noise learned again), every noise group judged
+    against the physical noise, and when the model does not fit the robust covariance governing
+    (robust.py) and the warning first. ``base_options``: the caller's options (before the noise was
+    learned), from which the ``--legs`` solve of the robust covariance starts."""
+    from graphcal.calibration.adequacy import adequacy_verdict, group_checks, gross_stations, misfit_warning
+    from graphcal.calibration.robust import robust_parts, station_chi2, with_robust_covariance
+
+    physical, sources = dataset_physical_noise(inputs.ds, options)
+    seen = {m[0] for m in state.problem.plane_factors.values() if m not in state.outliers}
+    gross = gross_stations(station_chi2(state.problem, state.values, seen))
+    if gross:
+        bad = {m for m in state.problem.plane_factors.values() if m[0] in {g.station for g in gross}}
+        state = dataclasses.replace(state, outliers=state.outliers | bad)
+        state = resolve(inputs, state, options, f"{len(gross)} gross station(s) left out")
+        if options.estimate_noise:
+            state, options = estimate_noise(inputs, state, options)
+        result = read_result(inputs, state, options, warnings)
+    # learned: the groups as learned; given (--noise-from): what the residuals converge to
+    noise_groups = result.noise_groups if options.estimate_noise else noise_groups_pointed_to(
+        options, state.problem, state.values)
+    groups = group_checks(noise_groups, physical, sources)
+    verdict = adequacy_verdict(groups, gross, legs=options.legs)
+    if not verdict.fits:
+        legs = None
+        if not options.legs and inputs.robot is not None and getattr(inputs.robot, "legs", None) and any(
+                st.q_by_foot for st in inputs.data.stations):
+            def legs():
+                try:
+                    return calibrate(inputs.ds, options=dataclasses.replace(base_options, legs=True),
+                                     data=inputs.data, judge=False)
+                except (GraphcalError, RuntimeError):  # legs not determined by these data
+                    return None
+        extra, scale = robust_parts(state.problem, state.values, state.outliers, result, groups, legs)
+        result = with_robust_covariance(result, extra, scale)
+    first = tuple(w for w in (misfit_warning(verdict),) if w)
+    return dataclasses.replace(result, adequacy=verdict, warnings=first + result.warnings)
+
+
+def adequacy_at(ds, options: CalibrationOptions, problem: CalibrationProblem, values):
+    """The :class:`~graphcal.calibration.adequacy.Adequacy` of a solved graph (``problem`` at
+    ``values``, gtsam.Values) under the noise ``options`` it used: every noise group's statistics
+    at the solution (one variance-component update), judged against dataset ``ds``'s physical
+    noise. For a model other than calibrate's (diagnose's extended one); no gross-station test."""
+    from graphcal.calibration.adequacy import adequacy_verdict, group_checks
+
+    physical, sources = dataset_physical_noise(ds, options)
+    return adequacy_verdict(group_checks(noise_groups_pointed_to(options, problem, values), physical, sources),
+                            legs=options.legs)
+
+
+def noise_groups_pointed_to(options: CalibrationOptions, problem: CalibrationProblem, values) -> tuple:
+    """The noise groups of a solution whose noise was given, not learned: every group's σ set to
+    what its variance components converge to on the linearisation at ``values`` (``fields``; the
+    ``dof`` of the first update; ``data_scale`` 1). One update of a given model is not enough to
+    judge a group by: with calibrate's defaults (joints 5x the simulator's) the planes point to
+    x1.2-x3.2 on clean data, as the loose body poses push the residuals onto them."""
+    try:
+        u = noise_update(options, problem, values, converge=True)
+    except (RuntimeError, ValueError):  # a graph the variance components cannot read
+        return ()
+    groups, _ = noise_groups_report(u.stats, u.options, given=True)
+    return tuple(dataclasses.replace(g, data_scale=1.0) for g in groups)
+
+
+def dataset_physical_noise(ds, options: CalibrationOptions) -> tuple[dict, dict]:
+    """(key -> physical sigma in deg / mm, key -> source) of dataset ``ds``'s ``physical_noise:``
+    (defaults where it declares none; the ground at least ``options.ground_unevenness_m``)."""
+    from graphcal.calibration.adequacy import physical_noise
+
+    where = (ds.root / "dataset.yaml") if getattr(ds, "root", None) is not None else "dataset.yaml"
+    return physical_noise((getattr(ds, "extra", None) or {}).get("physical_noise"),
+                          ground_roughness_m=options.ground_unevenness_m, where=str(where))
 
 
 #: a learned stance-foot noise beyond these is not a robot's encoders and feet but wrong data

@@ -686,6 +686,7 @@ def calibrate_incremental(
     detect_changes: bool = True,
     data: CalibrationData | None = None,
     plane_max_points: int | None = None,
+    judge: bool = True,
 ) -> CalibrationResult:
     """Calibrate a dataset incrementally: iSAM2, one station per update in dataset order.
 
@@ -693,6 +694,8 @@ def calibrate_incremental(
         dataset: a dataset folder or a :class:`graphcal.io.dataset.Dataset`.
         options: noise models and switches (as the batch).
         progress: log one line (INFO) per station.
+        judge: give the result its adequacy verdict (:func:`judge_incremental`; False: the model's
+            covariance, no verdict).
         sigma_target_deg, sigma_target_mm: stop rule: stop adding stations once every sensor's
             1-sigma about every body axis is below ``sigma_target_deg`` and along every body axis
             below ``sigma_target_mm`` (either may be None: not checked). The station where it
@@ -792,8 +795,52 @@ def calibrate_incremental(
     after = [r for r in res_list if not r.outlier]
     normal_rms = float(np.sqrt(np.mean([r.angle_after_deg**2 for r in after]))) if after else float("nan")
     dist_rms = float(np.sqrt(np.mean([r.distance_after_mm**2 for r in after]))) if after else float("nan")
-    return replace(
+    result = replace(
         res, sensors=sensors, residuals=res_list, normal_rms_deg=normal_rms, distance_rms_mm=dist_rms,
         solver="incremental", history=tuple(cal.history),
         warnings=tuple(res.warnings) + tuple(warnings) + tuple(noise_warnings), noise_groups=groups,
     )
+    if not judge:
+        return result
+    changed = any(cal.change_stations(n) for n in res.sensors)
+    return judge_incremental(ds, options, inc_problem, values, result,
+                             batch_groups=None if changed else batch_noise_groups(ds, robot, sub, options, values))
+
+
+def batch_noise_groups(ds, robot, data, options: CalibrationOptions, values) -> tuple:
+    """The noise groups of the batch graph of ``data`` under ``options`` at the incremental
+    solution ``values``, each σ what its residuals converge to
+    (:func:`~graphcal.calibration.calibrate.noise_groups_pointed_to`): the graph iSAM2 holds has
+    groups only for the planes."""
+    from graphcal.calibration.calibrate import noise_groups_pointed_to
+    from graphcal.calibration.graph import build_problem
+
+    try:
+        full = build_problem(ds, robot, data, options, exclude=frozenset(), initial=values)
+    except (RuntimeError, KeyError, ValueError):  # a graph the batch cannot build there: planes only
+        return ()
+    return noise_groups_pointed_to(options, full, full.initial)
+
+
+def judge_incremental(ds, options: CalibrationOptions, problem, values, result, *, batch_groups: tuple = ()):
+    """``result`` of the incremental solver with its adequacy verdict (adequacy.py): the given noise
+    groups judged against the physical noise at the factor their residuals point to, gross stations
+    flagged (not left out: iSAM2 has moved on), and when the model does not fit the robust
+    covariance of robust.py governing (the model's scaled by the misfit plus the jackknife over
+    stations; no ``--legs`` solve) and the warning first. Segments other than the last keep the
+    model covariance. ``batch_groups``: :func:`batch_noise_groups` (judged instead of the planes-only
+    groups of ``result`` when given)."""
+    from graphcal.calibration.adequacy import adequacy_verdict, group_checks, gross_stations, misfit_warning
+    from graphcal.calibration.calibrate import dataset_physical_noise
+    from graphcal.calibration.robust import robust_parts, station_chi2, with_robust_covariance
+
+    physical, sources = dataset_physical_noise(ds, options)
+    seen = {m[0] for m in problem.plane_factors.values()}
+    gross = gross_stations(station_chi2(problem, values, seen))
+    checks = group_checks(batch_groups or result.noise_groups, physical, sources)
+    verdict = adequacy_verdict(checks, gross, legs=options.legs, gross_left_out=False)
+    if not verdict.fits:
+        extra, scale = robust_parts(problem, values, frozenset(problem.excluded), result, checks, None)
+        result = with_robust_covariance(result, extra, scale)
+    first = tuple(w for w in (misfit_warning(verdict),) if w)
+    return replace(result, adequacy=verdict, warnings=first + result.warnings)

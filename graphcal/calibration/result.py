@@ -45,6 +45,10 @@ class SensorEstimate:
         covariance_scale: the factor ``covariance`` (and every segment's) was multiplied by because
             the plane residuals were larger than a noise model that was given, not learned, predicts
             (noise_check.py; 1: not scaled).
+        covariance_model, covariance_robust: when the model does not fit (``result.adequacy``),
+            the model's covariance and the robust one (robust.py); ``covariance`` and the sigmas
+            are then the robust one, which governs. None when the model fits (``covariance`` is the
+            model's).
     """
 
     name: str
@@ -59,6 +63,13 @@ class SensorEstimate:
     segments: tuple[ExtrinsicSegment, ...] = ()
     change_stations: tuple[int, ...] = ()
     covariance_scale: float = 1.0
+    covariance_model: np.ndarray | None = None
+    covariance_robust: np.ndarray | None = None
+
+    @property
+    def model_covariance(self) -> np.ndarray:
+        """The model's covariance (``covariance`` when the model fits, ``covariance_model`` otherwise)."""
+        return self.covariance if self.covariance_model is None else self.covariance_model
 
 
 @dataclass(frozen=True, eq=False)
@@ -162,6 +173,8 @@ class CalibrationResult:
             (``calibrate --noise-from``), or "" (learned, or the defaults in incremental mode).
         robot_name: the robot's name (a built-in model's, or the URDF's ``<robot name>``), written
             to ``calibration.yaml`` so that ``--noise-from`` can tell another robot's file; "" if unknown.
+        adequacy: the verdict on the model (:class:`~graphcal.calibration.adequacy.Adequacy`), or
+            None when not judged.
     """
 
     dataset: str
@@ -182,6 +195,7 @@ class CalibrationResult:
     noise_groups: tuple[NoiseGroupEstimate, ...] = ()
     noise_source: str = ""
     robot_name: str = ""
+    adequacy: object = None
 
 
 #: A CAD prior further from the estimate than this many of its own sigmas is reported as wrong.

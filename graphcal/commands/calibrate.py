@@ -14,7 +14,8 @@ from graphcal.calibration.graph import CalibrationOptions, options_for_ground_ro
 from graphcal.errors import GraphcalError
 from graphcal.report.write import check_output_folder, write_calibration_outputs
 
-__all__ = ["run", "GROUP_WORDS", "covariance_scale_text", "collapsed_plane_scale_warnings", "COLLAPSED_PLANE_SCALE"]
+__all__ = ["run", "GROUP_WORDS", "covariance_scale_text", "collapsed_plane_scale_warnings", "COLLAPSED_PLANE_SCALE",
+           "verdict_lines", "verdict_warning"]
 
 #: noise groups (noise_estimation.py) in the words of calibrate's summary line
 GROUP_WORDS = {"stance_foot/joint": "joints", "stance_foot/contact": "contact", "imu": "IMU",
@@ -62,6 +63,31 @@ def collapsed_plane_scale_warnings(noise_groups, ground_roughness_m: float) -> t
     return tuple(out)
 
 
+def verdict_warning(result) -> str:
+    """The adequacy warning of ``result`` (the first of its warnings), or ""."""
+    from graphcal.calibration.adequacy import misfit_warning
+
+    a = getattr(result, "adequacy", None)
+    return misfit_warning(a) if a is not None else ""
+
+
+def verdict_lines(result) -> list[str]:
+    """The first lines of calibrate's summary: the adequacy verdict (calibration.yaml ``adequacy:``)
+    and, when the model does not fit or gross stations were left out, the warning naming the group
+    and the next step."""
+    a = getattr(result, "adequacy", None)
+    if a is None:
+        return []
+    head = (f"model {a.verdict.upper() if not a.fits else a.verdict}: worst group {a.worst_group or 'none'}, "
+            f"{a.reference} statistic {a.statistic:.4g}, p = {a.p_value:.2g} (noise judged against the "
+            "physical noise, not the learned one)")
+    lines = [head]
+    w = verdict_warning(result)
+    if w:
+        lines.append(f"warning: {w}")
+    return lines
+
+
 def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,
         progress: bool = True, ground_roughness_m: float = 0.0,
         plane_max_points: int | None = None, noise_from: str | Path | None = None) -> str:
@@ -107,7 +133,8 @@ def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, increme
     result = dataclasses.replace(result, warnings=result.warnings + collapsed_plane_scale_warnings(
         result.noise_groups, ground_roughness_m))
     written = write_calibration_outputs(result, out_dir)
-    lines = [f"calibrated {len(result.sensors)} sensor(s) from {dataset} ({result.solver}); wrote {out_dir}:"]
+    lines = verdict_lines(result)
+    lines.append(f"calibrated {len(result.sensors)} sensor(s) from {dataset} ({result.solver}); wrote {out_dir}:")
     for name, s in result.sensors.items():
         lines.append(
             f"  {name}: xyz {np.round(s.T_body_sensor[:3, 3], 4).tolist()} m, "
@@ -150,6 +177,8 @@ def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, increme
             f"the residuals point to {g.data_scale:.2g}x)" for g in held))
     if result.outliers:
         lines.append(f"  outlier stations: {', '.join(map(str, result.outliers))}")
-    lines += [f"  warning: {w}" for w in result.warnings]
+    # the misfit warning is printed first (verdict_lines), not again here
+    first = verdict_warning(result)
+    lines += [f"  warning: {w}" for w in result.warnings if w != first]
     lines.append("  files: " + ", ".join(sorted(p.name for p in written.values())))
     return "\n".join(lines)

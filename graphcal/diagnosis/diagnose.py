@@ -103,6 +103,7 @@ class Diagnosis:
         cal = calibration_dict(result)
         return {
             "format": "graphcal-diagnosis/1",
+            "adequacy": _final_adequacy(self),
             "nominal": self.nominal.to_dict(),
             "final": self.final.to_dict(),
             "findings": [f.to_dict() for f in self.findings],
@@ -132,6 +133,19 @@ def extended_calibration_note(options) -> str:
             "its sigma is larger (up to ~20x on the Octopus demo) and its pose differs from calibrate's (on the demo by "
             "0.2 mm, within this sigma; more when a finding modelled here is not modelled there). For the extrinsic "
             "use calibrate's calibration.yaml; these are the values with the findings modelled.")
+
+
+def _final_adequacy(diag: "Diagnosis") -> dict:
+    """The verdict on the final (extended) model, judged against the dataset's physical noise as
+    calibrate's (calibration.yaml ``adequacy:``, docs/calibration.md); a note when it cannot be read."""
+    from graphcal.calibration.calibrate import adequacy_at
+    from graphcal.report.calibration_yaml import adequacy_dict
+
+    try:
+        return {"model": "final (extended)",
+                **adequacy_dict(adequacy_at(diag.model.ds, diag.model.options, diag.problem, diag.values))}
+    except (RuntimeError, ValueError, KeyError) as exc:  # a graph the variance components cannot read
+        return {"model": "final (extended)", "verdict": "not judged", "reason": str(exc)}
 
 
 def _extension_values(diag: Diagnosis) -> dict:

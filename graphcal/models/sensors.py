@@ -31,6 +31,9 @@ __all__ = [
     "LaserScanner",
     "Sensor",
     "sensor_for_type",
+    "PHYSICAL_NOISE_DEFAULTS",
+    "PHYSICAL_NOISE_FLOORS",
+    "PHYSICAL_NOISE_KEYS",
 ]
 
 #: The exteroceptive sensor types of a dataset (dataset.yaml ``sensors.<name>.type``).
@@ -132,3 +135,47 @@ def _pinhole_rays(width: int, height: int, hfov_deg: float, vfov_deg: float) -> 
     U, V = np.meshgrid(u, v)
     d = np.c_[U.ravel() / fx, V.ravel() / fy, np.ones(U.size)]
     return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+#: Physically plausible noise of each measurement group, used to judge whether a calibration's
+#: model fits (graphcal/calibration/adequacy.py) when dataset.yaml declares none
+#: (``physical_noise:``, docs/calibration.md). Keys and units as in dataset.yaml (deg, mm). Where
+#: they come from:
+#:
+#: * ``joint_deg`` 0.1: a servo's joint reading, encoder plus gear backlash (a 12-bit encoder has a
+#:   0.088 deg step, 0.025 deg RMS; hobby-servo backlash is a few tenths of a degree); the
+#:   calibration's own default joint sigma;
+#: * ``contact_mm`` 0.5: where a rubber-tipped point foot touches, about its nominal point (a tip
+#:   radius of a few mm deforming under load);
+#: * ``ground_mm`` 2.0: an indoor floor's flatness under the feet (DIN 18202 allows 2-4 mm over
+#:   0.1-1 m); ``--ground-roughness-mm`` replaces it;
+#: * ``imu_deg`` 0.3: gravity direction from a MEMS accelerometer's station average, dominated by
+#:   its bias (0.02-0.05 m/s^2 is 0.1-0.3 deg);
+#: * ``commanded_deg`` 1.0, ``commanded_mm`` 10.0: how far a position-controlled body ends up from
+#:   its set pose (the calibration's default commanded-pose sigma);
+#: * a sensor's planes or scans: scale 1 of the sensor model above (sigma_z of the depth camera,
+#:   10 mm of the laser scanner, the stereo disparity noise): ``plane_scale`` 1.
+PHYSICAL_NOISE_DEFAULTS: dict[str, float] = {
+    "joint_deg": 0.1,
+    "contact_mm": 0.5,
+    "ground_mm": 2.0,
+    "imu_deg": 0.3,
+    "commanded_deg": 1.0,
+    "commanded_mm": 10.0,
+    "plane_scale": 1.0,
+}
+
+#: The smallest physical value a group is judged against (a declared 0, e.g. the simulator's point
+#: feet on an exact floor, is this): a learned sigma below about twice these is numerically nothing.
+PHYSICAL_NOISE_FLOORS: dict[str, float] = {
+    "joint_deg": 0.005,
+    "contact_mm": 0.1,
+    "ground_mm": 0.5,
+    "imu_deg": 0.01,
+    "commanded_deg": 0.02,
+    "commanded_mm": 0.2,
+    "plane_scale": 1.0,
+}
+
+#: The keys dataset.yaml's ``physical_noise:`` may hold (the others are errors).
+PHYSICAL_NOISE_KEYS: tuple[str, ...] = tuple(k for k in PHYSICAL_NOISE_DEFAULTS if k != "plane_scale")

@@ -54,8 +54,15 @@ def _sensor_section(name: str, s, base_frame: str) -> str:
     rows = [
         head,
         _row(["estimate − prior"] + [_n(v, "+.2f") for v in xyz - xyz0] + [_n(v, "+.3f") for v in d_rot]),
-        _row(["1-σ"] + [_n(v, ".3f") for v in s.sigma_xyz_mm] + [_n(v, ".4f") for v in s.sigma_rot_deg]),
+        _row(["1-σ" if getattr(s, "covariance_model", None) is None else "1-σ robust (governs)"]
+             + [_n(v, ".3f") for v in s.sigma_xyz_mm] + [_n(v, ".4f") for v in s.sigma_rot_deg]),
     ]
+    if getattr(s, "covariance_model", None) is not None:
+        from graphcal.solvers.covariance import body_axis_sigmas
+
+        rot_m, xyz_m, _, _ = body_axis_sigmas(T, s.covariance_model)
+        rows.append(_row(["1-σ model (the model does not fit)"] + [_n(v, ".3f") for v in xyz_m]
+                         + [_n(v, ".4f") for v in rot_m]))
     parts.append("<table>" + "".join(rows) + "</table>")
     dang = np.rad2deg(rotation_angle_between(P[:3, :3], T[:3, :3]))
     parts.append(
@@ -181,6 +188,35 @@ def _noise_section(result) -> str:
     )
 
 
+def _adequacy_section(result) -> str:
+    """The verdict on the model (calibration.yaml ``adequacy:``): one line, then a row per group."""
+    a = getattr(result, "adequacy", None)
+    if a is None:
+        return "<p>Not judged.</p>"
+    cls = "" if a.fits else ' class="warn"'
+    out = [f"<p{cls}><b>The model {_e(a.verdict)}</b>: worst group <code>{_e(a.worst_group or 'none')}</code>, "
+           f"statistic {_n(a.statistic, '.4g')} against {_e(a.reference)}, p = {_n(a.p_value, '.2g')} "
+           "(Bonferroni over the groups). Each group's learned σ is judged against its physical σ "
+           "(dataset.yaml <code>physical_noise:</code>, else graphcal's defaults), not against the noise "
+           "learned from the same residuals. "
+           + ("σ in this report is the model's." if a.fits else
+              "σ in this report is the robust one (model covariance scaled by the misfit, plus a jackknife "
+              "over stations, plus the shift to <code>--legs</code> where a leg's group does not fit); "
+              "the model's is beside it.") + "</p>"]
+    rows = [_row(["group", "learned", "physical", "ratio", "T", "dof", "p", "misfit"], header=True)]
+    for g in a.groups:
+        rows.append(_row([g.group, g.learned_text(), g.physical_text(), _n(g.ratio, ".3g"), _n(g.statistic, ".4g"),
+                          _n(g.dof, ".1f"), _n(g.p_value, ".2g"), "yes" if g.misfit else "no"]))
+    out.append("<table>" + "".join(rows) + "</table>")
+    if a.gross:
+        out.append(f"<p>Gross stations {'left out' if a.gross_left_out else 'found (not left out)'}: " + ", ".join(
+            f"{int(s.station)} (χ² per dof {_n(s.factor, '.3g')} times a typical station's, p = {_n(s.p_value, '.2g')})"
+            for s in a.gross) + ".</p>")
+    if a.next_steps:
+        out.append("<p>Next: " + "; ".join(_e(x) for x in a.next_steps) + ".</p>")
+    return "".join(out)
+
+
 def report_html(result, *, title: str = "graphcal calibration report") -> str:
     """The HTML report of ``result`` (a CalibrationResult) as one self-contained page.
 
@@ -204,6 +240,7 @@ def report_html(result, *, title: str = "graphcal calibration report") -> str:
     cmds = "\n".join(static_transform_publisher_command(base, str(n), s.T_body_sensor, sep=" \\\n    ")
                      for n, s in result.sensors.items())  # over four lines: one overflowed its box
     sections = [
+        Section("Does the model fit?", _adequacy_section(result)),
         Section("Sensors", *(_sensor_section(str(name), s, base) for name, s in result.sensors.items())),
         Section("Legs", _legs_section(result)),
         Section("Outliers", outliers),

@@ -43,6 +43,7 @@ __all__ = [
     "body_axis_covariance",
     "sigma_body_deg_mm",
     "residual_summary",
+    "adequacy_dict",
 ]
 
 FORMAT = "graphcal-calibration/1"
@@ -157,7 +158,16 @@ def _sensor_dict(s) -> dict:
         "change_stations": [int(c) for c in s.change_stations],
         # the factor covariance and sigma include (> 1: the plane residuals outgrew a given noise model)
         "covariance_scale": _f(getattr(s, "covariance_scale", 1.0)),
+        # which covariance governs covariance and sigma: the model's, or the robust one when the
+        # model does not fit (adequacy:); both are written then
+        "sigma_from": "model" if getattr(s, "covariance_model", None) is None else "robust",
     }
+    if getattr(s, "covariance_model", None) is not None:
+        rot_m, xyz_m = sigma_body_deg_mm(T, s.covariance_model)
+        entry["covariance_model"] = _flist(s.covariance_model)
+        entry["sigma_model"] = {"rot_deg": _flist(rot_m), "xyz_mm": _flist(xyz_m)}
+        entry["covariance_robust"] = _flist(s.covariance)
+        entry["sigma_robust"] = {"rot_deg": _flist(s.sigma_rot_deg), "xyz_mm": _flist(s.sigma_xyz_mm)}
     if len(s.segments) > 1:
         segs = []
         for seg in s.segments:
@@ -177,7 +187,8 @@ def _sensor_dict(s) -> dict:
 def calibration_to_dict(result) -> dict:
     """The ``calibration.yaml`` document of ``result`` as plain Python (str, float, int, list, dict).
 
-    Keys (docs/outputs.md): ``format``, ``dataset``, ``base_frame``, ``robot`` (its name, when
+    Keys (docs/outputs.md): ``format``, ``dataset``, ``base_frame``, ``frames``, ``adequacy`` (the
+    verdict on the model, when judged), ``robot`` (its name, when
     known), ``sensors`` (per sensor:
     ``type``, ``T_body_sensor``, ``covariance``, ``sigma``, ``unobservable``, ``T_body_sensor_prior``,
     ``correlation``, ``change_stations``, ``covariance_scale`` and ``segments`` when the sensor moved), ``legs`` (only when
@@ -189,6 +200,8 @@ def calibration_to_dict(result) -> dict:
         "base_frame": str(result.base_frame),
         "frames": frames_note(str(result.base_frame)),
     }
+    if getattr(result, "adequacy", None) is not None:
+        doc["adequacy"] = adequacy_dict(result.adequacy)
     if result.robot_name:
         doc["robot"] = str(result.robot_name)  # --noise-from tells another robot's file by it
     doc["sensors"] = {str(name): _sensor_dict(s) for name, s in result.sensors.items()}
@@ -231,6 +244,38 @@ def calibration_to_dict(result) -> dict:
     return doc
 
 
+def _group_value_dict(pairs) -> dict:
+    """(name, value) pairs of a group check as a mapping in the units their names say."""
+    return {str(k): float(v) for k, v in pairs}
+
+
+def adequacy_dict(a) -> dict:
+    """The ``adequacy:`` block (docs/outputs.md) of an :class:`~graphcal.calibration.adequacy.Adequacy`."""
+    from graphcal.calibration.adequacy import ALPHA, RATIO_LIMIT
+
+    return {
+        "verdict": str(a.verdict),
+        "statistic": _f(a.statistic),
+        "reference": str(a.reference),
+        "p_value": _f(a.p_value),
+        "worst_group": str(a.worst_group),
+        "test": ("each noise group's learned sigma s (the sigma of the final solve times the factor its residuals "
+                 "point to) against its physical sigma p (dataset.yaml physical_noise:, else graphcal's defaults): "
+                 "T = dof (s/p)^2 against chi2(dof); a group does not fit when s > "
+                 f"{RATIO_LIMIT:g} p and its p-value is below {ALPHA:g} / groups; p_value is the worst group's "
+                 "times the number of groups (Bonferroni)"),
+        "sigma_from": str(a.covariance),
+        "groups": {str(g.group): {"misfit": bool(g.misfit), "ratio": _f(g.ratio), "statistic": _f(g.statistic),
+                                  "dof": _f(g.dof), "p_value": _f(g.p_value),
+                                  "learned_si": _group_value_dict(g.learned),
+                                  "physical": _group_value_dict(g.physical), "physical_from": str(g.source)}
+                   for g in a.groups},
+        "gross_stations": [{"station": int(s.station), "statistic": _f(s.statistic), "dof": _f(s.dof),
+                            "p_value": _f(s.p_value), "factor_over_median": _f(s.factor)} for s in a.gross],
+        "next_steps": [str(x) for x in a.next_steps],
+    }
+
+
 def frames_note(base_frame: str) -> dict[str, str]:
     """What each sensor entry's numbers mean, written into the file itself (docs/outputs.md)."""
     return {
@@ -241,6 +286,9 @@ def frames_note(base_frame: str) -> dict[str, str]:
         "sigma": f"1-sigma rotation about and translation along the {base_frame.upper()} axes x, y, z, "
                  "in deg and mm (sqrt(diag(covariance)) is in sensor axes and differs)",
         "correlation": f"6x6 correlation of [rot x, y, z, trans x, y, z] in {base_frame} axes",
+        "sigma_from": "model: covariance and sigma are the model's; robust: the model does not fit (adequacy:), "
+                      "covariance and sigma are the robust covariance (= covariance_robust, sigma_robust), the "
+                      "model's is beside it as covariance_model, sigma_model (same axes and units)",
     }
 
 
@@ -409,6 +457,10 @@ def validate_calibration_dict(doc, path: str | Path = "calibration.yaml") -> dic
             c.fail(f"residuals.{k}", "a number", res[k])
     if "warnings" in doc:
         c.strings(doc["warnings"], "warnings", "warning sentences")
+    if "adequacy" in doc:
+        a = c.mapping(doc["adequacy"], "adequacy", ("verdict",))
+        if a["verdict"] not in ("fits", "does not fit"):
+            c.fail("adequacy.verdict", "fits or does not fit", a["verdict"])
     if "robot" in doc and not isinstance(doc["robot"], str):
         c.fail("robot", "the robot's name (text)", doc["robot"])
     return doc

@@ -47,13 +47,15 @@ def static_transform_publisher_command(parent: str, child: str, T_parent_child, 
     return sep.join(parts)
 
 
-def static_transforms_script(parent: str, sensors: Mapping[str, np.ndarray], *, dataset: str | None = None) -> str:
+def static_transforms_script(parent: str, sensors: Mapping[str, np.ndarray], *, dataset: str | None = None,
+                             uncertainty: str = "") -> str:
     """A POSIX shell script running one static_transform_publisher per sensor until interrupted.
 
     Args:
         parent: the body frame (``base_frame`` of the calibration).
         sensors: sensor name -> ``T_body_sensor`` (4x4).
         dataset: dataset path named in the comment (provenance).
+        uncertainty: a sentence on the sensors' 1-sigma, written as a comment line ("" none).
     """
     ds = " ".join(str(dataset).split()) if dataset is not None else "(unknown dataset)"
     lines = [
@@ -63,6 +65,7 @@ def static_transforms_script(parent: str, sensors: Mapping[str, np.ndarray], *, 
         "# this script; it publishes one static transform per sensor on /tf_static until Ctrl-C.",
         "# Do not also publish these transforms from robot_state_publisher (robot_calibrated.urdf holds",
         "# the same poses): use one or the other.",
+        *([f"# {' '.join(uncertainty.split())}"] if uncertainty else []),
         "set -e",
         "trap 'trap - INT TERM; kill 0' INT TERM",
     ]

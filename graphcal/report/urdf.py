@@ -159,8 +159,10 @@ def calibrated_urdf(
     *,
     dataset: str | None = None,
     command: str = "calibrate",
+    uncertainty: str = "",
 ) -> str:
-    """URDF text of the calibrated robot.
+    """URDF text of the calibrated robot (``uncertainty``: a sentence on the sensors' 1-sigma, put in
+    the provenance comment).
 
     Args:
         urdf_xml: the nominal URDF text.
@@ -280,7 +282,8 @@ def calibrated_urdf(
     comment = (
         f"<!-- Calibrated robot model written by graphcal {_comment_text(command)} from dataset {ds}. "
         f"Calibrated sensor joints of ({_comment_text(sensor_list)}), "
-        f"{'with' if legs else 'without'} calibrated leg parameters. -->"
+        f"{'with' if legs else 'without'} calibrated leg parameters."
+        + (f" {_comment_text(uncertainty)}" if uncertainty else "") + " -->"
     )
     body = urdf_to_text(root, urdf_xml)
     return f'<?xml version="1.0" encoding="utf-8"?>\n{comment}\n{body}\n'

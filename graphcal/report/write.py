@@ -61,6 +61,19 @@ def _leg_parameters(result) -> dict | None:
     return {foot: {str(n): float(v) for n, v in zip(leg.names, leg.values)} for foot, leg in result.legs.items()}
 
 
+def uncertainty_note(result) -> str:
+    """One sentence on the sensors' governing 1-sigma (body axes), and whether it is the model's or
+    the robust one (the model does not fit: calibration.yaml adequacy:)."""
+    parts = []
+    for name, s in result.sensors.items():
+        which = "model" if getattr(s, "covariance_model", None) is None else "robust (the model does not fit)"
+        parts.append(f"{name} rot {' '.join(f'{x:.3g}' for x in s.sigma_rot_deg)} deg, xyz "
+                     f"{' '.join(f'{x:.3g}' for x in s.sigma_xyz_mm)} mm ({which})")
+    if not parts:
+        return ""
+    return "1-sigma about/along the body axes, as sigma in calibration.yaml: " + "; ".join(parts) + "."
+
+
 def _write_urdf(folder: Path, result) -> Path:
     text = calibrated_urdf(
         result.robot_urdf_xml,
@@ -68,13 +81,15 @@ def _write_urdf(folder: Path, result) -> Path:
         {name: s.T_body_sensor for name, s in result.sensors.items()},
         _leg_parameters(result),
         dataset=str(result.dataset),
+        uncertainty=uncertainty_note(result),
     )
     return atomic_write_text(folder / OUTPUT_FILES["urdf"], text)
 
 
 def _write_static_transforms(folder: Path, result) -> Path:
     text = static_transforms_script(
-        result.base_frame, {name: s.T_body_sensor for name, s in result.sensors.items()}, dataset=str(result.dataset)
+        result.base_frame, {name: s.T_body_sensor for name, s in result.sensors.items()}, dataset=str(result.dataset),
+        uncertainty=uncertainty_note(result),
     )
     path = atomic_write_text(folder / OUTPUT_FILES["static_transforms"], text)
     mode = path.stat().st_mode & 0o777

@@ -66,7 +66,25 @@ def result_to_dataset(result: SimulationResult, *, with_planes: bool, progress: 
         stance={"feet_fixed_within": "session"},
         stations=Table.from_columns(cols),
         planes=planes,
+        extra={"physical_noise": physical_noise_declared(result.config)},
     )
+
+
+def physical_noise_declared(config) -> dict:
+    """What the simulator declares in dataset.yaml's ``physical_noise:`` (deg, mm), as a producer
+    declares its hardware's noise (docs/calibration.md, "Does the model fit?"): its encoder noise
+    (and unseen joint flex), point feet (contact 0), the ground's bump RMS, the IMU's accelerometer
+    bias and noise as an attitude, the body's scatter about its set pose from the servos' tracking
+    error (about half the per-joint tracking sigma, 3 mm; measured 1-2 mm and ~0.1 deg, docs/simulation.md)."""
+    g = 9.81
+    return {
+        "joint_deg": float(np.degrees(np.hypot(config.encoder_sigma_rad, config.joint_flex_sigma_rad))),
+        "contact_mm": 0.0,
+        "ground_mm": {"bumpy-little": 3.0, "bumpy-big": 10.0}.get(config.ground, 0.0),  # terrain.py's RMS
+        "imu_deg": float(np.degrees(np.hypot(config.imu_accel_bias_sigma_m_s2, config.imu_accel_sigma_m_s2) / g)),
+        "commanded_deg": float(np.degrees(config.tracking_sigma_rad) / 2.0),
+        "commanded_mm": 3.0,
+    }
 
 
 def clouds_written(result: SimulationResult, output: str) -> dict:
