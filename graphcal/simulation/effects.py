@@ -36,6 +36,54 @@ class ExtrinsicChange:
 
 
 @dataclass(frozen=True)
+class OpenWorld:
+    """Physical effects OUTSIDE the catalogue (``graphcal diagnose`` has no cause for them): the
+    open-world battery (examples/diagnosis_openworld.py) hides them to check that diagnose either
+    says structure remains or names a cause that explains them, never a confident wrong one. The
+    default hides nothing.
+
+    Attributes:
+        range_quadratic: sensor -> k (1/m): every point of that sensor is read at range r (1 + k r)
+            (a depth error growing with range^2, k r^2).
+        plate: (session, feet, height_m): in that session the named feet stand on a plate
+            ``height_m`` thick (the others on the floor).
+        sinking: session -> depth_m: the feet sink steadily during that session, by ``depth_m`` at
+            its last station (0 at its first).
+        compliance: (joint index in each leg, rad per N m, load per foot N): every leg's joint at
+            that index flexes under the foot's share of the weight (a vertical force on each foot):
+            the encoder reads the angle minus ``c * torque`` (the link flexes away from the motor).
+    """
+
+    range_quadratic: Mapping[str, float] = field(default_factory=dict)
+    plate: tuple | None = None
+    sinking: Mapping[str, float] = field(default_factory=dict)
+    compliance: tuple | None = None
+
+    def __post_init__(self):
+        for name in ("range_quadratic", "sinking"):
+            object.__setattr__(self, name, _frozen(getattr(self, name)))
+
+    def active(self) -> tuple[str, ...]:
+        """Names of the open-world effects hidden."""
+        return tuple(n for n in ("range_quadratic", "plate", "sinking", "compliance") if getattr(self, n))
+
+    def to_dict(self) -> dict:
+        """Plain-YAML form (SI units) for truth.yaml."""
+        d: dict = {}
+        if self.range_quadratic:
+            d["range_quadratic"] = {k: {"k_per_m": float(v)} for k, v in self.range_quadratic.items()}
+        if self.plate:
+            s, feet, h = self.plate
+            d["plate"] = {"session": s, "feet": list(feet), "height_m": float(h)}
+        if self.sinking:
+            d["sinking"] = {k: {"depth_m": float(v)} for k, v in self.sinking.items()}
+        if self.compliance:
+            j, c, load = self.compliance
+            d["compliance"] = {"joint_index": int(j), "rad_per_Nm": float(c), "load_N": float(load)}
+        return d
+
+
+@dataclass(frozen=True)
 class Effects:
     """Effects hidden in a simulated dataset. The default hides nothing.
 
@@ -49,6 +97,7 @@ class Effects:
         link_length: URDF joint name -> change (m) of the length of the link ending at that joint.
         extrinsic_change: an :class:`ExtrinsicChange` or None.
         outlier_stations: station ids whose sensor data are those of another station.
+        open_world: effects outside the catalogue (:class:`OpenWorld`); not in :meth:`active`.
     """
 
     sensor_range_scale: Mapping[str, float] = field(default_factory=dict)
@@ -59,6 +108,7 @@ class Effects:
     link_length: Mapping[str, float] = field(default_factory=dict)
     extrinsic_change: ExtrinsicChange | None = None
     outlier_stations: tuple[int, ...] = ()
+    open_world: OpenWorld = field(default_factory=OpenWorld)
 
     def __post_init__(self):
         for name in ("sensor_range_scale", "session_offset", "joint_offset", "link_length"):
@@ -117,6 +167,8 @@ class Effects:
             }
         if self.outlier_stations:
             d["outlier_stations"] = {"stations": [int(s) for s in self.outlier_stations]}
+        if self.open_world.active():
+            d["open_world"] = self.open_world.to_dict()
         return d
 
 
@@ -202,4 +254,5 @@ def merge(a: Effects, b: Effects) -> Effects:
         link_length={**a.link_length, **b.link_length},
         extrinsic_change=b.extrinsic_change if b.extrinsic_change is not None else a.extrinsic_change,
         outlier_stations=tuple(sorted(set(a.outlier_stations) | set(b.outlier_stations))),
+        open_world=b.open_world if b.open_world.active() else a.open_world,
     )

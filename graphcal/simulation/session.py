@@ -366,6 +366,10 @@ def _stances(config: SimulationConfig, robot, info, sessions: list, terrain, ter
         p_real = p_assumed.copy()
         p_real[:, 2] = terrain_height(terrain, p_real[:, :2], scene=terrain_scene[0])
         p_real[:, 2] -= config.effects.session_offset.get(s, 0.0)
+        plate = config.effects.open_world.plate
+        if plate and plate[0] == s:
+            on_plate = [k for k, f in enumerate(robot.feet) if f in plate[1]]
+            p_real[on_plate, 2] += float(plate[2])
         feet_world_assumed[s] = p_assumed
         feet_world_real[s] = p_real
     return _Stances(T_world_stance, feet_world_assumed, feet_world_real)
@@ -407,6 +411,42 @@ def _complied_q(config: SimulationConfig, true_leg, p_body_planted: np.ndarray, 
     return wrap_revolute(true_leg, q_c[0])
 
 
+def _sunk_feet(config: SimulationConfig, commands, i: int, feet_world: np.ndarray) -> np.ndarray:
+    """The planted feet (n_feet, 3) m at the i-th commanded station: ``feet_world`` sunk by the
+    open-world ``sinking`` of its session, growing linearly from 0 at the session's first station to
+    its depth at the last."""
+    session = commands[i].session
+    depth = config.effects.open_world.sinking.get(session, 0.0)
+    if not depth:
+        return feet_world
+    idx = [j for j, c in enumerate(commands) if c.session == session]
+    frac = idx.index(i) / max(len(idx) - 1, 1)
+    out = np.array(feet_world, dtype=float)
+    out[:, 2] -= depth * frac
+    return out
+
+
+def _compliance_deflection(config: SimulationConfig, true_leg, q: np.ndarray, T_world_body: np.ndarray):
+    """Open-world joint compliance: (n_joints,) rad the links flex away from the motors under the
+    foot's share of the weight (a vertical force, world +z, on the foot): ``c * tau`` at the
+    configured joint index, ``tau = J^T F`` (J: the foot's position Jacobian in the body frame at the
+    true angles ``q``, by central differences). 0 when no compliance is hidden."""
+    comp = config.effects.open_world.compliance
+    if not comp:
+        return 0.0
+    from graphcal.models.kinematics import foot_positions
+
+    j, c, load = comp
+    h = 1e-6
+    e = np.zeros(true_leg.n_joints)
+    e[int(j)] = h
+    dp = (foot_positions(true_leg, (q + e)[None, :])[0] - foot_positions(true_leg, (q - e)[None, :])[0]) / (2 * h)
+    F_body = T_world_body[:3, :3].T @ np.array([0.0, 0.0, float(load)])
+    out = np.zeros(true_leg.n_joints)
+    out[int(j)] = float(c) * float(dp @ F_body)
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class _HiddenImu:
     """The true IMU: R_body_imu (3, 3), accelerometer bias (3,) m/s^2 and gyro bias (3,) rad/s."""
@@ -444,10 +484,11 @@ def _stations(config: SimulationConfig, robot, true_robot, commands, stances: _S
             qa = q_prev[f] + rng.normal(0.0, config.tracking_sigma_rad, leg.n_joints)
             q_act[f] = qa
             p_body_true.append(foot_positions(true_robot.leg(f), qa[None, :])[0])
-        T_real = fit_rigid_transform(np.array(p_body_true), stances.feet_world_real[cmd.session])
+        feet_real = _sunk_feet(config, commands, i, stances.feet_world_real[cmd.session])
+        T_real = fit_rigid_transform(np.array(p_body_true), feet_real)
         real_poses[cmd.station] = T_real
         # the encoders read the complied angles
-        p_body_planted = transform_points(invert_pose(T_real), stances.feet_world_real[cmd.session])
+        p_body_planted = transform_points(invert_pose(T_real), feet_real)
         for k, f in enumerate(robot.feet):
             q_act[f] = _complied_q(config, true_robot.leg(f), p_body_planted[k], q_act[f], cmd.station, f)
         leg_q_true[cmd.station] = q_act
@@ -455,6 +496,7 @@ def _stations(config: SimulationConfig, robot, true_robot, commands, stances: _S
         for f in robot.feet:
             leg = robot.leg(f)
             flex = rng.normal(0.0, config.joint_flex_sigma_rad, leg.n_joints) if config.joint_flex_sigma_rad > 0 else 0.0
+            flex = flex + _compliance_deflection(config, true_robot.leg(f), q_act[f], T_real)
             noisy = q_act[f] - flex + rng.normal(0.0, config.encoder_sigma_rad, leg.n_joints)
             for name, val in zip(leg.joint_names, noisy):
                 q_meas[name] = float(val)
@@ -504,7 +546,11 @@ def _sensor_clouds(config: SimulationConfig, robot, true_robot, info, records: l
                 range_scale=config.effects.sensor_range_scale.get(s, 1.0),
                 scene=scene,
             )
-            clouds[(s, rec.station)] = scan.points_sensor
+            k_quad = config.effects.open_world.range_quadratic.get(s, 0.0)
+            pts = scan.points_sensor
+            if k_quad:
+                pts = pts * (1.0 + k_quad * np.linalg.norm(pts, axis=1))[:, None]
+            clouds[(s, rec.station)] = pts
             labels[(s, rec.station)] = scan.labels
     return clouds, labels, ext_by_station
 
