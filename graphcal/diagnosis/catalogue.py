@@ -31,6 +31,8 @@ MIN_RELEVANT = {
     "link_length": 0.004,  # m
     "extrinsic_change": float(np.radians(0.5)),  # or 5 mm of translation
     "outlier_stations": 0.0,
+    "foot_radius": 0.005,  # m
+    "joint_compliance": 0.08,  # rad per m of lever: 0.5 deg at a 0.1 m lever
 }
 #: translation (m) that makes an extrinsic change relevant on its own
 MIN_RELEVANT_TRANSLATION_M = 0.005
@@ -170,4 +172,8 @@ def relevant(cause: str, parameters: dict) -> bool:
         return abs(parameters["delta_m"]) >= m
     if cause == "extrinsic_change":
         return abs(parameters["angle_rad"]) >= m or abs(parameters["translation_m"]) >= MIN_RELEVANT_TRANSLATION_M
+    if cause == "foot_radius":
+        return abs(parameters["radius_m"]) >= m
+    if cause == "joint_compliance":
+        return abs(parameters["k_rad_per_m"]) >= m
     return True

@@ -208,6 +208,10 @@ def _candidates(model: DiagnosisModel, problem, system) -> list[CandidateColumns
             rows = np.concatenate([system.measurement_rows[(t, s)] for t in same[pos:]])
             c = Candidate("extrinsic_change", (("sensor", s), ("station", int(st))), n_fam)
             out.append(CandidateColumns(c, columns(key), rows))
+    # one foot radius, one compliance per joint type: shared by every leg (diagnosis/contact.py)
+    from graphcal.diagnosis.contact import contact_candidates
+
+    out.extend(contact_candidates(model, problem, system, problem.initial))
     # outlier stations: every sensor's measurement at the station set free
     by_station: dict[int, list] = {}
     for (st, name), rows in system.measurement_rows.items():
@@ -303,6 +307,11 @@ def _parameters(cand: Candidate, model: DiagnosisModel, problem, values) -> tupl
         cov = _joint_cov(problem, values, [key])
         pname = "offset_rad" if cause == "joint_offset" else "delta_m"
         return {pname: float(values.atVector(key)[j])}, {pname: float(np.sqrt(cov[j, j]))}
+    if cause in ("foot_radius", "joint_compliance"):
+        k = ek["foot_radius"] if cause == "foot_radius" else ek[f"compliance:{int(cand.get('joint_index'))}"]
+        cov = _joint_cov(problem, values, [k])
+        name = "radius_m" if cause == "foot_radius" else "k_rad_per_m"
+        return {name: float(values.atVector(k)[0])}, {name: float(np.sqrt(cov[0, 0]))}
     if cause == "extrinsic_change":
         s, st = cand.get("sensor"), int(cand.get("station"))
         k_new = ek[f"segment:{s}:{st}"]

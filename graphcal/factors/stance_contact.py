@@ -20,9 +20,10 @@ from the body; both enter the stance-foot error of :mod:`graphcal.factors.stance
   foot) joint ``j`` flexes by ``c * tau``; ``tau = load * lever`` with ``lever = (d FK / d q_j) .
   n_b`` (m per rad, the torque per newton of vertical load) taken at the station's commanded
   attitude, so that ``k = c * load`` (rad per m of lever) is what the data determine (the load
-  is unknown without the robot's mass). The joint really stands at ``q' = q + k * lever * e_j``::
+  is unknown without the robot's mass). The joint really stands at ``q'_j = q_j + k lever(q')``
+  (the torque of the pose the leg is really in: fixed-point iteration, :func:`complied_angles`)::
 
-      H_k = (d FK / d q_j)(q') * lever     (3, 1)
+      H_k = (d FK / d q_j)(q') * d q'_j / d k,   d q'_j / d k = lever / (1 - k d lever / d q_j)
 
   (with leg parameters estimated, the parameterised leg's derivative by central differences).
 
@@ -40,7 +41,7 @@ from graphcal.models.kinematics import joint_frames, leg_jacobian
 from graphcal.models.legs import fk_with_params
 from graphcal.models.robot import Leg
 
-__all__ = ["lower_leg_direction", "compliance_lever", "stance_contact_error", "stance_contact_factor"]
+__all__ = ["lower_leg_direction", "compliance_lever", "complied_angles", "stance_contact_error", "stance_contact_factor"]
 
 
 def lower_leg_direction(leg: Leg, q) -> np.ndarray:
@@ -67,8 +68,26 @@ def _skew(v) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def complied_angles(leg: Leg, q, joint_index: int, k: float, R_lever) -> tuple[np.ndarray, float]:
+    """(q' (n,), d q'_j / d k) of a leg whose joint ``joint_index`` flexes by ``k * lever(q')`` from the
+    measured ``q`` (n,): ``q'_j = q_j + k lever(q')`` (the torque is that of the pose the leg is
+    really in), by fixed-point iteration; the derivative by implicit differentiation,
+    ``lever / (1 - k dlever/dq_j)`` (dlever/dq_j by central differences). ``R_lever``: (3, 3) body
+    attitude of the lever (:func:`compliance_lever`)."""
+    j = int(joint_index)
+    qc = np.array(q, dtype=float)
+    for _ in range(4):
+        qc[j] = q[j] + k * compliance_lever(leg, qc, j, R_lever)
+    lever = compliance_lever(leg, qc, j, R_lever)
+    h = 1e-6
+    dq = np.zeros_like(qc)
+    dq[j] = h
+    dl = (compliance_lever(leg, qc + dq, j, R_lever) - compliance_lever(leg, qc - dq, j, R_lever)) / (2 * h)
+    return qc, float(lever / (1.0 - k * dl))
+
+
 def stance_contact_error(T_world_body, p_world_foot, q, leg: Leg, *, radius=None, a_b=None, compliance=None,
-                         joint_index: int = 0, lever: float = 0.0, param=None, theta=None,
+                         joint_index: int = 0, R_lever=None, param=None, theta=None,
                          want_jacobians: bool = True):
     """Error (3,) m (body frame) and Jacobians of the stance-foot factor with a foot radius and/or a
     joint compliance (module docstring).
@@ -77,16 +96,17 @@ def stance_contact_error(T_world_body, p_world_foot, q, leg: Leg, *, radius=None
         T_world_body: 4x4 body pose X; p_world_foot: (3,) contact point F in the world, m.
         q: (n,) measured joint values of the leg (rad / m); leg: the leg.
         radius: foot radius r (m) or None (no sphere); a_b: (3,) unit lower-leg direction (body frame).
-        compliance: k (rad per m of lever) or None; joint_index: the compliant joint; lever: its
-            lever (m/rad, :func:`compliance_lever`).
+        compliance: k (rad per m of lever) or None; joint_index: the compliant joint; R_lever: (3, 3)
+            the body attitude its lever is taken at (:func:`compliance_lever`; the commanded one).
         param, theta: the leg's parameterization and values (or None: the nominal leg).
     Returns:
         (e, [H_X (3,6), H_F (3,3)] + [H_L (3,p)] + [H_r (3,1)] + [H_k (3,1)]) in that order, or (e, None).
     """
     q = np.asarray(q, dtype=float)
     qc = q.copy()
+    dq_dk = 0.0
     if compliance is not None:
-        qc[int(joint_index)] += float(compliance) * float(lever)
+        qc, dq_dk = complied_angles(leg, q, int(joint_index), float(compliance), R_lever)
     e, Hs = stance_foot_error(T_world_body, p_world_foot, qc, leg, param, theta, want_jacobians)
     R_x = np.asarray(T_world_body, dtype=float)[:3, :3]
     n_b = R_x.T @ np.array([0.0, 0.0, 1.0])
@@ -109,12 +129,12 @@ def stance_contact_error(T_world_body, p_world_foot, q, leg: Leg, *, radius=None
             dq[int(joint_index)] = h
             th = param.zeros() if theta is None else np.asarray(theta, dtype=float)
             dp = (fk_with_params(leg, param, qc + dq, th) - fk_with_params(leg, param, qc - dq, th)) / (2 * h)
-        Hs.append((dp * float(lever)).reshape(3, 1))
+        Hs.append((dp * dq_dk).reshape(3, 1))
     return e, Hs
 
 
 def stance_contact_factor(x_key: int, f_key: int, q, leg: Leg, cov_m2, *, r_key: int | None = None, a_b=None,
-                          k_key: int | None = None, joint_index: int = 0, lever: float = 0.0,
+                          k_key: int | None = None, joint_index: int = 0, R_lever=None,
                           l_key: int | None = None, param=None) -> gtsam.NonlinearFactor:
     """Factor on (X, F[, L][, R][, Q]) for one planted foot at one station (module docstring).
 
@@ -122,8 +142,8 @@ def stance_contact_factor(x_key: int, f_key: int, q, leg: Leg, cov_m2, *, r_key:
         x_key, f_key: keys of T_world_body (Pose3) and the contact point p_world_foot (Point3).
         q: (n,) measured joint values; leg: the leg; cov_m2: (3, 3) covariance (m^2) of the error.
         r_key: key of the foot radius [r] (Vector 1, m) and ``a_b`` (3,) its lower-leg direction at ``q``.
-        k_key: key of the compliance [k] (Vector 1, rad per m of lever) of joint ``joint_index``
-            with this station's ``lever`` (m/rad).
+        k_key: key of the compliance [k] (Vector 1, rad per m of lever) of joint ``joint_index``,
+            its lever taken at the body attitude ``R_lever`` (3, 3; the station's commanded one).
         l_key, param: key and parameterization of the leg's parameters (Vector), if estimated.
     """
     q = np.array(q, dtype=float)
@@ -144,7 +164,7 @@ def stance_contact_factor(x_key: int, f_key: int, q, leg: Leg, cov_m2, *, r_key:
         theta = rest.pop(0) if l_key is not None else None
         r = float(rest.pop(0)[0]) if r_key is not None else None
         k = float(rest.pop(0)[0]) if k_key is not None else None
-        return stance_contact_error(X, F, q, leg, radius=r, a_b=a, compliance=k, joint_index=joint_index, lever=lever,
+        return stance_contact_error(X, F, q, leg, radius=r, a_b=a, compliance=k, joint_index=joint_index, R_lever=R_lever,
                                     param=param if l_key is not None else None, theta=theta, want_jacobians=want)
 
     def fn(*args):

@@ -49,15 +49,15 @@ class OpenWorld:
             ``height_m`` thick (the others on the floor).
         sinking: session -> depth_m: the feet sink steadily during that session, by ``depth_m`` at
             its last station (0 at its first).
-        compliance: (joint index in each leg, rad per N m, load per foot N): every leg's joint at
-            that index flexes under the foot's share of the weight (a vertical force on each foot):
-            the encoder reads the angle minus ``c * torque`` (the link flexes away from the motor).
+        imu_drift: (angle_rad, axis_rad): the IMU mount tilts steadily during the run (a mount
+            warming up), about the horizontal body axis at azimuth ``axis_rad``, by 0 at the first
+            station and ``angle_rad`` at the last.
     """
 
     range_quadratic: Mapping[str, float] = field(default_factory=dict)
     plate: tuple | None = None
     sinking: Mapping[str, float] = field(default_factory=dict)
-    compliance: tuple | None = None
+    imu_drift: tuple | None = None
 
     def __post_init__(self):
         for name in ("range_quadratic", "sinking"):
@@ -65,7 +65,7 @@ class OpenWorld:
 
     def active(self) -> tuple[str, ...]:
         """Names of the open-world effects hidden."""
-        return tuple(n for n in ("range_quadratic", "plate", "sinking", "compliance") if getattr(self, n))
+        return tuple(n for n in ("range_quadratic", "plate", "sinking", "imu_drift") if getattr(self, n))
 
     def to_dict(self) -> dict:
         """Plain-YAML form (SI units) for truth.yaml."""
@@ -77,9 +77,8 @@ class OpenWorld:
             d["plate"] = {"session": s, "feet": list(feet), "height_m": float(h)}
         if self.sinking:
             d["sinking"] = {k: {"depth_m": float(v)} for k, v in self.sinking.items()}
-        if self.compliance:
-            j, c, load = self.compliance
-            d["compliance"] = {"joint_index": int(j), "rad_per_Nm": float(c), "load_N": float(load)}
+        if self.imu_drift:
+            d["imu_drift"] = {"angle_rad": float(self.imu_drift[0]), "axis_rad": float(self.imu_drift[1])}
         return d
 
 
@@ -97,6 +96,11 @@ class Effects:
         link_length: URDF joint name -> change (m) of the length of the link ending at that joint.
         extrinsic_change: an :class:`ExtrinsicChange` or None.
         outlier_stations: station ids whose sensor data are those of another station.
+        foot_radius: radius_m of every foot (a sphere; the URDF foot frame is the lower leg's tip,
+            the contact rolls with the leg; factors/stance_contact.py).
+        joint_compliance: (joint_index, k_rad_per_m): the joint at that index of every leg flexes
+            by ``k * lever`` (lever: torque per newton of vertical load on the foot, m); the
+            encoder reads the true angle minus the deflection.
         open_world: effects outside the catalogue (:class:`OpenWorld`); not in :meth:`active`.
     """
 
@@ -108,6 +112,8 @@ class Effects:
     link_length: Mapping[str, float] = field(default_factory=dict)
     extrinsic_change: ExtrinsicChange | None = None
     outlier_stations: tuple[int, ...] = ()
+    foot_radius: float = 0.0
+    joint_compliance: tuple[int, float] | None = None
     open_world: OpenWorld = field(default_factory=OpenWorld)
 
     def __post_init__(self):
@@ -136,6 +142,10 @@ class Effects:
             out.append("extrinsic_change")
         if self.outlier_stations:
             out.append("outlier_stations")
+        if self.foot_radius:
+            out.append("foot_radius")
+        if self.joint_compliance is not None and self.joint_compliance[1] != 0.0:
+            out.append("joint_compliance")
         return tuple(out)
 
     def to_dict(self) -> dict:
@@ -167,6 +177,11 @@ class Effects:
             }
         if self.outlier_stations:
             d["outlier_stations"] = {"stations": [int(s) for s in self.outlier_stations]}
+        if self.foot_radius:
+            d["foot_radius"] = {"radius_m": float(self.foot_radius)}
+        if self.joint_compliance is not None:
+            d["joint_compliance"] = {"joint_index": int(self.joint_compliance[0]),
+                                     "k_rad_per_m": float(self.joint_compliance[1])}
         if self.open_world.active():
             d["open_world"] = self.open_world.to_dict()
         return d
@@ -182,6 +197,8 @@ MAGNITUDES = {
     "link_length": (0.010, 0.025),  # m
     "extrinsic_change": (np.radians(1.5), np.radians(3.0)),
     "outlier_stations": (3, 3),
+    "foot_radius": (0.015, 0.030),  # m
+    "joint_compliance": (0.15, 0.4),  # rad per m of lever: ~1-2.5 deg at a 0.1 m lever
 }
 
 
@@ -237,6 +254,12 @@ def draw_effect(
         axis /= np.linalg.norm(axis)
         change = ExtrinsicChange(s, ordered[k], mag, tuple(float(a) for a in axis))
         return Effects(extrinsic_change=change), {"station": ordered[k], "sensor": s}
+    if cause == "foot_radius":
+        return Effects(foot_radius=mag), {}
+    if cause == "joint_compliance":
+        n = min(len(v) for v in leg_joints.values())
+        j = int(rng.integers(1, n)) if n > 1 else 0  # not the hip yaw (no vertical lever)
+        return Effects(joint_compliance=(j, mag)), {"joint_index": j}
     # outlier_stations
     picked = tuple(sorted(int(s) for s in rng.choice(sorted(stations), size=int(lo), replace=False)))
     return Effects(outlier_stations=picked), {"stations": list(picked)}
@@ -254,5 +277,7 @@ def merge(a: Effects, b: Effects) -> Effects:
         link_length={**a.link_length, **b.link_length},
         extrinsic_change=b.extrinsic_change if b.extrinsic_change is not None else a.extrinsic_change,
         outlier_stations=tuple(sorted(set(a.outlier_stations) | set(b.outlier_stations))),
+        foot_radius=b.foot_radius or a.foot_radius,
+        joint_compliance=b.joint_compliance if b.joint_compliance is not None else a.joint_compliance,
         open_world=b.open_world if b.open_world.active() else a.open_world,
     )
