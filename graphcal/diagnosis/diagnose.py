@@ -552,8 +552,8 @@ def _verdicts(findings: list, final: tuple, nominal: tuple, notes: list, say) ->
                          f"{g.stations} held-out stations, p = {g.p_value:.2g} >= {HELDOUT_ALPHA}); structure remains "
                          "that it may not explain")
         out_findings.append(dataclasses.replace(f, supported=ok))
-    groups, _, _ = physical_structure(final[0], final[2])
-    nominal_groups = groups if final[0] is nominal[0] else physical_structure(nominal[0], nominal[2])[0]
+    groups, _, _ = physical_structure(final[0], final[2], final[1])
+    nominal_groups = groups if final[0] is nominal[0] else physical_structure(nominal[0], nominal[2], nominal[1])[0]
     warnings = []
     try:
         res = calibration_result(nominal[0].ds, nominal[0].robot, nominal[0].data, nominal[1], nominal[2], set(), 0,
