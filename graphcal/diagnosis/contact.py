@@ -53,9 +53,9 @@ def contact_candidates(model, problem, system, values) -> list[CandidateColumns]
     """The ``foot_radius`` candidate and one ``joint_compliance`` candidate per joint index (every
     leg's joint at that index shares one constant), as dense columns of the screening ``system``
     (problem solved at ``values``); none once either is in the model."""
-    from graphcal.factors.stance_contact import compliance_lever, lower_leg_direction
+    from graphcal.factors.stance_contact import lower_leg_direction
     from graphcal.geometry import from_gtsam_pose
-    from graphcal.models.kinematics import leg_jacobian
+    from graphcal.calibration.kinematic_pose import leg_kinematics
 
     if model.found("foot_radius") or model.found("joint_compliance"):
         return []
@@ -63,6 +63,7 @@ def contact_candidates(model, problem, system, values) -> list[CandidateColumns]
     if not table:
         return []
     q_of = {st.station: st for st in model.data.stations}
+    kin = leg_kinematics(model.data, model.robot)
     n_joints = min(model.robot.leg(f).n_joints for f in model.robot.feet)
     n = len(system.b)
     K_r = np.zeros((n, 1))
@@ -76,10 +77,10 @@ def contact_candidates(model, problem, system, values) -> list[CandidateColumns]
         q = np.asarray(station.q_by_foot[foot], dtype=float)
         n_b = R_x.T @ np.array([0.0, 0.0, 1.0])
         K_r[rows, 0] = A_F @ (-R_x @ (lower_leg_direction(leg, q) - n_b))
-        J = leg_jacobian(leg, q)
+        J = kin[(st, foot)][1]  # the cached nominal leg Jacobian at the measured angles
         R_cmd = station.T_world_body_cmd[:3, :3] if station.T_world_body_cmd is not None else np.eye(3)
-        for j in range(n_joints):
-            K_k[rows, j] = A_F @ (-R_x @ (J[:, j] * compliance_lever(leg, q, j, R_cmd)))
+        levers = J.T @ (R_cmd.T @ np.array([0.0, 0.0, 1.0]))  # compliance_lever of every joint at once
+        K_k[rows] = A_F @ (-R_x @ (J[:, :n_joints] * levers[:n_joints]))
     out = [CandidateColumns(Candidate("foot_radius", (), 1), None, None, K_r)]
     for j in range(n_joints):
         joints = sorted({model.robot.leg(f).joint_names[j] for f in model.robot.feet})
