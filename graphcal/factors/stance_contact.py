@@ -21,7 +21,7 @@ from the body; both enter the stance-foot error of :mod:`graphcal.factors.stance
   n_b`` (m per rad, the torque per newton of vertical load) taken at the station's commanded
   attitude, so that ``k = c * load`` (rad per m of lever) is what the data determine (the load
   is unknown without the robot's mass). The joint really stands at ``q'_j = q_j + k lever(q')``
-  (the torque of the pose the leg is really in: fixed-point iteration, :func:`complied_angles`)::
+  (the torque of the pose the leg is really in: Newton's method, :func:`complied_angles`)::
 
       H_k = (d FK / d q_j)(q') * d q'_j / d k,   d q'_j / d k = lever / (1 - k d lever / d q_j)
 
@@ -37,11 +37,16 @@ import numpy as np
 
 from graphcal.factors.checked import checked_custom_factor
 from graphcal.factors.stance_foot import stance_foot_error
-from graphcal.models.kinematics import joint_frames, leg_jacobian
+from graphcal.models.kinematics import foot_positions, joint_frames, leg_jacobian
 from graphcal.models.legs import fk_with_params
 from graphcal.models.robot import Leg
 
 __all__ = ["lower_leg_direction", "compliance_lever", "complied_angles", "stance_contact_error", "stance_contact_factor"]
+
+
+#: Newton rounds of the complied angle (quadratic convergence from the measured angle: the
+#: deflection is a few degrees; 3 rounds reach machine precision)
+NEWTON_ROUNDS = 3
 
 
 def lower_leg_direction(leg: Leg, q) -> np.ndarray:
@@ -71,24 +76,47 @@ def _skew(v) -> np.ndarray:
 def complied_angles(leg: Leg, q, joint_index: int, k: float, R_lever) -> tuple[np.ndarray, float]:
     """(q' (n,), d q'_j / d k) of a leg whose joint ``joint_index`` flexes by ``k * lever(q')`` from the
     measured ``q`` (n,): ``q'_j = q_j + k lever(q')`` (the torque is that of the pose the leg is
-    really in), by fixed-point iteration; the derivative by implicit differentiation,
+    really in), by Newton's method; the derivative by implicit differentiation,
     ``lever / (1 - k dlever/dq_j)`` (dlever/dq_j by central differences). ``R_lever``: (3, 3) body
     attitude of the lever (:func:`compliance_lever`)."""
     j = int(joint_index)
     qc = np.array(q, dtype=float)
-    for _ in range(4):
-        qc[j] = q[j] + k * compliance_lever(leg, qc, j, R_lever)
-    lever = compliance_lever(leg, qc, j, R_lever)
+    n_b = np.asarray(R_lever, dtype=float).T @ np.array([0.0, 0.0, 1.0])
     h = 1e-6
-    dq = np.zeros_like(qc)
-    dq[j] = h
-    dl = (compliance_lever(leg, qc + dq, j, R_lever) - compliance_lever(leg, qc - dq, j, R_lever)) / (2 * h)
+
+    def lever_and_slope(x):
+        batch = np.repeat(qc[None, :], 3, axis=0)
+        batch[:, j] = (x, x + h, x - h)
+        lv = leg_jacobian(leg, batch)[:, :, j] @ n_b  # one batched kinematics
+        return float(lv[0]), float((lv[1] - lv[2]) / (2 * h))
+
+    x = float(q[j])
+    for _ in range(NEWTON_ROUNDS):  # x - q_j - k lever(x) = 0
+        lever, dl = lever_and_slope(x)
+        x -= (x - q[j] - k * lever) / (1.0 - k * dl)
+    qc[j] = x
+    lever, dl = lever_and_slope(x)
     return qc, float(lever / (1.0 - k * dl))
+
+
+def _fixed_leg_error(T_world_body, p_world_foot, p_fk, want_jacobians: bool):
+    """The stance-foot error ``p_fk - R_x^T (F - t_x)`` of a leg whose kinematics is a constant
+    ``p_fk`` (3,) m, with ``[H_X, H_F]`` (factors/stance_foot.py, without re-running the kinematics)."""
+    X = np.asarray(T_world_body, dtype=float)
+    R_x, t_x = X[:3, :3], X[:3, 3]
+    p_b = R_x.T @ (np.asarray(p_world_foot, dtype=float) - t_x)
+    e = p_fk - p_b
+    if not want_jacobians:
+        return e, None
+    H_X = np.zeros((3, 6))
+    H_X[:, :3] = -_skew(p_b)
+    H_X[:, 3:] = np.eye(3)
+    return e, [H_X, np.ascontiguousarray(-R_x.T)]
 
 
 def stance_contact_error(T_world_body, p_world_foot, q, leg: Leg, *, radius=None, a_b=None, compliance=None,
                          joint_index: int = 0, R_lever=None, param=None, theta=None,
-                         want_jacobians: bool = True):
+                         want_jacobians: bool = True, p_fk=None):
     """Error (3,) m (body frame) and Jacobians of the stance-foot factor with a foot radius and/or a
     joint compliance (module docstring).
 
@@ -99,6 +127,8 @@ def stance_contact_error(T_world_body, p_world_foot, q, leg: Leg, *, radius=None
         compliance: k (rad per m of lever) or None; joint_index: the compliant joint; R_lever: (3, 3)
             the body attitude its lever is taken at (:func:`compliance_lever`; the commanded one).
         param, theta: the leg's parameterization and values (or None: the nominal leg).
+        p_fk: FK(q) (3,) of the nominal leg when the caller has it (used without ``param`` and
+            ``compliance``: the kinematics is then a constant).
     Returns:
         (e, [H_X (3,6), H_F (3,3)] + [H_L (3,p)] + [H_r (3,1)] + [H_k (3,1)]) in that order, or (e, None).
     """
@@ -107,7 +137,10 @@ def stance_contact_error(T_world_body, p_world_foot, q, leg: Leg, *, radius=None
     dq_dk = 0.0
     if compliance is not None:
         qc, dq_dk = complied_angles(leg, q, int(joint_index), float(compliance), R_lever)
-    e, Hs = stance_foot_error(T_world_body, p_world_foot, qc, leg, param, theta, want_jacobians)
+    if p_fk is not None and compliance is None and param is None:  # the nominal leg's kinematics, constant
+        e, Hs = _fixed_leg_error(T_world_body, p_world_foot, np.asarray(p_fk, dtype=float), want_jacobians)
+    else:
+        e, Hs = stance_foot_error(T_world_body, p_world_foot, qc, leg, param, theta, want_jacobians)
     R_x = np.asarray(T_world_body, dtype=float)[:3, :3]
     n_b = R_x.T @ np.array([0.0, 0.0, 1.0])
     if radius is not None:
@@ -158,6 +191,7 @@ def stance_contact_factor(x_key: int, f_key: int, q, leg: Leg, cov_m2, *, r_key:
     if k_key is not None:
         keys.append(k_key), dims.append(1), kinds.append("Vector")
     a = None if a_b is None else np.array(a_b, dtype=float)
+    p_fk = foot_positions(leg, q) if (l_key is None and k_key is None) else None
 
     def error_fn(X, F, *rest, want):
         rest = list(rest)
@@ -165,7 +199,8 @@ def stance_contact_factor(x_key: int, f_key: int, q, leg: Leg, cov_m2, *, r_key:
         r = float(rest.pop(0)[0]) if r_key is not None else None
         k = float(rest.pop(0)[0]) if k_key is not None else None
         return stance_contact_error(X, F, q, leg, radius=r, a_b=a, compliance=k, joint_index=joint_index, R_lever=R_lever,
-                                    param=param if l_key is not None else None, theta=theta, want_jacobians=want)
+                                    param=param if l_key is not None else None, theta=theta, want_jacobians=want,
+                                    p_fk=p_fk)
 
     def fn(*args):
         *vals, want = args
