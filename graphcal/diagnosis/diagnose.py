@@ -546,7 +546,9 @@ def _verdicts(findings: list, final: tuple, nominal: tuple, notes: list, say) ->
     out_findings = []
     for f in findings:
         g = f.gain
-        ok = g is None or (np.isfinite(g.p_value) and g.p_value < HELDOUT_ALPHA)
+        # outlier stations are left out of both models' held-out evaluation: their evidence is their
+        # own (Baarda) test, not a held-out gain
+        ok = f.candidate.cause == "outlier_stations" or g is None or (np.isfinite(g.p_value) and g.p_value < HELDOUT_ALPHA)
         if not ok:
             notes.append(f"{f.candidate.label()}: tentative -- its held-out gain is not significant (paired test over "
                          f"{g.stations} held-out stations, p = {g.p_value:.2g} >= {HELDOUT_ALPHA}); structure remains "
