@@ -87,7 +87,8 @@ def _finding_figure(diag, f) -> tuple[str, Figure]:
             ax.set_xlabel("station (dataset order)")
             ax.set_title(name, fontsize=9)
             ax.grid(alpha=0.3)
-            ax.legend(fontsize=7)
+            if c.get("leg") is not None:  # a shared cause (foot radius, compliance) names no leg
+                ax.legend(fontsize=7)
         axes[0].set_ylabel("stance-foot residual (whitened RMS)")
         fig.suptitle(label, fontsize=10)
         cap = "stance-foot residuals per station: the named leg against the others"
