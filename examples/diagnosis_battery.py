@@ -122,6 +122,12 @@ def _compare(cause: str, truth: dict, finding: dict, sim_truth: dict) -> tuple[b
     if cause == "outlier_stations":
         found = sorted(int(x) for x in where.get("stations", []))
         return found == sorted(eff["stations"]), True, f"stations {found} vs {sorted(eff['stations'])}"
+    if cause == "foot_radius":
+        ok, t = within(p["radius_m"], eff["radius_m"], s["radius_m"], "radius_m")
+        return True, ok, t
+    if cause == "joint_compliance":
+        ok, t = within(p["k_rad_per_m"], eff["k_rad_per_m"], s["k_rad_per_m"], "k_rad_per_m")
+        return where.get("joint_index") == eff["joint_index"], ok, t
     raise ValueError(cause)
 
 
@@ -198,7 +204,7 @@ def main(per_cause: int = 5, clean: int = 6, jobs: int = 2, first_seed: int = 10
     if verbose:
         for r in results:
             print(f"{'PASS' if r.passed else 'FAIL'} seed {r.seed} {r.robot:8s} {r.hidden:18s} -> "
-                  f"{r.named or '-':18s} {r.seconds:5.1f} s  {r.detail}")
+                  f"{r.named or '-':18s} {r.seconds:5.1f} s  {r.detail}" + ("  [structure remains]" if r.unexplained else ""))
         print(f"battery: {len(effect)} hidden-effect cases, {len(clean_r)} clean: top-1 {top1:.1%}, "
               f"all checks {full:.1%}, false alarms {fa:.1%}")
     return {"results": results, "top1": top1, "passed": full, "false_alarm": fa}

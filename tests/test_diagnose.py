@@ -1,7 +1,7 @@
 """graphcal diagnose: the hidden-effect battery (examples/diagnosis_battery.py), the command and its files.
 
-The battery simulates 40 datasets, each hiding one catalogued effect drawn from its seed at a
-realistic magnitude and location on two robots, plus 6 clean datasets; ``diagnose`` reads only the
+The battery simulates 50 datasets (5 per cause of the ten), each hiding one catalogued effect drawn
+from its seed at a realistic magnitude and location on two robots, plus 6 clean datasets; ``diagnose`` reads only the
 dataset folder, never truth.yaml. Each case asserts the named cause, its location and that its
 parameters lie within 3 sigma of the truth; the battery asserts >= 95 % top-1 and <= 5 % false alarms.
 """
@@ -33,7 +33,7 @@ def battery():
 
 def test_battery_covers_the_catalogue_on_two_robots():
     effect = [c for c in CASES if c[2] != "clean"]
-    assert len(effect) >= 40
+    assert len(effect) >= 50
     assert {c[2] for c in effect} == set(diagnosis_battery.CAUSES)
     assert len({c[1] for c in CASES}) >= 2
     assert sum(c[2] == "clean" for c in CASES) >= 5

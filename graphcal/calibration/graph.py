@@ -304,11 +304,12 @@ def imu_mounting_prior(R_body_imu: np.ndarray, prior_sigma_rad: float, options: 
 
 
 def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, options: CalibrationOptions, *,
-                    R_body_imu: np.ndarray | None, kinematics: dict | None = None, w_key: int | None = None) -> list:
+                    R_body_imu: np.ndarray | None, kinematics: dict | None = None, w_key: int | None = None,
+                    stance=None) -> list:
     """The proprioceptive factors of one station, as (factor, noise group or None, noise components or None):
     a stance-foot factor per planted foot (noise: joint noise through the leg plus contact noise),
     the IMU attitude, and the commanded-pose prior. ``kinematics``: :func:`leg_kinematics` when
-    already computed."""
+    already computed; ``stance``: an extension's stance-foot factors (:attr:`ExtensionKeys.stance`)."""
     from graphcal.factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
     from graphcal.factors.priors import commanded_pose_prior
     from graphcal.factors.stance_foot import stance_foot_factor
@@ -326,7 +327,8 @@ def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, opti
         feet.append((f, q, leg_key, param, cached[0] if leg_key is None else None, cached[1]))
     # legs held fixed: GTSAM's bearing-range factor in C++, the noise components mapped to its error
     # (first-order equivalent, factors/stance_foot_builtin.py); one batch per station
-    fixed = [j for j, e in enumerate(feet) if e[4] is not None and np.linalg.norm(e[4]) >= MIN_RANGE_M]
+    fixed = [j for j, e in enumerate(feet) if e[4] is not None and np.linalg.norm(e[4]) >= MIN_RANGE_M
+             and stance is None]
     built = {}
     if fixed:
         P = np.array([feet[j][4] for j in fixed])
@@ -341,9 +343,12 @@ def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, opti
     for j, (f, q, leg_key, param, p_fk, J) in enumerate(feet):
         if j not in built:
             cov_joint, cov_contact = var_joint * (J @ J.T), var_contact * np.eye(3)
-            built[j] = (stance_foot_factor(x_key, foot_keys[f], q, robot.leg(f), l_key=leg_key, param=param,
-                                           cov_m2=cov_joint + cov_contact, p_fk=p_fk),
-                        {"joint": cov_joint, "contact": cov_contact})
+            factor = None if stance is None else stance(st, f, x_key, foot_keys[f], cov_joint + cov_contact, leg_key,
+                                                        param)
+            if factor is None:
+                factor = stance_foot_factor(x_key, foot_keys[f], q, robot.leg(f), l_key=leg_key, param=param,
+                                            cov_m2=cov_joint + cov_contact, p_fk=p_fk)
+            built[j] = (factor, {"joint": cov_joint, "contact": cov_contact})
         out.append((built[j][0], "stance_foot", built[j][1]))
     if st.imu_accel is not None and R_body_imu is not None:
         if options.estimate_imu_mounting and w_key is not None:
@@ -429,6 +434,8 @@ class ExtensionKeys:
         session_planes: session -> key of the ground plane (OrientedPlane3) the sensors see at its
             stations.
         leg_feet: feet whose leg parameters get the extension's prior (:meth:`GraphExtension.leg_prior`).
+        stance: None, or ``stance(st, foot, x_key, f_key, cov_m2, leg_key, param)`` -> the stance-foot
+            factor of that station and foot (a foot radius, joint compliance), or None for the usual one.
     """
 
     range_scale: dict = field(default_factory=dict)
@@ -436,6 +443,7 @@ class ExtensionKeys:
     segments: dict = field(default_factory=dict)
     session_planes: dict = field(default_factory=dict)
     leg_feet: frozenset = frozenset()
+    stance: object = None
 
 
 class GraphExtension(Protocol):
@@ -639,7 +647,7 @@ def _add_stations(b: GraphBuild, robot, station_keys: dict, leg_keys: dict, T_bo
         foot_keys = {f: F(foot_index[(st.session, f)]) for f in st.q_by_foot}
         for factor, group, comps in station_factors(robot, st, station_keys[st.station], foot_keys, leg_keys,
                                                     options, R_body_imu=R_body_imu, kinematics=kin,
-                                                    w_key=ek.ground_tilt):
+                                                    w_key=ek.ground_tilt, stance=ek.stance):
             b.add(factor, group, comps)
         for f, q in st.q_by_foot.items():
             p_world = T[:3, :3] @ kin[(st.station, f)][0] + T[:3, 3]

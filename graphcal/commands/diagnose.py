@@ -27,8 +27,9 @@ def _check_out(out: Path) -> None:
 
 def summary_text(doc: dict, out: Path | None = None) -> str:
     n = doc["nominal"]
-    lines = [f"nominal model: theta RMS {n['normal_rms_deg']:.4f} deg, e_d RMS {n['distance_rms_mm']:.3f} mm, "
-             f"chi2/dof {n['chi2_per_dof']:.2f}"]
+    lines = [f"warning: {w}" for w in doc.get("warnings", [])]
+    lines.append(f"nominal model: theta RMS {n['normal_rms_deg']:.4f} deg, e_d RMS {n['distance_rms_mm']:.3f} mm, "
+                 f"chi2/dof {n['chi2_per_dof']:.2f}")
     if not doc["findings"]:
         lines.append("findings: none (no catalogued effect is significant)")
     for fd in doc["findings"]:
@@ -38,10 +39,16 @@ def summary_text(doc: dict, out: Path | None = None) -> str:
         g = fd["gain"]
         gain = (f"; held-out RMS {g['heldout_rms_before']:.3g} -> {g['heldout_rms_after']:.3g} sigma (whitened)"
                 if g else "")
-        lines.append(f"found {fd['cause']}" + (f" ({where})" if where else "") + (f": {params}" if params else "")
+        if g and g.get("p_value") is not None:
+            gain += f" (paired test p = {g['p_value']:.2g})"
+        lines.append(("found " if fd.get("supported", True) else "tentative (held-out gain not significant): ")
+                     + f"{fd['cause']}" + (f" ({where})" if where else "") + (f": {params}" if params else "")
                      + f"; LR {fd['evidence']['statistic']:.1f} on {fd['evidence']['dof']} dof{gain}")
     if doc["unexplained_structure"]:
-        lines.append("structure remains that no catalogued effect explains")
+        where = ", ".join(doc.get("structure_remains_in", []))
+        lines.append("structure remains that no supported catalogued cause explains" + (f" (in {where})" if where else ""))
+    if doc.get("answer") == "neither":
+        lines.append("the extended model does not fit at physical noise either: its extrinsic is not the answer")
     for name, sensor in (doc.get("extended_calibration") or {}).get("sensors", {}).items():
         sig = sensor.get("sigma", {})
         lines.append(f"sensor pose of the diagnosis model: {name} xyz "

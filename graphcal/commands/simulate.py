@@ -25,6 +25,8 @@ _PARAMS = {
     "link_length": {"joint", "delta_m"},
     "extrinsic_change": {"sensor", "station", "angle_rad", "translation_m"},
     "outlier_stations": {"stations"},
+    "foot_radius": {"radius_m"},
+    "joint_compliance": {"joint_index", "k_rad_per_m"},
 }
 
 
@@ -95,6 +97,10 @@ def effect_from_words(cause: str, params: dict, *, seed: int, config: Simulation
         shift = _number(cause, "translation_m", params.get("translation_m", "0"))
         return Effects(extrinsic_change=ExtrinsicChange(
             need("sensor"), int(num("station")), num("angle_rad"), tuple(axis), tuple(shift * axis)))
+    if cause == "foot_radius":
+        return Effects(foot_radius=num("radius_m"))
+    if cause == "joint_compliance":
+        return Effects(joint_compliance=(int(num("joint_index")), num("k_rad_per_m")))
     stations = tuple(int(_number(cause, "stations", s)) for s in need("stations").split(";") if s.strip())
     return Effects(outlier_stations=stations)
 

@@ -31,6 +31,8 @@ MIN_RELEVANT = {
     "link_length": 0.004,  # m
     "extrinsic_change": float(np.radians(0.5)),  # or 5 mm of translation
     "outlier_stations": 0.0,
+    "foot_radius": 0.005,  # m
+    "joint_compliance": 0.08,  # rad per m of lever: 0.5 deg at a 0.1 m lever
 }
 #: translation (m) that makes an extrinsic change relevant on its own
 MIN_RELEVANT_TRANSLATION_M = 0.005
@@ -92,11 +94,14 @@ class Evidence:
 
 @dataclass(frozen=True)
 class Gain:
-    """Held-out prediction of the sensors' measurements (whitened RMS, unitless) before and after."""
+    """Held-out prediction of the sensors' measurements (whitened RMS, unitless) before and after,
+    and the paired test over held-out stations (p_value: one-sided, that after predicts better)."""
 
     heldout_rms_before: float
     heldout_rms_after: float
     folds: int
+    p_value: float = float("nan")  # one-sided paired Wilcoxon over held-out stations (heldout.paired_test)
+    stations: int = 0
 
     @property
     def relative(self) -> float:
@@ -104,7 +109,8 @@ class Gain:
 
     def to_dict(self) -> dict:
         return {"heldout_rms_before": float(self.heldout_rms_before), "heldout_rms_after": float(self.heldout_rms_after),
-                "relative": self.relative, "folds": int(self.folds)}
+                "relative": self.relative, "folds": int(self.folds), "p_value": float(self.p_value),
+                "stations": int(self.stations)}
 
 
 @dataclass(frozen=True)
@@ -117,6 +123,8 @@ class Finding:
         evidence: the likelihood-ratio test of the fitted extension (and the screening score).
         score: the screening score test that selected it.
         gain: held-out gain.
+        supported: the held-out gain is significant (paired test over held-out stations); a finding
+            that is not is reported as tentative and the diagnosis says structure remains.
     """
 
     candidate: Candidate
@@ -126,6 +134,7 @@ class Finding:
     score: Evidence
     gain: Gain | None = None
     notes: tuple = field(default=())
+    supported: bool = True  # its held-out gain is significant (heldout.paired_test); else said "tentative"
 
     def to_dict(self) -> dict:
         return {
@@ -135,6 +144,7 @@ class Finding:
             "sigma": {k: _plain(v) for k, v in self.sigma.items()},
             "evidence": {**self.evidence.to_dict(), "screening": self.score.to_dict()},
             "gain": self.gain.to_dict() if self.gain is not None else None,
+            "supported": bool(self.supported),
             "notes": list(self.notes),
         }
 
@@ -162,4 +172,8 @@ def relevant(cause: str, parameters: dict) -> bool:
         return abs(parameters["delta_m"]) >= m
     if cause == "extrinsic_change":
         return abs(parameters["angle_rad"]) >= m or abs(parameters["translation_m"]) >= MIN_RELEVANT_TRANSLATION_M
+    if cause == "foot_radius":
+        return abs(parameters["radius_m"]) >= m
+    if cause == "joint_compliance":
+        return abs(parameters["k_rad_per_m"]) >= m
     return True

@@ -66,15 +66,24 @@ class Diagnosis:
     Attributes:
         nominal, final: residual summaries of the nominal and the final (extended) model.
         findings: named causes, in the order found (strongest evidence first).
-        unexplained_structure: the final planes still fail their chi-square test, more stations fail
-            than outliers can explain, or a fitted cause had an impossible size (wrong data).
+        unexplained_structure: a measurement group of the final model fails its test at physical
+            noise (structure.py), the final planes fail their chi-square test, a named cause's
+            held-out gain is not significant, more stations fail than outliers can explain, or a
+            fitted cause had an impossible size (wrong data).
         structure_test: (chi2, redundancy, p) of that test, or None when no plane has a covariance.
         screening: per round, the top candidates as (label, log10 family p, statistic, dof).
         thresholds: per round, the log10 family p a candidate must fall below to be fitted
             (``log10(alpha / causes tested)``).
         model: the final DiagnosisModel; values: its solution; problem: its graph.
         residuals_before, residuals_after: per-measurement residual records for the plots.
-        noise: the learned noise of the final model.
+        groups, nominal_groups: per measurement group, its test at physical noise
+            (structure.GroupTest) in the final and the nominal model.
+        warnings: calibrate's warnings on the nominal model, and a warning per group of the nominal
+            model that fails at physical noise (the warnings calibrate gives when its learned noise
+            is far above the physical one), passed on.
+        answer: whose extrinsic is the answer: "extended" (every finding supported and no
+            structure remains), "nominal" (nothing named, or no finding predicts held-out stations
+            significantly better) or "neither" (structure remains: neither model fits).
     """
 
     nominal: ModelSummary
@@ -93,6 +102,10 @@ class Diagnosis:
     notes: tuple = field(default=())
     nuisance: tuple = field(default=())
     thresholds: tuple = field(default=())
+    groups: tuple = field(default=())
+    nominal_groups: tuple = field(default=())
+    warnings: tuple = field(default=())
+    answer: str = "nominal"
 
     def to_json(self) -> dict:
         from graphcal.calibration.result import calibration_result
@@ -118,6 +131,11 @@ class Diagnosis:
             "screening_threshold_log10_p": list(self.thresholds),
             "nuisance": list(self.nuisance),
             "notes": list(self.notes),
+            "warnings": list(self.warnings),
+            "physical_noise_tests": {"nominal": [g.to_dict() for g in self.nominal_groups],
+                                     "final": [g.to_dict() for g in self.groups]},
+            "structure_remains_in": [g.group for g in self.groups if g.structure],
+            "answer": self.answer,
         }
 
 
@@ -223,6 +241,10 @@ def _candidates(model: DiagnosisModel, problem, system) -> list[CandidateColumns
             rows = np.concatenate([system.measurement_rows[(t, s)] for t in same[pos:]])
             c = Candidate("extrinsic_change", (("sensor", s), ("station", int(st))), n_fam)
             out.append(CandidateColumns(c, columns(key), rows))
+    # one foot radius, one compliance per joint type: shared by every leg (diagnosis/contact.py)
+    from graphcal.diagnosis.contact import contact_candidates
+
+    out.extend(contact_candidates(model, problem, system, problem.initial))
     # outlier stations: every sensor's measurement at the station set free
     by_station: dict[int, list] = {}
     for (st, name), rows in system.measurement_rows.items():
@@ -320,6 +342,11 @@ def _parameters(cand: Candidate, model: DiagnosisModel, problem, values) -> tupl
         cov = _joint_cov(problem, values, [key])
         pname = "offset_rad" if cause == "joint_offset" else "delta_m"
         return {pname: float(values.atVector(key)[j])}, {pname: float(np.sqrt(cov[j, j]))}
+    if cause in ("foot_radius", "joint_compliance"):
+        k = ek["foot_radius"] if cause == "foot_radius" else ek[f"compliance:{int(cand.get('joint_index'))}"]
+        cov = _joint_cov(problem, values, [k])
+        name = "radius_m" if cause == "foot_radius" else "k_rad_per_m"
+        return {name: float(values.atVector(k)[0])}, {name: float(np.sqrt(cov[0, 0]))}
     if cause == "extrinsic_change":
         s, st = cand.get("sensor"), int(cand.get("station"))
         k_new = ek[f"segment:{s}:{st}"]
@@ -513,10 +540,85 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     from graphcal.diagnosis.residuals import residual_records, stance_records
 
     findings.sort(key=lambda f: f.evidence.log10_p_family)
-    return Diagnosis(nominal, final, tuple(findings), unexplained, st, tuple(screening), model, values, problem,
-                     residual_records(nominal_model, nominal_problem, nominal_values),
+    v = _verdicts(findings, (model, problem, values), (nominal_model, nominal_problem, nominal_values), notes, say)
+    return Diagnosis(nominal, final, tuple(v["findings"]), unexplained or v["structure"], st, tuple(screening), model,
+                     values, problem, residual_records(nominal_model, nominal_problem, nominal_values),
                      residual_records(model, problem, values), stance_records(nominal_model, nominal_problem, nominal_values),
-                     stance_records(model, problem, values), tuple(notes), tuple(nuisance), tuple(thresholds))
+                     stance_records(model, problem, values), tuple(notes), tuple(nuisance), tuple(thresholds), v["groups"],
+                     v["nominal_groups"], v["warnings"], v["answer"])
+
+
+#: a finding is supported when its held-out gain's paired test (heldout.paired_test) is below this
+HELDOUT_ALPHA = 0.01
+
+#: what a group failing at physical noise points to (the warning passed on, and the next step)
+GROUP_HINTS = {
+    "stance_foot": "the legs' kinematics do not reach the planted feet: joint offsets or link lengths, the foot "
+                   "frames not being the contact points (round feet), joints flexing under load, or feet slipping",
+    "foot_on_ground": "the feet are not on one plane at the physical foot-height noise: a plate or step under some "
+                      "feet, feet sinking, round feet (the foot frames not being the contact points)",
+    "imu": "gravity disagrees with the legs' ground: a tilted floor, a rotated IMU mount, or an accelerometer bias",
+    "commanded": "the body is far from its commanded poses: the legs or the ground are not as modelled",
+}
+
+
+def _group_text(g) -> str:
+    text = (f"{g.group}: chi2 {g.chi2:.1f} on {g.redundancy:.1f} dof at physical noise (chi2/dof {g.ratio:.2f}, "
+            f"p = {g.p_value:.2g})")
+    if g.regressor:
+        text += (f"; its whitened residuals (component {g.component}) correlate with {g.regressor} "
+                 f"(r = {g.correlation:+.2f}, p = {g.regressor_p:.2g})")
+    return text
+
+
+def _verdicts(findings: list, final: tuple, nominal: tuple, notes: list, say) -> dict:
+    """The open-world verdicts (docs/diagnosis.md "Verdicts"): each measurement group tested at
+    physical noise in the nominal and the final model (``final``, ``nominal``: (DiagnosisModel,
+    problem, values)); a finding whose held-out gain is not significant is marked tentative;
+    calibrate's warnings on the nominal model passed on; whose extrinsic is the answer. Appends to
+    ``notes``; returns {"findings", "groups", "nominal_groups", "warnings", "answer", "structure"}."""
+    from graphcal.calibration.result import calibration_result
+    from graphcal.diagnosis.structure import physical_structure
+
+    out_findings = []
+    for f in findings:
+        g = f.gain
+        # outlier stations are left out of both models' held-out evaluation: their evidence is their
+        # own (Baarda) test, not a held-out gain
+        ok = f.candidate.cause == "outlier_stations" or g is None or (np.isfinite(g.p_value) and g.p_value < HELDOUT_ALPHA)
+        if not ok:
+            notes.append(f"{f.candidate.label()}: tentative -- its held-out gain is not significant (paired test over "
+                         f"{g.stations} held-out stations, p = {g.p_value:.2g} >= {HELDOUT_ALPHA}); structure remains "
+                         "that it may not explain")
+        out_findings.append(dataclasses.replace(f, supported=ok))
+    groups, _, _ = physical_structure(final[0], final[2], final[1])
+    nominal_groups = groups if final[0] is nominal[0] else physical_structure(nominal[0], nominal[2], nominal[1])[0]
+    warnings = []
+    try:
+        res = calibration_result(nominal[0].ds, nominal[0].robot, nominal[0].data, nominal[1], nominal[2], set(), 0,
+                                 nominal[0].options)
+        warnings += [f"calibrate: {w}" for w in res.warnings]
+    except (RuntimeError, GraphcalError) as exc:  # a covariance that cannot be computed is itself a warning
+        warnings.append(f"calibrate: no result on the nominal model ({exc})")
+    for g in nominal_groups:
+        if g.structure:
+            warnings.append(f"nominal model: {_group_text(g)}: " + GROUP_HINTS.get(
+                g.group, "the sensor's planes do not fit: its error model (range, scale) or the ground"))
+    failing = [g for g in groups if g.structure]
+    for g in failing:
+        say(f"structure remains in {_group_text(g)}")
+        notes.append(f"structure remains in {_group_text(g)}")
+    tentative = [f for f in out_findings if not f.supported]
+    if failing or tentative:
+        answer = "neither"
+        notes.append("the extended model does not fit either: its extrinsic is not the answer (see the groups that "
+                     "fail at physical noise); the nominal calibration is reported beside it")
+    elif out_findings:
+        answer = "extended"
+    else:
+        answer = "nominal"
+    return {"findings": out_findings, "groups": groups, "nominal_groups": nominal_groups, "warnings": tuple(warnings),
+            "answer": answer, "structure": bool(failing or tentative)}
 
 
 def _likelihood_ratio(sc, cand: Candidate, significant: list, current: tuple, extended: tuple) -> tuple:

@@ -37,6 +37,8 @@ FREE_SIGMA = {
     "imu_misalignment": 0.3,  # rad
     "offset_rad": 0.3,
     "delta_m": 0.1,
+    "foot_radius": 0.1,  # m
+    "joint_compliance": 5.0,  # rad per m of lever
 }
 #: noise sigmas the diagnosis does not learn, because learning them from the residuals would absorb
 #: the very effects looked for: a planted foot's height above the ground (3 mm: foot pad and floor
@@ -144,6 +146,10 @@ class DiagnosisModel:
             imu_mounting_sigma_rad=imu if self.has_imu() else None,
             leg_sigmas=tuple(legs),
             extrinsic_segments=segments,
+            foot_radius_sigma_m=FREE_SIGMA["foot_radius"] if self.found("foot_radius") else None,
+            compliance=tuple((int(c.get("joint_index")), FREE_SIGMA["joint_compliance"])
+                             for c in self.found("joint_compliance")),
+            robot=self.robot,
         )
 
     def with_finding(self, candidate: Candidate) -> "DiagnosisModel":

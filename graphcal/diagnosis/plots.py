@@ -10,7 +10,9 @@ ground_tilt            angle error theta (deg) against the station number, colou
                        (the heading changes between sessions)
 imu_misalignment       theta against the body tilt (deg)
 joint_offset,          whitened stance-foot residual of the named leg against the station number,
-link_length            the other legs in grey
+link_length            the other legs in grey (foot_radius, joint_compliance: every leg)
+structure remains      per group failing at physical noise: its whitened residual component
+                       against the regressor it correlates with most (diagnosis/structure.py)
 extrinsic_change       theta and e_d against the station number, the change marked
 outlier_stations       whitened measurement residual against the station number, the stations marked
 =====================  =========================================================================
@@ -79,7 +81,7 @@ def _finding_figure(diag, f) -> tuple[str, Figure]:
     elif c.cause == "imu_misalignment":
         _pair(fig, b, a, "tilt_deg", "angle_deg", "body tilt [deg]", _THETA, label)
         cap = "angle error against the body tilt"
-    elif c.cause in ("joint_offset", "link_length"):
+    elif c.cause in ("joint_offset", "link_length", "foot_radius", "joint_compliance"):
         axes = fig.subplots(1, 2, sharey=True)
         for ax, recs, name in ((axes[0], diag.stance_before, "nominal model"), (axes[1], diag.stance_after, "extended model")):
             for leg in dict.fromkeys(r.leg for r in recs):
@@ -91,7 +93,8 @@ def _finding_figure(diag, f) -> tuple[str, Figure]:
             ax.set_xlabel(_STATION)
             ax.set_title(name, fontsize=9)
             ax.grid(alpha=0.3)
-            ax.legend(fontsize=7)
+            if c.get("leg") is not None:  # a shared cause (foot radius, compliance) names no leg
+                ax.legend(fontsize=7)
         axes[0].set_ylabel("stance-foot residual (whitened RMS)")
         fig.suptitle(label, fontsize=10)
         cap = "stance-foot residuals per station: the named leg against the others"
@@ -116,9 +119,34 @@ def _finding_figure(diag, f) -> tuple[str, Figure]:
     return f"{label}: {cap} (left: nominal model, right: with the findings)", fig
 
 
+def structure_figures(diag) -> list[tuple[str, Figure]]:
+    """(caption, figure) per measurement group of the final model that fails at physical noise: its
+    whitened residual component against the regressor it correlates with most."""
+    out = []
+    for g in diag.groups:
+        if not g.structure or not g.points:
+            continue
+        fig = new_figure(6.0, 3.4)
+        ax = fig.subplots(1, 1)
+        x, y = np.array(g.points).T
+        ax.plot(x, y, ".", color=_MARK, ms=4)
+        if np.std(x) > 0:
+            k, c0 = np.polyfit(x, y, 1)
+            xs = np.array([x.min(), x.max()])
+            ax.plot(xs, k * xs + c0, "-", color=_BEFORE, lw=1.0)
+        ax.set_xlabel(g.regressor)
+        ax.set_ylabel(f"{g.group} residual, component {g.component} (whitened)")
+        ax.grid(alpha=0.3)
+        fig.suptitle(f"structure remains in {g.group}", fontsize=10)
+        out.append((f"{g.group}: chi2/dof {g.ratio:.2f} at physical noise; its residuals against {g.regressor} "
+                    f"(r = {g.correlation:+.2f}, p = {g.regressor_p:.2g})", fig))
+    return out
+
+
 def diagnosis_figures(diag) -> list[tuple[str, Figure]]:
-    """(caption, figure) per finding; with no finding, the residuals per station."""
-    out = [_finding_figure(diag, f) for f in diag.findings]
+    """(caption, figure) per finding and per group where structure remains; with neither, the
+    residuals per station."""
+    out = [_finding_figure(diag, f) for f in diag.findings] + structure_figures(diag)
     if not out:
         fig = new_figure(9.0, 3.4)
         _pair(fig, diag.residuals_before, diag.residuals_after, "station", "whitened", _STATION,

@@ -121,16 +121,20 @@ def evidence(test: str, statistic: float, dof: int, family_size: int, n_rows: in
 class CandidateColumns:
     """How a candidate enters the linearisation: ``cols`` (its own variables, every row), ``cols`` on
     ``rows`` only (an extrinsic change from a station on: the extrinsic's columns on the later rows; a
-    session offset: the ground offset on that session's plane rows), or the identity on ``rows``
-    (``cols`` None: an outlier station, whose measurement rows are set free)."""
+    session offset: the ground offset on that session's plane rows), the identity on ``rows``
+    (``cols`` None: an outlier station, whose measurement rows are set free), or ``dense`` columns
+    built from the system (a foot radius, a joint compliance: diagnosis/contact.py)."""
 
     candidate: Candidate
     cols: np.ndarray | None
     rows: np.ndarray | None = None
+    dense: np.ndarray | None = None  # (rows, p) columns built from the system (a shared-parameter cause)
 
     def matrix(self, system: "LinearSystem") -> np.ndarray:
         """The candidate's columns K, full height (zero outside the rows it acts on)."""
         n = len(system.b)
+        if self.dense is not None:
+            return self.dense
         if self.cols is None:
             K = np.zeros((n, len(self.rows)))
             K[self.rows, np.arange(len(self.rows))] = 1.0
@@ -186,7 +190,12 @@ def score_candidates(system: LinearSystem, candidates: list) -> list[Score]:
     n_rows = len(b)
     out = []
     for cc in candidates:
-        if cc.cols is None:  # identity on rows
+        if cc.dense is not None:  # columns built from the system (foot radius, compliance)
+            K = cc.dense
+            W = J.T @ K
+            I = K.T @ K - W.T @ Qinv @ W
+            stat, dof, est = _pinv_quadratic(I, K.T @ b)
+        elif cc.cols is None:  # identity on rows
             Jr = J[cc.rows]
             I = np.eye(len(cc.rows)) - Jr @ Qinv @ Jr.T
             stat, dof, est = _pinv_quadratic(I, b[cc.rows], rtol=1e-6)

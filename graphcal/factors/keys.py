@@ -18,6 +18,10 @@ V(0)      T_body_mocap         the motion-capture frame (or Yuan's virtual base)
                                body frame (leg identification, factors/mocap_marker.py)
 K(j)      p_foot_marker        position of motion-capture marker j on its foot (foot        Point3
                                frame), when dataset.yaml does not give it
+R(0)      [radius]             foot radius, every foot (diagnosis: foot_radius,             Vector 1
+                               factors/stance_contact.py)
+Q(j)      [compliance]         compliance of joint index j of every leg, rad per m of       Vector 1
+                               lever (diagnosis: joint_compliance)
 ========  ===================  ==========================================================  =========
 
 Every Pose3 is perturbed on the right, ``T = T_hat * Exp(xi)``, ``xi = [omega, v]`` (GTSAM).
@@ -37,5 +41,7 @@ C = _s.C  #: range scale of sensor k
 W = _s.W  #: R_ground_level, gravity against a tilted floor
 V = _s.V  #: motion-capture frame (or virtual base) T_body_mocap
 K = _s.K  #: motion-capture marker position p_foot_marker j
+R = _s.R  #: foot radius (diagnosis)
+Q = _s.Q  #: joint compliance of joint index j of every leg (diagnosis)
 
-__all__ = ["X", "S", "F", "L", "G", "M", "C", "W", "V", "K"]
+__all__ = ["X", "S", "F", "L", "G", "M", "C", "W", "V", "K", "R", "Q"]

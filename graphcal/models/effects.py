@@ -17,6 +17,11 @@ extrinsic_change     the sensor was knocked during the run                   ang
                                                                              from station, sensor
 outlier_stations     a few stations are wrong (sensor data under the wrong   stations
                      station label)
+foot_radius          the feet are spheres: the contact point rolls with the  radius_m (every foot)
+                     lower leg (the URDF foot frame is the lower leg's tip)
+joint_compliance     one joint of every leg flexes under the foot's load     k_rad_per_m at joint_index
+                     (deflection = k * lever, lever = torque per newton of   (rad per m of lever)
+                     vertical load, m)
 ==================== ======================================================= ==========================
 """
 
@@ -34,4 +39,6 @@ CAUSES = (
     "link_length",
     "extrinsic_change",
     "outlier_stations",
+    "foot_radius",
+    "joint_compliance",
 )

@@ -57,11 +57,33 @@ def parameter_text(name: str, value, sigma=None) -> str:
     return f"{base}_{new_unit} = {_num(_scaled(value, f), '.4g')}{sig_new} {new_unit} ({_num(value, '.4g')} {unit})"
 
 
+def _verdict(doc: dict) -> list[str]:
+    """Warnings first, then whose extrinsic is the answer and where structure remains."""
+    out = [f'<div class="warn">{esc(w)}</div>' for w in doc.get("warnings", [])]
+    answer = doc.get("answer", "nominal")
+    text = {"extended": "the extended model fits at physical noise: its extrinsic (below) is the answer.",
+            "nominal": "no cause is named: the nominal calibration (graphcal calibrate) is the answer.",
+            "neither": "structure remains: neither model fits at physical noise; the extended model's extrinsic is "
+                       "not the answer."}[answer]
+    out.append(f"<p><b>Answer:</b> {esc(text)}</p>")
+    groups = doc.get("physical_noise_tests", {}).get("final", [])
+    if groups:
+        out.append('<table><tr><th class="l">group</th><th>chi2 / dof at physical noise</th><th>p</th>'
+                   '<th class="l">correlates with</th></tr>')
+        for g in groups:
+            cor = f"{esc(g['regressor'])} (r = {g['correlation']:+.2f}, p = {_fmt(g['regressor_p'])})" if g["regressor"] else "-"
+            flag = " <b>structure remains</b>" if g["structure"] else ""
+            out.append(f'<tr><td class="l">{esc(g["group"])}{flag}</td><td>{_fmt(g["chi2_per_dof"])}</td>'
+                       f'<td>{_fmt(g["p_value"])}</td><td class="l">{cor}</td></tr>')
+        out.append("</table>")
+    return out
+
+
 def _findings(doc: dict) -> list[str]:
     out = _findings_table(doc)
     if doc["unexplained_structure"]:
-        out.append('<div class="warn">The final residuals still fail their chi-square test: structure remains that no '
-                   "catalogued effect explains.</div>")
+        out.append('<div class="warn">Structure remains that no supported catalogued cause explains (a group fails '
+                   "at physical noise, a finding is tentative, or the planes fail their chi-square test).</div>")
     if doc["notes"]:
         out.append("<h3>Notes</h3><ul>" + "".join(f"<li>{esc(x)}</li>" for x in doc["notes"]) + "</ul>")
     return out
@@ -77,8 +99,10 @@ def _findings_table(doc: dict) -> list[str]:
                              for k, v in fd["parameters"].items())
         ev = fd["evidence"]
         g = fd["gain"]
-        gain = f"{_fmt(g['heldout_rms_before'])} → {_fmt(g['heldout_rms_after'])} ({_fmt(g['relative'])})" if g else "-"
-        out.append(f'<tr><td class="l"><b>{esc(fd["cause"])}</b></td><td class="l">{esc(where_text(fd["where"]))}</td>'
+        gain = (f"{_fmt(g['heldout_rms_before'])} → {_fmt(g['heldout_rms_after'])} ({_fmt(g['relative'])}); "
+                f"paired test p = {_fmt(g.get('p_value', float('nan')))}") if g else "-"
+        tentative = "" if fd.get("supported", True) else " (tentative)"
+        out.append(f'<tr><td class="l"><b>{esc(fd["cause"])}</b>{tentative}</td><td class="l">{esc(where_text(fd["where"]))}</td>'
                    f'<td class="l">{params}</td><td class="l">LR {_fmt(ev["statistic"])} on {ev["dof"]} dof, '
                    f"p(family) = {_fmt(ev['p_family'])}, ΔBIC {_fmt(ev['delta_bic'])}</td><td>{gain}</td></tr>")
     out.append("</table>")
@@ -140,9 +164,10 @@ def diagnosis_html(diag, doc: dict, title: str) -> str:
                    f"<td>{_fmt(m['chi2_per_dof'])}</td></tr>")
     res.append("</table>")
     sections = [
+        Section("Verdict", *_verdict(doc)),
         Section("Residuals", *res),
         Section("Findings", *_findings(doc)),
-        Section("Residuals against the revealing covariate, before and after",
+        Section("Residuals against the revealing covariate, before and after; where structure remains",
                 '<p class="small">θ and e_d here compare each measured plane with the one the model predicts from '
                 "the legs alone (the kinematic body pose), not with the fitted one of the Residuals table: the fitted "
                 "body poses absorb most of a discrepancy. Stations numbered as in stations.csv.</p>"

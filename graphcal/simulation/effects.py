@@ -36,6 +36,53 @@ class ExtrinsicChange:
 
 
 @dataclass(frozen=True)
+class OpenWorld:
+    """Physical effects OUTSIDE the catalogue (``graphcal diagnose`` has no cause for them): the
+    open-world battery (examples/diagnosis_openworld.py) hides them to check that diagnose either
+    says structure remains or names a cause that explains them, never a confident wrong one. The
+    default hides nothing.
+
+    Attributes:
+        range_quadratic: sensor -> k (1/m): every point of that sensor is read at range r (1 + k r)
+            (a depth error growing with range^2, k r^2).
+        plate: (session, feet, height_m): in that session the named feet stand on a plate
+            ``height_m`` thick (the others on the floor).
+        sinking: session -> depth_m: the feet sink steadily during that session, by ``depth_m`` at
+            its last station (0 at its first).
+        imu_drift: (angle_rad, axis_rad): the IMU mount tilts steadily during the run (a mount
+            warming up), about the horizontal body axis at azimuth ``axis_rad``, by 0 at the first
+            station and ``angle_rad`` at the last.
+    """
+
+    range_quadratic: Mapping[str, float] = field(default_factory=dict)
+    plate: tuple | None = None
+    sinking: Mapping[str, float] = field(default_factory=dict)
+    imu_drift: tuple | None = None
+
+    def __post_init__(self):
+        for name in ("range_quadratic", "sinking"):
+            object.__setattr__(self, name, _frozen(getattr(self, name)))
+
+    def active(self) -> tuple[str, ...]:
+        """Names of the open-world effects hidden."""
+        return tuple(n for n in ("range_quadratic", "plate", "sinking", "imu_drift") if getattr(self, n))
+
+    def to_dict(self) -> dict:
+        """Plain-YAML form (SI units) for truth.yaml."""
+        d: dict = {}
+        if self.range_quadratic:
+            d["range_quadratic"] = {k: {"k_per_m": float(v)} for k, v in self.range_quadratic.items()}
+        if self.plate:
+            s, feet, h = self.plate
+            d["plate"] = {"session": s, "feet": list(feet), "height_m": float(h)}
+        if self.sinking:
+            d["sinking"] = {k: {"depth_m": float(v)} for k, v in self.sinking.items()}
+        if self.imu_drift:
+            d["imu_drift"] = {"angle_rad": float(self.imu_drift[0]), "axis_rad": float(self.imu_drift[1])}
+        return d
+
+
+@dataclass(frozen=True)
 class Effects:
     """Effects hidden in a simulated dataset. The default hides nothing.
 
@@ -49,6 +96,12 @@ class Effects:
         link_length: URDF joint name -> change (m) of the length of the link ending at that joint.
         extrinsic_change: an :class:`ExtrinsicChange` or None.
         outlier_stations: station ids whose sensor data are those of another station.
+        foot_radius: radius_m of every foot (a sphere; the URDF foot frame is the lower leg's tip,
+            the contact rolls with the leg; factors/stance_contact.py).
+        joint_compliance: (joint_index, k_rad_per_m): the joint at that index of every leg flexes
+            by ``k * lever`` (lever: torque per newton of vertical load on the foot, m); the
+            encoder reads the true angle minus the deflection.
+        open_world: effects outside the catalogue (:class:`OpenWorld`); not in :meth:`active`.
     """
 
     sensor_range_scale: Mapping[str, float] = field(default_factory=dict)
@@ -59,6 +112,9 @@ class Effects:
     link_length: Mapping[str, float] = field(default_factory=dict)
     extrinsic_change: ExtrinsicChange | None = None
     outlier_stations: tuple[int, ...] = ()
+    foot_radius: float = 0.0
+    joint_compliance: tuple[int, float] | None = None
+    open_world: OpenWorld = field(default_factory=OpenWorld)
 
     def __post_init__(self):
         for name in ("sensor_range_scale", "session_offset", "joint_offset", "link_length"):
@@ -86,6 +142,10 @@ class Effects:
             out.append("extrinsic_change")
         if self.outlier_stations:
             out.append("outlier_stations")
+        if self.foot_radius:
+            out.append("foot_radius")
+        if self.joint_compliance is not None and self.joint_compliance[1] != 0.0:
+            out.append("joint_compliance")
         return tuple(out)
 
     def to_dict(self) -> dict:
@@ -117,6 +177,13 @@ class Effects:
             }
         if self.outlier_stations:
             d["outlier_stations"] = {"stations": [int(s) for s in self.outlier_stations]}
+        if self.foot_radius:
+            d["foot_radius"] = {"radius_m": float(self.foot_radius)}
+        if self.joint_compliance is not None:
+            d["joint_compliance"] = {"joint_index": int(self.joint_compliance[0]),
+                                     "k_rad_per_m": float(self.joint_compliance[1])}
+        if self.open_world.active():
+            d["open_world"] = self.open_world.to_dict()
         return d
 
 
@@ -130,6 +197,8 @@ MAGNITUDES = {
     "link_length": (0.010, 0.025),  # m
     "extrinsic_change": (np.radians(1.5), np.radians(3.0)),
     "outlier_stations": (3, 3),
+    "foot_radius": (0.015, 0.030),  # m
+    "joint_compliance": (0.15, 0.4),  # rad per m of lever: ~1-2.5 deg at a 0.1 m lever
 }
 
 
@@ -185,6 +254,12 @@ def draw_effect(
         axis /= np.linalg.norm(axis)
         change = ExtrinsicChange(s, ordered[k], mag, tuple(float(a) for a in axis))
         return Effects(extrinsic_change=change), {"station": ordered[k], "sensor": s}
+    if cause == "foot_radius":
+        return Effects(foot_radius=mag), {}
+    if cause == "joint_compliance":
+        n = min(len(v) for v in leg_joints.values())
+        j = int(rng.integers(1, n)) if n > 1 else 0  # not the hip yaw (no vertical lever)
+        return Effects(joint_compliance=(j, mag)), {"joint_index": j}
     # outlier_stations
     picked = tuple(sorted(int(s) for s in rng.choice(sorted(stations), size=int(lo), replace=False)))
     return Effects(outlier_stations=picked), {"stations": list(picked)}
@@ -202,4 +277,7 @@ def merge(a: Effects, b: Effects) -> Effects:
         link_length={**a.link_length, **b.link_length},
         extrinsic_change=b.extrinsic_change if b.extrinsic_change is not None else a.extrinsic_change,
         outlier_stations=tuple(sorted(set(a.outlier_stations) | set(b.outlier_stations))),
+        foot_radius=b.foot_radius or a.foot_radius,
+        joint_compliance=b.joint_compliance if b.joint_compliance is not None else a.joint_compliance,
+        open_world=b.open_world if b.open_world.active() else a.open_world,
     )

@@ -366,6 +366,10 @@ def _stances(config: SimulationConfig, robot, info, sessions: list, terrain, ter
         p_real = p_assumed.copy()
         p_real[:, 2] = terrain_height(terrain, p_real[:, :2], scene=terrain_scene[0])
         p_real[:, 2] -= config.effects.session_offset.get(s, 0.0)
+        plate = config.effects.open_world.plate
+        if plate and plate[0] == s:
+            on_plate = [k for k, f in enumerate(robot.feet) if f in plate[1]]
+            p_real[on_plate, 2] += float(plate[2])
         feet_world_assumed[s] = p_assumed
         feet_world_real[s] = p_real
     return _Stances(T_world_stance, feet_world_assumed, feet_world_real)
@@ -391,12 +395,26 @@ def _commanded_q(leg, p_body_foot: np.ndarray, q_prev: np.ndarray, q_nominal: np
 
 
 def _complied_q(config: SimulationConfig, true_leg, p_body_planted: np.ndarray, q_act: np.ndarray, station: int,
-                foot: str) -> np.ndarray:
+                foot: str, T_real: np.ndarray | None = None) -> np.ndarray:
     """The leg complies: its joints settle where the true leg reaches its planted foot
-    ``p_body_planted`` (3,) m from the real body pose (the chain closes exactly), from ``q_act``."""
+    ``p_body_planted`` (3,) m from the real body pose ``T_real`` (the chain closes exactly), from
+    ``q_act``; on round feet (effect ``foot_radius``) the foot frame sits ``r (a_b - n_b)`` from the
+    contact (three fixed-point rounds: the lower leg's direction depends on the angles)."""
+    from graphcal.factors.stance_contact import lower_leg_direction
     from graphcal.models.kinematics import ik_leg
 
-    q_c, ok = ik_leg(true_leg, p_body_planted[None, :], q_act[None, :])
+    r = config.effects.foot_radius
+    target = p_body_planted
+    if r and T_real is not None:
+        n_b = T_real[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        q_i = q_act
+        for _ in range(3):
+            target = p_body_planted - r * (lower_leg_direction(true_leg, q_i) - n_b)
+            q_n, ok_n = ik_leg(true_leg, target[None, :], q_i[None, :])
+            if not ok_n[0]:
+                break
+            q_i = q_n[0]
+    q_c, ok = ik_leg(true_leg, target[None, :], q_act[None, :])
     if not ok[0]:
         hint = ""
         if config.effects.active() or config.leg_error_sigma_m > 0 or config.leg_error_sigma_rad > 0:
@@ -405,6 +423,65 @@ def _complied_q(config: SimulationConfig, true_leg, p_body_planted: np.ndarray, 
         raise GraphcalError(f"station {station}: foot {foot} cannot stay planted (IK of the true leg "
                             f"failed){hint}")
     return wrap_revolute(true_leg, q_c[0])
+
+
+def _drifted_imu(config: SimulationConfig, R_body_imu: np.ndarray, i: int, n: int) -> np.ndarray:
+    """The IMU mounting (3, 3) at the i-th of n stations: tilted by the open-world ``imu_drift``
+    growing linearly from 0 at the first station to its angle at the last."""
+    drift = config.effects.open_world.imu_drift
+    if not drift:
+        return R_body_imu
+    ang, az = drift
+    return matrix_from_axis_angle([np.cos(az), np.sin(az), 0.0], ang * i / max(n - 1, 1)) @ R_body_imu
+
+
+def _sunk_feet(config: SimulationConfig, commands, i: int, feet_world: np.ndarray) -> np.ndarray:
+    """The planted feet (n_feet, 3) m at the i-th commanded station: ``feet_world`` sunk by the
+    open-world ``sinking`` of its session, growing linearly from 0 at the session's first station to
+    its depth at the last."""
+    session = commands[i].session
+    depth = config.effects.open_world.sinking.get(session, 0.0)
+    if not depth:
+        return feet_world
+    idx = [j for j, c in enumerate(commands) if c.session == session]
+    frac = idx.index(i) / max(len(idx) - 1, 1)
+    out = np.array(feet_world, dtype=float)
+    out[:, 2] -= depth * frac
+    return out
+
+
+def _compliance_deflection(config: SimulationConfig, true_leg, q: np.ndarray, T_world_body: np.ndarray):
+    """Joint compliance (effect ``joint_compliance``): (n_joints,) rad the links flex away from the
+    motors under the foot's load: ``k * lever`` at the effect's joint index, ``lever = (d p_foot /
+    d q_j) . n_b`` (torque per newton of vertical load, m; the true leg at the true angles ``q``,
+    ``n_b`` the world vertical in the body frame). 0 when no compliance is hidden."""
+    comp = config.effects.joint_compliance
+    if comp is None or comp[0] >= true_leg.n_joints:
+        return 0.0
+    from graphcal.factors.stance_contact import compliance_lever
+
+    j, k = comp
+    out = np.zeros(true_leg.n_joints)
+    out[int(j)] = float(k) * compliance_lever(true_leg, q, int(j), T_world_body[:3, :3])
+    return out
+
+
+def _contact_points(config: SimulationConfig, true_robot, q_act: dict, R_world_body: np.ndarray) -> np.ndarray:
+    """Where each foot touches the ground, body frame (n_feet, 3) m: the true legs' foot frames, moved
+    by ``r (a_b - n_b)`` on round feet (effect ``foot_radius``: ``a_b`` the lower leg's direction,
+    ``n_b`` the world vertical in the body frame at ``R_world_body``)."""
+    from graphcal.factors.stance_contact import lower_leg_direction
+    from graphcal.models.kinematics import foot_positions
+
+    r = config.effects.foot_radius
+    n_b = np.asarray(R_world_body).T @ np.array([0.0, 0.0, 1.0])
+    out = []
+    for f, qa in q_act.items():
+        p = foot_positions(true_robot.leg(f), qa[None, :])[0]
+        if r:
+            p = p + r * (lower_leg_direction(true_robot.leg(f), qa) - n_b)
+        out.append(p)
+    return np.array(out)
 
 
 @dataclass(frozen=True, eq=False)
@@ -443,22 +520,25 @@ def _stations(config: SimulationConfig, robot, true_robot, commands, stances: _S
             q_prev[f] = _commanded_q(leg, p_body_cmd[k], q_prev[f], q_nominal[f], cmd.station, f)
             qa = q_prev[f] + rng.normal(0.0, config.tracking_sigma_rad, leg.n_joints)
             q_act[f] = qa
-            p_body_true.append(foot_positions(true_robot.leg(f), qa[None, :])[0])
-        T_real = fit_rigid_transform(np.array(p_body_true), stances.feet_world_real[cmd.session])
+        feet_real = _sunk_feet(config, commands, i, stances.feet_world_real[cmd.session])
+        T_real = fit_rigid_transform(_contact_points(config, true_robot, q_act, T_cmd[:3, :3]), feet_real)
+        if config.effects.foot_radius:  # the contact depends on the attitude: once more at the real one
+            T_real = fit_rigid_transform(_contact_points(config, true_robot, q_act, T_real[:3, :3]), feet_real)
         real_poses[cmd.station] = T_real
         # the encoders read the complied angles
-        p_body_planted = transform_points(invert_pose(T_real), stances.feet_world_real[cmd.session])
+        p_body_planted = transform_points(invert_pose(T_real), feet_real)
         for k, f in enumerate(robot.feet):
-            q_act[f] = _complied_q(config, true_robot.leg(f), p_body_planted[k], q_act[f], cmd.station, f)
+            q_act[f] = _complied_q(config, true_robot.leg(f), p_body_planted[k], q_act[f], cmd.station, f, T_real)
         leg_q_true[cmd.station] = q_act
         q_meas = {}
         for f in robot.feet:
             leg = robot.leg(f)
             flex = rng.normal(0.0, config.joint_flex_sigma_rad, leg.n_joints) if config.joint_flex_sigma_rad > 0 else 0.0
+            flex = flex + _compliance_deflection(config, true_robot.leg(f), q_act[f], T_real)
             noisy = q_act[f] - flex + rng.normal(0.0, config.encoder_sigma_rad, leg.n_joints)
             for name, val in zip(leg.joint_names, noisy):
                 q_meas[name] = float(val)
-        R_world_imu = T_real[:3, :3] @ imu.R_body_imu
+        R_world_imu = T_real[:3, :3] @ _drifted_imu(config, imu.R_body_imu, i, len(commands))
         accel = (R_world_imu.T @ np.array([0.0, 0.0, GRAVITY_M_S2]) + imu.accel_bias
                  + rng.normal(0, config.imu_accel_sigma_m_s2, 3))
         gyro = imu.gyro_bias + rng.normal(0, config.imu_gyro_sigma_rad_s, 3)
@@ -504,7 +584,11 @@ def _sensor_clouds(config: SimulationConfig, robot, true_robot, info, records: l
                 range_scale=config.effects.sensor_range_scale.get(s, 1.0),
                 scene=scene,
             )
-            clouds[(s, rec.station)] = scan.points_sensor
+            k_quad = config.effects.open_world.range_quadratic.get(s, 0.0)
+            pts = scan.points_sensor
+            if k_quad:
+                pts = pts * (1.0 + k_quad * np.linalg.norm(pts, axis=1))[:, None]
+            clouds[(s, rec.station)] = pts
             labels[(s, rec.station)] = scan.labels
     return clouds, labels, ext_by_station
 
