@@ -275,6 +275,11 @@ def test_plane_normals_pointing_away_from_the_sensor_are_named():
 
     flipped = rows("depth", [179.9, 179.95, 0.05, 179.8]) + rows("laser", [0.1, 0.2, 179.0])
     said = flipped_normal_warnings(flipped)
-    assert len(said) == 1 and said[0].startswith("depth: 3 of 4 plane normals point away from the sensor")
-    assert flipped_normal_warnings(rows("depth", [0.1, 179.0, 0.2, 179.0])) == []  # not most of them
+    assert len(said) == 2 and said[0].startswith("depth: 3 of 4 plane normals point away from the sensor")
+    assert "station 0, 1, 3)" in said[0]
+    # a few rows printed with the wrong sign are named too (issue 32: 5 of 52 left a 56 deg RMS unsaid)
+    assert said[1].startswith("laser: 1 of 3 plane normals") and "station 2)" in said[1]
+    few = flipped_normal_warnings(rows("depth", [0.1, 179.0, 0.2, 179.0]))
+    assert len(few) == 1 and few[0].startswith("depth: 2 of 4") and "station 1, 3)" in few[0]
+    assert flipped_normal_warnings(rows("depth", [0.1, 0.2, 89.0])) == []  # none beyond 90 deg
     assert flipped_normal_warnings(rows("depth", [179.0, 179.0], outlier=True) + rows("depth", [0.1])) == []

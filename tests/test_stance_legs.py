@@ -84,6 +84,16 @@ def test_extrinsic_keeps_its_accuracy_and_what_the_leg_variables_buy(stance_run)
     assert with_legs.sensors["depth"].unobservable == ()
     # the same data with the nominal legs: the tibia and the offset bend the body poses, the
     # extrinsic absorbs them (measured 0.31 deg, 8 mm) and its sigma does not cover the error
-    ang0, dist0, z0 = extrinsic_errors(without_legs.sensors["depth"], T_true)
+    # by the model's own sigma; since issue 27 the verdict says so and a robust sigma governs
+    import dataclasses
+
+    from graphcal.solvers.covariance import body_axis_sigmas
+
+    s0 = without_legs.sensors["depth"]
+    rot_m, xyz_m, _, _ = body_axis_sigmas(s0.T_body_sensor, s0.model_covariance)
+    ang0, dist0, z0 = extrinsic_errors(dataclasses.replace(s0, sigma_rot_deg=rot_m, sigma_xyz_mm=xyz_m), T_true)
     assert ang0 > 0.15 and dist0 > 4.0, (ang0, dist0)
     assert np.max(np.abs(z0)) > 10.0, z0
+    assert without_legs.adequacy.verdict == "does not fit"
+    _, _, z_gov = extrinsic_errors(s0, T_true)
+    assert np.max(np.abs(z_gov)) < 3.0, z_gov  # the governing (robust) sigma covers the error

@@ -61,17 +61,21 @@ def plane_residuals(data, problem, values, T_world_body: dict, sensors: dict, ou
 
 
 def flipped_normal_warnings(residuals) -> list[str]:
-    """A warning per sensor most of whose planes are answered at more than 90 deg: their normals point
-    away from the sensor, against the contract (n from the plane towards the sensor, d >= 0). The
-    plane factor does not use the normal's sign, so the estimate stands, but the residual statistics
-    read ~180 deg and the exporter has a sign error (an audit's flipped normals went unsaid)."""
+    """A warning per sensor with planes answered at more than 90 deg: their normals point away from
+    the sensor, against the contract (n from the plane towards the sensor, d >= 0). The plane factor
+    does not use the normal's sign, so the estimate stands, but the residual statistics read ~180 deg
+    and the exporter has a sign error (an audit's flipped normals went unsaid; so did a few rows
+    printed with the wrong sign, which left a 56 deg RMS normal residual without a word). The
+    stations are named (numbered as in stations.csv), ten at most."""
     out = []
     for sensor in dict.fromkeys(r.sensor for r in residuals):
         rows = [r for r in residuals if r.sensor == sensor and not r.outlier and np.isfinite(r.angle_after_deg)]
-        flipped = sum(1 for r in rows if r.angle_after_deg > 90.0)
-        if rows and flipped > len(rows) / 2:
-            out.append(f"{sensor}: {flipped} of {len(rows)} plane normals point away from the sensor (answered at "
-                       "~180 deg): the contract's n points from the plane towards the sensor with d >= 0; the "
-                       "estimate does not depend on that sign, but the residual angles do and the plane exporter "
-                       "has a sign error")
+        flipped = [int(r.station) for r in rows if r.angle_after_deg > 90.0]
+        if not flipped:
+            continue
+        shown = ", ".join(map(str, flipped[:10])) + (f" and {len(flipped) - 10} more" if len(flipped) > 10 else "")
+        out.append(f"{sensor}: {len(flipped)} of {len(rows)} plane normals point away from the sensor (answered at "
+                   f"~180 deg; station {shown}): the contract's n points from the plane towards the sensor with "
+                   "d >= 0; the estimate does not depend on that sign, but the residual angles do (their RMS "
+                   "includes these rows) and the plane exporter has a sign error")
     return out
