@@ -2,7 +2,7 @@
 
 Why not ``gtsam.LevenbergMarquardtOptimizer``: a Python ``CustomFactor`` inside gtsam's C++
 optimizers receives a fresh copy of the whole ``Values`` at every callback (cost grows with the
-number of variables; docs/solvers.md and /work/shared/design/engineering-notes.md). Here the loop
+number of variables; docs/solvers.md and the shared design notes, engineering-notes.md). Here the loop
 runs in Python and every ``graph.linearize(values)`` / ``graph.error(values)`` is called on a
 ``Values`` that Python owns, so pybind11 passes it by reference: same optimum, no copies.
 
