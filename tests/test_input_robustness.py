@@ -110,7 +110,8 @@ def test_a_prior_sigma_beyond_sane_bounds_is_refused(ds, key, old, new):
 
 
 def test_a_prior_sigma_of_zero_stays_allowed(ds):
-    read_dataset(ds)  # the fixture's IMU prior has sigma_mm: 0
+    read = read_dataset(ds)  # the fixture's IMU prior has sigma_mm: 0 (fixed), which must read as 0
+    assert read.imu.T_body_imu_prior.sigma_m == 0.0
 
 
 def test_an_imu_rate_of_1e300_is_refused(ds):
