@@ -81,6 +81,9 @@ class Diagnosis:
         warnings: calibrate's warnings on the nominal model, and a warning per group of the nominal
             model that fails at physical noise (the warnings calibrate gives when its learned noise
             is far above the physical one), passed on.
+        corrections: bookkeeping errors found and corrected before the loop
+            (:class:`graphcal.diagnosis.bookkeeping.Correction`); the nominal model and everything
+            after it are fitted to the corrected measurements, ``nominal`` summarises the data as given.
         answer: whose extrinsic is the answer: "extended" (every finding supported and no
             structure remains), "nominal" (nothing named, or no finding predicts held-out stations
             significantly better) or "neither" (structure remains: neither model fits).
@@ -106,6 +109,7 @@ class Diagnosis:
     nominal_groups: tuple = field(default=())
     warnings: tuple = field(default=())
     answer: str = "nominal"
+    corrections: tuple = field(default=())
 
     def to_json(self) -> dict:
         from graphcal.calibration.result import calibration_result
@@ -119,6 +123,7 @@ class Diagnosis:
             "adequacy": _final_adequacy(self),
             "nominal": self.nominal.to_dict(),
             "final": self.final.to_dict(),
+            "corrections": [c.to_dict() for c in self.corrections],
             "findings": [f.to_dict() for f in self.findings],
             "unexplained_structure": bool(self.unexplained_structure),
             "structure_test": None if self.structure_test is None else
@@ -402,6 +407,26 @@ def _structure_test(model: DiagnosisModel, problem, values) -> tuple | None:
 
 
 # ---------------------------------------------------------------------------- the loop
+def _nominal(ds, robot, data, say) -> tuple:
+    """(summary of the nominal model of the data as given, the bookkeeping errors found
+    (bookkeeping.py), (model, problem, values) of the nominal model of the corrected data)."""
+    from graphcal.diagnosis.bookkeeping import find_bookkeeping
+
+    model = DiagnosisModel(ds, robot, data, model_options(ds))
+    model, problem, values = model.learn_noise()
+    nominal = _summary(model, problem, values)
+    say(f"nominal model: theta RMS {nominal.normal_rms_deg:.4f} deg, e_d RMS {nominal.distance_rms_mm:.3f} mm, "
+        f"chi2/dof {nominal.chi2_per_dof:.2f}")
+    bookkeeping = find_bookkeeping(model, say)
+    if bookkeeping.corrections:
+        # the nominal model of the corrected measurements: the diagnosis goes on from there
+        model, problem, values = DiagnosisModel(ds, robot, bookkeeping.data, model_options(ds)).learn_noise()
+        corrected = _summary(model, problem, values)
+        say(f"corrected data: theta RMS {corrected.normal_rms_deg:.4f} deg, e_d RMS "
+            f"{corrected.distance_rms_mm:.3f} mm, chi2/dof {corrected.chi2_per_dof:.2f}")
+    return nominal, bookkeeping, (model, problem, values)
+
+
 def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findings: int = MAX_FINDINGS,
              heldout: bool = True) -> Diagnosis:
     """Diagnose a dataset: see the module docstring.
@@ -426,16 +451,12 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     data = calibration_data(ds, robot, progress=progress)
     if not data.planes and not data.scan_points:
         raise GraphcalError(f"{ds.root}: no planes or laser scans: nothing to diagnose (run graphcal extract-planes?)")
-    model = DiagnosisModel(ds, robot, data, model_options(ds))
-    model, problem, values = model.learn_noise()
-    nominal = _summary(model, problem, values)
+    nominal, bookkeeping, (model, problem, values) = _nominal(ds, robot, data, say)
     nominal_model, nominal_problem, nominal_values = model, problem, values
-    say(f"nominal model: theta RMS {nominal.normal_rms_deg:.4f} deg, e_d RMS {nominal.distance_rms_mm:.3f} mm, "
-        f"chi2/dof {nominal.chi2_per_dof:.2f}")
     findings: list[Finding] = []
     screening = []
     thresholds: list[float] = []
-    notes: list[str] = []
+    notes: list[str] = list(bookkeeping.notes)
     rejected: set = set()
     too_many_outliers = False
     inconsistent = False  # a fitted cause of impossible size: the data, not the model
@@ -545,7 +566,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
                      values, problem, residual_records(nominal_model, nominal_problem, nominal_values),
                      residual_records(model, problem, values), stance_records(nominal_model, nominal_problem, nominal_values),
                      stance_records(model, problem, values), tuple(notes), tuple(nuisance), tuple(thresholds), v["groups"],
-                     v["nominal_groups"], v["warnings"], v["answer"])
+                     v["nominal_groups"], v["warnings"], v["answer"], bookkeeping.corrections)
 
 
 #: a finding is supported when its held-out gain's paired test (heldout.paired_test) is below this

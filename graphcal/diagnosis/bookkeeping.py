@@ -1,0 +1,123 @@
+"""Bookkeeping errors in measured data, found before the physical causes are looked for (issue 29).
+
+Published and field data come with bookkeeping errors: a sensor frame filed under the wrong
+station, two stations' sensor data exchanged, a sign lost in print, millimetres where metres are
+expected, two legs' joint columns exchanged in the logger, the robot re-planted mid-session (a
+height step) or its sensor knocked without anyone writing it down. Each distorts every physical
+cause fitted after it (two exchanged legs read as coxa offsets of +87 and -86 deg), so
+:func:`find_bookkeeping` looks for them first, on the nominal model, and hands the corrected
+measurements to the diagnosis loop. Every correction is reported with its evidence (the chi-square
+drop at physical noise, its p-value), its confidence against the next-best explanation, and the
+value the data hold against the corrected one; nothing in the dataset is changed.
+
+The finders, in the order they run (each sees the data as the previous ones corrected them):
+
+1. :func:`graphcal.diagnosis.joint_columns.find_joint_columns` -- legs' joint columns exchanged;
+2. :func:`graphcal.diagnosis.association.find_associations` -- sensor measurements under the wrong
+   station (swaps, mislabels) and sign / convention / unit errors of single planes;
+3. :func:`graphcal.diagnosis.segments.find_segments` -- undeclared segment boundaries (height steps,
+   knocks), found by change-point segmentation over the station sequence, ends included.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["BOOKKEEPING_CAUSES", "Correction", "BookkeepingResult", "find_bookkeeping"]
+
+#: The bookkeeping causes (docs/diagnosis.md, "Bookkeeping errors"); each is a :class:`Correction`'s cause.
+BOOKKEEPING_CAUSES = (
+    "stations_exchanged",  # two stations' sensor data exchanged
+    "station_mislabelled",  # a sensor measurement belongs to another station
+    "normal_sign",  # one component of a plane normal printed/logged with the wrong sign
+    "plane_convention",  # a plane in the opposite (n, d) convention
+    "distance_unit",  # a plane distance in millimetres (or cm) where metres are expected
+    "legs_exchanged",  # two legs' joint columns exchanged
+    "height_step",  # an undeclared session boundary: the feet re-planted at another height
+    "extrinsic_knock",  # an undeclared extrinsic change (reported through extrinsic_change)
+)
+
+
+@dataclass(frozen=True)
+class Correction:
+    """One bookkeeping error found in the data, with the correction applied.
+
+    Attributes:
+        cause: a name of :data:`BOOKKEEPING_CAUSES`.
+        where: location as sorted (key, value) pairs (``sensor``, ``station``, ``stations``,
+            ``legs``, ``from_station``), the stations' ids as in stations.csv.
+        corrected: what the data say and what the correction makes of them, as (key, value)
+            pairs in SI units (e.g. ``("d_given_m", 1050.0), ("d_corrected_m", 1.05)``).
+        statistic: chi-square drop of the corrected against the uncorrected data, at physical
+            noise; dof: its degrees of freedom; p_value: its tail probability.
+        confidence: how much better this correction explains the data than the next-best one
+            (chi-square difference; ``inf`` when there is no alternative).
+        alternatives: other corrections the data cannot tell from this one (labels), if any.
+        note: one sentence for the report.
+    """
+
+    cause: str
+    where: tuple
+    corrected: tuple = ()
+    statistic: float = float("nan")
+    dof: int = 0
+    p_value: float = float("nan")
+    confidence: float = float("inf")
+    alternatives: tuple = ()
+    note: str = ""
+
+    def get(self, key: str):
+        return dict(self.where).get(key)
+
+    def label(self) -> str:
+        loc = ", ".join(f"{k}={list(v) if isinstance(v, tuple) else v}" for k, v in self.where)
+        return f"{self.cause}({loc})"
+
+    def to_dict(self) -> dict:
+        def plain(v):
+            if isinstance(v, (tuple, list, np.ndarray)):
+                return [plain(x) for x in v]
+            if isinstance(v, (np.floating, np.integer)):
+                return v.item()
+            return v
+
+        return {"cause": self.cause, "where": {k: plain(v) for k, v in self.where},
+                "corrected": {k: plain(v) for k, v in self.corrected}, "statistic": float(self.statistic),
+                "dof": int(self.dof), "p_value": float(self.p_value), "confidence": float(self.confidence),
+                "alternatives": list(self.alternatives), "note": self.note}
+
+
+@dataclass(frozen=True, eq=False)
+class BookkeepingResult:
+    """What :func:`find_bookkeeping` found: the corrections, the corrected measurements
+    (a :class:`graphcal.calibration.measurements.CalibrationData`) and notes for the report (what
+    was suspected but could not be resolved, e.g. "station 52: an outlier or a knock at the last
+    station -- one station cannot tell")."""
+
+    corrections: tuple
+    data: object
+    notes: tuple = field(default=())
+
+
+def find_bookkeeping(model, say) -> BookkeepingResult:
+    """Run the bookkeeping finders on the nominal ``model`` (a
+    :class:`graphcal.diagnosis.model.DiagnosisModel` with its noise learned); ``say(msg)`` logs a
+    progress line. Each finder has the signature ``finder(model, say) -> (corrections, data,
+    notes)`` and returns ``model.data`` unchanged when it finds nothing."""
+    import dataclasses
+
+    from graphcal.diagnosis.association import find_associations
+    from graphcal.diagnosis.joint_columns import find_joint_columns
+    from graphcal.diagnosis.segments import find_segments
+
+    corrections: list = []
+    notes: list = []
+    for finder in (find_joint_columns, find_associations, find_segments):
+        found, data, said = finder(model, say)
+        corrections += list(found)
+        notes += list(said)
+        if data is not model.data:
+            model = dataclasses.replace(model, data=data, findings=())
+    return BookkeepingResult(tuple(corrections), model.data, tuple(notes))
