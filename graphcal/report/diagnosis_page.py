@@ -63,6 +63,9 @@ def _verdict(doc: dict) -> list[str]:
     answer = doc.get("answer", "nominal")
     text = {"extended": "the extended model fits at physical noise: its extrinsic (below) is the answer.",
             "nominal": "no cause is named: the nominal calibration (graphcal calibrate) is the answer.",
+            "corrected": "the data hold bookkeeping errors (below); corrected, the model fits at physical noise: the "
+                         "extrinsic below, fitted to the corrected measurements, is the answer (not graphcal calibrate's "
+                         "on the files as given).",
             "neither": "structure remains: neither model fits at physical noise; the extended model's extrinsic is "
                        "not the answer."}[answer]
     out.append(f"<p><b>Answer:</b> {esc(text)}</p>")
