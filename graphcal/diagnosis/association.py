@@ -28,13 +28,16 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
 from scipy.stats import chi2 as chi2_dist
 
 from graphcal.diagnosis.bookkeeping import Correction
-from graphcal.diagnosis.plane_corrections import (PLANE_VARIANTS, chi2_at_stations, fit_extrinsic, plane_variant,
+from graphcal.factors.plane_observation import tangent_basis
+from graphcal.diagnosis.plane_corrections import (PLANE_VARIANTS, chi2_rows, fit_extrinsic, plane_rows, plane_variant,
                                                   station_grounds)
 
 __all__ = ["find_associations", "GATE_ALPHA", "PASS_P", "MIN_CONFIDENCE"]
@@ -55,6 +58,10 @@ COST_CAP = 60.0
 MOVE_PENALTY = 4.0
 VARIANT_PENALTY = 6.0
 MAX_ROUNDS = 12
+#: forced alternatives tried per changed plane (its next-best (station, variant) options)
+N_OPTIONS = 6
+#: times the decisions restart from a better solution found by a forced alternative
+MAX_RESTARTS = 3
 
 
 def find_associations(model, say) -> tuple:
@@ -74,7 +81,7 @@ def find_associations(model, say) -> tuple:
             continue
         if grounds is None:
             grounds = station_grounds(data, model.robot, physical)
-        found, moved, said = _sensor(ds, sensor, [data.planes[k] for k in keys], grounds, physical, say)
+        found, moved, said = _sensor(ds, sensor, [data.planes[k] for k in keys], grounds, say)
         corrections += found
         notes += said
         for k in keys:
@@ -92,144 +99,234 @@ def _prior(ds, sensor: str) -> tuple:
     return p.matrix, float(p.sigma_m), float(p.sigma_rad)
 
 
-def _costs(meas, g, T, cov_S, variant=("", "")) -> np.ndarray:
-    """(N, M) chi-square of every plane (as ``variant`` corrects it) at every station."""
-    out = np.empty((len(meas), len(g.ids)))
-    for i, m in enumerate(meas):
-        n, d = plane_variant(m.n, m.d, variant)
-        out[i] = chi2_at_stations(n, d, m.cov, g, T, cov_S)
-    return out
+@dataclass(frozen=True, eq=False)
+class _Camera:
+    """One camera's planes: ``meas`` (N PlaneMeasurements), ``labels`` (N,) their stations' indices
+    into ``g`` (StationGrounds, M stations), every variant's ``n`` (V, N, 3), ``d`` (V, N), ``cov3``
+    (V, N, 3, 3); ``prior`` (T_cad, sigma_m, sigma_rad)."""
+
+    meas: list
+    labels: np.ndarray
+    g: object
+    n: np.ndarray
+    d: np.ndarray
+    cov3: np.ndarray
+    prior: tuple
+    B: np.ndarray
+
+    def chi(self, T, cov_S=None) -> np.ndarray:
+        """(V, N, M) chi-square of every variant of every plane at every station."""
+        v, n = self.d.shape
+        m = len(self.g.ids)
+        rep = lambda a: np.repeat(a.reshape(v * n, *a.shape[2:]), m, axis=0)  # noqa: E731
+        tile = lambda a: np.tile(a, (v * n,) + (1,) * (a.ndim - 1))  # noqa: E731
+        out = chi2_rows(rep(self.n), rep(self.d), rep(self.cov3), tile(self.g.u), tile(self.g.z), tile(self.g.W),
+                        tile(self.g.cov), T, cov_S, B=rep(self.B))
+        return out.reshape(v, n, m)
+
+    def score(self, chi: np.ndarray) -> np.ndarray:
+        """(V, N, M) assignment cost: robust chi-square + the variant's and the move's penalty."""
+        sc = np.where(chi < COST_CAP, chi, COST_CAP + np.sqrt(np.maximum(chi - COST_CAP, 0.0)))
+        sc = sc + VARIANT_PENALTY + MOVE_PENALTY
+        sc[0] -= VARIANT_PENALTY
+        sc[:, np.arange(len(self.meas)), self.labels] -= MOVE_PENALTY
+        return sc
+
+    def prior_cost(self, T) -> float:
+        T_cad, sig_m, sig_rad = self.prior
+        r = np.concatenate([Rotation.from_matrix(T_cad[:3, :3].T @ T[:3, :3]).as_rotvec() / max(sig_rad, 1e-4),
+                            T[:3, :3].T @ (T[:3, 3] - T_cad[:3, 3]) / max(sig_m, 1e-4)])
+        return float(r @ r)
 
 
-def _robust(c: np.ndarray) -> np.ndarray:
-    return np.where(c < COST_CAP, c, COST_CAP + np.sqrt(np.maximum(c - COST_CAP, 0.0)))
-
-
-def _alternate(meas, labels, g, T0, cov_S0, prior) -> tuple:
-    """(T, cov_S, assignment (N,) station indices, total cost) of the alternation from (T0, cov_S0)."""
-    T, cov_S, assign = T0, cov_S0, None
-    total = np.inf
-    for _ in range(MAX_ROUNDS):
-        cost = _costs(meas, g, T, cov_S)
-        rc = _robust(cost) + MOVE_PENALTY
-        rc[np.arange(len(meas)), labels] -= MOVE_PENALTY
-        rows, cols = linear_sum_assignment(rc)
-        new = np.empty(len(meas), dtype=int)
-        new[rows] = cols
-        total = float(rc[rows, cols].sum())
-        inl = cost[np.arange(len(meas)), new] < INLIER_CHI2
-        if inl.sum() < 3:
-            inl = np.ones(len(meas), dtype=bool)
-        use = np.flatnonzero(inl)
-        T, cov_S = fit_extrinsic([(meas[i].n, meas[i].d, meas[i].cov) for i in use], g, new[use], T, prior)
-        if assign is not None and np.array_equal(new, assign):
-            break
-        assign = new
-    return T, cov_S, assign, total
-
-
-def _sensor(ds, sensor, meas, g, physical, say) -> tuple:
-    """(corrections, {(station, sensor): corrected PlaneMeasurement}, notes) of one camera."""
-    prior = _prior(ds, sensor)
-    T_cad, sig_m, sig_rad = prior
+def _camera(ds, sensor, meas, g) -> _Camera:
     index = {int(s): j for j, s in enumerate(g.ids)}
-    labels = np.array([index[m.station] for m in meas])
+    ns, ds_, cs = [], [], []
+    for v in PLANE_VARIANTS:
+        nd = [plane_variant(m.n, m.d, v) for m in meas]
+        n, d, c3 = plane_rows(np.array([x[0] for x in nd]), [x[1] for x in nd], [m.cov for m in meas])
+        ns.append(n)
+        ds_.append(d)
+        cs.append(c3)
+    B = np.array([[tangent_basis(x) for x in n] for n in ns])
+    return _Camera(list(meas), np.array([index[m.station] for m in meas]), g, np.array(ns), np.array(ds_),
+                   np.array(cs), _prior(ds, sensor), B)
+
+
+def _assign(cam: _Camera, sc: np.ndarray, forced=None) -> tuple:
+    """(station index (N,), variant index (N,), total cost) minimising ``sc`` (V, N, M); ``forced``
+    (i, j, v): plane i at station j as variant v."""
+    best_v = sc.argmin(axis=0)
+    cm = sc.min(axis=0)
+    if forced is not None:
+        i, j, v = forced
+        cm[i] = 1e12
+        cm[i, j], best_v[i, j] = sc[v, i, j], v
+    rows, cols = linear_sum_assignment(cm)
+    assign = np.empty(len(cam.meas), dtype=int)
+    assign[rows] = cols
+    var = best_v[np.arange(len(assign)), assign]
+    return assign, var, float(cm[rows, cols].sum())
+
+
+def _alternate(cam: _Camera, T0, cov_S0, forced=None) -> tuple:
+    """(T, assignment (N,), variants (N,), objective) of the alternation from (T0, cov_S0): assign
+    at the current extrinsic, refit the extrinsic to the assigned inliers, until stable."""
+    T, cov_S, prev = T0, cov_S0, None
+    idx = np.arange(len(cam.meas))
+    for _ in range(MAX_ROUNDS):
+        chi = cam.chi(T, cov_S)
+        assign, var, _ = _assign(cam, cam.score(chi), forced)
+        if prev is not None and np.array_equal(assign, prev[0]) and np.array_equal(var, prev[1]):
+            break
+        prev = (assign, var)
+        inl = chi[var, idx, assign] < INLIER_CHI2
+        if inl.sum() < 3:
+            inl[:] = True
+        use = np.flatnonzero(inl)
+        T, _, _ = fit_extrinsic(cam.n[var[use], use], cam.d[var[use], use], cam.cov3[var[use], use], cam.g,
+                                assign[use], T, cam.prior, B=cam.B[var[use], use])
+        cov_S = None
+    assign, var, total = _assign(cam, cam.score(cam.chi(T)), forced)
+    return T, assign, var, total + cam.prior_cost(T)
+
+
+def _sensor(ds, sensor, meas, g, say) -> tuple:
+    """(corrections, {(station, sensor): corrected PlaneMeasurement}, notes) of one camera."""
+    cam = _camera(ds, sensor, meas, g)
+    T_cad, sig_m, sig_rad = cam.prior
     n = len(meas)
-    T, cov_S = fit_extrinsic([(m.n, m.d, m.cov) for m in meas], g, labels, T_cad, prior)
-    at_label = _costs(meas, g, T, cov_S)[np.arange(n), labels]
-    failing = chi2_dist.sf(at_label, 3) < GATE_ALPHA / n
+    idx = np.arange(n)
+    T, _, _ = fit_extrinsic(cam.n[0], cam.d[0], cam.cov3[0], g, cam.labels, T_cad, cam.prior, B=cam.B[0])
+    at_label = cam.chi(T)[0, idx, cam.labels]
     unchanged = {(m.station, sensor): m for m in meas}
-    if not failing.any():
+    if not (chi2_dist.sf(at_label, 3) < GATE_ALPHA / n).any():
         return [], unchanged, []
-    say(f"association: {sensor}: {int(failing.sum())} of {n} planes do not fit their labelled station at "
-        f"physical noise; searching the association")
+    say(f"association: {sensor}: {int((chi2_dist.sf(at_label, 3) < GATE_ALPHA / n).sum())} of {n} planes do not "
+        f"fit their labelled station at physical noise; searching the association")
     cov_prior = np.diag([max(sig_rad, 1e-4) ** 2] * 3 + [max(sig_m, 1e-4) ** 2] * 3)
-    runs = [_alternate(meas, labels, g, T, cov_S, prior), _alternate(meas, labels, g, T_cad, cov_prior, prior)]
-    T, cov_S, _, _ = min(runs, key=lambda r: r[3])
-    return _decide(sensor, meas, labels, g, T, cov_S)
+    best = min((_alternate(cam, T, None), _alternate(cam, T_cad, cov_prior)), key=lambda r: r[3])
+    for attempt in range(MAX_RESTARTS + 1):  # a forced alternative better than the best restarts from it
+        decisions, better = _decide(cam, best, restart=attempt < MAX_RESTARTS)
+        if better is None:
+            break
+        best = better
+    return _report(sensor, cam, best, decisions)
 
 
-def _decide(sensor, meas, labels, g, T, cov_S) -> tuple:
-    """The corrections at the final extrinsic (module docstring, step 3)."""
-    n, m_st = len(meas), len(g.ids)
-    chi = np.array([_costs(meas, g, T, cov_S, v) for v in PLANE_VARIANTS])  # (V, N, M)
-    at_label = chi[0, np.arange(n), labels]
-    failing = chi2_dist.sf(at_label, 3) < GATE_ALPHA / n
-    moved = {(m.station, sensor): m for m in meas}
-    if not failing.any():
-        return [], moved, []
-    score = _robust(chi) + VARIANT_PENALTY
-    score[0] -= VARIANT_PENALTY
-    score += MOVE_PENALTY
-    score[:, np.arange(n), labels] -= MOVE_PENALTY
-    held = set(labels[~failing].tolist())
-    free = np.array([j for j in range(m_st) if j not in held])
-    fail_idx = np.flatnonzero(failing)
-    best_v = score[:, fail_idx][:, :, free].argmin(axis=0)  # (F, free)
-    best_s = score[:, fail_idx][:, :, free].min(axis=0)
-    rows, cols = linear_sum_assignment(best_s)
-    decisions = {}
-    for r, c in zip(rows, cols):
-        i, j, v = fail_idx[r], free[c], best_v[r, c]
-        sc = score[:, i][:, free].copy()  # (V, free)
-        best = sc[v, c]
-        sc[v, c] = np.inf
-        runner = float(sc.min())
-        alts = [(int(g.ids[free[cc]]), PLANE_VARIANTS[vv]) for vv, cc in zip(*np.nonzero(sc - best < MIN_CONFIDENCE))]
-        decisions[i] = (j, v, float(chi[v, i, j]), runner - best, alts)
-    return _report(sensor, meas, labels, g, at_label, decisions)
-
-
-def _report(sensor, meas, labels, g, at_label, decisions) -> tuple:
-    """Corrections, corrected planes and notes from the decisions {plane index: (station index,
-    variant index, chi-square, confidence, alternatives)}."""
-    corrections, notes = [], []
-    planes = {(m.station, sensor): m for i, m in enumerate(meas) if i not in decisions}
-    accepted = {}
-    for i, (j, v, chi2_new, conf, alts) in decisions.items():
-        m = meas[i]
-        ok = chi2_dist.sf(chi2_new, 3) >= PASS_P and conf >= MIN_CONFIDENCE
-        if not ok:
-            planes[(m.station, sensor)] = m
-            if chi2_dist.sf(chi2_new, 3) < PASS_P:
-                notes.append(f"{sensor}: the plane labelled station {m.station} fits no station at physical noise, "
-                             f"as given or with a sign, convention or unit corrected (chi-square {at_label[i]:.0f} "
-                             f"at its label): an outlier, or a cause of the model")
-            else:
-                cands = [(int(g.ids[j]), PLANE_VARIANTS[v])] + alts
-                txt = ", ".join(f"station {s}" + (f" ({c} {d})" if c else "") for s, (c, d) in cands[:6])
-                notes.append(f"{sensor}: the plane labelled station {m.station} does not fit it (chi-square "
-                             f"{at_label[i]:.0f}); the data cannot tell between {txt}: not corrected")
+def _decide(cam: _Camera, best, restart: bool = True) -> tuple:
+    """({plane index: (confidence, alternatives [(station index, variant index), ...])} for every
+    plane the best solution changes, a better solution found on the way or None). The confidence
+    of a change is the objective's rise when the plane is forced to its next-best (station,
+    variant) -- the plane as given at its label among them -- with the extrinsic and every other
+    plane's association refitted. Without ``restart`` a better solution counts as a rise of 0."""
+    T, assign, var, total = best
+    sc = cam.score(cam.chi(T))
+    out = {}
+    for i in range(len(cam.meas)):
+        if assign[i] == cam.labels[i] and var[i] == 0:
             continue
-        accepted[i] = (j, v, chi2_new, conf, alts)
-    station_of = {i: int(g.ids[j]) for i, (j, *_rest) in accepted.items()}
-    label_of = {i: meas[i].station for i in accepted}
-    done = set()
-    for i, (j, v, chi2_new, conf, alts) in accepted.items():
+        row = sc[:, i].copy()
+        row[var[i], assign[i]] = np.inf
+        flat = np.argsort(row, axis=None)[:N_OPTIONS]
+        options = {tuple(int(x) for x in np.unravel_index(f, row.shape)) for f in flat}
+        options.add((0, int(cam.labels[i])))
+        rises, alts = [], []
+        for v, j in sorted(options):
+            alt = _alternate(cam, T, None, forced=(i, j, v))
+            if alt[3] < total - 1e-6 and restart:
+                return out, alt
+            rises.append(max(alt[3] - total, 0.0))
+            if alt[3] - total < MIN_CONFIDENCE:
+                alts.append((j, v))
+        out[i] = (float(min(rises)), alts)
+    return out, None
+
+
+def _report(sensor, cam: _Camera, best, decisions) -> tuple:
+    """Corrections, corrected planes and notes from the best solution and the decisions."""
+    T, assign, var, _ = best
+    g, meas = cam.g, cam.meas
+    chi = cam.chi(T)
+    idx = np.arange(len(meas))
+    at_label = chi[0, idx, cam.labels]
+    chi_new = chi[var, idx, assign]
+    notes, accepted = [], {}
+    for i, (conf, alts) in decisions.items():
+        label = meas[i].station
+        if chi2_dist.sf(chi_new[i], 3) < PASS_P:
+            notes.append(f"{sensor}: the plane labelled station {label} fits no station at physical noise, as "
+                         f"given or with a sign, convention or unit corrected (chi-square {at_label[i]:.0f} at its "
+                         f"label): an outlier, or a cause of the model")
+        elif conf < MIN_CONFIDENCE:
+            cands = [(assign[i], var[i])] + alts
+            txt = ", ".join(_option(g, j, v) for j, v in cands[:8])
+            shared = {v for _, v in cands}
+            also = ""
+            if len(shared) == 1 and var[i]:
+                also = f"; in every one {' '.join(PLANE_VARIANTS[var[i]])} (the station, not the variant, is unsure)"
+            notes.append(f"{sensor}: the plane labelled station {label} (chi-square {at_label[i]:.0f} there) does not fit "
+                         f"it; the data cannot tell between (the best found) {txt}{'' if len(cands) <= 8 else ', ...'}{also}: not corrected")
+        else:
+            accepted[i] = (conf, alts)
+    accepted = _without_conflicts(cam, assign, accepted, notes, sensor)
+    corrections, planes = _corrections(sensor, cam, assign, var, at_label, chi_new, accepted)
+    return corrections, planes, notes
+
+
+def _option(g, j, v) -> str:
+    cause, detail = PLANE_VARIANTS[v]
+    return f"station {int(g.ids[j])}" + (f" ({cause} {detail})" if cause else "")
+
+
+def _without_conflicts(cam, assign, accepted, notes, sensor) -> dict:
+    """The accepted changes less those whose station another plane keeps (its own change not made)."""
+    while True:
+        final = {i: (assign[i] if i in accepted else cam.labels[i]) for i in range(len(cam.meas))}
+        taken: dict = {}
+        for i, j in final.items():
+            taken.setdefault(j, []).append(i)
+        clash = [i for js in taken.values() if len(js) > 1 for i in js if i in accepted]
+        if not clash:
+            return accepted
+        for i in clash:
+            notes.append(f"{sensor}: the plane labelled station {cam.meas[i].station} belongs to station "
+                         f"{int(cam.g.ids[assign[i]])}, whose own plane could not be placed: not corrected")
+            accepted.pop(i)
+
+
+def _corrections(sensor, cam, assign, var, at_label, chi_new, accepted) -> tuple:
+    """(Corrections, corrected planes) of the accepted changes {plane index: (confidence, alternatives)}."""
+    g, meas = cam.g, cam.meas
+    planes = {(m.station, sensor): m for i, m in enumerate(meas) if i not in accepted}
+    station_of = {i: int(g.ids[assign[i]]) for i in accepted}
+    corrections, done = [], set()
+    for i, (conf, alts) in accepted.items():
         m = meas[i]
         new_station = station_of[i]
-        drop = float(at_label[i] - chi2_new)
+        drop = float(at_label[i] - chi_new[i])
         common = dict(statistic=drop, dof=3, p_value=float(chi2_dist.sf(max(drop, 0.0), 3)), confidence=conf,
-                      alternatives=tuple(f"station {s}" + (f" {c} {d}" if c else "") for s, (c, d) in alts))
+                      alternatives=tuple(_option(g, j, v) for j, v in alts))
         if new_station != m.station and i not in done:
-            partner = [k for k in accepted if k != i and label_of[k] == new_station and station_of[k] == m.station]
+            partner = [k for k in accepted if k != i and meas[k].station == new_station and station_of[k] == m.station]
             if partner:
                 k = partner[0]
                 done |= {i, k}
                 pair = tuple(sorted((m.station, new_station)))
-                corrections.append(Correction(
-                    "stations_exchanged", (("sensor", sensor), ("stations", pair)),
-                    (("stations", pair),), note=f"{sensor}: the planes of stations {pair[0]} and {pair[1]} are "
-                    f"exchanged", **{**common, "statistic": drop + float(at_label[k] - accepted[k][2]), "dof": 6,
-                                     "confidence": min(conf, accepted[k][3])}))
-            else:
+                common.update(statistic=drop + float(at_label[k] - chi_new[k]), dof=6,
+                              confidence=min(conf, accepted[k][0]))
+                common["p_value"] = float(chi2_dist.sf(max(common["statistic"], 0.0), 6))
+                corrections.append(Correction("stations_exchanged", (("sensor", sensor), ("stations", pair)),
+                                              (("stations", pair),), note=f"{sensor}: the planes of stations "
+                                              f"{pair[0]} and {pair[1]} are exchanged", **common))
+            elif i not in done:
                 corrections.append(Correction(
                     "station_mislabelled", (("from_station", m.station), ("sensor", sensor), ("station", new_station)),
                     (("station_given", m.station), ("station_corrected", new_station)),
                     note=f"{sensor}: the plane labelled station {m.station} belongs to station {new_station}", **common))
-        n_new, d_new = plane_variant(m.n, m.d, PLANE_VARIANTS[v])
-        if v:
-            cause, detail = PLANE_VARIANTS[v]
+        n_new, d_new = cam.n[var[i], i], float(cam.d[var[i], i])
+        if var[i]:
+            cause, detail = PLANE_VARIANTS[var[i]]
             corrected = {"normal_sign": (("component", detail), ("n_given", tuple(m.n)), ("n_corrected", tuple(n_new))),
                          "plane_convention": (("n_given", tuple(m.n)), ("n_corrected", tuple(n_new))),
                          "distance_unit": (("unit_given", detail), ("d_given_m", m.d), ("d_corrected_m", d_new))}[cause]
@@ -237,4 +334,4 @@ def _report(sensor, meas, labels, g, at_label, decisions) -> tuple:
                 cause, (("sensor", sensor), ("station", new_station)), corrected,
                 note=f"{sensor}: the plane of station {new_station}: {cause} ({detail}) corrected", **common))
         planes[(new_station, sensor)] = dataclasses.replace(m, station=new_station, n=n_new, d=d_new)
-    return corrections, planes, notes
+    return corrections, planes

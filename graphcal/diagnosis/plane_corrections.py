@@ -31,8 +31,8 @@ from scipy.spatial.transform import Rotation
 
 from graphcal.factors.plane_observation import plane_cov3, tangent_basis
 
-__all__ = ["StationGrounds", "station_grounds", "PLANE_VARIANTS", "plane_variant", "chi2_at_stations",
-           "fit_extrinsic", "DEFAULT_PLANE_COV4"]
+__all__ = ["StationGrounds", "station_grounds", "PLANE_VARIANTS", "plane_variant", "plane_rows", "chi2_rows",
+           "chi2_at_stations", "fit_extrinsic", "DEFAULT_PLANE_COV4"]
 
 #: a plane without a covariance in planes.csv: 1 mm and ~0.06 deg (calibration/graph.py's default)
 DEFAULT_PLANE_COV4 = np.diag([1e-6, 1e-6, 1e-6, 1e-6])
@@ -105,84 +105,96 @@ def station_grounds(data, robot, physical: dict) -> StationGrounds:
     return StationGrounds(np.array(ids), np.array(us), np.array(zs), np.array(Ws), np.array(covs), tuple(src))
 
 
-def _errors(n_m, d_m, g: StationGrounds, R, t):
-    """(e (M, 3), J_X (M, 3, 3), J_S (M, 3, 6)) of the plane (n_m, d_m) at every station."""
-    B = tangent_basis(n_m)
-    n_p = g.u @ R  # (M, 3): R^T u
-    d_p = g.z + g.u @ t
-    v = n_p @ B  # (M, 2)
-    c = np.clip(n_p @ n_m, -1.0, 1.0)
+def plane_rows(n_m: np.ndarray, d_m: np.ndarray, cov4: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(n (K, 3) unit, d (K,), cov3 (K, 3, 3)) of K planes (normals (K, 3), distances m, 4x4
+    covariances or None each), cov3 the plane fit's covariance of ``[B^T n, d]``."""
+    n_m = np.asarray(n_m, dtype=float)
+    n_m = n_m / np.linalg.norm(n_m, axis=1, keepdims=True)
+    cov3 = np.array([plane_cov3(n, DEFAULT_PLANE_COV4 if c is None else np.asarray(c)) for n, c in zip(n_m, cov4)])
+    return n_m, np.asarray(d_m, dtype=float), cov3
+
+
+def _errors(n_m, d_m, u, z, W, R, t, B=None):
+    """(e (K, 3), J_X (K, 3, 3), J_S (K, 3, 6)) of K planes (n_m (K, 3), d_m (K,); B (K, 3, 2) their
+    tangent bases, or None) at K stations (u (K, 3), z (K,), W (K, 3, 2))."""
+    k = len(d_m)
+    B = np.array([tangent_basis(n) for n in n_m]) if B is None else B  # (K, 3, 2)
+    n_p = u @ R  # (K, 3): R^T u
+    d_p = z + u @ t
+    v = np.einsum("kj,kjl->kl", n_p, B)  # (K, 2)
+    c = np.clip(np.einsum("kj,kj->k", n_p, n_m), -1.0, 1.0)
     theta = np.arccos(c)
     s = np.linalg.norm(v, axis=1)
     scale = np.where(s > 1e-12, theta / np.maximum(s, 1e-12), 1.0)
-    e = np.empty((len(g.z), 3))
+    e = np.empty((k, 3))
     e[:, :2] = v * scale[:, None]
     e[:, 2] = d_p - d_m
-    m = len(g.z)
-    J_X = np.zeros((m, 3, 3))
-    J_X[:, :2, :2] = np.einsum("ij,mjk->mik", B.T @ R.T, g.W)
-    J_X[:, 2, :2] = np.einsum("j,mjk->mk", t, g.W)
+    J_X = np.zeros((k, 3, 3))
+    BtRt = np.einsum("kjl,mj->klm", B, R)  # (K, 2, 3): B^T R^T
+    J_X[:, :2, :2] = np.einsum("klm,kmn->kln", BtRt, W)
+    J_X[:, 2, :2] = np.einsum("j,kjn->kn", t, W)
     J_X[:, 2, 2] = 1.0
-    J_S = np.zeros((m, 3, 6))
-    nx = np.zeros((m, 3, 3))  # [n_p]x
+    nx = np.zeros((k, 3, 3))  # [n_p]x
     nx[:, 0, 1], nx[:, 0, 2], nx[:, 1, 2] = -n_p[:, 2], n_p[:, 1], -n_p[:, 0]
     nx[:, 1, 0], nx[:, 2, 0], nx[:, 2, 1] = n_p[:, 2], -n_p[:, 1], n_p[:, 0]
-    J_S[:, :2, :3] = np.einsum("ij,mjk->mik", B.T, nx)
+    J_S = np.zeros((k, 3, 6))
+    J_S[:, :2, :3] = np.einsum("kjl,kjm->klm", B, nx)
     J_S[:, 2, 3:] = n_p
     return e, J_X, J_S
 
 
-def chi2_at_stations(n_m, d_m, cov4, g: StationGrounds, T_body_sensor, cov_S=None,
-                     plane_scale: float = 1.0) -> np.ndarray:
-    """(M,) chi-square (3 dof) of the plane (n_m (3,), d_m m; cov4 its 4x4 covariance or None) at
-    every station of ``g`` for the extrinsic ``T_body_sensor`` (4x4) with covariance ``cov_S``
-    (6x6, [phi rad, rho m]; None: exact); the plane's covariance scaled by ``plane_scale``."""
-    n_m = np.asarray(n_m, dtype=float) / np.linalg.norm(n_m)
+def chi2_rows(n_m, d_m, cov3, u, z, W, cov_ab, T_body_sensor, cov_S=None, *, jacobian: bool = False, B=None):
+    """(K,) chi-square (3 dof) of K planes (n_m (K, 3) unit, d_m (K,) m, cov3 (K, 3, 3)) each at
+    its station (u (K, 3), z (K,), W (K, 3, 2), cov_ab (K, 3, 3)) for the extrinsic
+    ``T_body_sensor`` (4x4) with covariance ``cov_S`` (6x6, [phi rad, rho m]; None: exact); with
+    ``jacobian`` also (e (K, 3), C^-1 (K, 3, 3), J_S (K, 3, 6)); ``B`` (K, 3, 2): the planes'
+    tangent bases (plane_observation.tangent_basis) when known."""
     R, t = T_body_sensor[:3, :3], T_body_sensor[:3, 3]
-    e, J_X, J_S = _errors(n_m, float(d_m), g, R, t)
-    cov3 = plane_cov3(n_m, DEFAULT_PLANE_COV4 if cov4 is None else np.asarray(cov4)) * plane_scale**2
-    C = cov3[None] + np.einsum("mij,mjk,mlk->mil", J_X, g.cov, J_X)
+    e, J_X, J_S = _errors(n_m, d_m, u, z, W, R, t, B)
+    C = cov3 + np.einsum("kij,kjl,kml->kim", J_X, cov_ab, J_X)
     if cov_S is not None:
-        C = C + np.einsum("mij,jk,mlk->mil", J_S, cov_S, J_S)
-    sol = np.linalg.solve(C, e[..., None])[..., 0]
-    return np.einsum("mi,mi->m", e, sol)
+        C = C + np.einsum("kij,jl,kml->kim", J_S, cov_S, J_S)
+    Ci = np.linalg.inv(C)
+    chi = np.einsum("ki,kij,kj->k", e, Ci, e)
+    return (chi, e, Ci, J_S) if jacobian else chi
 
 
-def fit_extrinsic(planes: list, g: StationGrounds, rows: np.ndarray, T0: np.ndarray, prior: tuple,
-                  *, huber: float = 3.0, iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
-    """(T_body_sensor (4x4), its 6x6 covariance [phi, rho]) that best explains ``planes`` (a list
-    of (n (3,), d m, cov4 or None)) at the stations ``rows`` (indices into ``g``), from ``T0``, with
-    the CAD ``prior`` (T (4x4), sigma_m, sigma_rad); Gauss-Newton with a Huber weight (``huber``
-    on the square root of each plane's chi-square)."""
+def chi2_at_stations(n_m, d_m, cov4, g: StationGrounds, T_body_sensor, cov_S=None) -> np.ndarray:
+    """(M,) chi-square (3 dof) of one plane (n_m (3,), d_m m; cov4 its 4x4 covariance or None) at
+    every station of ``g`` for the extrinsic ``T_body_sensor`` (4x4) with covariance ``cov_S``."""
+    n, d, c3 = plane_rows(np.asarray(n_m, dtype=float)[None], [d_m], [cov4])
+    m = len(g.ids)
+    return chi2_rows(np.repeat(n, m, 0), np.repeat(d, m), np.repeat(c3, m, 0), g.u, g.z, g.W, g.cov,
+                     T_body_sensor, cov_S)
+
+
+def fit_extrinsic(n_m, d_m, cov3, g: StationGrounds, rows: np.ndarray, T0: np.ndarray, prior: tuple,
+                  *, huber: float = 3.0, iterations: int = 10, B=None) -> tuple[np.ndarray, np.ndarray, float]:
+    """(T_body_sensor (4x4), its 6x6 covariance [phi, rho], the cost: the planes' Huber-weighted
+    chi-square + the prior's) that best explains K planes (n_m (K, 3), d_m (K,), cov3 (K, 3, 3), as
+    :func:`plane_rows`) at the stations ``rows`` (K indices into ``g``), from ``T0``, with the CAD
+    ``prior`` (T (4x4), sigma_m, sigma_rad); Gauss-Newton, Huber weight ``huber`` on the square root
+    of each plane's chi-square."""
     T_cad, sig_m, sig_rad = prior
-    sig_m, sig_rad = max(sig_m, 1e-4), max(sig_rad, 1e-4)
+    P = np.diag([max(sig_rad, 1e-4) ** -2] * 3 + [max(sig_m, 1e-4) ** -2] * 3)
+    rows = np.asarray(rows, dtype=int)
+    u, z, W, cab = g.u[rows], g.z[rows], g.W[rows], g.cov[rows]
     T = np.array(T0, dtype=float)
-    H = np.eye(6)
+    H, cost = P, 0.0
+    B = np.array([tangent_basis(n) for n in n_m]) if B is None else B
     for _ in range(iterations):
         R, t = T[:3, :3], T[:3, 3]
-        H = np.zeros((6, 6))
-        b = np.zeros(6)
-        for (n, d, cov4), j in zip(planes, rows):
-            sub = StationGrounds(g.ids[j:j + 1], g.u[j:j + 1], g.z[j:j + 1], g.W[j:j + 1], g.cov[j:j + 1], ())
-            n = np.asarray(n, dtype=float) / np.linalg.norm(n)
-            e, J_X, J_S = _errors(n, float(d), sub, R, t)
-            cov3 = plane_cov3(n, DEFAULT_PLANE_COV4 if cov4 is None else np.asarray(cov4))
-            C = cov3 + J_X[0] @ g.cov[j] @ J_X[0].T
-            Ci = np.linalg.inv(C)
-            r2 = float(e[0] @ Ci @ e[0])
-            w = 1.0 if r2 <= huber**2 else huber / np.sqrt(r2)
-            H += w * J_S[0].T @ Ci @ J_S[0]
-            b += w * J_S[0].T @ Ci @ e[0]
-        # the prior, as a right perturbation of T: [rotvec(R_cad^T R), R^T (t - t_cad)]
+        chi, e, Ci, J = chi2_rows(n_m, d_m, cov3, u, z, W, cab, T, jacobian=True, B=B)
+        w = np.where(chi <= huber**2, 1.0, huber / np.sqrt(np.maximum(chi, 1e-300)))
         r_p = np.concatenate([Rotation.from_matrix(T_cad[:3, :3].T @ R).as_rotvec(), R.T @ (t - T_cad[:3, 3])])
-        P = np.diag([sig_rad**-2] * 3 + [sig_m**-2] * 3)
-        H += P
-        b += P @ r_p
+        cost = float(np.sum(np.where(chi <= huber**2, chi, 2 * huber * np.sqrt(chi) - huber**2)) + r_p @ P @ r_p)
+        H = np.einsum("k,kji,kjl,klm->im", w, J, Ci, J) + P
+        b = np.einsum("k,kji,kjl,kl->i", w, J, Ci, e) + P @ r_p
         delta = -np.linalg.solve(H, b)
         T_new = np.eye(4)
         T_new[:3, :3] = R @ Rotation.from_rotvec(delta[:3]).as_matrix()
         T_new[:3, 3] = t + R @ delta[3:]
         T = T_new
-        if np.linalg.norm(delta) < 1e-9:
+        if np.linalg.norm(delta) < 1e-10:
             break
-    return T, np.linalg.inv(H)
+    return T, np.linalg.inv(H), cost
