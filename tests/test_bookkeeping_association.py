@@ -171,3 +171,22 @@ def test_stations_the_planes_cannot_tell_apart_are_not_corrected(models, robot):
     assert corrections == () and out is data
     assert len(notes) == 1 and f"labelled station {c}" in notes[0]
     assert f"station {a}" in notes[0] and f"station {twin}" in notes[0]
+
+
+def test_a_physical_cause_is_not_a_bookkeeping_error(tmp_path):
+    """A joint compliance on the qingzhui (the diagnosis battery's set-up: random program, 3
+    sessions) leaves most planes off their stations' grounds at physical noise: the model, not the
+    labels; nothing is corrected (it once "corrected" the sign of a 0.0014 normal component)."""
+    from graphcal.commands.simulate import run as simulate_to_folder
+
+    out = tmp_path / "compliance"
+    simulate_to_folder(robot="qingzhui", program="random", ground="level", out_dir=out, seed=320, n_stations=48,
+                       n_sessions=3, output="planes", cloud_stride=8, effects=[("joint_compliance", {})],
+                       progress=False, session_heading_step_deg=40.0, overwrite=True)
+    ds = read_dataset(out)
+    robot = load_dataset_robot(ds)
+    model = DiagnosisModel(ds, robot, calibration_data(ds, robot), model_options(ds))
+    said = []
+    corrections, data, notes = find_associations(model, said.append)
+    assert said, "the gate lets the data through: the planes do not fit at physical noise"
+    assert corrections == () and notes == () and data is model.data
