@@ -190,3 +190,25 @@ def test_a_physical_cause_is_not_a_bookkeeping_error(tmp_path):
     corrections, data, notes = find_associations(model, said.append)
     assert said, "the gate lets the data through: the planes do not fit at physical noise"
     assert corrections == () and notes == () and data is model.data
+
+
+def test_most_of_few_planes_relocated_is_a_hypothesis_not_a_correction(models):
+    """Chai's printed case, simulated: six planes, five of them labelled with another station (and
+    one of these with a flipped sign). Each relocated plane is fitted about as well as by a free
+    parameter and the extrinsic by the rest: no redundancy is left to judge the association, so
+    nothing is corrected and one note gives the best association as a hypothesis."""
+    model = models["octopus"]
+    s = _sensor(model)
+    ids = _stations(model)
+    keep = [ids[k] for k in (0, 9, 14, 28, 33, 48)]
+    labels = [keep[0]] + [ids[k] for k in (12, 7, 24, 36, 44)]
+    planes = {}
+    for true, label in zip(keep, labels):
+        p = model.data.planes[(true, s)]
+        n = p.n.copy()
+        if true == keep[1]:
+            n[int(np.argmax(np.abs(n)))] *= -1.0
+        planes[(label, s)] = dataclasses.replace(p, station=label, n=n)
+    corrections, data, notes = _find(_with_planes(model, planes))
+    assert corrections == () and data.planes is planes
+    assert len(notes) == 1 and "a hypothesis, not corrected" in notes[0] and "relocates" in notes[0]

@@ -220,14 +220,27 @@ def _sensor(ds, sensor, meas, g, say) -> tuple:
     still = chi2_dist.sf(cam.chi(best[0])[best[2], idx, best[1]], 3) < GATE_ALPHA / n
     if still.mean() > MAX_FAIL_SHARE:
         # most planes fit no station under any association: the model (a physical cause), not the labels
-        log.debug(f"association: {sensor}: {int(still.sum())} of {n} planes fit no station; not bookkeeping")
+        say(f"association: {sensor}: {int(still.sum())} of {n} planes fit no station at physical noise under "
+            f"the best association: the model, not the bookkeeping; nothing corrected")
         return [], unchanged, []
     for attempt in range(MAX_RESTARTS + 1):  # a forced alternative better than the best restarts from it
         decisions, better = _decide(cam, best, restart=attempt < MAX_RESTARTS)
         if better is None:
             break
         best = better
+    if decisions and not np.isfinite(_scatter(cam.chi(best[0])[best[2], idx, best[1]], len(decisions))):
+        return [], unchanged, [_hypothesis_note(sensor, cam, best)]
     return _report(sensor, cam, best, decisions)
+
+
+def _hypothesis_note(sensor, cam: _Camera, best) -> str:
+    """The best association as a hypothesis, when no redundancy is left to judge it by."""
+    _, assign, var, _ = best
+    moved = [f"{m.station} -> {_option(cam.g, assign[i], var[i])}" for i, m in enumerate(cam.meas)
+             if assign[i] != cam.labels[i] or var[i]]
+    return (f"{sensor}: the planes do not fit their labelled stations; the best association found relocates "
+            f"{len(moved)} of {len(cam.meas)} ({'; '.join(moved)}) and leaves no redundancy to judge it (each relocated plane is "
+            f"fitted about as well as by a free parameter, the extrinsic by the rest): a hypothesis, not corrected")
 
 
 def _decide(cam: _Camera, best, restart: bool = True) -> tuple:
@@ -235,9 +248,14 @@ def _decide(cam: _Camera, best, restart: bool = True) -> tuple:
     plane the best solution changes, a better solution found on the way or None). The confidence
     of a change is the objective's rise when the plane is forced to its next-best (station,
     variant) -- the plane as given at its label among them -- with the extrinsic and every other
-    plane's association refitted. Without ``restart`` a better solution counts as a rise of 0."""
+    plane's association refitted, divided by the scatter of the best solution's inliers when it
+    exceeds physical noise (chi-square per degree of freedom > 1: the data are never trusted more
+    than their own scatter allows). Without ``restart`` a better solution counts as a rise of 0."""
     T, assign, var, total = best
-    sc = cam.score(cam.chi(T))
+    chi = cam.chi(T)
+    sc = cam.score(chi)
+    changed = int(np.sum((assign != cam.labels) | (var != 0)))
+    scale = _scatter(chi[var, np.arange(len(assign)), assign], changed)
     out = {}
     for i in range(len(cam.meas)):
         if assign[i] == cam.labels[i] and var[i] == 0:
@@ -252,11 +270,21 @@ def _decide(cam: _Camera, best, restart: bool = True) -> tuple:
             alt = _alternate(cam, T, None, forced=(i, j, v))
             if alt[3] < total - 1e-6 and restart:
                 return out, alt
-            rises.append(max(alt[3] - total, 0.0))
-            if alt[3] - total < MIN_CONFIDENCE:
+            rises.append(max(alt[3] - total, 0.0) / scale if np.isfinite(scale) else 0.0)
+            if rises[-1] < MIN_CONFIDENCE:
                 alts.append((j, v))
         out[i] = (float(min(rises)), alts)
     return out, None
+
+
+def _scatter(chi: np.ndarray, changed: int) -> float:
+    """max(1, chi-square per degree of freedom) of the inlier planes' ``chi`` (3 dof each; 6 taken
+    by the extrinsic and 3 by each plane the association changed: a plane free to go to any station
+    is fitted about as well as by a free parameter); ``inf`` when no degree of freedom is left (no
+    redundancy to judge a change by: measured on Chai's six printed planes, five of them moved)."""
+    inl = chi[chi < INLIER_CHI2]
+    dof = 3 * len(inl) - 6 - 3 * changed
+    return max(1.0, float(inl.sum()) / dof) if dof > 0 else np.inf
 
 
 def _report(sensor, cam: _Camera, best, decisions) -> tuple:
