@@ -212,3 +212,25 @@ def test_most_of_few_planes_relocated_is_a_hypothesis_not_a_correction(models):
     corrections, data, notes = _find(_with_planes(model, planes))
     assert corrections == () and data.planes is planes
     assert len(notes) == 1 and "a hypothesis, not corrected" in notes[0] and "relocates" in notes[0]
+
+
+def test_diagnose_corrects_before_the_loop(tmp_path):
+    """From the dataset folder: two stations' planes exchanged in planes.csv and one plane's d in
+    cm; diagnose reports both corrections and names no physical cause on the corrected data."""
+    import csv
+
+    from graphcal.diagnosis.diagnose import diagnose
+
+    path, _ = simulated_dataset(tmp_path, "hex", output="planes", **ROBOTS["hexapod"])
+    rows = list(csv.DictReader(open(path / "planes.csv")))
+    by = {r["station"]: r for r in rows}
+    by["5"]["station"], by["22"]["station"] = "22", "5"
+    by["30"]["d"] = str(100 * float(by["30"]["d"]))
+    with open(path / "planes.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(sorted(rows, key=lambda r: int(r["station"])))
+    d = diagnose(path)
+    assert sorted(c.label() for c in d.corrections) == [
+        "distance_unit(sensor=front_cam, station=30)", "stations_exchanged(sensor=front_cam, stations=[5, 22])"]
+    assert d.findings == [] or d.findings == ()
