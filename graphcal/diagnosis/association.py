@@ -20,8 +20,8 @@ planes (plane_corrections.py: the stance feet, or the commanded pose) at physica
    otherwise a note names the candidates the data cannot tell apart (e.g. poses differing only in
    yaw, which a ground plane cannot see).
 
-Laser scans are not examined (their points fit no single plane variant; a note says so when the
-scans fail at their stations).
+Laser scans are not examined (a scan is a line on the ground, not a plane: its association would
+need its own error model; the diagnosis loop still sees scans that fit no station as outliers).
 """
 
 from __future__ import annotations
