@@ -58,6 +58,10 @@ COST_CAP = 60.0
 MOVE_PENALTY = 4.0
 VARIANT_PENALTY = 6.0
 MAX_ROUNDS = 12
+#: when few planes fail at the labelled fit, only those below this p-value there may move or change
+ACTIVE_P = 0.01
+#: chi-square of a plane that may not move, anywhere but at its label
+FAR = 1e6
 #: beyond this share of planes failing under the best association, the model does not fit (a
 #: physical cause for the diagnosis loop): nothing is corrected (measured: a joint compliance on the
 #: qingzhui left 31 of 48 planes failing, and "corrected" the sign of a 0.0014 normal component)
@@ -110,7 +114,9 @@ def _prior(ds, sensor: str) -> tuple:
 class _Camera:
     """One camera's planes: ``meas`` (N PlaneMeasurements), ``labels`` (N,) their stations' indices
     into ``g`` (StationGrounds, M stations), every variant's ``n`` (V, N, 3), ``d`` (V, N), ``cov3``
-    (V, N, 3, 3); ``prior`` (T_cad, sigma_m, sigma_rad)."""
+    (V, N, 3, 3); ``prior`` (T_cad, sigma_m, sigma_rad); ``B`` (V, N, 3, 2) the normals' tangent
+    bases; ``active`` (N,) the planes that may move or change (the others stay as given at their
+    label: their cost elsewhere is :data:`FAR`)."""
 
     meas: list
     labels: np.ndarray
@@ -120,16 +126,27 @@ class _Camera:
     cov3: np.ndarray
     prior: tuple
     B: np.ndarray
+    active: np.ndarray
+
+    def at_labels(self, T, cov_S=None) -> np.ndarray:
+        """(N,) chi-square of every plane as given at its label."""
+        g, j = self.g, self.labels
+        return chi2_rows(self.n[0], self.d[0], self.cov3[0], g.u[j], g.z[j], g.W[j], g.cov[j], T, cov_S, B=self.B[0])
 
     def chi(self, T, cov_S=None) -> np.ndarray:
-        """(V, N, M) chi-square of every variant of every plane at every station."""
-        v, n = self.d.shape
-        m = len(self.g.ids)
-        rep = lambda a: np.repeat(a.reshape(v * n, *a.shape[2:]), m, axis=0)  # noqa: E731
-        tile = lambda a: np.tile(a, (v * n,) + (1,) * (a.ndim - 1))  # noqa: E731
-        out = chi2_rows(rep(self.n), rep(self.d), rep(self.cov3), tile(self.g.u), tile(self.g.z), tile(self.g.W),
-                        tile(self.g.cov), T, cov_S, B=rep(self.B))
-        return out.reshape(v, n, m)
+        """(V, N, M) chi-square of every variant of every active plane at every station (:data:`FAR`
+        for the others, except as given at their label)."""
+        act = np.flatnonzero(self.active)
+        v, n, m = self.d.shape[0], len(act), len(self.g.ids)
+        full = np.full((v, len(self.meas), m), FAR)
+        full[0, np.arange(len(self.meas)), self.labels] = self.at_labels(T, cov_S)
+        if n:
+            rep = lambda a: np.repeat(a[:, act].reshape(v * n, *a.shape[2:]), m, axis=0)  # noqa: E731
+            tile = lambda a: np.tile(a, (v * n,) + (1,) * (a.ndim - 1))  # noqa: E731
+            out = chi2_rows(rep(self.n), rep(self.d), rep(self.cov3), tile(self.g.u), tile(self.g.z),
+                            tile(self.g.W), tile(self.g.cov), T, cov_S, B=rep(self.B))
+            full[:, act] = out.reshape(v, n, m)
+        return full
 
     def score(self, chi: np.ndarray) -> np.ndarray:
         """(V, N, M) assignment cost: robust chi-square + the variant's and the move's penalty."""
@@ -161,7 +178,7 @@ def _camera(ds, sensor, meas, g) -> _Camera:
         cs.append(c3)
     B = np.array([[tangent_basis(x) for x in n] for n in ns])
     return _Camera(list(meas), np.array([index[m.station] for m in meas]), g, np.array(ns), np.array(ds_),
-                   np.array(cs), _prior(ds, sensor), B)
+                   np.array(cs), _prior(ds, sensor), B, np.ones(len(meas), dtype=bool))
 
 
 def _assign(cam: _Camera, sc: np.ndarray, forced=None) -> tuple:
@@ -209,12 +226,16 @@ def _sensor(ds, sensor, meas, g, say) -> tuple:
     n = len(meas)
     idx = np.arange(n)
     T, _, _ = fit_extrinsic(cam.n[0], cam.d[0], cam.cov3[0], g, cam.labels, T_cad, cam.prior, B=cam.B[0])
-    at_label = cam.chi(T)[0, idx, cam.labels]
+    p_label = chi2_dist.sf(cam.at_labels(T), 3)
     unchanged = {(m.station, sensor): m for m in meas}
-    if not (chi2_dist.sf(at_label, 3) < GATE_ALPHA / n).any():
+    failing = p_label < GATE_ALPHA / n
+    if not failing.any():
         return [], unchanged, []
-    say(f"association: {sensor}: {int((chi2_dist.sf(at_label, 3) < GATE_ALPHA / n).sum())} of {n} planes do not "
-        f"fit their labelled station at physical noise; searching the association")
+    say(f"association: {sensor}: {int(failing.sum())} of {n} planes do not fit their labelled station at "
+        f"physical noise; searching the association")
+    if failing.mean() <= MAX_FAIL_SHARE:
+        # the labelled fit is sound: only the planes it doubts may move or change
+        cam = dataclasses.replace(cam, active=p_label < ACTIVE_P)
     cov_prior = np.diag([max(sig_rad, 1e-4) ** 2] * 3 + [max(sig_m, 1e-4) ** 2] * 3)
     best = min((_alternate(cam, T, None), _alternate(cam, T_cad, cov_prior)), key=lambda r: r[3])
     still = chi2_dist.sf(cam.chi(best[0])[best[2], idx, best[1]], 3) < GATE_ALPHA / n
