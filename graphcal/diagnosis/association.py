@@ -249,9 +249,11 @@ def _sensor(ds, sensor, meas, g, say) -> tuple:
         if better is None:
             break
         best = better
+    found, planes, notes = _report(sensor, cam, best, decisions)
     if decisions and not np.isfinite(_scatter(cam.chi(best[0])[best[2], idx, best[1]], len(decisions))):
-        return [], unchanged, [_hypothesis_note(sensor, cam, best)]
-    return _report(sensor, cam, best, decisions)
+        # every confidence is 0: nothing corrected; the per-plane notes and the association as a hypothesis
+        return [], unchanged, notes + [_hypothesis_note(sensor, cam, best)]
+    return found, planes, notes
 
 
 def _hypothesis_note(sensor, cam: _Camera, best) -> str:
@@ -291,9 +293,10 @@ def _decide(cam: _Camera, best, restart: bool = True) -> tuple:
             alt = _alternate(cam, T, None, forced=(i, j, v))
             if alt[3] < total - 1e-6 and restart:
                 return out, alt
-            rises.append(max(alt[3] - total, 0.0) / scale if np.isfinite(scale) else 0.0)
-            if rises[-1] < MIN_CONFIDENCE:
-                alts.append((j, v))
+            rise = max(alt[3] - total, 0.0)
+            rises.append(rise / scale if np.isfinite(scale) else 0.0)
+            if (rise / scale if np.isfinite(scale) else rise) < MIN_CONFIDENCE:
+                alts.append((j, v))  # without redundancy: the candidates as the raw margin sees them
         out[i] = (float(min(rises)), alts)
     return out, None
 
