@@ -262,8 +262,9 @@ def _hypothesis_note(sensor, cam: _Camera, best) -> str:
     moved = [f"{m.station} -> {_option(cam.g, assign[i], var[i])}" for i, m in enumerate(cam.meas)
              if assign[i] != cam.labels[i] or var[i]]
     return (f"{sensor}: the planes do not fit their labelled stations; the best association found relocates "
-            f"{len(moved)} of {len(cam.meas)} ({'; '.join(moved)}) and leaves no redundancy to judge it (each relocated plane is "
-            f"fitted about as well as by a free parameter, the extrinsic by the rest): a hypothesis, not corrected")
+            f"{len(moved)} of {len(cam.meas)} ({'; '.join(moved)}) and leaves no redundancy to judge it "
+            f"(each relocated plane is fitted about as well as by a free parameter, the extrinsic by the rest): "
+            f"a hypothesis, not corrected")
 
 
 def _decide(cam: _Camera, best, restart: bool = True) -> tuple:
@@ -333,8 +334,9 @@ def _report(sensor, cam: _Camera, best, decisions) -> tuple:
             also = ""
             if len(shared) == 1 and var[i]:
                 also = f"; in every one {' '.join(PLANE_VARIANTS[var[i]])} (the station, not the variant, is unsure)"
-            notes.append(f"{sensor}: the plane labelled station {label} (chi-square {at_label[i]:.0f} there) does not fit "
-                         f"it; the data cannot tell between (the best found) {txt}{'' if len(cands) <= 8 else ', ...'}{also}: not corrected")
+            more = "" if len(cands) <= 8 else ", ..."
+            notes.append(f"{sensor}: the plane labelled station {label} (chi-square {at_label[i]:.0f} there) does "
+                         f"not fit it; the data cannot tell between (the best found) {txt}{more}{also}: not corrected")
         else:
             accepted[i] = (conf, alts)
     accepted = _without_conflicts(cam, assign, accepted, notes, sensor)
@@ -391,7 +393,8 @@ def _corrections(sensor, cam, assign, var, at_label, chi_new, accepted) -> tuple
                 corrections.append(Correction(
                     "station_mislabelled", (("from_station", m.station), ("sensor", sensor), ("station", new_station)),
                     (("station_given", m.station), ("station_corrected", new_station)),
-                    note=f"{sensor}: the plane labelled station {m.station} belongs to station {new_station}", **common))
+                    note=f"{sensor}: the plane labelled station {m.station} belongs to station {new_station}",
+                    **common))
         n_new, d_new = cam.n[var[i], i], float(cam.d[var[i], i])
         if var[i]:
             cause, detail = PLANE_VARIANTS[var[i]]
