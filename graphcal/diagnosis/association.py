@@ -419,9 +419,10 @@ def _report(sensor, cam: _Camera, best, decisions) -> tuple:
     for i, (conf, alts) in decisions.items():
         label = meas[i].station
         if chi2_dist.sf(chi_new[i], cam.dof[i]) < PASS_P:
-            notes.append(f"{sensor}: the {cam.kind} labelled station {label} fits no station at physical noise, as "
-                         f"given or with a sign, convention or unit corrected (chi-square {at_label[i]:.0f} at its "
-                         f"label): an outlier, or a cause of the model")
+            how = " as given or with a sign, convention or unit corrected" if cam.kind == "plane" else ""
+            notes.append(f"{sensor}: the {cam.kind} labelled station {label} fits no free station at physical "
+                         f"noise{how} (chi-square {at_label[i]:.0f} at its label): an outlier (or a copy of another "
+                         f"station's data), or a cause of the model")
         elif conf < MIN_CONFIDENCE:
             cands = [(assign[i], var[i])] + alts
             txt = ", ".join(_option(g, j, v) for j, v in cands[:8])
@@ -456,7 +457,7 @@ def _without_conflicts(cam, assign, accepted, notes, sensor) -> dict:
             return accepted
         for i in clash:
             notes.append(f"{sensor}: the {cam.kind} labelled station {cam.meas[i].station} belongs to station "
-                         f"{int(cam.g.ids[assign[i]])}, whose own plane could not be placed: not corrected")
+                         f"{int(cam.g.ids[assign[i]])}, whose own {cam.kind} could not be placed: not corrected")
             accepted.pop(i)
 
 
