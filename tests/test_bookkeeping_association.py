@@ -267,4 +267,5 @@ def test_laser_scans_exchanged_and_misfiled(messor):
     sp[(b, "laser")] = sp.pop((a, "laser"))
     corrections, data, _ = _find(dataclasses.replace(messor, data=dataclasses.replace(messor.data, scan_points=sp)))
     assert [c.label() for c in corrections] == [f"station_mislabelled(from_station={b}, sensor=laser, station={a})"]
-    assert (b, "laser") not in data.scan_points and data.scan_points[(a, "laser")] is messor.data.scan_points[(a, "laser")]
+    assert (b, "laser") not in data.scan_points
+    assert data.scan_points[(a, "laser")] is messor.data.scan_points[(a, "laser")]

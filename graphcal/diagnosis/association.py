@@ -1,5 +1,5 @@
-"""Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): sensor planes filed under the wrong
-station (two stations' data exchanged, a plane under another station) and sign / convention / unit
+"""Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): sensor planes and laser scans filed under
+the wrong station (two stations' data exchanged, a plane under another station) and sign / convention / unit
 errors of single planes (a normal component's sign, the opposite (n, d) convention, d in mm or cm).
 
 Per camera, every plane is compared with the ground each station predicts without that camera's
@@ -20,8 +20,8 @@ planes (plane_corrections.py: the stance feet, or the commanded pose) at physica
    otherwise a note names the candidates the data cannot tell apart (e.g. poses differing only in
    yaw, which a ground plane cannot see).
 
-Laser scans are not examined (a scan is a line on the ground, not a plane: its association would
-need its own error model; the diagnosis loop still sees scans that fit no station as outliers).
+Laser scans go through the same search with one variant (as given): their range errors at every
+station (scan_association.py); swaps and misfiled scans are found, no sign or unit variants.
 """
 
 from __future__ import annotations
