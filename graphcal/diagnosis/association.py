@@ -35,7 +35,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2 as chi2_dist
 
-from graphcal.diagnosis.bookkeeping import Correction
+from graphcal.diagnosis.correction import Correction
 from graphcal.factors.plane_observation import tangent_basis
 from graphcal.diagnosis.plane_corrections import (PLANE_VARIANTS, StationGrounds, chi2_rows, fit_extrinsic,
                                                   plane_rows, plane_variant, station_grounds)
