@@ -1,14 +1,238 @@
 """Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): two legs' joint columns exchanged in the logger.
 
-NOT YET IMPLEMENTED: finds nothing (issue 29 in progress).
+A logger that files leg a's encoder columns under leg b (and b's under a) leaves every stance foot
+of those two legs far from where the other legs and the sensors put the body: the nominal model
+then reads it as huge joint offsets (measured on an independent hexapod: two coxa offsets of +87
+and -86 deg, confidently wrong). Looked for in three steps, each gated on the previous one:
+
+1. **Gate** (free): the stance-foot noise the nominal model learned (``model.options``) against the
+   physical noise (:func:`graphcal.diagnosis.model.model_options`). When the learned variance is
+   within :data:`~graphcal.diagnosis.structure.MIN_EXCESS` of the physical one the stance feet fit
+   and nothing else is done (clean data: learned 0.02 deg / 0.08 mm against 0.1 deg / 1 mm).
+2. **Per-leg residuals** (one solve): the nominal model solved at physical noise, each leg's
+   stance-foot chi-square; the :data:`CANDIDATE_LEGS` legs that fail worst give the candidate pairs
+   (legs with different joint counts cannot be exchanged).
+3. **Hypotheses** (one solve each, physical noise): for each candidate pair, the q columns of legs a
+   and b exchanged in every station's ``q_by_foot``; for the best pair also every mirror sign
+   pattern (a logger that converts left to right conventions: the exchanged angles negated joint by
+   joint) and, when no whole-run exchange fits, an exchange from one station on (the station found
+   as the change point of the per-station evidence). Each hypothesis is scored by the chi-square of
+   the whole nominal model at physical noise.
+
+A correction (cause ``legs_exchanged``) is made only when the best hypothesis fits at physical
+noise (chi2/dof <= MIN_EXCESS or its chi-square tail above STRUCTURE_ALPHA) AND beats the
+next-best hypothesis (other pairs, other sign patterns, other start stations, and the data as
+given) by at least :data:`MIN_CONFIDENCE` in chi-square; otherwise what was suspected goes to the
+notes. The Correction's ``statistic`` is the chi-square drop (data as given minus corrected) at
+physical noise, ``dof`` the degrees of freedom of the corrected fit (rows minus parameters),
+``p_value`` the tail probability of the data as given at that dof (how surely they do not fit),
+``confidence`` the chi-square margin over the next-best hypothesis; ``corrected`` holds the mirror
+signs applied and the corrected fit's chi2/dof and p-value.
 """
 
 from __future__ import annotations
 
-__all__ = ["find_joint_columns"]
+import dataclasses
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from graphcal.diagnosis.bookkeeping import Correction
+from graphcal.diagnosis.model import chi2_of, model_options
+from graphcal.diagnosis.structure import MIN_EXCESS, STRUCTURE_ALPHA
+
+__all__ = ["find_joint_columns", "exchange_legs", "CANDIDATE_LEGS", "MIN_CONFIDENCE", "Hypothesis"]
+
+#: the legs whose stance feet fail worst at physical noise that make the candidate pairs
+CANDIDATE_LEGS = 4
+#: chi-square margin (physical noise) by which the best exchange must beat the next-best
+#: hypothesis to be corrected (chi-square 1-dof quantile at 1e-6 is 23.9)
+MIN_CONFIDENCE = 25.0
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One hypothesis about the joint columns, scored at physical noise.
+
+    Attributes:
+        legs: (a, b) feet exchanged, () for the data as given.
+        signs: per joint, the sign the exchanged angles carry (+1 plain exchange, -1 mirrored).
+        from_station: first station id exchanged (None: the whole run).
+        chi2, dof: the whole model's chi-square at physical noise and its rows minus parameters.
+    """
+
+    legs: tuple
+    signs: tuple
+    from_station: int | None
+    chi2: float
+    dof: int
+
+    @property
+    def fits(self) -> bool:
+        return self.chi2 <= MIN_EXCESS * max(self.dof, 1) or chi2_dist.sf(self.chi2, max(self.dof, 1)) >= STRUCTURE_ALPHA
+
+    def label(self) -> str:
+        if not self.legs:
+            return "the data as given"
+        s = "" if all(x > 0 for x in self.signs) else f" with signs {list(self.signs)}"
+        w = "" if self.from_station is None else f" from station {self.from_station} on"
+        return f"legs {self.legs[0]} and {self.legs[1]} exchanged{s}{w}"
+
+
+def exchange_legs(data, a: str, b: str, signs=None, from_station: int | None = None):
+    """A new CalibrationData with the joint columns of feet ``a`` and ``b`` exchanged in every
+    station's ``q_by_foot`` (from station id ``from_station`` on, in file order; None: all), each
+    exchanged angle multiplied by ``signs`` (per joint; None: all +1). ``data`` is not changed."""
+    started = from_station is None
+    stations = []
+    for st in data.stations:
+        started = started or st.station == from_station
+        if started and a in st.q_by_foot and b in st.q_by_foot:
+            s = np.ones(len(st.q_by_foot[a])) if signs is None else np.asarray(signs, float)
+            q = dict(st.q_by_foot)
+            q[a], q[b] = s * np.asarray(st.q_by_foot[b], float), s * np.asarray(st.q_by_foot[a], float)
+            st = dataclasses.replace(st, q_by_foot=q)
+        stations.append(st)
+    return dataclasses.replace(data, stations=tuple(stations))
+
+
+def _stance_misfit(model) -> float:
+    """Learned over physical variance of the stance-foot noise (the larger of its joint and
+    contact components); free: read from the options the nominal model learned."""
+    phys = model_options(model.ds)
+    o = model.options
+    return max((o.sigma_joint_rad / phys.sigma_joint_rad) ** 2, (o.sigma_contact_m / phys.sigma_contact_m) ** 2)
+
+
+def _fit(phys, data, legs=(), signs=(), from_station=None):
+    """(Hypothesis, problem, values) of the nominal model of ``data`` solved at physical noise."""
+    m = dataclasses.replace(phys, data=data, findings=())
+    problem, values = m.solve()
+    chi2, rows = chi2_of(problem, values)
+    n_par = sum(int(d) for _, d in values.dims().items())
+    return Hypothesis(tuple(legs), tuple(signs), from_station, chi2, max(rows - n_par, 1)), problem, values
+
+
+def _stance_chi2(phys, problem, values) -> dict:
+    """(station, foot) -> the stance-foot factor's chi-square at ``values``."""
+    from graphcal.factors.keys import F
+    from graphcal.solvers.batch import whitened_errors
+
+    sessions = list(dict.fromkeys(st.session for st in phys.data.stations))
+    foot_of = {int(F(j)): f for j, (s, f) in enumerate((s, f) for s in sessions for f in phys.robot.feet)}
+    x_station = {int(k): st for st, k in problem.station_keys.items()}
+    idx = [i for i, g in problem.factor_groups.items() if g == "stance_foot"]
+    e = whitened_errors(problem.graph, values, idx)
+    out = {}
+    for i, chi in zip(idx, e):
+        keys = [int(k) for k in problem.graph.at(i).keys()]
+        st = next((x_station[k] for k in keys if k in x_station), None)
+        f = next((foot_of[k] for k in keys if k in foot_of), None)
+        if st is not None and f is not None and np.isfinite(chi):
+            out[(st, f)] = float(chi)
+    return out
+
+
+def _candidate_pairs(data, per_station: dict) -> list:
+    """Pairs of the CANDIDATE_LEGS feet with the largest stance chi-square that have the same joint
+    count at every station, worst first."""
+    per_leg: dict = {}
+    for (_, f), c in per_station.items():
+        per_leg[f] = per_leg.get(f, 0.0) + c
+    worst = sorted(per_leg, key=lambda f: -per_leg[f])[:CANDIDATE_LEGS]
+    pairs = []
+    for a, b in itertools.combinations(worst, 2):
+        if all(len(st.q_by_foot.get(a, ())) == len(st.q_by_foot.get(b, ())) > 0 for st in data.stations):
+            pairs.append((a, b))
+    return pairs
+
+
+def _change_station(data, a: str, b: str, before: dict, after: dict) -> int | None:
+    """The station from which on the exchange of a and b explains the stance feet better than the
+    data as given (``before``/``after``: per (station, foot) chi-square of the two fits), by the
+    largest cumulative evidence; None when that is the first station (the whole run)."""
+    ids = [st.station for st in data.stations]
+    gain = np.array([sum(before.get((s, f), 0.0) - after.get((s, f), 0.0) for f in (a, b)) for s in ids])
+    # exchanged from k on: evidence sum(gain[k:]) - sum(gain[:k]) = total - 2 * cumsum(gain)[k-1]
+    score = gain.sum() - 2.0 * np.r_[0.0, np.cumsum(gain)[:-1]]
+    k = int(np.argmax(score))
+    return None if k == 0 else ids[k]
+
+
+def _search(model, phys, say) -> tuple:
+    """(every Hypothesis scored, best first; the data of the best) of the exchange search."""
+    given, problem, values = _fit(phys, phys.data)
+    per_station = _stance_chi2(phys, problem, values)
+    pairs = _candidate_pairs(phys.data, per_station)
+    say(f"joint columns: stance feet fail at physical noise (chi2 {given.chi2:.0f} on {given.dof} dof); "
+        f"testing {len(pairs)} exchanged leg pair(s)")
+    scored = {(): (given, phys.data, per_station)}
+    for a, b in pairs:
+        data = exchange_legs(phys.data, a, b)
+        h, pr, vals = _fit(phys, data, (a, b), (1,) * len(phys.data.stations[0].q_by_foot[a]))
+        scored[(a, b, h.signs, None)] = (h, data, None)
+    plain = sorted((k for k in scored if k), key=lambda k: scored[k][0].chi2)
+    if plain:  # the best pair's mirror sign patterns (a left/right logger convention)
+        a, b, ones, _ = plain[0]
+        for signs in itertools.product((1, -1), repeat=len(ones)):
+            if signs != ones:
+                data = exchange_legs(phys.data, a, b, signs)
+                scored[(a, b, signs, None)] = (_fit(phys, data, (a, b), signs)[0], data, None)
+    best = min(scored, key=lambda k: scored[k][0].chi2)
+    if best and not scored[best][0].fits:  # from one station on (the change point of the evidence)
+        a, b, signs, _ = best
+        data = scored[best][1]
+        _, pr, vals = _fit(phys, data)
+        k = _change_station(phys.data, a, b, per_station, _stance_chi2(phys, pr, vals))
+        if k is not None:
+            ids = [st.station for st in phys.data.stations]
+            for j in {max(ids.index(k) - 1, 1), ids.index(k), min(ids.index(k) + 1, len(ids) - 1)}:
+                data = exchange_legs(phys.data, a, b, signs, ids[j])
+                scored[(a, b, signs, ids[j])] = (_fit(phys, data, (a, b), signs, ids[j])[0], data, None)
+    order = sorted(scored, key=lambda k: scored[k][0].chi2)
+    return [scored[k][0] for k in order], scored[order[0]][1]
 
 
 def find_joint_columns(model, say) -> tuple:
     """(corrections, corrected data, notes) for the nominal ``model`` (a DiagnosisModel with its
-    noise learned); see graphcal/diagnosis/bookkeeping.py."""
-    return (), model.data, ()
+    noise learned); see graphcal/diagnosis/bookkeeping.py and this module's docstring. ``say(msg)``
+    logs a progress line."""
+    if len(model.robot.feet) < 2 or _stance_misfit(model) <= MIN_EXCESS:
+        return (), model.data, ()
+    phys = dataclasses.replace(model, options=model_options(model.ds), findings=())
+    hyps, data = _search(model, phys, say)
+    given = next(h for h in hyps if not h.legs)
+    best = hyps[0]
+    if not best.legs:
+        return (), model.data, ()
+    runner = hyps[1]
+    margin = runner.chi2 - best.chi2
+    alternatives = tuple(h.label() for h in hyps[1:] if h.chi2 - best.chi2 < MIN_CONFIDENCE)
+    p_given = float(chi2_dist.sf(given.chi2, given.dof))
+    if not best.fits or margin < MIN_CONFIDENCE:
+        why = "the stance feet still do not fit at physical noise after it" if not best.fits else \
+            f"{runner.label()} explains the data almost as well (chi-square {margin:.1f} apart)"
+        note = (f"joint columns: {best.label()} is the best explanation of the stance feet tried "
+                f"(chi-square {given.chi2:.0f} -> {best.chi2:.0f} at physical noise, {best.dof} dof), but {why}: "
+                f"not corrected")
+        say(note)
+        return (), model.data, (note,)
+    a, b = sorted(best.legs, key=list(model.robot.feet).index)
+    where = [("legs", (a, b))] + ([] if best.from_station is None else [("from_station", int(best.from_station))])
+    mirrored = not all(s > 0 for s in best.signs)
+    note = (f"the joint columns of legs {a} and {b} are exchanged"
+            f"{'' if best.from_station is None else f' from station {best.from_station} on'}"
+            f"{' with mirrored signs ' + str(list(best.signs)) if mirrored else ''}: exchanging them back drops the "
+            f"chi-square at physical noise from {given.chi2:.0f} to {best.chi2:.0f} on {best.dof} dof "
+            f"({margin:.0f} better than {runner.label()})")
+    corr = Correction(
+        cause="legs_exchanged", where=tuple(sorted(where)),
+        corrected=(("signs", tuple(int(s) for s in best.signs)), ("chi2_per_dof_given", given.chi2 / given.dof),
+                   ("chi2_per_dof_corrected", best.chi2 / best.dof),
+                   ("p_value_corrected", float(chi2_dist.sf(best.chi2, best.dof)))),
+        statistic=float(given.chi2 - best.chi2), dof=int(best.dof), p_value=p_given, confidence=float(margin),
+        alternatives=alternatives, note=note)
+    say(f"joint columns: {note}")
+    return (corr,), data, ()
