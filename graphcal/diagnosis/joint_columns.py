@@ -10,8 +10,9 @@ and -86 deg, confidently wrong). Looked for in three steps, each gated on the pr
    within :data:`~graphcal.diagnosis.structure.MIN_EXCESS` of the physical one the stance feet fit
    and nothing else is done (clean data: learned 0.02 deg / 0.08 mm against 0.1 deg / 1 mm).
 2. **Per-leg residuals** (one solve): the nominal model solved at physical noise, each leg's
-   stance-foot chi-square; the :data:`CANDIDATE_LEGS` legs that fail worst give the candidate pairs
-   (legs with different joint counts cannot be exchanged).
+   stance-foot chi-square. The search goes on only when the misfit concentrates on two legs
+   (:data:`CONCENTRATION`); the :data:`CANDIDATE_LEGS` legs that fail worst give the candidate
+   pairs (legs with different joint counts cannot be exchanged).
 3. **Hypotheses** (one solve each, physical noise): for each candidate pair, the q columns of legs a
    and b exchanged in every station's ``q_by_foot``; for the best pair also every mirror sign
    pattern (a logger that converts left to right conventions: the exchanged angles negated joint by
@@ -43,13 +44,24 @@ from graphcal.diagnosis.bookkeeping import Correction
 from graphcal.diagnosis.model import chi2_of, model_options
 from graphcal.diagnosis.structure import MIN_EXCESS, STRUCTURE_ALPHA
 
-__all__ = ["find_joint_columns", "exchange_legs", "CANDIDATE_LEGS", "MIN_CONFIDENCE", "Hypothesis"]
+__all__ = ["find_joint_columns", "exchange_legs", "candidate_pairs", "CANDIDATE_LEGS", "CONCENTRATION", "CHANGE_CONCENTRATION", "CHANGE_PAIRS", "MIN_CONFIDENCE", "Hypothesis"]
 
 #: the legs whose stance feet fail worst at physical noise that make the candidate pairs
-CANDIDATE_LEGS = 4
+CANDIDATE_LEGS = 3
+#: the search goes on only when the stance chi-square concentrates on two legs: the second-worst
+#: leg's at least this many times the third-worst's (measured at physical noise, 30-48 stations:
+#: 13-120 for two legs exchanged for the whole run or from a station on, 1.8-5.3 when the exchanged
+#: angles are also negated; 1.0-1.9 for a joint offset, a link length, an extrinsic knock, outlier
+#: stations)
+CONCENTRATION = 1.5
+#: ... and the exchange from one station on is tried only above this concentration
+CHANGE_CONCENTRATION = 5.0
 #: chi-square margin (physical noise) by which the best exchange must beat the next-best
 #: hypothesis to be corrected (chi-square 1-dof quantile at 1e-6 is 23.9)
 MIN_CONFIDENCE = 25.0
+#: when no whole-run hypothesis fits, the change point (exchanged from one station on) is tested for
+#: this many pairs that fit best exchanged for the whole run and this many of the legs that fail worst
+CHANGE_PAIRS = 2
 
 
 @dataclass(frozen=True)
@@ -135,13 +147,25 @@ def _stance_chi2(phys, problem, values) -> dict:
     return out
 
 
-def _candidate_pairs(data, per_station: dict) -> list:
-    """Pairs of the CANDIDATE_LEGS feet with the largest stance chi-square that have the same joint
-    count at every station, worst first."""
+def leg_chi2(per_station: dict) -> dict:
+    """foot -> the sum of its stance-foot chi-squares, worst first (``per_station``: (station,
+    foot) -> chi-square)."""
     per_leg: dict = {}
     for (_, f), c in per_station.items():
         per_leg[f] = per_leg.get(f, 0.0) + c
-    worst = sorted(per_leg, key=lambda f: -per_leg[f])[:CANDIDATE_LEGS]
+    return dict(sorted(per_leg.items(), key=lambda kv: -kv[1]))
+
+
+def concentration(per_leg: dict) -> float:
+    """The second-worst leg's stance chi-square over the third-worst's (inf with two legs)."""
+    c = list(per_leg.values())
+    return float("inf") if len(c) < 3 else float(c[1] / max(c[2], 1e-12))
+
+
+def candidate_pairs(data, per_station: dict) -> list:
+    """Pairs of the CANDIDATE_LEGS feet with the largest stance chi-square that have the same joint
+    count at every station, worst first."""
+    worst = list(leg_chi2(per_station))[:CANDIDATE_LEGS]
     pairs = []
     for a, b in itertools.combinations(worst, 2):
         if all(len(st.q_by_foot.get(a, ())) == len(st.q_by_foot.get(b, ())) > 0 for st in data.stations):
@@ -162,35 +186,50 @@ def _change_station(data, a: str, b: str, before: dict, after: dict) -> int | No
 
 
 def _search(model, phys, say) -> tuple:
-    """(every Hypothesis scored, best first; the data of the best) of the exchange search."""
+    """(every Hypothesis scored, best first; the data of the best) of the exchange search, when the
+    stance misfit concentrates on two legs (:data:`CONCENTRATION`): the candidate pairs plainly
+    exchanged; the mirror sign patterns of the best pair (and of the two worst legs when no plain
+    exchange fits); when still nothing fits, the exchange from one station on."""
     given, problem, values = _fit(phys, phys.data)
     per_station = _stance_chi2(phys, problem, values)
-    pairs = _candidate_pairs(phys.data, per_station)
+    pairs = candidate_pairs(phys.data, per_station)
+    ratio = concentration(leg_chi2(per_station))
+    if ratio < CONCENTRATION:
+        return [given], phys.data
     say(f"joint columns: stance feet fail at physical noise (chi2 {given.chi2:.0f} on {given.dof} dof); "
-        f"testing {len(pairs)} exchanged leg pair(s)")
-    scored = {(): (given, phys.data, per_station)}
+        f"the two worst legs carry {ratio:.1f}x the third's; testing {len(pairs)} exchanged leg pair(s)")
+    scored = {(): (given, phys.data)}
+
+    def test(a, b, signs, from_station=None):
+        data = exchange_legs(phys.data, a, b, signs, from_station)
+        scored[(a, b, tuple(signs), from_station)] = (_fit(phys, data, (a, b), signs, from_station)[0], data)
+
+    def best(exchanges_only=False):
+        keys = [k for k in scored if k or not exchanges_only]
+        return min(keys, key=lambda k: scored[k][0].chi2) if keys else None
+
+    n_joints = {(a, b): len(phys.data.stations[0].q_by_foot[a]) for a, b in pairs}
     for a, b in pairs:
-        data = exchange_legs(phys.data, a, b)
-        h, pr, vals = _fit(phys, data, (a, b), (1,) * len(phys.data.stations[0].q_by_foot[a]))
-        scored[(a, b, h.signs, None)] = (h, data, None)
-    plain = sorted((k for k in scored if k), key=lambda k: scored[k][0].chi2)
-    if plain:  # the best pair's mirror sign patterns (a left/right logger convention)
-        a, b, ones, _ = plain[0]
-        for signs in itertools.product((1, -1), repeat=len(ones)):
-            if signs != ones:
-                data = exchange_legs(phys.data, a, b, signs)
-                scored[(a, b, signs, None)] = (_fit(phys, data, (a, b), signs)[0], data, None)
-    best = min(scored, key=lambda k: scored[k][0].chi2)
-    if best and not scored[best][0].fits:  # from one station on (the change point of the evidence)
-        a, b, signs, _ = best
-        data = scored[best][1]
-        _, pr, vals = _fit(phys, data)
-        k = _change_station(phys.data, a, b, per_station, _stance_chi2(phys, pr, vals))
-        if k is not None:
-            ids = [st.station for st in phys.data.stations]
-            for j in {max(ids.index(k) - 1, 1), ids.index(k), min(ids.index(k) + 1, len(ids) - 1)}:
-                data = exchange_legs(phys.data, a, b, signs, ids[j])
-                scored[(a, b, signs, ids[j])] = (_fit(phys, data, (a, b), signs, ids[j])[0], data, None)
+        test(a, b, (1,) * n_joints[(a, b)])
+    top = best(exchanges_only=True)
+    # the best plain pair's patterns; when nothing fits, also those of the two worst legs
+    mirror_pairs = list(dict.fromkeys(([] if top is None else [top[:2]]) +
+                                      ([] if top is not None and scored[top][0].fits else pairs[:1])))
+    for a, b in mirror_pairs:  # a logger converting left and right conventions: exchanged angles negated
+        for signs in itertools.product((1, -1), repeat=n_joints[(a, b)]):
+            if (a, b, signs, None) not in scored:
+                test(a, b, signs)
+    if not scored[best()][0].fits and ratio >= CHANGE_CONCENTRATION:  # from one station on: the change point of each pair's evidence
+        ids = [st.station for st in phys.data.stations]
+        by_chi2 = list(dict.fromkeys(k[:2] for k in sorted((k for k in scored if k), key=lambda k: scored[k][0].chi2)))
+        # the pairs that fit best exchanged for the whole run, and those of the legs that fail worst
+        for a, b in dict.fromkeys(by_chi2[:CHANGE_PAIRS] + pairs[:CHANGE_PAIRS]):
+            signs = min((k for k in scored if k and k[:2] == (a, b)), key=lambda k: scored[k][0].chi2)[2]
+            _, pr, vals = _fit(phys, scored[(a, b, signs, None)][1])
+            k = _change_station(phys.data, a, b, per_station, _stance_chi2(phys, pr, vals))
+            if k is not None:
+                for j in sorted({max(ids.index(k) - 1, 1), ids.index(k), min(ids.index(k) + 1, len(ids) - 1)}):
+                    test(a, b, signs, ids[j])
     order = sorted(scored, key=lambda k: scored[k][0].chi2)
     return [scored[k][0] for k in order], scored[order[0]][1]
 

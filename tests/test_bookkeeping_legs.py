@@ -1,0 +1,127 @@
+"""Two legs' joint columns exchanged in the logger (issue 29; graphcal/diagnosis/joint_columns.py).
+
+Datasets: two simulated hexapods (octopus, qingzhui), 30 stations in 2 sessions; the fault is made
+in stations.csv (the q columns of two legs exchanged, as a logger would), never through the
+finder's own code. The finder must name the two legs (adjacent and opposite), find nothing on the
+clean data, and leave ``diagnose`` naming no joint offsets afterwards.
+"""
+
+from __future__ import annotations
+
+import csv
+import shutil
+
+import numpy as np
+import pytest
+
+
+def _simulate(root, robot):
+    from graphcal.commands.simulate import run as simulate_to_folder
+
+    out = root / f"clean_{robot}"
+    simulate_to_folder(robot=robot, program="random", ground="level", out_dir=out, seed=7, n_stations=30,
+                       n_sessions=2, output="planes", cloud_stride=8, progress=False)
+    return out
+
+
+def _exchanged(clean, out, a, b, sign=1.0, from_row=0):
+    """A copy of ``clean`` with the q columns of legs ``a`` and ``b`` exchanged in stations.csv
+    (times ``sign``), from data row ``from_row`` on."""
+    shutil.copytree(clean, out)
+    rows = list(csv.reader((out / "stations.csv").open(newline="")))
+    ca = [i for i, n in enumerate(rows[0]) if n.startswith(f"q_{a}_")]
+    cb = [i for i, n in enumerate(rows[0]) if n.startswith(f"q_{b}_")]
+    assert len(ca) == len(cb) == 3
+    for r in rows[1 + from_row:]:
+        va, vb = [r[i] for i in ca], [r[i] for i in cb]
+        for i, v in zip(ca, vb):
+            r[i] = repr(sign * float(v))
+        for i, v in zip(cb, va):
+            r[i] = repr(sign * float(v))
+    with (out / "stations.csv").open("w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    return out
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    root = tmp_path_factory.mktemp("legs")
+    return {robot: _simulate(root, robot) for robot in ("octopus", "qingzhui")}
+
+
+def _nominal(folder):
+    from graphcal.calibration.measurements import calibration_data
+    from graphcal.diagnosis.model import DiagnosisModel, model_options
+    from graphcal.io.dataset import load_dataset_robot, read_dataset
+
+    ds = read_dataset(folder)
+    robot = load_dataset_robot(ds)
+    return DiagnosisModel(ds, robot, calibration_data(ds, robot), model_options(ds)).learn_noise()[0]
+
+
+def _find(folder):
+    from graphcal.diagnosis.joint_columns import find_joint_columns
+
+    model = _nominal(folder)
+    corrections, data, notes = find_joint_columns(model, lambda msg: None)
+    return model, corrections, data, notes
+
+
+@pytest.mark.parametrize("robot", ["octopus", "qingzhui"])
+def test_clean_data_cost_nothing_and_find_nothing(clean, robot):
+    model, corrections, data, notes = _find(clean[robot])
+    assert corrections == () and notes == ()
+    assert data is model.data
+
+
+@pytest.mark.parametrize("robot, a, b, sign, from_row", [
+    ("octopus", "lf", "lm", 1.0, 0),  # adjacent legs, one side
+    ("qingzhui", "lf", "rf", 1.0, 0),  # opposite legs
+    ("octopus", "lm", "rr", 1.0, 17),  # from station 18 on
+    ("qingzhui", "mf", "rb", -1.0, 0),  # a mirrored convention: every exchanged angle negated
+], ids=["octopus-adjacent", "qingzhui-opposite", "octopus-from-18", "qingzhui-mirrored"])
+def test_exchanged_legs_are_found_and_corrected(clean, tmp_path, robot, a, b, sign, from_row):
+    from graphcal.diagnosis.joint_columns import MIN_CONFIDENCE
+
+    folder = _exchanged(clean[robot], tmp_path / "x", a, b, sign, from_row)
+    model, corrections, data, notes = _find(folder)
+    assert len(corrections) == 1, notes
+    c = corrections[0]
+    assert c.cause == "legs_exchanged"
+    assert set(c.get("legs")) == {f"{a}_foot", f"{b}_foot"}
+    assert c.get("from_station") == (None if from_row == 0 else from_row + 1)
+    assert dict(c.corrected)["signs"] == (int(sign),) * 3
+    assert c.confidence >= MIN_CONFIDENCE and c.p_value < 1e-6 and c.statistic > 1e3
+    assert dict(c.corrected)["chi2_per_dof_corrected"] < 1.0
+    # the corrected joint angles are the clean ones
+    ref = _nominal(clean[robot]).data
+    for s0, s1 in zip(ref.stations, data.stations):
+        for f in s0.q_by_foot:
+            np.testing.assert_allclose(s1.q_by_foot[f], s0.q_by_foot[f], atol=1e-12)
+    assert model.data.stations[-1].q_by_foot[f"{a}_foot"] is not data.stations[-1].q_by_foot[f"{a}_foot"]
+
+
+def test_a_leg_of_another_joint_count_is_no_candidate(clean):
+    from graphcal.diagnosis.joint_columns import candidate_pairs
+
+    data = _nominal(clean["octopus"]).data
+    stations = tuple(type(st)(st.station, st.session, {**st.q_by_foot, "lf_foot": st.q_by_foot["lf_foot"][:2]},
+                              st.T_world_body_cmd, st.imu_accel) for st in data.stations)
+    worst = {(data.stations[0].station, f): c for f, c in (("lf_foot", 9.0), ("lm_foot", 8.0), ("rr_foot", 7.0))}
+    pairs = candidate_pairs(type(data)(stations, data.planes, data.scan_points, data.sensor_types), worst)
+    assert pairs and all("lf_foot" not in p for p in pairs)
+    assert candidate_pairs(data, worst)[0] == ("lf_foot", "lm_foot")
+
+
+def test_diagnose_then_names_no_joint_offset(clean, tmp_path):
+    """Without the finder the exchange became two coxa offsets of about +-66 deg (measured); with it
+    the correction is reported in diagnosis.json and nothing else is found."""
+    from graphcal.diagnosis.diagnose import diagnose
+
+    folder = _exchanged(clean["octopus"], tmp_path / "x", "lf", "lm")
+    result = diagnose(folder, heldout=False)
+    out = result.to_json()
+    assert [c["cause"] for c in out["corrections"]] == ["legs_exchanged"]
+    assert sorted(out["corrections"][0]["where"]["legs"]) == ["lf_foot", "lm_foot"]
+    assert not [f for f in result.findings if f.candidate.cause in ("joint_offset", "link_length")]
+    assert not result.findings
