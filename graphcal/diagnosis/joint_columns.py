@@ -11,7 +11,7 @@ and -86 deg, confidently wrong). Looked for in three steps, each gated on the pr
    and nothing else is done (clean data: learned 0.02 deg / 0.08 mm against 0.1 deg / 1 mm).
 2. **Per-leg residuals** (one solve): the nominal model solved at physical noise, each leg's
    stance-foot chi-square. The search goes on only when the misfit concentrates on two legs
-   (:data:`CONCENTRATION`); the :data:`CANDIDATE_LEGS` legs that fail worst give the candidate
+   (:data:`CONCENTRATION`) and is large there (:data:`MIN_LEG_CHI2`); the :data:`CANDIDATE_LEGS` legs that fail worst give the candidate
    pairs (legs with different joint counts cannot be exchanged).
 3. **Hypotheses** (one solve each, physical noise): for each candidate pair, the q columns of legs a
    and b exchanged in every station's ``q_by_foot``; for the best pair also every mirror sign
@@ -44,7 +44,7 @@ from graphcal.diagnosis.bookkeeping import Correction
 from graphcal.diagnosis.model import chi2_of, model_options
 from graphcal.diagnosis.structure import MIN_EXCESS, STRUCTURE_ALPHA
 
-__all__ = ["find_joint_columns", "exchange_legs", "candidate_pairs", "CANDIDATE_LEGS", "CONCENTRATION", "CHANGE_CONCENTRATION", "CHANGE_PAIRS", "MIN_CONFIDENCE", "Hypothesis"]
+__all__ = ["find_joint_columns", "exchange_legs", "candidate_pairs", "CANDIDATE_LEGS", "CONCENTRATION", "MIN_LEG_CHI2", "CHANGE_CONCENTRATION", "CHANGE_PAIRS", "MIN_CONFIDENCE", "Hypothesis"]
 
 #: the legs whose stance feet fail worst at physical noise that make the candidate pairs
 CANDIDATE_LEGS = 3
@@ -54,6 +54,10 @@ CANDIDATE_LEGS = 3
 #: angles are also negated; 1.0-1.9 for a joint offset, a link length, an extrinsic knock, outlier
 #: stations)
 CONCENTRATION = 1.5
+#: ... and the second-worst leg's mean stance-foot chi-square per station at least this (a foot
+#: some 10 physical sigmas off on average; measured: 2 200-33 000 with two legs exchanged, 75 for
+#: an extrinsic knock whose concentration is 1.9)
+MIN_LEG_CHI2 = 300.0
 #: ... and the exchange from one station on is tried only above this concentration
 CHANGE_CONCENTRATION = 5.0
 #: chi-square margin (physical noise) by which the best exchange must beat the next-best
@@ -193,8 +197,11 @@ def _search(model, phys, say) -> tuple:
     given, problem, values = _fit(phys, phys.data)
     per_station = _stance_chi2(phys, problem, values)
     pairs = candidate_pairs(phys.data, per_station)
-    ratio = concentration(leg_chi2(per_station))
-    if ratio < CONCENTRATION:
+    per_leg = leg_chi2(per_station)
+    ratio = concentration(per_leg)
+    second = list(per_leg.values())[1] / max(sum(1 for (_, f) in per_station if f == list(per_leg)[1]), 1) \
+        if len(per_leg) > 1 else 0.0
+    if ratio < CONCENTRATION or second < MIN_LEG_CHI2:
         return [given], phys.data
     say(f"joint columns: stance feet fail at physical noise (chi2 {given.chi2:.0f} on {given.dof} dof); "
         f"the two worst legs carry {ratio:.1f}x the third's; testing {len(pairs)} exchanged leg pair(s)")
@@ -224,11 +231,18 @@ def _search(model, phys, say) -> tuple:
         by_chi2 = list(dict.fromkeys(k[:2] for k in sorted((k for k in scored if k), key=lambda k: scored[k][0].chi2)))
         # the pairs that fit best exchanged for the whole run, and those of the legs that fail worst
         for a, b in dict.fromkeys(by_chi2[:CHANGE_PAIRS] + pairs[:CHANGE_PAIRS]):
-            signs = min((k for k in scored if k and k[:2] == (a, b)), key=lambda k: scored[k][0].chi2)[2]
-            _, pr, vals = _fit(phys, scored[(a, b, signs, None)][1])
-            k = _change_station(phys.data, a, b, per_station, _stance_chi2(phys, pr, vals))
-            if k is not None:
-                for j in sorted({max(ids.index(k) - 1, 1), ids.index(k), min(ids.index(k) + 1, len(ids) - 1)}):
+            # the plain exchange and the sign pattern that fits best for the whole run
+            fitted = min((k for k in scored if k and k[:2] == (a, b)), key=lambda k: scored[k][0].chi2)[2]
+            for signs in dict.fromkeys(((1,) * n_joints[(a, b)], fitted)):
+                _, pr, vals = _fit(phys, scored[(a, b, signs, None)][1])
+                k = _change_station(phys.data, a, b, per_station, _stance_chi2(phys, pr, vals))
+                if k is not None:
+                    test(a, b, signs, k)
+        starts = [key for key in scored if key and key[3] is not None]
+        if starts:  # the neighbours of the best start
+            a, b, signs, k = min(starts, key=lambda key: scored[key][0].chi2)
+            for j in (max(ids.index(k) - 1, 1), min(ids.index(k) + 1, len(ids) - 1)):
+                if (a, b, signs, ids[j]) not in scored:
                     test(a, b, signs, ids[j])
     order = sorted(scored, key=lambda k: scored[k][0].chi2)
     return [scored[k][0] for k in order], scored[order[0]][1]
