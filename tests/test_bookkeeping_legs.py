@@ -101,6 +101,26 @@ def test_exchanged_legs_are_found_and_corrected(clean, tmp_path, robot, a, b, si
     assert model.data.stations[-1].q_by_foot[f"{a}_foot"] is not data.stations[-1].q_by_foot[f"{a}_foot"]
 
 
+def test_an_exchange_beside_another_cause_is_still_corrected(tmp_path):
+    """An extrinsic knock left in the data: the exchange does not fit at physical noise, but it beats
+    the two legs' joint offsets and link lengths freed by far, so it is corrected (without that
+    comparison it was a note, and diagnose named two coxa offsets)."""
+    from graphcal.commands.simulate import run as simulate_to_folder
+    from graphcal.diagnosis.joint_columns import MIN_CONFIDENCE
+
+    knocked = tmp_path / "knocked"
+    simulate_to_folder(robot="octopus", program="random", ground="level", out_dir=knocked, seed=7, n_stations=30,
+                       n_sessions=2, output="planes", cloud_stride=8, progress=False,
+                       effects=[("extrinsic_change", {"sensor": "depth", "station": "16", "angle_rad": "0.1"})])
+    _, corrections, _, notes = _find(_exchanged(knocked, tmp_path / "x", "lf", "rf"))
+    assert len(corrections) == 1, notes
+    c = corrections[0]
+    assert c.get("legs") == ("lf_foot", "rf_foot") and c.get("from_station") is None
+    got = dict(c.corrected)
+    assert got["chi2_per_dof_corrected"] > 1.5  # the knock is still in the data
+    assert got["chi2_legs_free"] > c.statistic / 100 + MIN_CONFIDENCE
+
+
 def test_a_leg_of_another_joint_count_is_no_candidate(clean):
     from graphcal.diagnosis.joint_columns import candidate_pairs
 
@@ -130,11 +150,11 @@ def test_diagnose_then_names_no_joint_offset(clean, tmp_path):
 # ----------------------------------------------------------------------------- identify-legs: exchanged marker ids
 @pytest.fixture(scope="module")
 def four_feet():
-    """A simulated A1 with a marker on each of its four feet, 150 samples (legs in the air)."""
+    """A simulated A1 with a marker on each of its four feet, 100 samples (legs in the air)."""
     from graphcal.legs.mocap_data import mocap_data_from_dataset
     from graphcal.simulation.mocap import simulate_mocap
 
-    sim = simulate_mocap("a1", feet=("fl_foot", "fr_foot", "rl_foot", "rr_foot"), n_samples=150,
+    sim = simulate_mocap("a1", feet=("fl_foot", "fr_foot", "rl_foot", "rr_foot"), n_samples=100,
                          joint_noise_rad=np.radians(0.1), marker_noise_m=0.0005, noise="gaussian", body_markers=False,
                          seed=8)
     return mocap_data_from_dataset(sim.dataset)

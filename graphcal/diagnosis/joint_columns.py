@@ -136,6 +136,22 @@ def _fit(phys, data, legs=(), signs=(), from_station=None):
     return Hypothesis(tuple(legs), tuple(signs), from_station, chi2, max(rows - n_par, 1)), problem, values
 
 
+def _free_legs_chi2(phys, a: str, b: str) -> float:
+    """Chi-square at physical noise of the data as given with every joint offset and link length of
+    legs ``a`` and ``b`` free: the physical explanation the diagnosis would otherwise name."""
+    from graphcal.diagnosis.catalogue import Candidate
+
+    m = phys
+    for foot in (a, b):
+        for name in m.leg_params()[foot].names:
+            joint, kind = name.rsplit(".", 1)
+            cause = {"offset_rad": "joint_offset", "delta_m": "link_length"}.get(kind)
+            if cause is not None:
+                m = m.with_finding(Candidate(cause, (("joint", joint), ("leg", foot))))
+    problem, values = m.solve()
+    return chi2_of(problem, values)[0]
+
+
 def _stance_chi2(phys, problem, values) -> dict:
     """(station, foot) -> the stance-foot factor's chi-square at ``values``."""
     from graphcal.factors.keys import F
@@ -270,8 +286,13 @@ def find_joint_columns(model, say) -> tuple:
     margin = runner.chi2 - best.chi2
     alternatives = tuple(h.label() for h in hyps[1:] if h.chi2 - best.chi2 < MIN_CONFIDENCE)
     p_given = float(chi2_dist.sf(given.chi2, given.dof))
-    if not best.fits or margin < MIN_CONFIDENCE:
-        why = "the stance feet still do not fit at physical noise after it" if not best.fits else \
+    # another cause left in the data keeps the exchange from fitting: it must then beat the physical
+    # explanation of the same two legs (their joint offsets and link lengths free) clearly
+    free = float("nan") if best.fits else _free_legs_chi2(phys, *best.legs)
+    explains = best.fits or best.chi2 + MIN_CONFIDENCE <= free
+    if not explains or margin < MIN_CONFIDENCE:
+        why = (f"the stance feet still do not fit at physical noise after it, and the two legs' joint offsets "
+               f"and link lengths explain them as well (chi-square {free:.0f})") if not explains else \
             f"{runner.label()} explains the data almost as well (chi-square {margin:.1f} apart)"
         note = (f"joint columns: {best.label()} is the best explanation of the stance feet tried "
                 f"(chi-square {given.chi2:.0f} -> {best.chi2:.0f} at physical noise, {best.dof} dof), but {why}: "
@@ -285,12 +306,15 @@ def find_joint_columns(model, say) -> tuple:
             f"{'' if best.from_station is None else f' from station {best.from_station} on'}"
             f"{' with mirrored signs ' + str(list(best.signs)) if mirrored else ''}: exchanging them back drops the "
             f"chi-square at physical noise from {given.chi2:.0f} to {best.chi2:.0f} on {best.dof} dof "
-            f"({margin:.0f} better than {runner.label()})")
+            f"({margin:.0f} better than {runner.label()})"
+            + ("" if best.fits else f"; other causes remain (it does not fit at physical noise), but the two legs' "
+               f"joint offsets and link lengths freed instead leave {free:.0f}"))
     corr = Correction(
         cause="legs_exchanged", where=tuple(sorted(where)),
         corrected=(("signs", tuple(int(s) for s in best.signs)), ("chi2_per_dof_given", given.chi2 / given.dof),
                    ("chi2_per_dof_corrected", best.chi2 / best.dof),
-                   ("p_value_corrected", float(chi2_dist.sf(best.chi2, best.dof)))),
+                   ("p_value_corrected", float(chi2_dist.sf(best.chi2, best.dof))),
+                   ("chi2_legs_free", free)),
         statistic=float(given.chi2 - best.chi2), dof=int(best.dof), p_value=p_given, confidence=float(margin),
         alternatives=alternatives, note=note)
     say(f"joint columns: {note}")
