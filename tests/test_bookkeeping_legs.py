@@ -24,15 +24,15 @@ def _simulate(root, robot):
     return out
 
 
-def _exchanged(clean, out, a, b, sign=1.0, from_row=0):
+def _exchanged(clean, out, a, b, sign=1.0, from_row=0, to_row=None):
     """A copy of ``clean`` with the q columns of legs ``a`` and ``b`` exchanged in stations.csv
-    (times ``sign``), from data row ``from_row`` on."""
+    (times ``sign``), from data row ``from_row`` on, up to (not including) ``to_row``."""
     shutil.copytree(clean, out)
     rows = list(csv.reader((out / "stations.csv").open(newline="")))
     ca = [i for i, n in enumerate(rows[0]) if n.startswith(f"q_{a}_")]
     cb = [i for i, n in enumerate(rows[0]) if n.startswith(f"q_{b}_")]
     assert len(ca) == len(cb) == 3
-    for r in rows[1 + from_row:]:
+    for r in rows[1 + from_row:None if to_row is None else 1 + to_row]:
         va, vb = [r[i] for i in ca], [r[i] for i in cb]
         for i, v in zip(ca, vb):
             r[i] = repr(sign * float(v))
@@ -74,22 +74,24 @@ def test_clean_data_cost_nothing_and_find_nothing(clean, robot):
     assert data is model.data
 
 
-@pytest.mark.parametrize("robot, a, b, sign, from_row", [
-    ("octopus", "lf", "lm", 1.0, 0),  # adjacent legs, one side
-    ("qingzhui", "lf", "rf", 1.0, 0),  # opposite legs
-    ("octopus", "lm", "rr", 1.0, 17),  # from station 18 on
-    ("qingzhui", "mf", "rb", -1.0, 0),  # a mirrored convention: every exchanged angle negated
-], ids=["octopus-adjacent", "qingzhui-opposite", "octopus-from-18", "qingzhui-mirrored"])
-def test_exchanged_legs_are_found_and_corrected(clean, tmp_path, robot, a, b, sign, from_row):
+@pytest.mark.parametrize("robot, a, b, sign, from_row, to_row", [
+    ("octopus", "lf", "lm", 1.0, 0, None),  # adjacent legs, one side
+    ("qingzhui", "lf", "rf", 1.0, 0, None),  # opposite legs
+    ("octopus", "lm", "rr", 1.0, 17, None),  # from station 18 on
+    ("qingzhui", "lf", "lb", 1.0, 0, 12),  # before station 13
+    ("qingzhui", "mf", "rb", -1.0, 0, None),  # a mirrored convention: every exchanged angle negated
+], ids=["octopus-adjacent", "qingzhui-opposite", "octopus-from-18", "qingzhui-before-13", "qingzhui-mirrored"])
+def test_exchanged_legs_are_found_and_corrected(clean, tmp_path, robot, a, b, sign, from_row, to_row):
     from graphcal.diagnosis.joint_columns import MIN_CONFIDENCE
 
-    folder = _exchanged(clean[robot], tmp_path / "x", a, b, sign, from_row)
+    folder = _exchanged(clean[robot], tmp_path / "x", a, b, sign, from_row, to_row)
     model, corrections, data, notes = _find(folder)
     assert len(corrections) == 1, notes
     c = corrections[0]
     assert c.cause == "legs_exchanged"
     assert set(c.get("legs")) == {f"{a}_foot", f"{b}_foot"}
     assert c.get("from_station") == (None if from_row == 0 else from_row + 1)
+    assert c.get("until_station") == (None if to_row is None else to_row + 1)
     assert dict(c.corrected)["signs"] == (int(sign),) * 3
     assert c.confidence >= MIN_CONFIDENCE and c.p_value < 1e-6 and c.statistic > 1e3
     assert dict(c.corrected)["chi2_per_dof_corrected"] < 1.0
@@ -98,7 +100,9 @@ def test_exchanged_legs_are_found_and_corrected(clean, tmp_path, robot, a, b, si
     for s0, s1 in zip(ref.stations, data.stations):
         for f in s0.q_by_foot:
             np.testing.assert_allclose(s1.q_by_foot[f], s0.q_by_foot[f], atol=1e-12)
-    assert model.data.stations[-1].q_by_foot[f"{a}_foot"] is not data.stations[-1].q_by_foot[f"{a}_foot"]
+    # the model's own data are not changed: the exchanged row still holds the other leg's angles
+    row = model.data.stations[from_row].q_by_foot
+    assert data is not model.data and not np.allclose(row[f"{a}_foot"], ref.stations[from_row].q_by_foot[f"{a}_foot"])
 
 
 def test_an_exchange_beside_another_cause_is_still_corrected(tmp_path):

@@ -17,19 +17,22 @@ and -86 deg, confidently wrong). Looked for in three steps, each gated on the pr
 3. **Hypotheses** (one solve each, physical noise): for each candidate pair, the q columns of legs a
    and b exchanged in every station's ``q_by_foot``; for the best pair also every mirror sign
    pattern (a logger that converts left to right conventions: the exchanged angles negated joint by
-   joint) and, when no whole-run exchange fits, an exchange from one station on (the station found
-   as the change point of the per-station evidence). Each hypothesis is scored by the chi-square of
-   the whole nominal model at physical noise.
+   joint) and, when no whole-run exchange fits, an exchange from one station on or before one
+   station (the station found as the change point of the per-station evidence). Each hypothesis is
+   scored by the chi-square of the whole nominal model at physical noise.
 
-A correction (cause ``legs_exchanged``) is made only when the best hypothesis fits at physical
-noise (chi2/dof <= MIN_EXCESS or its chi-square tail above STRUCTURE_ALPHA) AND beats the
-next-best hypothesis (other pairs, other sign patterns, other start stations, and the data as
-given) by at least :data:`MIN_CONFIDENCE` in chi-square; otherwise what was suspected goes to the
-notes. The Correction's ``statistic`` is the chi-square drop (data as given minus corrected) at
-physical noise, ``dof`` the degrees of freedom of the corrected fit (rows minus parameters),
-``p_value`` the tail probability of the data as given at that dof (how surely they do not fit),
-``confidence`` the chi-square margin over the next-best hypothesis; ``corrected`` holds the mirror
-signs applied and the corrected fit's chi2/dof and p-value.
+A correction (cause ``legs_exchanged``; ``where``: ``legs``, and ``from_station`` /
+``until_station`` -- the first station no longer exchanged -- when it covers part of the run) is
+made only when the best hypothesis explains the data -- it fits at physical noise (chi2/dof <=
+MIN_EXCESS or its chi-square tail above STRUCTURE_ALPHA), or, with another cause left in the data,
+it beats the same two legs' joint offsets and link lengths freed by MIN_CONFIDENCE -- AND beats the
+next-best hypothesis (other pairs, sign patterns, spans, and the data as given) by at least
+:data:`MIN_CONFIDENCE` in chi-square; otherwise what was suspected goes to the notes. The
+Correction's ``statistic`` is the chi-square drop (data as given minus corrected) at physical
+noise, ``dof`` the degrees of freedom of the corrected fit (rows minus parameters), ``p_value`` the
+tail probability of the data as given at that dof (how surely they do not fit), ``confidence`` the
+chi-square margin over the next-best hypothesis; ``corrected`` holds the mirror signs applied, both
+fits' chi2/dof, the corrected fit's p-value and the free legs' chi-square (nan when not needed).
 """
 
 from __future__ import annotations
@@ -45,7 +48,8 @@ from graphcal.diagnosis.bookkeeping import Correction
 from graphcal.diagnosis.model import chi2_of, model_options
 from graphcal.diagnosis.structure import MIN_EXCESS, STRUCTURE_ALPHA
 
-__all__ = ["find_joint_columns", "exchange_legs", "candidate_pairs", "leg_chi2", "concentration", "Hypothesis",
+__all__ = ["find_joint_columns", "exchange_legs", "candidate_pairs", "leg_chi2", "concentration", "span_text",
+           "Hypothesis",
            "CANDIDATE_LEGS", "CONCENTRATION", "MIN_LEG_CHI2", "CHANGE_CONCENTRATION", "CHANGE_PAIRS", "MIN_CONFIDENCE"]
 
 #: the legs whose stance feet fail worst at physical noise that make the candidate pairs
@@ -79,8 +83,9 @@ class Hypothesis:
     Attributes:
         legs: (a, b) feet exchanged, () for the data as given.
         signs: per joint, the sign the exchanged angles carry (+1 plain exchange, -1 mirrored).
-        from_station: first station id exchanged (None: the whole run).
+        from_station: first station id exchanged (None: from the first station).
         chi2, dof: the whole model's chi-square at physical noise and its rows minus parameters.
+        until_station: first station id no longer exchanged (None: to the last station).
     """
 
     legs: tuple
@@ -88,6 +93,7 @@ class Hypothesis:
     from_station: int | None
     chi2: float
     dof: int
+    until_station: int | None = None
 
     @property
     def fits(self) -> bool:
@@ -98,19 +104,29 @@ class Hypothesis:
         if not self.legs:
             return "the data as given"
         s = "" if all(x > 0 for x in self.signs) else f" with signs {list(self.signs)}"
-        w = "" if self.from_station is None else f" from station {self.from_station} on"
-        return f"legs {self.legs[0]} and {self.legs[1]} exchanged{s}{w}"
+        return f"legs {self.legs[0]} and {self.legs[1]} exchanged{s}{span_text(self.from_station, self.until_station)}"
 
 
-def exchange_legs(data, a: str, b: str, signs=None, from_station: int | None = None):
+def span_text(from_station, until_station) -> str:
+    """" from station 18 on", " before station 18", " from station 5 until station 18", or ""."""
+    w = "" if from_station is None else f" from station {from_station}"
+    if until_station is None:
+        return w + (" on" if w else "")
+    return f"{w} until station {until_station}" if w else f" before station {until_station}"
+
+
+def exchange_legs(data, a: str, b: str, signs=None, from_station: int | None = None,
+                  until_station: int | None = None):
     """A new CalibrationData with the joint columns of feet ``a`` and ``b`` exchanged in every
-    station's ``q_by_foot`` (from station id ``from_station`` on, in file order; None: all), each
-    exchanged angle multiplied by ``signs`` (per joint; None: all +1). ``data`` is not changed."""
-    started = from_station is None
+    station's ``q_by_foot`` (from station id ``from_station`` on, None: from the first; up to but not
+    including station id ``until_station``, None: to the last; in file order), each exchanged angle
+    multiplied by ``signs`` (per joint; None: all +1). ``data`` is not changed."""
+    started, ended = from_station is None, False
     stations = []
     for st in data.stations:
         started = started or st.station == from_station
-        if started and a in st.q_by_foot and b in st.q_by_foot:
+        ended = ended or st.station == until_station
+        if started and not ended and a in st.q_by_foot and b in st.q_by_foot:
             s = np.ones(len(st.q_by_foot[a])) if signs is None else np.asarray(signs, float)
             q = dict(st.q_by_foot)
             q[a], q[b] = s * np.asarray(st.q_by_foot[b], float), s * np.asarray(st.q_by_foot[a], float)
@@ -127,13 +143,15 @@ def _stance_misfit(model) -> float:
     return max((o.sigma_joint_rad / phys.sigma_joint_rad) ** 2, (o.sigma_contact_m / phys.sigma_contact_m) ** 2)
 
 
-def _fit(phys, data, legs=(), signs=(), from_station=None):
-    """(Hypothesis, problem, values) of the nominal model of ``data`` solved at physical noise."""
+def _fit(phys, data, legs=(), signs=(), span=None):
+    """(Hypothesis, problem, values) of the nominal model of ``data`` solved at physical noise;
+    ``span``: (from_station, until_station) of the exchange, None for the whole run."""
     m = dataclasses.replace(phys, data=data, findings=())
     problem, values = m.solve()
     chi2, rows = chi2_of(problem, values)
     n_par = sum(int(d) for _, d in values.dims().items())
-    return Hypothesis(tuple(legs), tuple(signs), from_station, chi2, max(rows - n_par, 1)), problem, values
+    first, until = span or (None, None)
+    return Hypothesis(tuple(legs), tuple(signs), first, chi2, max(rows - n_par, 1), until), problem, values
 
 
 def _free_legs_chi2(phys, a: str, b: str) -> float:
@@ -198,16 +216,24 @@ def candidate_pairs(data, per_station: dict) -> list:
     return pairs
 
 
-def _change_station(data, a: str, b: str, before: dict, after: dict) -> int | None:
-    """The station from which on the exchange of a and b explains the stance feet better than the
-    data as given (``before``/``after``: per (station, foot) chi-square of the two fits), by the
-    largest cumulative evidence; None when that is the first station (the whole run)."""
+def _change_spans(data, a: str, b: str, before: dict, after: dict) -> list:
+    """The spans (from_station, until_station) over which the exchange of a and b explains the
+    stance feet better than the data as given (``before``/``after``: per (station, foot)
+    chi-square of the two fits), by the largest cumulative evidence: exchanged from station k on,
+    and exchanged before station k (none that is the whole run)."""
     ids = [st.station for st in data.stations]
     gain = np.array([sum(before.get((s, f), 0.0) - after.get((s, f), 0.0) for f in (a, b)) for s in ids])
-    # exchanged from k on: evidence sum(gain[k:]) - sum(gain[:k]) = total - 2 * cumsum(gain)[k-1]
+    # exchanged from k on: evidence sum(gain[k:]) - sum(gain[:k]) = total - 2 * cumsum(gain)[k-1];
+    # exchanged before k: its negative
     score = gain.sum() - 2.0 * np.r_[0.0, np.cumsum(gain)[:-1]]
+    spans = []
     k = int(np.argmax(score))
-    return None if k == 0 else ids[k]
+    if k > 0:
+        spans.append((ids[k], None))
+    k = int(np.argmin(score[1:])) + 1 if len(ids) > 1 else 0
+    if k > 0:
+        spans.append((None, ids[k]))
+    return spans
 
 
 def _search(model, phys, say) -> tuple:
@@ -228,9 +254,9 @@ def _search(model, phys, say) -> tuple:
         f"the two worst legs carry {ratio:.1f}x the third's; testing {len(pairs)} exchanged leg pair(s)")
     scored = {(): (given, phys.data)}
 
-    def test(a, b, signs, from_station=None):
-        data = exchange_legs(phys.data, a, b, signs, from_station)
-        scored[(a, b, tuple(signs), from_station)] = (_fit(phys, data, (a, b), signs, from_station)[0], data)
+    def test(a, b, signs, span=None):
+        data = exchange_legs(phys.data, a, b, signs, *(span or (None, None)))
+        scored[(a, b, tuple(signs), span)] = (_fit(phys, data, (a, b), signs, span)[0], data)
 
     def best(exchanges_only=False):
         keys = [k for k in scored if k or not exchanges_only]
@@ -257,15 +283,16 @@ def _search(model, phys, say) -> tuple:
             fitted = min((k for k in scored if k and k[:2] == (a, b)), key=lambda k: scored[k][0].chi2)[2]
             for signs in dict.fromkeys(((1,) * n_joints[(a, b)], fitted)):
                 _, pr, vals = _fit(phys, scored[(a, b, signs, None)][1])
-                k = _change_station(phys.data, a, b, per_station, _stance_chi2(phys, pr, vals))
-                if k is not None:
-                    test(a, b, signs, k)
-        starts = [key for key in scored if key and key[3] is not None]
-        if starts:  # the neighbours of the best start
-            a, b, signs, k = min(starts, key=lambda key: scored[key][0].chi2)
-            for j in (max(ids.index(k) - 1, 1), min(ids.index(k) + 1, len(ids) - 1)):
-                if (a, b, signs, ids[j]) not in scored:
-                    test(a, b, signs, ids[j])
+                for span in _change_spans(phys.data, a, b, per_station, _stance_chi2(phys, pr, vals)):
+                    test(a, b, signs, span)
+        spans = [key for key in scored if key and key[3] is not None]
+        if spans:  # the neighbours of the best change station
+            a, b, signs, (first, until) = min(spans, key=lambda key: scored[key][0].chi2)
+            k = ids.index(first if first is not None else until)
+            for j in (max(k - 1, 1), min(k + 1, len(ids) - 1)):
+                span = (ids[j], None) if first is not None else (None, ids[j])
+                if (a, b, signs, span) not in scored:
+                    test(a, b, signs, span)
     order = sorted(scored, key=lambda k: scored[k][0].chi2)
     return [scored[k][0] for k in order], scored[order[0]][1]
 
@@ -300,10 +327,11 @@ def find_joint_columns(model, say) -> tuple:
         say(note)
         return (), model.data, (note,)
     a, b = sorted(best.legs, key=list(model.robot.feet).index)
-    where = [("legs", (a, b))] + ([] if best.from_station is None else [("from_station", int(best.from_station))])
+    where = [("legs", (a, b))] + ([] if best.from_station is None else [("from_station", int(best.from_station))]) \
+        + ([] if best.until_station is None else [("until_station", int(best.until_station))])
     mirrored = not all(s > 0 for s in best.signs)
     note = (f"the joint columns of legs {a} and {b} are exchanged"
-            f"{'' if best.from_station is None else f' from station {best.from_station} on'}"
+            f"{span_text(best.from_station, best.until_station)}"
             f"{' with mirrored signs ' + str(list(best.signs)) if mirrored else ''}: exchanging them back drops the "
             f"chi-square at physical noise from {given.chi2:.0f} to {best.chi2:.0f} on {best.dof} dof "
             f"({margin:.0f} better than {runner.label()})"
