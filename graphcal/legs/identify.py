@@ -59,7 +59,7 @@ from graphcal.errors import GraphcalError
 from graphcal.geometry import fit_rigid_transform, invert_pose, pose_log_between
 from graphcal.legs.adequacy import Adequacy, adequacy, jackknife_covariance, significance
 from graphcal.legs.identifiability import IdentifiabilityReport, identifiability
-from graphcal.legs.marker_ids import find_exchanged_markers
+from graphcal.legs.marker_ids import exchange_markers, find_exchanged_markers, find_exchanged_postures
 from graphcal.legs.mocap_data import MarkerTrack, MocapData, PoseTrack
 from graphcal.models.legs import LegModel, leg_model, point_kinematics
 
@@ -865,9 +865,13 @@ def identify_legs_dataset(dataset, *, options: IdentifyOptions = IdentifyOptions
         return identify_legs(data.robot, tracks, options=options, T_body_mocap_nominal=data.T_body_mocap_nominal,
                              frame=data.frame, source=data.source, warnings=data.warnings, progress=progress)
 
-    # two feet's marker ids exchanged in the export (issue 29): looked for only when nothing fits
-    _, result, notes = find_exchanged_markers(run(data.tracks), data.tracks, run)
-    return dataclasses.replace(result, warnings=tuple(result.warnings) + tuple(notes)) if notes else result
+    # two feet's marker ids, or two postures' samples, exchanged (issue 29): looked for only when nothing fits
+    tracks = data.tracks
+    found, result, notes = find_exchanged_markers(run(tracks), tracks, run)
+    tracks = tracks if found is None else exchange_markers(tracks, *found.markers)
+    _, result, more = find_exchanged_postures(result, tracks, run)
+    notes = tuple(notes) + tuple(more)
+    return dataclasses.replace(result, warnings=tuple(result.warnings) + notes) if notes else result
 
 
 def _declared_noise(options: IdentifyOptions, noise: Mapping[str, float]) -> IdentifyOptions:

@@ -34,8 +34,8 @@ import numpy as np
 
 from graphcal.legs.mocap_data import MarkerTrack
 
-__all__ = ["MarkerExchange", "exchange_markers", "find_exchanged_markers", "CANDIDATE_TRACKS", "MAX_SIGMA0",
-           "MIN_CONFIDENCE"]
+__all__ = ["MarkerExchange", "exchange_markers", "find_exchanged_markers", "PostureExchange", "exchange_postures",
+           "find_exchanged_postures", "CANDIDATE_TRACKS", "CANDIDATE_POSTURES", "MAX_SIGMA0", "MIN_CONFIDENCE"]
 
 #: the marker tracks with the largest "before" errors whose pairs are tested
 CANDIDATE_TRACKS = 4
@@ -140,4 +140,86 @@ def find_exchanged_markers(result, tracks, identify) -> tuple:
             f"{scored[1][0]}; the legs were identified from the corrected markers")
     found = MarkerExchange(pair, feet, float(result.adequacy.statistic), float(chi2), int(best.adequacy.dof),
                            float(margin), alternatives, note)
+    return found, dataclasses.replace(best, warnings=tuple(best.warnings) + (note,)), ()
+
+
+# ----------------------------------------------------------------------------- two postures' labels exchanged
+#: the flagged postures (largest outlier statistic first) whose pairs are tested
+CANDIDATE_POSTURES = 4
+
+
+@dataclass(frozen=True)
+class PostureExchange:
+    """Two postures' marker positions exchanged (each posture's joint angles logged with the other's
+    motion-capture frame).
+
+    Attributes:
+        times: (t1, t2) the postures' times (s).
+        chi2_given, chi2_corrected, dof, confidence, alternatives, note: as in :class:`MarkerExchange`.
+    """
+
+    times: tuple
+    chi2_given: float
+    chi2_corrected: float
+    dof: int
+    confidence: float
+    alternatives: tuple = ()
+    note: str = ""
+
+
+def exchange_postures(tracks, t1: float, t2: float) -> tuple:
+    """``tracks`` with the measured positions (and extra covariance) of the samples at times ``t1``
+    and ``t2`` exchanged in every :class:`MarkerTrack` that has both (joint angles kept)."""
+    out = []
+    for t in tracks:
+        i = np.flatnonzero(np.isclose(t.time, t1)) if isinstance(t, MarkerTrack) else ()
+        j = np.flatnonzero(np.isclose(t.time, t2)) if isinstance(t, MarkerTrack) else ()
+        if len(i) == 1 and len(j) == 1:
+            p = np.array(t.p_meas, dtype=float)
+            p[[i[0], j[0]]] = p[[j[0], i[0]]]
+            ce = None
+            if t.cov_extra is not None:
+                ce = np.array(t.cov_extra, dtype=float)
+                ce[[i[0], j[0]]] = ce[[j[0], i[0]]]
+            t = dataclasses.replace(t, p_meas=p, cov_extra=ce)
+        out.append(t)
+    return tuple(out)
+
+
+def find_exchanged_postures(result, tracks, identify) -> tuple:
+    """(PostureExchange or None, the identification to report, notes) for an identification
+    ``result`` of ``tracks`` whose per-posture outlier test flags two postures or more: each pair
+    of the :data:`CANDIDATE_POSTURES` most outlying flagged postures exchanged and the legs
+    identified again (``identify(tracks)``); applied when it fits (as :func:`find_exchanged_markers`)
+    and beats the next-best hypothesis by :data:`MIN_CONFIDENCE` in chi-square."""
+    a = result.adequacy
+    if a is None or a.fits or len(a.flagged) < 2:
+        return None, result, ()
+    flagged = sorted((p for p in a.postures if p.flagged), key=lambda p: -p.statistic)[:CANDIDATE_POSTURES]
+    scored = [("the data as given", a.statistic, result, None)]
+    for p, q in itertools.combinations(flagged, 2):
+        res = identify(exchange_postures(tracks, p.time, q.time))
+        if res.adequacy is not None:
+            times = tuple(sorted((float(p.time), float(q.time))))
+            scored.append((f"postures at {times[0]:g} s and {times[1]:g} s exchanged", res.adequacy.statistic, res,
+                           times))
+    scored.sort(key=lambda s: s[1])
+    label, chi2, best, times = scored[0]
+    if times is None:
+        return None, result, ()
+    margin = scored[1][1] - chi2
+    fits = best.adequacy.fits or best.adequacy.sigma0 <= MAX_SIGMA0
+    if not fits or margin < MIN_CONFIDENCE:
+        why = "the legs still do not fit after it" if not fits else \
+            f"{scored[1][0]} explains the data almost as well (chi-square {margin:.1f} apart)"
+        return None, result, (f"{label} is the best explanation tried of the flagged postures (chi-square "
+                              f"{a.statistic:.0f} -> {chi2:.0f} at the declared noise), but {why}: not corrected",)
+    note = (f"the motion-capture samples of the postures at {times[0]:g} s and {times[1]:g} s are exchanged "
+            f"(each posture's joint angles logged with the other's markers): exchanging them back drops the "
+            f"identification's chi-square at the declared noise from {a.statistic:.0f} to {chi2:.0f} "
+            f"({best.adequacy.reference}), {margin:.0f} better than {scored[1][0]}; the legs were identified "
+            f"from the corrected samples")
+    alternatives = tuple(s[0] for s in scored[1:] if s[1] - chi2 < MIN_CONFIDENCE)
+    found = PostureExchange(times, float(a.statistic), float(chi2), int(best.adequacy.dof), float(margin),
+                            alternatives, note)
     return found, dataclasses.replace(best, warnings=tuple(best.warnings) + (note,)), ()
