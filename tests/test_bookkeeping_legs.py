@@ -201,7 +201,8 @@ def test_identify_legs_dataset_corrects_exchanged_marker_ids(four_feet):
     from graphcal.legs.marker_ids import exchange_markers
 
     data = dataclasses.replace(four_feet, tracks=exchange_markers(four_feet.tracks, "fl_foot", "rl_foot"))
-    result = identify_legs_dataset(data, options=IdentifyOptions(sigma_marker_m=0.0005, sigma_joint_rad=np.radians(0.1)))
+    options = IdentifyOptions(sigma_marker_m=0.0005, sigma_joint_rad=np.radians(0.1))
+    result = identify_legs_dataset(data, options=options)
     assert result.adequacy.fits
     assert [w for w in result.warnings if "markers fl_foot (fl_foot) and rl_foot (rl_foot) are exchanged" in w]
 
@@ -218,7 +219,8 @@ def test_exchanged_postures_are_found(four_feet, rows):
 
     t = four_feet.tracks[0].time
     data = dataclasses.replace(four_feet, tracks=exchange_postures(four_feet.tracks, t[rows[0]], t[rows[1]]))
-    result = identify_legs_dataset(data, options=IdentifyOptions(sigma_marker_m=0.0005, sigma_joint_rad=np.radians(0.1)))
+    options = IdentifyOptions(sigma_marker_m=0.0005, sigma_joint_rad=np.radians(0.1))
+    result = identify_legs_dataset(data, options=options)
     assert result.adequacy.fits
     said = [w for w in result.warnings if "are exchanged (each posture's joint angles" in w]
     assert len(said) == 1 and f"{t[rows[0]]:g} s and {t[rows[1]]:g} s" in said[0]

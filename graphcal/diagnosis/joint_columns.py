@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,10 +48,13 @@ from scipy.stats import chi2 as chi2_dist
 from graphcal.diagnosis.bookkeeping import Correction
 from graphcal.diagnosis.model import chi2_of, model_options
 from graphcal.diagnosis.structure import MIN_EXCESS, STRUCTURE_ALPHA
+from graphcal.errors import GraphcalError
 
 __all__ = ["find_joint_columns", "exchange_legs", "candidate_pairs", "leg_chi2", "concentration", "span_text",
            "Hypothesis",
            "CANDIDATE_LEGS", "CONCENTRATION", "MIN_LEG_CHI2", "CHANGE_CONCENTRATION", "CHANGE_PAIRS", "MIN_CONFIDENCE"]
+
+log = logging.getLogger(__name__)
 
 #: the legs whose stance feet fail worst at physical noise that make the candidate pairs
 CANDIDATE_LEGS = 3
@@ -240,7 +244,7 @@ def _search(model, phys, say) -> tuple:
     """(every Hypothesis scored, best first; the data of the best) of the exchange search, when the
     stance misfit concentrates on two legs (:data:`CONCENTRATION`): the candidate pairs plainly
     exchanged; the mirror sign patterns of the best pair (and of the two worst legs when no plain
-    exchange fits); when still nothing fits, the exchange from one station on."""
+    exchange fits); when still nothing fits, the exchange from one station on and before one station."""
     given, problem, values = _fit(phys, phys.data)
     per_station = _stance_chi2(phys, problem, values)
     pairs = candidate_pairs(phys.data, per_station)
@@ -256,7 +260,10 @@ def _search(model, phys, say) -> tuple:
 
     def test(a, b, signs, span=None):
         data = exchange_legs(phys.data, a, b, signs, *(span or (None, None)))
-        scored[(a, b, tuple(signs), span)] = (_fit(phys, data, (a, b), signs, span)[0], data)
+        try:
+            scored[(a, b, tuple(signs), span)] = (_fit(phys, data, (a, b), signs, span)[0], data)
+        except (GraphcalError, RuntimeError) as exc:  # a hypothesis the solver cannot fit is no candidate
+            log.debug("joint columns: %s %s %s %s not fitted: %s", a, b, signs, span, exc)
 
     def best(exchanges_only=False):
         keys = [k for k in scored if k or not exchanges_only]
@@ -280,8 +287,13 @@ def _search(model, phys, say) -> tuple:
         # the pairs that fit best exchanged for the whole run, and those of the legs that fail worst
         for a, b in dict.fromkeys(by_chi2[:CHANGE_PAIRS] + pairs[:CHANGE_PAIRS]):
             # the plain exchange and the sign pattern that fits best for the whole run
-            fitted = min((k for k in scored if k and k[:2] == (a, b)), key=lambda k: scored[k][0].chi2)[2]
+            tried = [k for k in scored if k and k[:2] == (a, b) and k[3] is None]
+            if not tried:
+                continue
+            fitted = min(tried, key=lambda k: scored[k][0].chi2)[2]
             for signs in dict.fromkeys(((1,) * n_joints[(a, b)], fitted)):
+                if (a, b, signs, None) not in scored:
+                    continue
                 _, pr, vals = _fit(phys, scored[(a, b, signs, None)][1])
                 for span in _change_spans(phys.data, a, b, per_station, _stance_chi2(phys, pr, vals)):
                     test(a, b, signs, span)
