@@ -29,7 +29,7 @@ class Correction:
     Attributes:
         cause: a name of :data:`BOOKKEEPING_CAUSES`.
         where: location as sorted (key, value) pairs (``sensor``, ``station``, ``stations``,
-            ``legs``, ``from_station``), the stations' ids as in stations.csv.
+            ``legs``, ``from_station``, ``until_station``: the first station no longer affected), the stations' ids as in stations.csv.
         corrected: what the data say and what the correction makes of them, as (key, value)
             pairs in SI units (e.g. ``("d_given_m", 1050.0), ("d_corrected_m", 1.05)``).
         statistic: chi-square drop of the corrected against the uncorrected data, at physical
