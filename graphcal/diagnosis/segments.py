@@ -85,6 +85,7 @@ class _Test:
     information: np.ndarray
     declared: bool = False  # a step at a declared session start
     stations: tuple = ()
+    head: bool = False  # a step of the stations BEFORE the boundary (from their session's start)
 
     def bic(self, n_rows: int) -> float:
         return self.statistic - self.dof * np.log(max(n_rows, 2))
@@ -142,12 +143,16 @@ def _boundaries(model, problem, values, system, lay: _Layout) -> list[_Test]:
     n = len(lay.stations)
     ccs, meta = [], []
     for k in range(1, n):
-        end = lay.session_end(k)
-        K = _step_column(problem, values, system, lay, k, end)
-        if not K.any():
-            continue
-        ccs.append(CandidateColumns(Candidate("height_step", (("index", k),)), None, None, K))
-        meta.append(("step", k, "", lay.session[k] != lay.session[k - 1]))
+        a, e = lay.session_start(k), lay.session_end(k)
+        # the stations from k to the session's end at another height; within a session, also those
+        # from its start to k (several sessions share one ground: the two are different hypotheses)
+        for head, (lo, hi) in ((False, (k, e)), (True, (a, k))):
+            if head and a == k:
+                continue
+            K = _step_column(problem, values, system, lay, lo, hi)
+            if K.any():
+                ccs.append(CandidateColumns(Candidate("height_step", (("index", k),)), None, None, K))
+                meta.append(("step", k, "", (a == k, head)))
     for s in model.sensors():
         ms = lay.sensor_positions(s)
         keys = {j: problem.measurement_keys[(lay.stations[j].station, s)] for j in ms}
@@ -159,9 +164,9 @@ def _boundaries(model, problem, values, system, lay: _Layout) -> list[_Test]:
             rows = np.concatenate([lay.rows_at[j][s] for j in ms[i:] if keys[j] == keys[k]])
             ccs.append(CandidateColumns(Candidate("extrinsic_knock", (("index", k), ("sensor", s))),
                                         np.arange(o, o + d), rows))
-            meta.append(("knock", k, s, False))
-    return [_Test(kind, k, s, *sc, declared=declared)
-            for (kind, k, s, declared), sc in zip(meta, _scores(system, ccs)) if sc is not None]
+            meta.append(("knock", k, s, (False, False)))
+    return [_Test(kind, k, s, *sc, declared=flags[0], head=flags[1])
+            for (kind, k, s, flags), sc in zip(meta, _scores(system, ccs)) if sc is not None]
 
 
 def _outliers(system, lay: _Layout, positions: tuple, sensor: str = "") -> _Test | None:
@@ -222,10 +227,13 @@ def _posterior(tests: list[_Test], best: _Test, lay: _Layout) -> tuple[float, tu
             and (best.kind != "step" or lay.session[t.index] == lay.session[best.index])]
     if best.declared or not same:
         return 1.0, (lay.stations[best.index].station,) * 2
-    T = np.array([t.statistic for t in same])
+    by_index: dict = {}
+    for t in same:  # a step's two readings (head, tail) at one boundary: the better one
+        by_index[t.index] = max(by_index.get(t.index, -np.inf), t.statistic)
+    idx = sorted(by_index)
+    T = np.array([by_index[k] for k in idx])
     w = np.exp(0.5 * (T - T.max()))
     w /= w.sum()
-    idx = [t.index for t in same]
     order = np.argsort(-w)
     keep, acc = [], 0.0
     for i in order:
@@ -337,7 +345,7 @@ def find_segments(model, say) -> tuple:
             session = lay.session[best.index]
             end = lay.session_end(best.index)
             label = _new_session(data, session, st)
-            h = float(best.estimate[0])
+            h = -float(best.estimate[0]) if best.head else float(best.estimate[0])
             sigma = float(1.0 / np.sqrt(best.information[0, 0]))
             note = (f"the ground the sensors see is {1e3 * abs(h):.1f} mm {'further' if h > 0 else 'closer'} from "
                     f"station {st} on (session "
