@@ -47,11 +47,12 @@ import dataclasses
 import logging
 
 import numpy as np
+from scipy.linalg import solve_triangular
 from scipy.stats import chi2 as chi2_dist
 
 from graphcal.diagnosis.bookkeeping import Correction
 from graphcal.diagnosis.catalogue import Candidate
-from graphcal.diagnosis.scores import CandidateColumns, current_columns, linear_system
+from graphcal.diagnosis.scores import current_columns, linear_system
 
 __all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MIN_CONFIDENCE", "RANK_RTOL"]
 
@@ -124,18 +125,22 @@ class _Layout:
         return [j for j in sorted(self.rows_at) if s in self.rows_at[j]]
 
 
-def _step_column(problem, values, system, lay: _Layout, k: int, end: int) -> np.ndarray:
-    """The whitened Jacobian of the plane rows of stations k..end-1 with respect to a vertical shift
-    of the ground they see: a world-vertical move of each body pose (its tangent's translation is in
-    the body frame, so world z is R^T e_z there); +1 = the sensors see the ground 1 m further."""
-    K = np.zeros((len(system.b), 1))
+def _step_column(problem, values, system, lay: _Layout, k: int, end: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, column on them): the whitened Jacobian of the plane rows of stations k..end-1 with
+    respect to a vertical shift of the ground they see: a world-vertical move of each body pose (its
+    tangent's translation is in the body frame, so world z is R^T e_z there); +1 = the sensors see
+    the ground 1 m further."""
+    rows, col = [], []
     for j in range(k, end):
         x = problem.station_keys[lay.stations[j].station]
         o, _ = system.col[int(x)]
         up = values.atPose3(x).rotation().matrix().T @ np.array([0.0, 0.0, 1.0])
         for r in lay.rows_at.get(j, {}).values():
-            K[r, 0] = system.A[np.ix_(r, np.arange(o + 3, o + 6))] @ up
-    return K
+            rows.append(r)
+            col.append(system.A[np.ix_(r, np.arange(o + 3, o + 6))] @ up)
+    if not rows:
+        return np.zeros(0, dtype=int), np.zeros((0, 1))
+    return np.concatenate(rows), np.concatenate(col)[:, None]
 
 
 def _boundaries(model, problem, values, system, lay: _Layout) -> list[_Test]:
@@ -149,9 +154,9 @@ def _boundaries(model, problem, values, system, lay: _Layout) -> list[_Test]:
         for head, (lo, hi) in ((False, (k, e)), (True, (a, k))):
             if head and a == k:
                 continue
-            K = _step_column(problem, values, system, lay, lo, hi)
+            rows, K = _step_column(problem, values, system, lay, lo, hi)
             if K.any():
-                ccs.append(CandidateColumns(Candidate("height_step", (("index", k),)), None, None, K))
+                ccs.append((rows, K))
                 meta.append(("step", k, "", (a == k, head)))
     for s in model.sensors():
         ms = lay.sensor_positions(s)
@@ -162,8 +167,7 @@ def _boundaries(model, problem, values, system, lay: _Layout) -> list[_Test]:
                 continue  # a boundary already in the model
             o, d = system.col[int(keys[k])]
             rows = np.concatenate([lay.rows_at[j][s] for j in ms[i:] if keys[j] == keys[k]])
-            ccs.append(CandidateColumns(Candidate("extrinsic_knock", (("index", k), ("sensor", s))),
-                                        np.arange(o, o + d), rows))
+            ccs.append((rows, system.A[np.ix_(rows, np.arange(o, o + d))]))
             meta.append(("knock", k, s, (False, False)))
     return [_Test(kind, k, s, *sc, declared=flags[0], head=flags[1])
             for (kind, k, s, flags), sc in zip(meta, _scores(system, ccs)) if sc is not None]
@@ -174,36 +178,37 @@ def _outliers(system, lay: _Layout, positions: tuple, sensor: str = "") -> _Test
     rows = [r for j in positions for s, r in lay.rows_at.get(j, {}).items() if not sensor or s == sensor]
     if not rows:
         return None
-    sc = _scores(system, [CandidateColumns(Candidate("outlier_stations"), None, np.concatenate(rows))])[0]
+    sc = _scores(system, [(np.concatenate(rows), None)])[0]
     if sc is None:
         return None
     return _Test("measurement" if sensor else "outlier", positions[0], sensor, *sc, stations=tuple(positions))
 
 
 def _scores(system, ccs: list) -> list:
-    """(T, dof, estimate, information) per candidate (None where it has no information); dof counted
-    with RANK_RTOL: the weak directions of an extrinsic seen on two planes are no evidence either way."""
+    """(T, dof, estimate, information) per candidate ``(rows, K)`` -- its columns K on those rows
+    (zero elsewhere), or K None: the identity on the rows (outliers) -- None where it has no
+    information. The current model's columns J are projected out through P = J L^-T (J^T J = L L^T,
+    P's columns orthonormal), so each candidate costs only its own rows. dof counted with RANK_RTOL:
+    the weak directions of an extrinsic seen on two planes are no evidence either way."""
     A, b = system.A, system.b
     J = A[:, current_columns(system, [])]
-    Q = J.T @ J
     try:
-        Li = np.linalg.inv(np.linalg.cholesky(Q))
-        Qinv = Li.T @ Li
+        L = np.linalg.cholesky(J.T @ J)
+        P = solve_triangular(L, J.T, lower=True).T
     except np.linalg.LinAlgError:
-        Qinv = np.linalg.pinv(Q, rcond=1e-12)
+        U, sv, _ = np.linalg.svd(J, full_matrices=False)
+        P = U[:, sv > 1e-10 * sv.max()]
     out = []
-    for cc in ccs:
-        if cc.cols is None and cc.dense is None:
-            Jr = J[cc.rows]
-            I = np.eye(len(cc.rows)) - Jr @ Qinv @ Jr.T
-            u = b[cc.rows]
+    for rows, K in ccs:
+        Pr = P[rows]
+        if K is None:
+            I = np.eye(len(rows)) - Pr @ Pr.T
+            u = b[rows]
             rtol = 1e-6
         else:
-            rows = cc.rows if cc.rows is not None else slice(None)
-            K = cc.dense if cc.dense is not None else A[rows][:, cc.cols]
-            W = (J if cc.dense is not None else J[rows]).T @ K
-            I = K.T @ K - W.T @ Qinv @ W
-            u = K.T @ (b if cc.dense is not None else b[rows])
+            G = Pr.T @ K
+            I = K.T @ K - G.T @ G
+            u = K.T @ b[rows]
             rtol = RANK_RTOL
         w, V = np.linalg.eigh(0.5 * (I + I.T))
         keep = w > rtol * max(w.max(), 1e-300)
@@ -215,8 +220,13 @@ def _scores(system, ccs: list) -> list:
     return out
 
 
-def _log10_p(t: _Test, family: int) -> float:
-    return float((chi2_dist.logsf(t.statistic, t.dof) + np.log(max(family, 1))) / np.log(10.0))
+def _log10_p(tests: list[_Test], family: int) -> np.ndarray:
+    """Bonferroni log10 p-values of the tests over a family of ``family``."""
+    if not tests:
+        return np.zeros(0)
+    T = np.array([t.statistic for t in tests])
+    dof = np.array([t.dof for t in tests])
+    return (chi2_dist.logsf(T, dof) + np.log(max(family, 1))) / np.log(10.0)
 
 
 def _posterior(tests: list[_Test], best: _Test, lay: _Layout) -> tuple[float, tuple[int, int]]:
@@ -309,7 +319,8 @@ def find_segments(model, say) -> tuple:
         lay = _Layout.of(cur, system)
         tests = _boundaries(cur, problem, values, system, lay)
         n_rows = len(system.b)
-        passing = [t for t in tests if _log10_p(t, len(tests)) < np.log10(ALPHA) and t.bic(n_rows) > 0]
+        log10_p = _log10_p(tests, len(tests))
+        passing = [t for t, lp in zip(tests, log10_p) if lp < np.log10(ALPHA) and t.bic(n_rows) > 0]
         if not passing:
             break
         best = max(passing, key=lambda t: t.bic(n_rows))
