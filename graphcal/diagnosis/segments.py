@@ -52,7 +52,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from graphcal.diagnosis.bookkeeping import Correction
 from graphcal.diagnosis.catalogue import Candidate
-from graphcal.diagnosis.scores import current_columns, linear_system
+from graphcal.diagnosis.scores import linear_system
 
 __all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MIN_CONFIDENCE", "RANK_RTOL"]
 
@@ -64,6 +64,8 @@ ALPHA = 1e-3
 MAX_BOUNDARIES = 3
 #: the BIC difference a boundary must have over the next-best explanation at its place
 MIN_CONFIDENCE = 2.0
+#: a boundary must explain the data better than up to this many outlier stations (the worst-fitting)
+MAX_OUTLIERS = 3
 #: information eigenvalues below this share of the largest are not counted as degrees of freedom of a
 #: boundary: a knock seen on two planes of nearly the same normal is a 3-parameter effect (the
 #: normal's two angles and the distance); its three weak directions carry noise only (measured: 1.3
@@ -99,6 +101,8 @@ class _Layout:
     stations: tuple
     session: list
     rows_at: dict  # position -> {sensor: row indices}
+    P: np.ndarray  # orthonormal basis of the columns projected out (see _projector)
+    r: np.ndarray  # the whitened residual with every column fitted
 
     @classmethod
     def of(cls, model, system) -> "_Layout":
@@ -107,7 +111,7 @@ class _Layout:
         rows_at: dict = {}
         for (st, s), r in system.measurement_rows.items():
             rows_at.setdefault(index[st], {})[s] = r
-        return cls(tuple(stations), [st.session for st in stations], rows_at)
+        return cls(tuple(stations), [st.session for st in stations], rows_at, *_projector(system))
 
     def session_end(self, k: int) -> int:
         end = k
@@ -170,7 +174,7 @@ def _boundaries(model, problem, values, system, lay: _Layout) -> list[_Test]:
             ccs.append((rows, system.A[np.ix_(rows, np.arange(o, o + d))]))
             meta.append(("knock", k, s, (False, False)))
     return [_Test(kind, k, s, *sc, declared=flags[0], head=flags[1])
-            for (kind, k, s, flags), sc in zip(meta, _scores(system, ccs)) if sc is not None]
+            for (kind, k, s, flags), sc in zip(meta, _scores(lay, ccs)) if sc is not None]
 
 
 def _outliers(system, lay: _Layout, positions: tuple, sensor: str = "") -> _Test | None:
@@ -178,41 +182,48 @@ def _outliers(system, lay: _Layout, positions: tuple, sensor: str = "") -> _Test
     rows = [r for j in positions for s, r in lay.rows_at.get(j, {}).items() if not sensor or s == sensor]
     if not rows:
         return None
-    sc = _scores(system, [(np.concatenate(rows), None)])[0]
+    sc = _scores(lay, [(np.concatenate(rows), None)])[0]
     if sc is None:
         return None
     return _Test("measurement" if sensor else "outlier", positions[0], sensor, *sc, stations=tuple(positions))
 
 
-def _scores(system, ccs: list) -> list:
+def _projector(system) -> tuple[np.ndarray, np.ndarray]:
+    """(P, r): P = J L^-T (J^T J = L L^T, with a ridge far below any measured direction: the
+    screening variables include gauges, e.g. a session's ground against the extrinsic), whose
+    orthonormal columns span J -- the model's columns and every screening variable's; r = the
+    whitened residual with all of them fitted (the screening variables are not, at the nominal fit)."""
+    J, b = system.A, system.b
+    Q = J.T @ J
+    Q[np.diag_indices_from(Q)] += 1e-9 * max(np.trace(Q) / len(Q), 1e-300)
+    P = solve_triangular(np.linalg.cholesky(Q), J.T, lower=True).T
+    return P, b - P @ (P.T @ b)
+
+
+def _scores(lay: "_Layout", ccs: list) -> list:
     """(T, dof, estimate, information) per candidate ``(rows, K)`` -- its columns K on those rows
     (zero elsewhere), or K None: the identity on the rows (outliers) -- None where it has no
-    information. The current model's columns J are projected out through P = J L^-T (J^T J = L L^T,
-    P's columns orthonormal), so each candidate costs only its own rows. dof counted with RANK_RTOL:
+    information. The current model's columns and the catalogued causes' are projected out once
+    (:func:`_projector`), so each candidate costs only its own rows. dof counted with RANK_RTOL:
     the weak directions of an extrinsic seen on two planes are no evidence either way."""
-    A, b = system.A, system.b
-    J = A[:, current_columns(system, [])]
-    try:
-        L = np.linalg.cholesky(J.T @ J)
-        P = solve_triangular(L, J.T, lower=True).T
-    except np.linalg.LinAlgError:
-        U, sv, _ = np.linalg.svd(J, full_matrices=False)
-        P = U[:, sv > 1e-10 * sv.max()]
+    P, r = lay.P, lay.r
     out = []
     for rows, K in ccs:
         Pr = P[rows]
         if K is None:
             I = np.eye(len(rows)) - Pr @ Pr.T
-            u = b[rows]
+            u = r[rows]
             rtol = 1e-6
         else:
             G = Pr.T @ K
             I = K.T @ K - G.T @ G
-            u = K.T @ b[rows]
+            u = K.T @ r[rows]
             rtol = RANK_RTOL
         w, V = np.linalg.eigh(0.5 * (I + I.T))
         keep = w > rtol * max(w.max(), 1e-300)
-        if not keep.any():
+        # nothing left once the model and the catalogued causes are projected out (a step at a
+        # declared session's start is that session's offset)
+        if not keep.any() or w.max() < 1e-6 * max(np.trace(I + G.T @ G) if K is not None else len(rows), 1e-300):
             out.append(None)
             continue
         z = V[:, keep].T @ u
@@ -274,11 +285,21 @@ def _alternatives(best: _Test, tests: list[_Test], system, lay: _Layout) -> list
     (a knock for a step and back), outliers on its short side."""
     other = "knock" if best.kind == "step" else "step"
     alts = [t for t in tests if t.kind == other and abs(t.index - best.index) <= 1]
-    side = _short_side(lay, best)
-    if side:
-        o = _outliers(system, lay, side, best.sensor)
-        if o is not None:
-            alts.append(o)
+    n = len(lay.stations)
+    # outliers: the short side of an end segment; one or two stations from the boundary on (a
+    # boundary there and another back reads as them)
+    groups = {_short_side(lay, best), (best.index,), tuple(j for j in (best.index, best.index + 1) if j < n)}
+    # and the few stations whose data fit worst anywhere: outliers on either side of a boundary pull
+    # it towards them (measured: three outlier stations read as a knock between them)
+    single = [o for o in (_outliers(system, lay, (j,), best.sensor) for j in sorted(lay.rows_at)) if o is not None]
+    single.sort(key=lambda o: -o.statistic)
+    for m in range(1, MAX_OUTLIERS + 1):
+        groups.add(tuple(sorted(o.index for o in single[:m])))
+    for side in groups:
+        if side:
+            o = _outliers(system, lay, side, best.sensor)
+            if o is not None:
+                alts.append(o)
     return alts
 
 
@@ -314,7 +335,11 @@ def find_segments(model, say) -> tuple:
     data = model.data
     cur = model
     for _ in range(MAX_BOUNDARIES):
-        problem, values = cur.solve()
+        _, values = cur.solve()
+        # the screening graph: every catalogued cause's variable at its nominal value, projected
+        # out with the model's own (_scores): a boundary must explain what none of them can
+        problem = cur.build(screen=True, initial=values)
+        values = problem.initial
         system = linear_system(problem, values)
         lay = _Layout.of(cur, system)
         tests = _boundaries(cur, problem, values, system, lay)
@@ -344,6 +369,10 @@ def find_segments(model, say) -> tuple:
             notes.append(f"station {ids}: an outlier measurement of {best.sensor}, or {best.sensor} knocked {knock}; "
                          "one station cannot tell: nothing corrected")
             say(f"segments: {notes[-1]}")
+            break
+        if confidence < -MIN_CONFIDENCE and alt.kind in ("outlier", "measurement"):
+            # outliers explain it clearly better: not a boundary (the loop tests outlier stations)
+            say(f"segments: {_label(best, lay)} is explained better by {_label(alt, lay)}; no boundary")
             break
         if confidence < MIN_CONFIDENCE:
             notes.append(f"{where_text}: {_label(best, lay)} or {_label(alt, lay)}; the data cannot tell them apart "
