@@ -327,6 +327,19 @@ def _relabel(data, lay: _Layout, k: int, end: int, label: str):
     return dataclasses.replace(data, stations=stations)
 
 
+def _search(model, problem, values) -> tuple:
+    """(system, layout, boundary tests, rows) of ``problem`` linearised at ``values``."""
+    system = linear_system(problem, values)
+    lay = _Layout.of(model, system)
+    return system, lay, _boundaries(model, problem, values, system, lay), len(system.b)
+
+
+def _passing(tests: list, n_rows: int) -> list:
+    """The boundaries that pass: Bonferroni p over every boundary tested below ALPHA, and BIC > 0."""
+    log10_p = _log10_p(tests, len(tests))
+    return [t for t, lp in zip(tests, log10_p) if lp < np.log10(ALPHA) and t.bic(n_rows) > 0]
+
+
 def find_segments(model, say) -> tuple:
     """(corrections, corrected data, notes) for the nominal ``model`` (a DiagnosisModel with its
     noise learned); see graphcal/diagnosis/bookkeeping.py and this module's docstring."""
@@ -334,18 +347,17 @@ def find_segments(model, say) -> tuple:
     notes: list = []
     data = model.data
     cur = model
-    for _ in range(MAX_BOUNDARIES):
-        _, values = cur.solve()
+    for rnd in range(MAX_BOUNDARIES):
+        problem, values = cur.solve()
+        if rnd == 0 and not _passing(*_search(cur, problem, values)[2:]):
+            # the gate: no boundary passes even against the model alone (the cheap system: no
+            # screening variables, no leg parameters to linearise): nothing to look for
+            break
         # the screening graph: every catalogued cause's variable at its nominal value, projected
         # out with the model's own (_scores): a boundary must explain what none of them can
         problem = cur.build(screen=True, initial=values)
-        values = problem.initial
-        system = linear_system(problem, values)
-        lay = _Layout.of(cur, system)
-        tests = _boundaries(cur, problem, values, system, lay)
-        n_rows = len(system.b)
-        log10_p = _log10_p(tests, len(tests))
-        passing = [t for t, lp in zip(tests, log10_p) if lp < np.log10(ALPHA) and t.bic(n_rows) > 0]
+        system, lay, tests, n_rows = _search(cur, problem, problem.initial)
+        passing = _passing(tests, n_rows)
         if not passing:
             break
         best = max(passing, key=lambda t: t.bic(n_rows))
