@@ -8,33 +8,41 @@ Two things change at a station nobody declared a boundary at:
   that starts inside a declared session;
 * a **knock**: one sensor's extrinsic changes from that station on.
 
-The nominal model is solved once and linearised (scores.py, ``A delta = b`` whitened). Every boundary
+The nominal model is solved and linearised (scores.py, ``A delta = b`` whitened). Every boundary
 ``k`` of the station sequence (dataset order) is scored, ends included (a segment of one station at
 either end):
 
 * height step at ``k``: one column, the plane factors' Jacobian with respect to a vertical shift of
-  the ground they see, on the rows of the stations from ``k`` to the end of ``k``'s session (a
-  world-vertical move of the body pose is that shift, seen from the sensor);
-* knock of sensor ``s`` at ``k``: the extrinsic's six columns on ``s``'s rows from ``k`` on;
-* the alternatives a boundary at an end must beat: station ``k`` an outlier (every sensor's rows
-  free), and sensor ``s``'s measurement at ``k`` an outlier (its rows free).
+  the ground they see (a world-vertical move of the body pose is that shift, seen from the sensor),
+  on the rows of the stations from ``k`` to the end of ``k``'s session, and on those from the
+  session's start to ``k`` (declared sessions share one ground: the two are different hypotheses);
+* knock of sensor ``s`` at ``k``: the extrinsic's six columns on ``s``'s rows from ``k`` on.
 
-Each score ``T`` is chi-square with ``dof`` degrees of freedom when there is no boundary (the score
-test at the nominal fit; dof is the rank of the information, weak directions below
-:data:`RANK_RTOL` of the strongest not counted). The penalty is BIC-like: a boundary is accepted
-when ``T - dof * ln(n_rows) > 0`` AND its Bonferroni p-value over every boundary tested passes
-``ALPHA``. Its confidence against the next-best explanation at the same place (a knock against a
-step, an outlier against either) is the BIC difference (> 0: the boundary is preferred; below
-:data:`MIN_CONFIDENCE` the finder says it is ambiguous). Where the boundary lies is reported as a
-posterior over the boundary location (``p(k) ~ exp(T_k / 2)``, flat prior over the stations of the
-segment: the profile likelihood of one change point) and its 95 % interval.
+Gate: the boundaries are first scored against the nominal model alone (cheap); when none passes,
+the finder stops (clean data cost one solve and one linearisation). Otherwise they are scored again
+on the screening graph with every catalogued cause's variable projected out too (range scale,
+session offsets, ground tilt, IMU mounting, every joint offset and link length): a boundary must
+explain what none of them can (measured: a 1 % range scale otherwise read as three height steps).
 
-Binary segmentation: the strongest boundary is put into the model (a step as a new session with its
-offset; a declared session's offset when that explains best) and the search repeats, at most
-:data:`MAX_BOUNDARIES` times, until no boundary passes.
+Each score ``T`` is chi-square with ``dof`` degrees of freedom when there is no boundary (dof: the
+rank of the information, weak directions below :data:`RANK_RTOL` of the strongest not counted).
+The penalty is BIC-like: a boundary is accepted when ``T - dof * ln(n_rows) > 0`` AND its
+Bonferroni p-value over every boundary tested passes ``ALPHA``; the strongest by BIC is taken. Its
+confidence is its BIC minus that of the next-best explanation: the other kind of boundary within
+a station, outlier stations (the short side of an end segment; the station at the boundary and the
+next; the :data:`MAX_OUTLIERS` worst-fitting stations). Below :data:`MIN_CONFIDENCE` nothing is
+corrected and a note names both; where outliers explain clearly better the finder is silent (the
+loop tests outlier stations). Where the boundary lies is reported as a posterior over its location
+(``p(k) ~ exp(T_k / 2)``, flat prior over the stations of the segment: the profile likelihood of
+one change point) and its 95 % interval.
 
-What the finder returns: for a height step, data whose stations from the boundary on carry a new
-session label (``<session>@<station>``) -- the diagnosis loop's session_offset candidate then fits
+Binary segmentation: the boundary found is put into the model (a step as a new session with its
+offset, a knock as an extrinsic change) and the search repeats, at most :data:`MAX_BOUNDARIES`
+times, until no boundary passes.
+
+What the finder returns: for a height step, data whose stations at the other height (from the
+boundary to the session's end, or from its start to the boundary) carry a new session label
+(``<session>@<first station>``) -- the diagnosis loop's session_offset candidate then fits
 and names it -- and a Correction ``height_step``. For a knock, data unchanged and a Correction
 ``extrinsic_knock`` (reported through the loop's extrinsic_change, which may then test it within two
 stations of an end); a knock whose segment holds one station cannot be told from an outlier
@@ -54,7 +62,7 @@ from graphcal.diagnosis.bookkeeping import Correction
 from graphcal.diagnosis.catalogue import Candidate
 from graphcal.diagnosis.scores import linear_system
 
-__all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MIN_CONFIDENCE", "RANK_RTOL"]
+__all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MAX_OUTLIERS", "MIN_CONFIDENCE", "RANK_RTOL"]
 
 log = logging.getLogger(__name__)
 
