@@ -415,8 +415,11 @@ def find_segments(model, say) -> tuple:
                     f"{session}, undeclared; P(boundary at {st}) {p_k:.2f}, 95 % interval {lo}..{hi}): stations "
                     f"{lay.stations[lo_j].station}..{lay.stations[end - 1].station} given session {label}")
             if len(side) == 1:
-                note += (f"; one station ({lay.stations[side[0]].station}) on its short side: an outlier whose only "
-                         "error is its distance would look the same")
+                odd = lay.stations[side[0]].station
+                note += (f"; one station ({odd}) on its short side: an outlier whose only error is its distance "
+                         "would look the same")
+                if f"outlier_stations(stations=[{odd}])" not in common["alternatives"]:
+                    common["alternatives"] += (f"outlier_stations(stations=[{odd}])",)
             corrections.append(Correction("height_step", (("from_station", int(st)), ("session", session)),
                                           (("new_session", label), ("ground_distance_change_m", h), ("sigma_m", sigma),
                                            ("boundary_probability", p_k), ("boundary_interval", (int(lo), int(hi)))),
