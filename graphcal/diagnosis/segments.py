@@ -137,28 +137,36 @@ class _Layout:
         return [j for j in sorted(self.rows_at) if s in self.rows_at[j]]
 
 
-def _step_column(problem, values, system, lay: _Layout, k: int, end: int) -> tuple[np.ndarray, np.ndarray]:
-    """(rows, column on them): the whitened Jacobian of the plane rows of stations k..end-1 with
-    respect to a vertical shift of the ground they see: a world-vertical move of each body pose (its
+def _step_columns(problem, values, system, lay: _Layout) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per station position, (rows, column on them): the whitened Jacobian of its plane rows with
+    respect to a vertical shift of the ground they see: a world-vertical move of the body pose (its
     tangent's translation is in the body frame, so world z is R^T e_z there); +1 = the sensors see
-    the ground 1 m further."""
-    rows, col = [], []
-    for j in range(k, end):
-        x = problem.station_keys[lay.stations[j].station]
-        o, _ = system.col[int(x)]
-        up = values.atPose3(x).rotation().matrix().T @ np.array([0.0, 0.0, 1.0])
-        for r in lay.rows_at.get(j, {}).values():
-            rows.append(r)
-            col.append(system.A[np.ix_(r, np.arange(o + 3, o + 6))] @ up)
-    if not rows:
-        return np.zeros(0, dtype=int), np.zeros((0, 1))
-    return np.concatenate(rows), np.concatenate(col)[:, None]
+    the ground 1 m further. A step of stations k..end-1 is their concatenation."""
+    out = []
+    for j, st in enumerate(lay.stations):
+        rows, col = [], []
+        if lay.rows_at.get(j):
+            x = problem.station_keys[st.station]
+            o, _ = system.col[int(x)]
+            up = values.atPose3(x).rotation().matrix().T @ np.array([0.0, 0.0, 1.0])
+            for r in lay.rows_at[j].values():
+                rows.append(r)
+                col.append(system.A[np.ix_(r, np.arange(o + 3, o + 6))] @ up)
+        out.append((np.concatenate(rows) if rows else np.zeros(0, dtype=int),
+                    np.concatenate(col) if col else np.zeros(0)))
+    return out
+
+
+def _block(columns: list, k: int, end: int) -> tuple[np.ndarray, np.ndarray]:
+    rows = np.concatenate([columns[j][0] for j in range(k, end)])
+    return rows, np.concatenate([columns[j][1] for j in range(k, end)])[:, None]
 
 
 def _boundaries(model, problem, values, system, lay: _Layout) -> list[_Test]:
     """Every step and knock boundary, scored at the current fit."""
     n = len(lay.stations)
     ccs, meta = [], []
+    columns = _step_columns(problem, values, system, lay)
     for k in range(1, n):
         a, e = lay.session_start(k), lay.session_end(k)
         # the stations from k to the session's end at another height; within a session, also those
@@ -166,7 +174,7 @@ def _boundaries(model, problem, values, system, lay: _Layout) -> list[_Test]:
         for head, (lo, hi) in ((False, (k, e)), (True, (a, k))):
             if head and a == k:
                 continue
-            rows, K = _step_column(problem, values, system, lay, lo, hi)
+            rows, K = _block(columns, lo, hi)
             if K.any():
                 ccs.append((rows, K))
                 meta.append(("step", k, "", (a == k, head)))
