@@ -1,14 +1,337 @@
-"""Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): sensor measurements under the wrong station, and sign / convention / unit errors of single planes.
+"""Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): sensor planes filed under the wrong
+station (two stations' data exchanged, a plane under another station) and sign / convention / unit
+errors of single planes (a normal component's sign, the opposite (n, d) convention, d in mm or cm).
 
-NOT YET IMPLEMENTED: finds nothing (issue 29 in progress).
+Per camera, every plane is compared with the ground each station predicts without that camera's
+planes (plane_corrections.py: the stance feet, or the commanded pose) at physical noise:
+
+1. Gate (cheap): the extrinsic fitted to the planes as labelled (Gauss-Newton from the CAD prior,
+   Huber-weighted), each plane's chi-square (3 dof) at its labelled station. Nothing more is done
+   unless some plane fails at the Bonferroni level ``GATE_ALPHA / n_planes``.
+2. Association: a cost matrix of every plane at every station of the dataset (rectangular: stations
+   without this camera's data included), ``scipy.optimize.linear_sum_assignment``, alternating with
+   the extrinsic re-fitted to the assigned inliers until the assignment is stable; started twice --
+   from the labelled fit and from the CAD prior (with its covariance in the costs: when most labels
+   are wrong the labelled fit is no start) -- the lower total cost kept.
+3. Decisions, at the final extrinsic: every plane that fails at its label is matched (planes that
+   pass keep their station) over the free stations and the variants of plane_corrections.PLANE_VARIANTS.
+   A correction is made only when the corrected plane passes at physical noise
+   (p >= ``PASS_P``) and beats every other (station, variant) by ``MIN_CONFIDENCE`` in chi-square;
+   otherwise a note names the candidates the data cannot tell apart (e.g. poses differing only in
+   yaw, which a ground plane cannot see).
+
+Laser scans are not examined (their points fit no single plane variant; a note says so when the
+scans fail at their stations).
 """
 
 from __future__ import annotations
 
-__all__ = ["find_associations"]
+import dataclasses
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2 as chi2_dist
+
+from graphcal.diagnosis.bookkeeping import Correction
+from graphcal.factors.plane_observation import tangent_basis
+from graphcal.diagnosis.plane_corrections import (PLANE_VARIANTS, chi2_rows, fit_extrinsic, plane_rows, plane_variant,
+                                                  station_grounds)
+
+__all__ = ["find_associations", "GATE_ALPHA", "PASS_P", "MIN_CONFIDENCE"]
+
+log = logging.getLogger(__name__)
+
+#: family-wise level of the gate: some plane fails at its labelled station at physical noise
+GATE_ALPHA = 1e-3
+#: a corrected plane passes at physical noise when its chi-square's tail probability is at least this
+PASS_P = 1e-3
+#: a correction beats the next-best explanation by at least this much chi-square (likelihood ratio e^6)
+MIN_CONFIDENCE = 12.0
+#: a plane is an inlier of the extrinsic fit when its chi-square is below this (3 dof, p ~ 1e-4)
+INLIER_CHI2 = 21.0
+#: assignment costs are capped (+ a slow growth) so that gross outliers do not steer the others
+COST_CAP = 60.0
+#: assignment penalty of a plane moved off its label, and of a variant (chi-square units)
+MOVE_PENALTY = 4.0
+VARIANT_PENALTY = 6.0
+MAX_ROUNDS = 12
+#: forced alternatives tried per changed plane (its next-best (station, variant) options)
+N_OPTIONS = 6
+#: times the decisions restart from a better solution found by a forced alternative
+MAX_RESTARTS = 3
 
 
 def find_associations(model, say) -> tuple:
     """(corrections, corrected data, notes) for the nominal ``model`` (a DiagnosisModel with its
-    noise learned); see graphcal/diagnosis/bookkeeping.py."""
-    return (), model.data, ()
+    noise learned); see the module docstring and graphcal/diagnosis/bookkeeping.py."""
+    from graphcal.calibration.calibrate import dataset_physical_noise
+
+    data, ds = model.data, model.ds
+    physical, _ = dataset_physical_noise(ds, model.options)
+    corrections: list = []
+    notes: list = []
+    planes = dict(data.planes)
+    grounds = None
+    for sensor in model.sensors():
+        keys = [(st.station, sensor) for st in data.stations if (st.station, sensor) in data.planes]
+        if len(keys) < 3:
+            continue
+        if grounds is None:
+            grounds = station_grounds(data, model.robot, physical)
+        found, moved, said = _sensor(ds, sensor, [data.planes[k] for k in keys], grounds, say)
+        corrections += found
+        notes += said
+        for k in keys:
+            planes.pop(k, None)
+        planes.update(moved)
+    if any(k[1] for k in data.scan_points):
+        log.debug("association: laser scans are not examined")
+    if not corrections:
+        return (), data, tuple(notes)
+    return tuple(corrections), dataclasses.replace(data, planes=planes), tuple(notes)
+
+
+def _prior(ds, sensor: str) -> tuple:
+    p = ds.sensors[sensor].T_body_sensor_prior
+    return p.matrix, float(p.sigma_m), float(p.sigma_rad)
+
+
+@dataclass(frozen=True, eq=False)
+class _Camera:
+    """One camera's planes: ``meas`` (N PlaneMeasurements), ``labels`` (N,) their stations' indices
+    into ``g`` (StationGrounds, M stations), every variant's ``n`` (V, N, 3), ``d`` (V, N), ``cov3``
+    (V, N, 3, 3); ``prior`` (T_cad, sigma_m, sigma_rad)."""
+
+    meas: list
+    labels: np.ndarray
+    g: object
+    n: np.ndarray
+    d: np.ndarray
+    cov3: np.ndarray
+    prior: tuple
+    B: np.ndarray
+
+    def chi(self, T, cov_S=None) -> np.ndarray:
+        """(V, N, M) chi-square of every variant of every plane at every station."""
+        v, n = self.d.shape
+        m = len(self.g.ids)
+        rep = lambda a: np.repeat(a.reshape(v * n, *a.shape[2:]), m, axis=0)  # noqa: E731
+        tile = lambda a: np.tile(a, (v * n,) + (1,) * (a.ndim - 1))  # noqa: E731
+        out = chi2_rows(rep(self.n), rep(self.d), rep(self.cov3), tile(self.g.u), tile(self.g.z), tile(self.g.W),
+                        tile(self.g.cov), T, cov_S, B=rep(self.B))
+        return out.reshape(v, n, m)
+
+    def score(self, chi: np.ndarray) -> np.ndarray:
+        """(V, N, M) assignment cost: robust chi-square + the variant's and the move's penalty."""
+        sc = np.where(chi < COST_CAP, chi, COST_CAP + np.sqrt(np.maximum(chi - COST_CAP, 0.0)))
+        sc = sc + VARIANT_PENALTY + MOVE_PENALTY
+        sc[0] -= VARIANT_PENALTY
+        sc[:, np.arange(len(self.meas)), self.labels] -= MOVE_PENALTY
+        return sc
+
+    def prior_cost(self, T) -> float:
+        T_cad, sig_m, sig_rad = self.prior
+        r = np.concatenate([Rotation.from_matrix(T_cad[:3, :3].T @ T[:3, :3]).as_rotvec() / max(sig_rad, 1e-4),
+                            T[:3, :3].T @ (T[:3, 3] - T_cad[:3, 3]) / max(sig_m, 1e-4)])
+        return float(r @ r)
+
+
+def _camera(ds, sensor, meas, g) -> _Camera:
+    index = {int(s): j for j, s in enumerate(g.ids)}
+    ns, ds_, cs = [], [], []
+    for v in PLANE_VARIANTS:
+        nd = [plane_variant(m.n, m.d, v) for m in meas]
+        n, d, c3 = plane_rows(np.array([x[0] for x in nd]), [x[1] for x in nd], [m.cov for m in meas])
+        ns.append(n)
+        ds_.append(d)
+        cs.append(c3)
+    B = np.array([[tangent_basis(x) for x in n] for n in ns])
+    return _Camera(list(meas), np.array([index[m.station] for m in meas]), g, np.array(ns), np.array(ds_),
+                   np.array(cs), _prior(ds, sensor), B)
+
+
+def _assign(cam: _Camera, sc: np.ndarray, forced=None) -> tuple:
+    """(station index (N,), variant index (N,), total cost) minimising ``sc`` (V, N, M); ``forced``
+    (i, j, v): plane i at station j as variant v."""
+    best_v = sc.argmin(axis=0)
+    cm = sc.min(axis=0)
+    if forced is not None:
+        i, j, v = forced
+        cm[i] = 1e12
+        cm[i, j], best_v[i, j] = sc[v, i, j], v
+    rows, cols = linear_sum_assignment(cm)
+    assign = np.empty(len(cam.meas), dtype=int)
+    assign[rows] = cols
+    var = best_v[np.arange(len(assign)), assign]
+    return assign, var, float(cm[rows, cols].sum())
+
+
+def _alternate(cam: _Camera, T0, cov_S0, forced=None) -> tuple:
+    """(T, assignment (N,), variants (N,), objective) of the alternation from (T0, cov_S0): assign
+    at the current extrinsic, refit the extrinsic to the assigned inliers, until stable."""
+    T, cov_S, prev = T0, cov_S0, None
+    idx = np.arange(len(cam.meas))
+    for _ in range(MAX_ROUNDS):
+        chi = cam.chi(T, cov_S)
+        assign, var, _ = _assign(cam, cam.score(chi), forced)
+        if prev is not None and np.array_equal(assign, prev[0]) and np.array_equal(var, prev[1]):
+            break
+        prev = (assign, var)
+        inl = chi[var, idx, assign] < INLIER_CHI2
+        if inl.sum() < 3:
+            inl[:] = True
+        use = np.flatnonzero(inl)
+        T, _, _ = fit_extrinsic(cam.n[var[use], use], cam.d[var[use], use], cam.cov3[var[use], use], cam.g,
+                                assign[use], T, cam.prior, B=cam.B[var[use], use])
+        cov_S = None
+    assign, var, total = _assign(cam, cam.score(cam.chi(T)), forced)
+    return T, assign, var, total + cam.prior_cost(T)
+
+
+def _sensor(ds, sensor, meas, g, say) -> tuple:
+    """(corrections, {(station, sensor): corrected PlaneMeasurement}, notes) of one camera."""
+    cam = _camera(ds, sensor, meas, g)
+    T_cad, sig_m, sig_rad = cam.prior
+    n = len(meas)
+    idx = np.arange(n)
+    T, _, _ = fit_extrinsic(cam.n[0], cam.d[0], cam.cov3[0], g, cam.labels, T_cad, cam.prior, B=cam.B[0])
+    at_label = cam.chi(T)[0, idx, cam.labels]
+    unchanged = {(m.station, sensor): m for m in meas}
+    if not (chi2_dist.sf(at_label, 3) < GATE_ALPHA / n).any():
+        return [], unchanged, []
+    say(f"association: {sensor}: {int((chi2_dist.sf(at_label, 3) < GATE_ALPHA / n).sum())} of {n} planes do not "
+        f"fit their labelled station at physical noise; searching the association")
+    cov_prior = np.diag([max(sig_rad, 1e-4) ** 2] * 3 + [max(sig_m, 1e-4) ** 2] * 3)
+    best = min((_alternate(cam, T, None), _alternate(cam, T_cad, cov_prior)), key=lambda r: r[3])
+    for attempt in range(MAX_RESTARTS + 1):  # a forced alternative better than the best restarts from it
+        decisions, better = _decide(cam, best, restart=attempt < MAX_RESTARTS)
+        if better is None:
+            break
+        best = better
+    return _report(sensor, cam, best, decisions)
+
+
+def _decide(cam: _Camera, best, restart: bool = True) -> tuple:
+    """({plane index: (confidence, alternatives [(station index, variant index), ...])} for every
+    plane the best solution changes, a better solution found on the way or None). The confidence
+    of a change is the objective's rise when the plane is forced to its next-best (station,
+    variant) -- the plane as given at its label among them -- with the extrinsic and every other
+    plane's association refitted. Without ``restart`` a better solution counts as a rise of 0."""
+    T, assign, var, total = best
+    sc = cam.score(cam.chi(T))
+    out = {}
+    for i in range(len(cam.meas)):
+        if assign[i] == cam.labels[i] and var[i] == 0:
+            continue
+        row = sc[:, i].copy()
+        row[var[i], assign[i]] = np.inf
+        flat = np.argsort(row, axis=None)[:N_OPTIONS]
+        options = {tuple(int(x) for x in np.unravel_index(f, row.shape)) for f in flat}
+        options.add((0, int(cam.labels[i])))
+        rises, alts = [], []
+        for v, j in sorted(options):
+            alt = _alternate(cam, T, None, forced=(i, j, v))
+            if alt[3] < total - 1e-6 and restart:
+                return out, alt
+            rises.append(max(alt[3] - total, 0.0))
+            if alt[3] - total < MIN_CONFIDENCE:
+                alts.append((j, v))
+        out[i] = (float(min(rises)), alts)
+    return out, None
+
+
+def _report(sensor, cam: _Camera, best, decisions) -> tuple:
+    """Corrections, corrected planes and notes from the best solution and the decisions."""
+    T, assign, var, _ = best
+    g, meas = cam.g, cam.meas
+    chi = cam.chi(T)
+    idx = np.arange(len(meas))
+    at_label = chi[0, idx, cam.labels]
+    chi_new = chi[var, idx, assign]
+    notes, accepted = [], {}
+    for i, (conf, alts) in decisions.items():
+        label = meas[i].station
+        if chi2_dist.sf(chi_new[i], 3) < PASS_P:
+            notes.append(f"{sensor}: the plane labelled station {label} fits no station at physical noise, as "
+                         f"given or with a sign, convention or unit corrected (chi-square {at_label[i]:.0f} at its "
+                         f"label): an outlier, or a cause of the model")
+        elif conf < MIN_CONFIDENCE:
+            cands = [(assign[i], var[i])] + alts
+            txt = ", ".join(_option(g, j, v) for j, v in cands[:8])
+            shared = {v for _, v in cands}
+            also = ""
+            if len(shared) == 1 and var[i]:
+                also = f"; in every one {' '.join(PLANE_VARIANTS[var[i]])} (the station, not the variant, is unsure)"
+            notes.append(f"{sensor}: the plane labelled station {label} (chi-square {at_label[i]:.0f} there) does not fit "
+                         f"it; the data cannot tell between (the best found) {txt}{'' if len(cands) <= 8 else ', ...'}{also}: not corrected")
+        else:
+            accepted[i] = (conf, alts)
+    accepted = _without_conflicts(cam, assign, accepted, notes, sensor)
+    corrections, planes = _corrections(sensor, cam, assign, var, at_label, chi_new, accepted)
+    return corrections, planes, notes
+
+
+def _option(g, j, v) -> str:
+    cause, detail = PLANE_VARIANTS[v]
+    return f"station {int(g.ids[j])}" + (f" ({cause} {detail})" if cause else "")
+
+
+def _without_conflicts(cam, assign, accepted, notes, sensor) -> dict:
+    """The accepted changes less those whose station another plane keeps (its own change not made)."""
+    while True:
+        final = {i: (assign[i] if i in accepted else cam.labels[i]) for i in range(len(cam.meas))}
+        taken: dict = {}
+        for i, j in final.items():
+            taken.setdefault(j, []).append(i)
+        clash = [i for js in taken.values() if len(js) > 1 for i in js if i in accepted]
+        if not clash:
+            return accepted
+        for i in clash:
+            notes.append(f"{sensor}: the plane labelled station {cam.meas[i].station} belongs to station "
+                         f"{int(cam.g.ids[assign[i]])}, whose own plane could not be placed: not corrected")
+            accepted.pop(i)
+
+
+def _corrections(sensor, cam, assign, var, at_label, chi_new, accepted) -> tuple:
+    """(Corrections, corrected planes) of the accepted changes {plane index: (confidence, alternatives)}."""
+    g, meas = cam.g, cam.meas
+    planes = {(m.station, sensor): m for i, m in enumerate(meas) if i not in accepted}
+    station_of = {i: int(g.ids[assign[i]]) for i in accepted}
+    corrections, done = [], set()
+    for i, (conf, alts) in accepted.items():
+        m = meas[i]
+        new_station = station_of[i]
+        drop = float(at_label[i] - chi_new[i])
+        common = dict(statistic=drop, dof=3, p_value=float(chi2_dist.sf(max(drop, 0.0), 3)), confidence=conf,
+                      alternatives=tuple(_option(g, j, v) for j, v in alts))
+        if new_station != m.station and i not in done:
+            partner = [k for k in accepted if k != i and meas[k].station == new_station and station_of[k] == m.station]
+            if partner:
+                k = partner[0]
+                done |= {i, k}
+                pair = tuple(sorted((m.station, new_station)))
+                common.update(statistic=drop + float(at_label[k] - chi_new[k]), dof=6,
+                              confidence=min(conf, accepted[k][0]))
+                common["p_value"] = float(chi2_dist.sf(max(common["statistic"], 0.0), 6))
+                corrections.append(Correction("stations_exchanged", (("sensor", sensor), ("stations", pair)),
+                                              (("stations", pair),), note=f"{sensor}: the planes of stations "
+                                              f"{pair[0]} and {pair[1]} are exchanged", **common))
+            elif i not in done:
+                corrections.append(Correction(
+                    "station_mislabelled", (("from_station", m.station), ("sensor", sensor), ("station", new_station)),
+                    (("station_given", m.station), ("station_corrected", new_station)),
+                    note=f"{sensor}: the plane labelled station {m.station} belongs to station {new_station}", **common))
+        n_new, d_new = cam.n[var[i], i], float(cam.d[var[i], i])
+        if var[i]:
+            cause, detail = PLANE_VARIANTS[var[i]]
+            corrected = {"normal_sign": (("component", detail), ("n_given", tuple(m.n)), ("n_corrected", tuple(n_new))),
+                         "plane_convention": (("n_given", tuple(m.n)), ("n_corrected", tuple(n_new))),
+                         "distance_unit": (("unit_given", detail), ("d_given_m", m.d), ("d_corrected_m", d_new))}[cause]
+            corrections.append(Correction(
+                cause, (("sensor", sensor), ("station", new_station)), corrected,
+                note=f"{sensor}: the plane of station {new_station}: {cause} ({detail}) corrected", **common))
+        planes[(new_station, sensor)] = dataclasses.replace(m, station=new_station, n=n_new, d=d_new)
+    return corrections, planes
