@@ -34,6 +34,7 @@ with the text prior's rotation sigma at 2, 5, 10 deg.
 from __future__ import annotations
 
 import json
+import re
 import sys
 import tempfile
 import time
@@ -298,6 +299,50 @@ def _row_of_plane(n: np.ndarray, d: float, rows: list) -> tuple[int, list]:
     return rows[i]["label"], flipped
 
 
+_NOTE_PLANE = re.compile(r"the plane labelled station (\d+) \(chi-square (\d+) there\) does not fit it; the data cannot "
+                         r"tell between \(the best found\) (.*?)(; in every one ([^()]*?) \(the station, not the variant, "
+                         r"is unsure\))?: not corrected")
+_NOTE_OPTION = re.compile(r"station (\d+)(?: \(([^)]*)\))?")
+
+
+def suspected(notes) -> dict:
+    """The association finder's unresolved cases, from its notes: Table 2 label -> {"chi2_at_label",
+    "candidates": [(station, variant or None), ...] best first, "every_variant": the sign / unit
+    variant every candidate shares (e.g. "normal_sign x") or None}. Labels the finder passed (the
+    plane fits its label) are absent."""
+    out = {}
+    for n in notes:
+        m = _NOTE_PLANE.search(n)
+        if m is None:
+            continue
+        cands = [(int(a), b or None) for a, b in _NOTE_OPTION.findall(m.group(3))]
+        out[int(m.group(1))] = {"chi2_at_label": float(m.group(2)), "candidates": cands,
+                                "every_variant": m.group(5)}
+    return out
+
+
+def association_margins() -> dict:
+    """Why the association is or is not decided (README.md): with row 10's c sign-flipped and the
+    rows at the poses of the paper's Table 3, for each row the extrinsic rotation is fitted to the
+    other five normals (Wahba) and the row's normal compared with every Table A1 pose's predicted
+    ground: label -> (best pose, angle deg, runner-up pose, angle deg). An analysis of the data's
+    power, not an input to graphcal."""
+    rows = md.read_plane_table(md.TABLE2_CSV)
+    n_s = np.array([md.plane_in_sensor_frame(r["a"], r["b"], -r["c"] if r["label"] == 10 else r["c"], r["d_m"])[0]
+                    for r in rows])
+    up_b = np.array([md.set_pose(k)[:3, :3].T @ [0.0, 0.0, 1.0] for k in range(1, len(md.CHAI2015_TABLE_A1) + 1)])
+    pose = md.station_of_label("table3")
+    out = {}
+    for i, r in enumerate(rows):
+        others = [j for j in range(len(rows)) if j != i]
+        U, _, Vt = np.linalg.svd(up_b[[pose[rows[j]["label"]] - 1 for j in others]].T @ n_s[others])
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt  # R n_sensor ~ up in the body
+        ang = np.degrees(np.arccos(np.clip(up_b @ (R @ n_s[i]), -1.0, 1.0)))
+        o = np.argsort(ang)
+        out[r["label"]] = (int(o[0]) + 1, float(ang[o[0]]), int(o[1]) + 1, float(ang[o[1]]))
+    return out
+
+
 def discovered(diagnosis) -> dict:
     """What the bookkeeping stage of ``diagnosis`` (a graphcal Diagnosis) did to Table 2's rows:
     label -> station the plane is at in the corrected data, label -> sensor-frame components whose
@@ -314,7 +359,8 @@ def discovered(diagnosis) -> dict:
     for st in diagnosis.model.data.stations:
         sessions.setdefault(str(st.session), []).append(int(st.station))
     return {"mapping": dict(sorted(mapping.items())), "sign_flips": flips, "sessions": sessions,
-            "corrections": [c.to_dict() for c in diagnosis.corrections], "notes": list(diagnosis.notes)}
+            "corrections": [c.to_dict() for c in diagnosis.corrections], "notes": list(diagnosis.notes),
+            "suspected": suspected(diagnosis.notes)}
 
 
 def write_corrected(path: Path, diagnosis, out: Path) -> Path:
@@ -349,7 +395,7 @@ def _diagnosis_extrinsic(j: dict, T_paper: np.ndarray) -> dict:
 
 
 def as_printed(out_dir: str | Path | None = None, *, prior_sigma_deg: float = md.TEXT_PRIOR_SIGMA_DEG,
-               calibrate_corrected: bool = True) -> dict:
+               calibrate_corrected: bool = True, prior: str = "text") -> dict:
     """Issue 29: Table 2 and Table A1 as printed, the prior from the paper's text: calibrate,
     diagnose, what the bookkeeping stage found (:func:`discovered`), the extrinsic of the corrected
     data against Eq. 32 (diagnose's extended model; calibrate on the corrected planes)."""
@@ -359,10 +405,13 @@ def as_printed(out_dir: str | Path | None = None, *, prior_sigma_deg: float = md
     T_paper = md.paper_T_body_sensor()
     with tempfile.TemporaryDirectory(prefix="chai2015_as_printed_") as tmp:
         base = Path(out_dir) if out_dir is not None else Path(tmp)
-        path = md.build_dataset(base / f"as_printed_{prior_sigma_deg:g}deg", overwrite=True,
-                                **{**AS_PRINTED, "prior_sigma_deg": prior_sigma_deg})
-        out: dict = {"dataset": str(path), "prior_sigma_deg": prior_sigma_deg,
-                     "prior_vs_eq32": compare_extrinsic(md.text_prior_T_body_sensor(), T_paper)}
+        kw = {**AS_PRINTED, "prior_sigma_deg": prior_sigma_deg, "prior": prior}
+        if prior == "cad":
+            kw["prior_sigma_mm"] = md.PRIOR_SIGMA_MM
+        path = md.build_dataset(base / f"as_printed_{prior}_{prior_sigma_deg:g}deg", overwrite=True, **kw)
+        T_prior = md.text_prior_T_body_sensor() if prior == "text" else md.builtin_info("octopus").sensors[md.SENSOR].T_body_sensor
+        out: dict = {"dataset": str(path), "prior": prior, "prior_sigma_deg": prior_sigma_deg,
+                     "prior_vs_eq32": compare_extrinsic(T_prior, T_paper)}
         res = calibrate(path)
         est = res.sensors[md.SENSOR]
         out["calibrate"] = {"vs_eq32": compare_extrinsic(est.T_body_sensor, T_paper), "outliers": [int(s) for s in res.outliers],
@@ -377,7 +426,7 @@ def as_printed(out_dir: str | Path | None = None, *, prior_sigma_deg: float = md
         out["discovered"] = discovered(d)
         out["diagnose_extrinsic"] = _diagnosis_extrinsic(j, T_paper)
         if calibrate_corrected and d.corrections:
-            fixed = write_corrected(path, d, base / f"as_printed_{prior_sigma_deg:g}deg_corrected")
+            fixed = write_corrected(path, d, base / f"as_printed_{prior}_{prior_sigma_deg:g}deg_corrected")
             r2 = calibrate(fixed)
             e2 = r2.sensors[md.SENSOR]
             out["calibrate_corrected"] = {
@@ -387,12 +436,13 @@ def as_printed(out_dir: str | Path | None = None, *, prior_sigma_deg: float = md
     return out
 
 
-def prior_width(sigmas_deg=(2.0, 5.0, 10.0), out_dir: str | Path | None = None) -> dict:
-    """:func:`as_printed`'s discovery at each rotation sigma of the text prior (centre unchanged):
-    sigma (deg) -> mapping, sign flips, sessions, answer, diagnose's extrinsic vs Eq. 32."""
+def prior_width(sigmas_deg=(2.0, 5.0, 10.0), out_dir: str | Path | None = None, *, prior: str = "text") -> dict:
+    """:func:`as_printed`'s discovery at each rotation sigma of the prior (its centre unchanged:
+    ``prior="text"`` the text's, ``"cad"`` the built-in's, i.e. Eq. 32 rounded -- to tell the
+    prior's part from the data's): sigma (deg) -> what was discovered, answer, diagnose's extrinsic."""
     out = {}
     for s in sigmas_deg:
-        r = as_printed(out_dir, prior_sigma_deg=s, calibrate_corrected=False)
+        r = as_printed(out_dir, prior_sigma_deg=s, calibrate_corrected=False, prior=prior)
         out[s] = {"discovered": r["discovered"], "answer": r["diagnose"]["answer"],
                   "findings": [(f["cause"], f["where"]) for f in r["diagnose"]["findings"]],
                   "diagnose_extrinsic": r["diagnose_extrinsic"], "seconds": r["diagnose"]["seconds"]}
@@ -481,10 +531,13 @@ if __name__ == "__main__":
     if "--as-printed" in sys.argv:
         print(as_printed_summary(as_printed(_out)))
         if "--prior-width" in sys.argv:
-            for _s, _v in prior_width(out_dir=_out).items():
-                _e = _v["diagnose_extrinsic"]["vs_eq32"]
-                print(f"prior sigma {_s:g} deg: mapping {_v['discovered']['mapping']}, flips {_v['discovered']['sign_flips']}, "
-                      f"answer {_v['answer']}, rotation vs Eq. 32 {_e['rotation_deg']:.2f} deg ({_v['seconds']:.1f} s)")
+            for _p, _sig in (("text", (2.0, 5.0, 10.0)), ("cad", (0.5, 2.0, 10.0))):
+                for _s, _v in prior_width(_sig, out_dir=_out, prior=_p).items():
+                    _e, _d = _v["diagnose_extrinsic"]["vs_eq32"], _v["discovered"]
+                    print(f"{_p} prior sigma {_s:g} deg: mapping {_d['mapping']}, flips {_d['sign_flips']}, answer "
+                          f"{_v['answer']}, rotation vs Eq. 32 {_e['rotation_deg']:.2f} deg ({_v['seconds']:.1f} s); unresolved: "
+                          + "; ".join(f"{k} -> {[c[0] for c in x['candidates']]}" + (f" all {x['every_variant']}" if x["every_variant"] else "")
+                                      for k, x in _d["suspected"].items()))
         sys.exit(0)
     res = main(_out)
     print(summary(res))
