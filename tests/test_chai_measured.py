@@ -320,3 +320,34 @@ def test_goal_as_printed_rotation_within_graphcal_sigma_of_eq32(printed_text):
 
 def test_as_printed_runtime(printed_text):
     assert printed_text["_cpu_s"] < 30.0  # measured 7 s (calibrate + diagnose with the bookkeeping finders)
+
+
+@pytest.fixture(scope="module")
+def hand(load_example):
+    run = load_example("octopus_chai2015/run.py", "chai2015_run")
+    return run.hand_corrected()
+
+
+def test_what_if_the_suspected_corrections_were_made(hand):
+    """What-if: the rows moved to Table 3's poses and row 10's c flipped by hand (what the finder
+    points to but cannot decide), the text's prior, Table A1's heights, no sessions. The rotation
+    is Eq. 32's within graphcal's 1-sigma; the translation is not (Table A1's heights of the two pose
+    groups differ from the experiment's by 35 mm) and no height step is found undeclared."""
+    v = hand["none"]
+    c = v["calibrate"]
+    assert c["vs_eq32"]["rotation_deg"] < 0.25  # measured 0.136
+    assert all(abs(w) <= s for w, s in zip(c["vs_eq32"]["rotation_body_xyz_deg"], c["sigma_rot_body_deg"]))
+    dx, dy, dz = c["vs_eq32"]["translation_body_xyz_mm"]  # sigma 22, 33, 6 mm
+    assert dx == pytest.approx(-25.7, abs=5.0) and dy == pytest.approx(37.3, abs=8.0)
+    assert dz == pytest.approx(-17.2, abs=3.0)
+    assert abs(dz) > 2 * c["sigma_xyz_body_mm"][2]  # 2.9 sigma: not Eq. 32
+    assert c["outliers"] == []
+    assert v["findings"] == [] and v["corrections"] == [] and v["answer"] == "nominal"
+
+
+def test_what_if_with_the_pose_groups_declared(hand):
+    """The same with Table A1's blocks as sessions: diagnose names the height step of poses 1-20
+    against the rest, 33.9 mm (Table 3 implies 35.0: +2.0 and -33.0 mm)."""
+    v = hand["blocks"]
+    assert [(f[0], f[1]) for f in v["findings"]] == [("session_offset", {"session": "poses01-20"})]
+    assert abs(v["findings"][0][2]["offset_m"]) == pytest.approx(0.0339, abs=0.004)

@@ -246,7 +246,7 @@ def session_of(pose_number: int) -> str:
 def build_dataset(out_dir: str | Path, *, association: str = "printed", sessions: str = "none",
                   exclude_labels=(), prior_sigma_mm: float = PRIOR_SIGMA_MM,
                   prior_sigma_deg: float = PRIOR_SIGMA_DEG, heights: str = "table_a1",
-                  prior: str = "cad", overwrite: bool = False) -> Path:
+                  prior: str = "cad", flip_c=(), overwrite: bool = False) -> Path:
     """Write the graphcal dataset folder of Chai's Table A1 + Table 2 to ``out_dir``; returns it.
 
     Args:
@@ -262,6 +262,8 @@ def build_dataset(out_dir: str | Path, *, association: str = "printed", sessions
         prior: ``"cad"`` (the built-in octopus CAD: Eq. 32 rounded) or ``"text"`` (read from the
             paper's text alone, :func:`text_prior_T_body_sensor`; pass the sigmas, e.g.
             :data:`TEXT_PRIOR_SIGMA_MM` / :data:`TEXT_PRIOR_SIGMA_DEG`).
+        flip_c: Table 2 rows (labels) whose printed ``c`` is used with the opposite sign: a what-if
+            (the correction graphcal's association finder points to for row 10), never the default.
         heights: ``"table_a1"`` (the set heights p_y' as printed) or ``"table3_implied"`` (each
             Table A1 block's heights shifted by :func:`table3_implied_height_offsets`: the heights
             the paper's Table 3 was computed with; a what-if, not a measurement).
@@ -298,7 +300,7 @@ def build_dataset(out_dir: str | Path, *, association: str = "printed", sessions
     planes: dict[str, list] = {"station": [], "sensor": [], "nx": [], "ny": [], "nz": [], "d": []}
     rows = [r for r in read_plane_table(TABLE2_CSV) if r["label"] not in set(exclude_labels)]
     for r in sorted(rows, key=lambda r: label_station[r["label"]]):
-        n, d = plane_in_sensor_frame(r["a"], r["b"], r["c"], r["d_m"])
+        n, d = plane_in_sensor_frame(r["a"], r["b"], -r["c"] if r["label"] in set(flip_c) else r["c"], r["d_m"])
         planes["station"].append(label_station[r["label"]])
         planes["sensor"].append(SENSOR)
         for c, v in zip(("nx", "ny", "nz"), n):
@@ -318,7 +320,8 @@ def build_dataset(out_dir: str | Path, *, association: str = "printed", sessions
             "paper": "Chai et al. 2015, Sensors 15:9519 (Octopus hexapod, Kinect)",
             "stations": "Table A1 set poses (commanded), converted to z-up (examples/octopus_chai2015/README.md)",
             "planes": f"Table 2 measured ground equations, V-CS -> optical frame; association {association}"
-                      + (f"; rows {sorted(exclude_labels)} left out" if exclude_labels else ""),
+                      + (f"; rows {sorted(exclude_labels)} left out" if exclude_labels else "")
+                      + (f"; rows {sorted(flip_c)} with c sign-flipped (what-if)" if flip_c else ""),
             "heights": heights,
             "prior": ("built-in octopus CAD (Eq. 32 rounded)" if prior == "cad" else
                       "the paper's text: h ~ 1 m, sweet-spot borders 1.2 / 3.5 m, 43.5 deg field of view "

@@ -449,21 +449,52 @@ def prior_width(sigmas_deg=(2.0, 5.0, 10.0), out_dir: str | Path | None = None, 
     return out
 
 
+def hand_corrected(out_dir: str | Path | None = None) -> dict:
+    """What-if (README.md): the corrections the association finder points to, made by hand -- the
+    rows at the poses of the paper's Table 3, row 10's c sign-flipped -- with the text's prior and
+    Table A1's heights; once without sessions (is the height step between the pose groups found
+    undeclared?) and once with Table A1's blocks declared. Calibrate and diagnose on each."""
+    from graphcal.calibration.calibrate import calibrate
+    from graphcal.diagnosis import diagnose
+
+    T_paper = md.paper_T_body_sensor()
+    out = {}
+    with tempfile.TemporaryDirectory(prefix="chai2015_hand_") as tmp:
+        base = Path(out_dir) if out_dir is not None else Path(tmp)
+        for sessions in ("none", "blocks"):
+            path = md.build_dataset(base / f"hand_corrected_{sessions}", overwrite=True,
+                                    **{**AS_PRINTED, "association": "table3", "sessions": sessions, "flip_c": (10,)})
+            res = calibrate(path)
+            est = res.sensors[md.SENSOR]
+            d = diagnose(path)
+            j = d.to_json()
+            out[sessions] = {
+                "calibrate": {"vs_eq32": compare_extrinsic(est.T_body_sensor, T_paper), "outliers": [int(s) for s in res.outliers],
+                              "sigma_rot_body_deg": [float(x) for x in est.sigma_rot_deg],
+                              "sigma_xyz_body_mm": [float(x) for x in est.sigma_xyz_mm]},
+                "diagnose_extrinsic": _diagnosis_extrinsic(j, T_paper), "answer": j["answer"],
+                "findings": [(f["cause"], f["where"], f["parameters"]) for f in j["findings"]],
+                "corrections": [c.to_dict() for c in d.corrections], "notes": list(d.notes),
+                "screening_first_round": (j.get("screening") or [[]])[0][:3]}
+    return out
+
+
+def _extrinsic_line(name: str, part: dict) -> str:
+    e = part["vs_eq32"]
+    return (f"  {name}: vs Eq. 32 rotation {e['rotation_deg']:.3f} deg ("
+            + ", ".join(f"{x:+.2f}" for x in e["rotation_body_xyz_deg"]) + "), translation "
+            + ", ".join(f"{x:+.1f}" for x in e["translation_body_xyz_mm"]) + " mm; 1-sigma "
+            + ", ".join(f"{x:.2f}" for x in part["sigma_rot_body_deg"]) + " deg, "
+            + ", ".join(f"{x:.1f}" for x in part["sigma_xyz_body_mm"]) + " mm")
+
+
 def as_printed_summary(r: dict) -> str:
     """Lines for :func:`as_printed`'s result."""
     e = r["prior_vs_eq32"]
     lines = [f"as printed, text prior (sigma {r['prior_sigma_deg']:g} deg, {md.TEXT_PRIOR_SIGMA_MM:g} mm; "
              f"prior vs Eq. 32: {e['rotation_deg']:.2f} deg, "
              + ", ".join(f"{x:+.0f}" for x in e["translation_body_xyz_mm"]) + " mm)"]
-    for key in ("calibrate", "diagnose_extrinsic", "calibrate_corrected"):
-        if key not in r:
-            continue
-        e = r[key]["vs_eq32"]
-        lines.append(f"  {key}: vs Eq. 32 rotation {e['rotation_deg']:.3f} deg ("
-                     + ", ".join(f"{x:+.2f}" for x in e["rotation_body_xyz_deg"]) + "), translation "
-                     + ", ".join(f"{x:+.1f}" for x in e["translation_body_xyz_mm"]) + " mm; 1-sigma "
-                     + ", ".join(f"{x:.2f}" for x in r[key]["sigma_rot_body_deg"]) + " deg, "
-                     + ", ".join(f"{x:.1f}" for x in r[key]["sigma_xyz_body_mm"]) + " mm")
+    lines += [_extrinsic_line(key, r[key]) for key in ("calibrate", "diagnose_extrinsic", "calibrate_corrected") if key in r]
     dg, disc = r["diagnose"], r["discovered"]
     lines.append(f"  diagnose ({dg['seconds']:.1f} s): answer {dg['answer']}; unexplained {dg['unexplained_structure']}")
     lines.append(f"  mapping label -> station: {disc['mapping']}; sign flips {disc['sign_flips']}; "
@@ -538,6 +569,12 @@ if __name__ == "__main__":
                           f"{_v['answer']}, rotation vs Eq. 32 {_e['rotation_deg']:.2f} deg ({_v['seconds']:.1f} s); unresolved: "
                           + "; ".join(f"{k} -> {[c[0] for c in x['candidates']]}" + (f" all {x['every_variant']}" if x["every_variant"] else "")
                                       for k, x in _d["suspected"].items()))
+        if "--hand-corrected" in sys.argv:
+            for _k, _v in hand_corrected(_out).items():
+                print(f"hand-corrected, sessions {_k}: answer {_v['answer']}, findings {_v['findings']}, corrections "
+                      f"{[c['cause'] for c in _v['corrections']]}")
+                print(_extrinsic_line("calibrate", _v["calibrate"]))
+                print(_extrinsic_line("diagnose_extrinsic", _v["diagnose_extrinsic"]))
         sys.exit(0)
     res = main(_out)
     print(summary(res))
