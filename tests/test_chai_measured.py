@@ -351,3 +351,18 @@ def test_what_if_with_the_pose_groups_declared(hand):
     v = hand["blocks"]
     assert [(f[0], f[1]) for f in v["findings"]] == [("session_offset", {"session": "poses01-20"})]
     assert abs(v["findings"][0][2]["offset_m"]) == pytest.approx(0.0339, abs=0.004)
+
+
+@pytest.mark.slow
+def test_prior_width_does_not_change_the_discovery(load_example):
+    """The text's prior at 2 and 10 deg, and even a prior centred on Eq. 32 itself at 0.5 deg: the
+    same five rows, row 10's sign in every candidate, nothing corrected (the ambiguity is the
+    data's, not the prior's)."""
+    run = load_example("octopus_chai2015/run.py", "chai2015_run")
+    cases = {**{("text", s): v for s, v in run.prior_width((2.0, 10.0)).items()},
+             **{("cad", s): v for s, v in run.prior_width((0.5,), prior="cad").items()}}
+    for case, v in cases.items():
+        d = v["discovered"]
+        assert sorted(d["suspected"]) == [10, 15, 29, 34, 49], case
+        assert d["suspected"][10]["every_variant"] == "normal_sign x", case
+        assert d["corrections"] == [] and d["mapping"] == {k: k for k in TABLE3_POSES}, case
