@@ -143,3 +143,32 @@ def test_diagnose_names_a_knock_two_stations_from_the_end(tmp_path):
     f = d.findings[0]
     assert f.candidate.label() == f"extrinsic_change(sensor=depth, station={n - 1})"
     assert np.isfinite(f.parameters["angle_rad"]) and abs(f.parameters["angle_rad"] - 0.035) < 3 * f.sigma["angle_rad"] + 0.005
+
+
+@pytest.mark.parametrize("block", [(1, 2), (22, 32), (48, 48)], ids=["first two", "mid-session", "last"])
+def test_a_height_step_among_declared_sessions_relabels_the_stations_at_the_other_height(block, tmp_path):
+    """Three declared sessions (16 stations each) share one ground: the stations of ``block`` (m, inclusive)
+    sank 15 mm; the stations at the other height, and only they, get the new session."""
+    from graphcal.commands.simulate import run as simulate_to_folder
+
+    base = tmp_path / "base"
+    simulate_to_folder(robot="octopus", program="random", ground="level", out_dir=base, seed=100, n_stations=48,
+                       n_sessions=3, output="planes", cloud_stride=8, progress=False, session_heading_step_deg=40.0)
+    lo, hi = block
+    folder = tmp_path / "step"
+    shutil.copytree(base, folder)
+    with open(folder / "planes.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    for r in rows:
+        if lo <= int(r["station"]) <= hi:
+            r["d"] = repr(float(r["d"]) - 0.015)
+    with open(folder / "planes.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    model, corrections, data, notes = _find(folder)
+    assert [c.cause for c in corrections] == ["height_step"], notes
+    boundary = hi + 1 if lo == 1 else lo
+    assert corrections[0].get("from_station") == boundary
+    new = dict(corrections[0].corrected)["new_session"]
+    assert {st.station for st in data.stations if st.session == new} == set(range(lo, hi + 1))

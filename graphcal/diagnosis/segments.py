@@ -354,14 +354,17 @@ def find_segments(model, say) -> tuple:
                       confidence=float(confidence), alternatives=close)
         if best.kind == "step":
             session = lay.session[best.index]
-            end = lay.session_end(best.index)
-            label = _new_session(data, session, st)
+            # the stations at the other height get the new session: from the boundary to the session's
+            # end, or (a step of the stations before it) from the session's start to the boundary
+            lo_j, end = ((lay.session_start(best.index), best.index) if best.head
+                         else (best.index, lay.session_end(best.index)))
+            label = _new_session(data, session, lay.stations[lo_j].station)
             h = -float(best.estimate[0]) if best.head else float(best.estimate[0])
             sigma = float(1.0 / np.sqrt(best.information[0, 0]))
             note = (f"the ground the sensors see is {1e3 * abs(h):.1f} mm {'further' if h > 0 else 'closer'} from "
                     f"station {st} on (session "
                     f"{session}, undeclared; P(boundary at {st}) {p_k:.2f}, 95 % interval {lo}..{hi}): stations "
-                    f"{st}..{lay.stations[end - 1].station} given session {label}")
+                    f"{lay.stations[lo_j].station}..{lay.stations[end - 1].station} given session {label}")
             if len(side) == 1:
                 note += (f"; one station ({lay.stations[side[0]].station}) on its short side: an outlier whose only "
                          "error is its distance would look the same")
@@ -369,8 +372,8 @@ def find_segments(model, say) -> tuple:
                                           (("new_session", label), ("ground_distance_change_m", h), ("sigma_m", sigma),
                                            ("boundary_probability", p_k), ("boundary_interval", (int(lo), int(hi)))),
                                           note=note, **common))
-            data = _relabel(data, lay, best.index, end, label)
-            cur = dataclasses.replace(cur, data=_relabel(cur.data, lay, best.index, end, label))
+            data = _relabel(data, lay, lo_j, end, label)
+            cur = dataclasses.replace(cur, data=_relabel(cur.data, lay, lo_j, end, label))
             cur = cur.with_finding(Candidate("session_offset", (("session", label),), 1))
         else:
             note = (f"{best.sensor}'s extrinsic changes at station {st} (undeclared; P(boundary at {st}) {p_k:.2f}, "
