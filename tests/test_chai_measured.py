@@ -2,7 +2,9 @@
 the transcription, the frame conversion, calibrate against Eq. 32, and diagnose.
 
 examples/octopus_chai2015/run.py does the work once (module fixture); the numbers asserted here are
-the ones measured on 2026-11-21 and quoted in examples/octopus_chai2015/README.md. Margins:
+the ones measured on 2026-11-21 and quoted in examples/octopus_chai2015/README.md (the tables as
+printed with the text's prior, issue 29: measured 2026-11-27, README.md "The tables as printed").
+Margins:
 
 * pure geometry on the paper's printed numbers (checks, residuals of Eq. 32 against the set poses):
   deterministic, so a tight tolerance (1e-3 deg, 0.02 mm) that only floating point can meet;
