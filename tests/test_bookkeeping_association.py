@@ -171,3 +171,68 @@ def test_stations_the_planes_cannot_tell_apart_are_not_corrected(models, robot):
     assert corrections == () and out is data
     assert len(notes) == 1 and f"labelled station {c}" in notes[0]
     assert f"station {a}" in notes[0] and f"station {twin}" in notes[0]
+
+
+def test_a_physical_cause_is_not_a_bookkeeping_error(tmp_path):
+    """A joint compliance on the qingzhui (the diagnosis battery's set-up: random program, 3
+    sessions) leaves most planes off their stations' grounds at physical noise: the model, not the
+    labels; nothing is corrected (it once "corrected" the sign of a 0.0014 normal component)."""
+    from graphcal.commands.simulate import run as simulate_to_folder
+
+    out = tmp_path / "compliance"
+    simulate_to_folder(robot="qingzhui", program="random", ground="level", out_dir=out, seed=320, n_stations=48,
+                       n_sessions=3, output="planes", cloud_stride=8, effects=[("joint_compliance", {})],
+                       progress=False, session_heading_step_deg=40.0, overwrite=True)
+    ds = read_dataset(out)
+    robot = load_dataset_robot(ds)
+    model = DiagnosisModel(ds, robot, calibration_data(ds, robot), model_options(ds))
+    said = []
+    corrections, data, notes = find_associations(model, said.append)
+    assert said, "the gate lets the data through: the planes do not fit at physical noise"
+    assert corrections == () and notes == () and data is model.data
+
+
+def test_most_of_few_planes_relocated_is_a_hypothesis_not_a_correction(models):
+    """Chai's printed case, simulated: six planes, five of them labelled with another station (and
+    one of these with a flipped sign). Each relocated plane is fitted about as well as by a free
+    parameter and the extrinsic by the rest: no redundancy is left to judge the association, so
+    nothing is corrected; a note per doubtful plane, and one giving the best association as a
+    hypothesis."""
+    model = models["octopus"]
+    s = _sensor(model)
+    ids = _stations(model)
+    keep = [ids[k] for k in (0, 9, 14, 28, 33, 48)]
+    labels = [keep[0]] + [ids[k] for k in (12, 7, 24, 36, 44)]
+    planes = {}
+    for true, label in zip(keep, labels):
+        p = model.data.planes[(true, s)]
+        n = p.n.copy()
+        if true == keep[1]:
+            n[int(np.argmax(np.abs(n)))] *= -1.0
+        planes[(label, s)] = dataclasses.replace(p, station=label, n=n)
+    corrections, data, notes = _find(_with_planes(model, planes))
+    assert corrections == () and data.planes is planes
+    assert "a hypothesis, not corrected" in notes[-1] and "relocates 5 of 6" in notes[-1]
+    assert all("not corrected" in n for n in notes) and len(notes) <= 6
+
+
+def test_diagnose_corrects_before_the_loop(tmp_path):
+    """From the dataset folder: two stations' planes exchanged in planes.csv and one plane's d in
+    cm; diagnose reports both corrections and names no physical cause on the corrected data."""
+    import csv
+
+    from graphcal.diagnosis.diagnose import diagnose
+
+    path, _ = simulated_dataset(tmp_path, "hex", output="planes", **ROBOTS["hexapod"])
+    rows = list(csv.DictReader(open(path / "planes.csv")))
+    by = {r["station"]: r for r in rows}
+    by["5"]["station"], by["22"]["station"] = "22", "5"
+    by["30"]["d"] = str(100 * float(by["30"]["d"]))
+    with open(path / "planes.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(sorted(rows, key=lambda r: int(r["station"])))
+    d = diagnose(path)
+    assert sorted(c.label() for c in d.corrections) == [
+        "distance_unit(sensor=front_cam, station=30)", "stations_exchanged(sensor=front_cam, stations=[5, 22])"]
+    assert d.findings == [] or d.findings == ()
