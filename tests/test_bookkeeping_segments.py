@@ -90,8 +90,11 @@ def test_an_undeclared_height_step_is_found_at_its_station(clean, robot, where, 
     new = dict(c.corrected)["new_session"]
     assert [st.session for st in data.stations] == ["s1" if st.station < k else new for st in data.stations]
     assert data.planes is model.data.planes
-    if where != "mid":  # one station on a side: the note says what else it could be
-        assert "one station" in c.note
+    if where != "mid":  # one station on a side: the note and the alternatives say what else it could be
+        odd = 1 if where == "second" else n
+        assert "one station" in c.note and f"outlier_stations(stations=[{odd}])" in c.alternatives
+    else:
+        assert c.alternatives == ()
 
 
 @pytest.mark.parametrize("robot", list(ROBOTS))

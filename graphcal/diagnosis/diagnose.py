@@ -89,7 +89,9 @@ class Diagnosis:
             after it are fitted to the corrected measurements, ``nominal`` summarises the data as given.
         answer: whose extrinsic is the answer: "extended" (every finding supported and no
             structure remains), "nominal" (nothing named, or no finding predicts held-out stations
-            significantly better) or "neither" (structure remains: neither model fits).
+            significantly better) or "neither" (structure remains: neither model fits); "corrected" when
+            bookkeeping errors were corrected and the model of the corrected data (with its findings)
+            fits: its extrinsic is the answer, not calibrate's on the files as given.
     """
 
     nominal: ModelSummary
@@ -570,6 +572,8 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
 
     findings.sort(key=lambda f: f.evidence.log10_p_family)
     v = _verdicts(findings, (model, problem, values), (nominal_model, nominal_problem, nominal_values), notes, say)
+    if bookkeeping.corrections and v["answer"] != "neither":
+        v["answer"] = "corrected"  # calibrate on the files as given is not the answer: the corrected data's is
     return Diagnosis(nominal, final, tuple(v["findings"]), unexplained or v["structure"], st, tuple(screening), model,
                      values, problem, residual_records(nominal_model, nominal_problem, nominal_values),
                      residual_records(model, problem, values), stance_records(nominal_model, nominal_problem, nominal_values),

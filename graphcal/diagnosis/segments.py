@@ -8,33 +8,41 @@ Two things change at a station nobody declared a boundary at:
   that starts inside a declared session;
 * a **knock**: one sensor's extrinsic changes from that station on.
 
-The nominal model is solved once and linearised (scores.py, ``A delta = b`` whitened). Every boundary
+The nominal model is solved and linearised (scores.py, ``A delta = b`` whitened). Every boundary
 ``k`` of the station sequence (dataset order) is scored, ends included (a segment of one station at
 either end):
 
 * height step at ``k``: one column, the plane factors' Jacobian with respect to a vertical shift of
-  the ground they see, on the rows of the stations from ``k`` to the end of ``k``'s session (a
-  world-vertical move of the body pose is that shift, seen from the sensor);
-* knock of sensor ``s`` at ``k``: the extrinsic's six columns on ``s``'s rows from ``k`` on;
-* the alternatives a boundary at an end must beat: station ``k`` an outlier (every sensor's rows
-  free), and sensor ``s``'s measurement at ``k`` an outlier (its rows free).
+  the ground they see (a world-vertical move of the body pose is that shift, seen from the sensor),
+  on the rows of the stations from ``k`` to the end of ``k``'s session, and on those from the
+  session's start to ``k`` (declared sessions share one ground: the two are different hypotheses);
+* knock of sensor ``s`` at ``k``: the extrinsic's six columns on ``s``'s rows from ``k`` on.
 
-Each score ``T`` is chi-square with ``dof`` degrees of freedom when there is no boundary (the score
-test at the nominal fit; dof is the rank of the information, weak directions below
-:data:`RANK_RTOL` of the strongest not counted). The penalty is BIC-like: a boundary is accepted
-when ``T - dof * ln(n_rows) > 0`` AND its Bonferroni p-value over every boundary tested passes
-``ALPHA``. Its confidence against the next-best explanation at the same place (a knock against a
-step, an outlier against either) is the BIC difference (> 0: the boundary is preferred; below
-:data:`MIN_CONFIDENCE` the finder says it is ambiguous). Where the boundary lies is reported as a
-posterior over the boundary location (``p(k) ~ exp(T_k / 2)``, flat prior over the stations of the
-segment: the profile likelihood of one change point) and its 95 % interval.
+Gate: the boundaries are first scored against the nominal model alone (cheap); when none passes,
+the finder stops (clean data cost one solve and one linearisation). Otherwise they are scored again
+on the screening graph with every catalogued cause's variable projected out too (range scale,
+session offsets, ground tilt, IMU mounting, every joint offset and link length): a boundary must
+explain what none of them can (measured: a 1 % range scale otherwise read as three height steps).
 
-Binary segmentation: the strongest boundary is put into the model (a step as a new session with its
-offset; a declared session's offset when that explains best) and the search repeats, at most
-:data:`MAX_BOUNDARIES` times, until no boundary passes.
+Each score ``T`` is chi-square with ``dof`` degrees of freedom when there is no boundary (dof: the
+rank of the information, weak directions below :data:`RANK_RTOL` of the strongest not counted).
+The penalty is BIC-like: a boundary is accepted when ``T - dof * ln(n_rows) > 0`` AND its
+Bonferroni p-value over every boundary tested passes ``ALPHA``; the strongest by BIC is taken. Its
+confidence is its BIC minus that of the next-best explanation: the other kind of boundary within
+a station, outlier stations (the short side of an end segment; the station at the boundary and the
+next; the :data:`MAX_OUTLIERS` worst-fitting stations). Below :data:`MIN_CONFIDENCE` nothing is
+corrected and a note names both; where outliers explain clearly better the finder is silent (the
+loop tests outlier stations). Where the boundary lies is reported as a posterior over its location
+(``p(k) ~ exp(T_k / 2)``, flat prior over the stations of the segment: the profile likelihood of
+one change point) and its 95 % interval.
 
-What the finder returns: for a height step, data whose stations from the boundary on carry a new
-session label (``<session>@<station>``) -- the diagnosis loop's session_offset candidate then fits
+Binary segmentation: the boundary found is put into the model (a step as a new session with its
+offset, a knock as an extrinsic change) and the search repeats, at most :data:`MAX_BOUNDARIES`
+times, until no boundary passes.
+
+What the finder returns: for a height step, data whose stations at the other height (from the
+boundary to the session's end, or from its start to the boundary) carry a new session label
+(``<session>@<first station>``) -- the diagnosis loop's session_offset candidate then fits
 and names it -- and a Correction ``height_step``. For a knock, data unchanged and a Correction
 ``extrinsic_knock`` (reported through the loop's extrinsic_change, which may then test it within two
 stations of an end); a knock whose segment holds one station cannot be told from an outlier
@@ -52,9 +60,9 @@ from scipy.stats import chi2 as chi2_dist
 
 from graphcal.diagnosis.bookkeeping import Correction
 from graphcal.diagnosis.catalogue import Candidate
-from graphcal.diagnosis.scores import current_columns, linear_system
+from graphcal.diagnosis.scores import linear_system
 
-__all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MIN_CONFIDENCE", "RANK_RTOL"]
+__all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MAX_OUTLIERS", "MIN_CONFIDENCE", "RANK_RTOL"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +72,8 @@ ALPHA = 1e-3
 MAX_BOUNDARIES = 3
 #: the BIC difference a boundary must have over the next-best explanation at its place
 MIN_CONFIDENCE = 2.0
+#: a boundary must explain the data better than up to this many outlier stations (the worst-fitting)
+MAX_OUTLIERS = 3
 #: information eigenvalues below this share of the largest are not counted as degrees of freedom of a
 #: boundary: a knock seen on two planes of nearly the same normal is a 3-parameter effect (the
 #: normal's two angles and the distance); its three weak directions carry noise only (measured: 1.3
@@ -99,6 +109,8 @@ class _Layout:
     stations: tuple
     session: list
     rows_at: dict  # position -> {sensor: row indices}
+    P: np.ndarray  # orthonormal basis of the columns projected out (see _projector)
+    r: np.ndarray  # the whitened residual with every column fitted
 
     @classmethod
     def of(cls, model, system) -> "_Layout":
@@ -107,7 +119,7 @@ class _Layout:
         rows_at: dict = {}
         for (st, s), r in system.measurement_rows.items():
             rows_at.setdefault(index[st], {})[s] = r
-        return cls(tuple(stations), [st.session for st in stations], rows_at)
+        return cls(tuple(stations), [st.session for st in stations], rows_at, *_projector(system))
 
     def session_end(self, k: int) -> int:
         end = k
@@ -170,7 +182,7 @@ def _boundaries(model, problem, values, system, lay: _Layout) -> list[_Test]:
             ccs.append((rows, system.A[np.ix_(rows, np.arange(o, o + d))]))
             meta.append(("knock", k, s, (False, False)))
     return [_Test(kind, k, s, *sc, declared=flags[0], head=flags[1])
-            for (kind, k, s, flags), sc in zip(meta, _scores(system, ccs)) if sc is not None]
+            for (kind, k, s, flags), sc in zip(meta, _scores(lay, ccs)) if sc is not None]
 
 
 def _outliers(system, lay: _Layout, positions: tuple, sensor: str = "") -> _Test | None:
@@ -178,41 +190,48 @@ def _outliers(system, lay: _Layout, positions: tuple, sensor: str = "") -> _Test
     rows = [r for j in positions for s, r in lay.rows_at.get(j, {}).items() if not sensor or s == sensor]
     if not rows:
         return None
-    sc = _scores(system, [(np.concatenate(rows), None)])[0]
+    sc = _scores(lay, [(np.concatenate(rows), None)])[0]
     if sc is None:
         return None
     return _Test("measurement" if sensor else "outlier", positions[0], sensor, *sc, stations=tuple(positions))
 
 
-def _scores(system, ccs: list) -> list:
+def _projector(system) -> tuple[np.ndarray, np.ndarray]:
+    """(P, r): P = J L^-T (J^T J = L L^T, with a ridge far below any measured direction: the
+    screening variables include gauges, e.g. a session's ground against the extrinsic), whose
+    orthonormal columns span J -- the model's columns and every screening variable's; r = the
+    whitened residual with all of them fitted (the screening variables are not, at the nominal fit)."""
+    J, b = system.A, system.b
+    Q = J.T @ J
+    Q[np.diag_indices_from(Q)] += 1e-9 * max(np.trace(Q) / len(Q), 1e-300)
+    P = solve_triangular(np.linalg.cholesky(Q), J.T, lower=True).T
+    return P, b - P @ (P.T @ b)
+
+
+def _scores(lay: "_Layout", ccs: list) -> list:
     """(T, dof, estimate, information) per candidate ``(rows, K)`` -- its columns K on those rows
     (zero elsewhere), or K None: the identity on the rows (outliers) -- None where it has no
-    information. The current model's columns J are projected out through P = J L^-T (J^T J = L L^T,
-    P's columns orthonormal), so each candidate costs only its own rows. dof counted with RANK_RTOL:
+    information. The current model's columns and the catalogued causes' are projected out once
+    (:func:`_projector`), so each candidate costs only its own rows. dof counted with RANK_RTOL:
     the weak directions of an extrinsic seen on two planes are no evidence either way."""
-    A, b = system.A, system.b
-    J = A[:, current_columns(system, [])]
-    try:
-        L = np.linalg.cholesky(J.T @ J)
-        P = solve_triangular(L, J.T, lower=True).T
-    except np.linalg.LinAlgError:
-        U, sv, _ = np.linalg.svd(J, full_matrices=False)
-        P = U[:, sv > 1e-10 * sv.max()]
+    P, r = lay.P, lay.r
     out = []
     for rows, K in ccs:
         Pr = P[rows]
         if K is None:
             I = np.eye(len(rows)) - Pr @ Pr.T
-            u = b[rows]
+            u = r[rows]
             rtol = 1e-6
         else:
             G = Pr.T @ K
             I = K.T @ K - G.T @ G
-            u = K.T @ b[rows]
+            u = K.T @ r[rows]
             rtol = RANK_RTOL
         w, V = np.linalg.eigh(0.5 * (I + I.T))
         keep = w > rtol * max(w.max(), 1e-300)
-        if not keep.any():
+        # nothing left once the model and the catalogued causes are projected out (a step at a
+        # declared session's start is that session's offset)
+        if not keep.any() or w.max() < 1e-6 * max(np.trace(I + G.T @ G) if K is not None else len(rows), 1e-300):
             out.append(None)
             continue
         z = V[:, keep].T @ u
@@ -274,11 +293,21 @@ def _alternatives(best: _Test, tests: list[_Test], system, lay: _Layout) -> list
     (a knock for a step and back), outliers on its short side."""
     other = "knock" if best.kind == "step" else "step"
     alts = [t for t in tests if t.kind == other and abs(t.index - best.index) <= 1]
-    side = _short_side(lay, best)
-    if side:
-        o = _outliers(system, lay, side, best.sensor)
-        if o is not None:
-            alts.append(o)
+    n = len(lay.stations)
+    # outliers: the short side of an end segment; one or two stations from the boundary on (a
+    # boundary there and another back reads as them)
+    groups = {_short_side(lay, best), (best.index,), tuple(j for j in (best.index, best.index + 1) if j < n)}
+    # and the few stations whose data fit worst anywhere: outliers on either side of a boundary pull
+    # it towards them (measured: three outlier stations read as a knock between them)
+    single = [o for o in (_outliers(system, lay, (j,), best.sensor) for j in sorted(lay.rows_at)) if o is not None]
+    single.sort(key=lambda o: -o.statistic)
+    for m in range(1, MAX_OUTLIERS + 1):
+        groups.add(tuple(sorted(o.index for o in single[:m])))
+    for side in groups:
+        if side:
+            o = _outliers(system, lay, side, best.sensor)
+            if o is not None:
+                alts.append(o)
     return alts
 
 
@@ -306,6 +335,19 @@ def _relabel(data, lay: _Layout, k: int, end: int, label: str):
     return dataclasses.replace(data, stations=stations)
 
 
+def _search(model, problem, values) -> tuple:
+    """(system, layout, boundary tests, rows) of ``problem`` linearised at ``values``."""
+    system = linear_system(problem, values)
+    lay = _Layout.of(model, system)
+    return system, lay, _boundaries(model, problem, values, system, lay), len(system.b)
+
+
+def _passing(tests: list, n_rows: int) -> list:
+    """The boundaries that pass: Bonferroni p over every boundary tested below ALPHA, and BIC > 0."""
+    log10_p = _log10_p(tests, len(tests))
+    return [t for t, lp in zip(tests, log10_p) if lp < np.log10(ALPHA) and t.bic(n_rows) > 0]
+
+
 def find_segments(model, say) -> tuple:
     """(corrections, corrected data, notes) for the nominal ``model`` (a DiagnosisModel with its
     noise learned); see graphcal/diagnosis/bookkeeping.py and this module's docstring."""
@@ -313,14 +355,17 @@ def find_segments(model, say) -> tuple:
     notes: list = []
     data = model.data
     cur = model
-    for _ in range(MAX_BOUNDARIES):
+    for rnd in range(MAX_BOUNDARIES):
         problem, values = cur.solve()
-        system = linear_system(problem, values)
-        lay = _Layout.of(cur, system)
-        tests = _boundaries(cur, problem, values, system, lay)
-        n_rows = len(system.b)
-        log10_p = _log10_p(tests, len(tests))
-        passing = [t for t, lp in zip(tests, log10_p) if lp < np.log10(ALPHA) and t.bic(n_rows) > 0]
+        if rnd == 0 and not _passing(*_search(cur, problem, values)[2:]):
+            # the gate: no boundary passes even against the model alone (the cheap system: no
+            # screening variables, no leg parameters to linearise): nothing to look for
+            break
+        # the screening graph: every catalogued cause's variable at its nominal value, projected
+        # out with the model's own (_scores): a boundary must explain what none of them can
+        problem = cur.build(screen=True, initial=values)
+        system, lay, tests, n_rows = _search(cur, problem, problem.initial)
+        passing = _passing(tests, n_rows)
         if not passing:
             break
         best = max(passing, key=lambda t: t.bic(n_rows))
@@ -345,6 +390,10 @@ def find_segments(model, say) -> tuple:
                          "one station cannot tell: nothing corrected")
             say(f"segments: {notes[-1]}")
             break
+        if confidence < -MIN_CONFIDENCE and alt.kind in ("outlier", "measurement"):
+            # outliers explain it clearly better: not a boundary (the loop tests outlier stations)
+            say(f"segments: {_label(best, lay)} is explained better by {_label(alt, lay)}; no boundary")
+            break
         if confidence < MIN_CONFIDENCE:
             notes.append(f"{where_text}: {_label(best, lay)} or {_label(alt, lay)}; the data cannot tell them apart "
                          f"(BIC difference {confidence:.1f}): nothing corrected")
@@ -366,8 +415,11 @@ def find_segments(model, say) -> tuple:
                     f"{session}, undeclared; P(boundary at {st}) {p_k:.2f}, 95 % interval {lo}..{hi}): stations "
                     f"{lay.stations[lo_j].station}..{lay.stations[end - 1].station} given session {label}")
             if len(side) == 1:
-                note += (f"; one station ({lay.stations[side[0]].station}) on its short side: an outlier whose only "
-                         "error is its distance would look the same")
+                odd = lay.stations[side[0]].station
+                note += (f"; one station ({odd}) on its short side: an outlier whose only error is its distance "
+                         "would look the same")
+                if f"outlier_stations(stations=[{odd}])" not in common["alternatives"]:
+                    common["alternatives"] += (f"outlier_stations(stations=[{odd}])",)
             corrections.append(Correction("height_step", (("from_station", int(st)), ("session", session)),
                                           (("new_session", label), ("ground_distance_change_m", h), ("sigma_m", sigma),
                                            ("boundary_probability", p_k), ("boundary_interval", (int(lo), int(hi)))),
