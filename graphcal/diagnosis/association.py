@@ -50,8 +50,9 @@ GATE_ALPHA = 1e-3
 PASS_P = 1e-3
 #: a correction beats the next-best explanation by at least this much chi-square (likelihood ratio e^6)
 MIN_CONFIDENCE = 12.0
-#: a plane is an inlier of the extrinsic fit when its chi-square is below this (3 dof, p ~ 1e-4)
-INLIER_CHI2 = 21.0
+#: a measurement is an inlier of the extrinsic fit when its chi-square's tail probability is above
+#: this (3 dof: chi-square 21)
+INLIER_P = 1e-4
 #: assignment costs are capped (+ a slow growth) so that gross outliers do not steer the others
 COST_CAP = 60.0
 #: assignment penalty of a plane moved off its label, and of a variant (chi-square units)
@@ -92,7 +93,7 @@ def find_associations(model, say) -> tuple:
             continue
         if grounds is None:
             grounds = station_grounds(data, model.robot, physical)
-        found, moved, said = _sensor(ds, sensor, [data.planes[k] for k in keys], grounds, say)
+        found, moved, said = search(sensor, _camera(ds, sensor, [data.planes[k] for k in keys], grounds), say)
         corrections += found
         notes += said
         for k in keys:
@@ -161,10 +162,32 @@ class _Camera:
         return sc
 
     def prior_cost(self, T) -> float:
-        T_cad, sig_m, sig_rad = self.prior
-        r = np.concatenate([Rotation.from_matrix(T_cad[:3, :3].T @ T[:3, :3]).as_rotvec() / max(sig_rad, 1e-4),
-                            T[:3, :3].T @ (T[:3, 3] - T_cad[:3, 3]) / max(sig_m, 1e-4)])
-        return float(r @ r)
+        return prior_cost(self.prior, T)
+
+    @property
+    def dof(self) -> np.ndarray:
+        """(N,) degrees of freedom of each measurement's chi-square."""
+        return np.full(len(self.meas), 3)
+
+    def fit(self, var: np.ndarray, use: np.ndarray, assign: np.ndarray, T0) -> np.ndarray:
+        """The extrinsic (4x4) fitted from ``T0`` to the planes ``use`` as variants ``var[use]`` at
+        the stations ``assign[use]``."""
+        T, _, _ = fit_extrinsic(self.n[var[use], use], self.d[var[use], use], self.cov3[var[use], use], self.g,
+                                assign[use], T0, self.prior, B=self.B[var[use], use])
+        return T
+
+    def corrected(self, i: int, v: int, station: int):
+        """Plane ``i`` as variant ``v`` at ``station`` (a new PlaneMeasurement)."""
+        return dataclasses.replace(self.meas[i], station=station, n=self.n[v, i], d=float(self.d[v, i]))
+
+
+def prior_cost(prior: tuple, T) -> float:
+    """The CAD prior's chi-square (6 dof) of the extrinsic ``T`` (4x4); ``prior`` (T_cad, sigma_m,
+    sigma_rad)."""
+    T_cad, sig_m, sig_rad = prior
+    r = np.concatenate([Rotation.from_matrix(T_cad[:3, :3].T @ T[:3, :3]).as_rotvec() / max(sig_rad, 1e-4),
+                        T[:3, :3].T @ (T[:3, 3] - T_cad[:3, 3]) / max(sig_m, 1e-4)])
+    return float(r @ r)
 
 
 def _camera(ds, sensor, meas, g) -> _Camera:
@@ -208,40 +231,40 @@ def _alternate(cam: _Camera, T0, cov_S0, forced=None) -> tuple:
         if prev is not None and np.array_equal(assign, prev[0]) and np.array_equal(var, prev[1]):
             break
         prev = (assign, var)
-        inl = chi[var, idx, assign] < INLIER_CHI2
+        inl = chi2_dist.sf(chi[var, idx, assign], cam.dof) > INLIER_P
         if inl.sum() < 3:
             inl[:] = True
         use = np.flatnonzero(inl)
-        T, _, _ = fit_extrinsic(cam.n[var[use], use], cam.d[var[use], use], cam.cov3[var[use], use], cam.g,
-                                assign[use], T, cam.prior, B=cam.B[var[use], use])
+        T = cam.fit(var, use, assign, T)
         cov_S = None
     assign, var, total = _assign(cam, cam.score(cam.chi(T)), forced)
     return T, assign, var, total + cam.prior_cost(T)
 
 
-def _sensor(ds, sensor, meas, g, say) -> tuple:
-    """(corrections, {(station, sensor): corrected PlaneMeasurement}, notes) of one camera."""
-    cam = _camera(ds, sensor, meas, g)
+def search(sensor, cam, say) -> tuple:
+    """(corrections, {(station, sensor): corrected measurement}, notes) of one sensor's
+    measurements ``cam`` (a :class:`_Camera`, or a scanner's with the same methods; module docstring)."""
+    meas = cam.meas
     T_cad, sig_m, sig_rad = cam.prior
     n = len(meas)
     idx = np.arange(n)
-    T, _, _ = fit_extrinsic(cam.n[0], cam.d[0], cam.cov3[0], g, cam.labels, T_cad, cam.prior, B=cam.B[0])
-    p_label = chi2_dist.sf(cam.at_labels(T), 3)
-    unchanged = {(m.station, sensor): m for m in meas}
+    T = cam.fit(np.zeros(n, dtype=int), idx, cam.labels, T_cad)
+    p_label = chi2_dist.sf(cam.at_labels(T), cam.dof)
+    unchanged = {(m.station, sensor): cam.corrected(i, 0, m.station) for i, m in enumerate(meas)}
     failing = p_label < GATE_ALPHA / n
     if not failing.any():
         return [], unchanged, []
-    say(f"association: {sensor}: {int(failing.sum())} of {n} planes do not fit their labelled station at "
-        f"physical noise; searching the association")
+    say(f"association: {sensor}: {int(failing.sum())} of {n} measurements do not fit their labelled station "
+        f"at physical noise; searching the association")
     if failing.mean() <= MAX_FAIL_SHARE:
         # the labelled fit is sound: only the planes it doubts may move or change
         cam = dataclasses.replace(cam, active=p_label < ACTIVE_P)
     cov_prior = np.diag([max(sig_rad, 1e-4) ** 2] * 3 + [max(sig_m, 1e-4) ** 2] * 3)
     best = min((_alternate(cam, T, None), _alternate(cam, T_cad, cov_prior)), key=lambda r: r[3])
-    still = chi2_dist.sf(cam.chi(best[0])[best[2], idx, best[1]], 3) < GATE_ALPHA / n
+    still = chi2_dist.sf(cam.chi(best[0])[best[2], idx, best[1]], cam.dof) < GATE_ALPHA / n
     if still.mean() > MAX_FAIL_SHARE:
         # most planes fit no station under any association: the model (a physical cause), not the labels
-        say(f"association: {sensor}: {int(still.sum())} of {n} planes fit no station at physical noise under "
+        say(f"association: {sensor}: {int(still.sum())} of {n} measurements fit no station at physical noise under "
             f"the best association: the model, not the bookkeeping; nothing corrected")
         return [], unchanged, []
     for attempt in range(MAX_RESTARTS + 1):  # a forced alternative better than the best restarts from it
@@ -250,7 +273,7 @@ def _sensor(ds, sensor, meas, g, say) -> tuple:
             break
         best = better
     found, planes, notes = _report(sensor, cam, best, decisions)
-    if decisions and not np.isfinite(_scatter(cam.chi(best[0])[best[2], idx, best[1]], len(decisions))):
+    if decisions and not np.isfinite(_scatter(cam.chi(best[0])[best[2], idx, best[1]], cam.dof, len(decisions))):
         # every confidence is 0: nothing corrected; the per-plane notes and the association as a hypothesis
         return [], unchanged, notes + [_hypothesis_note(sensor, cam, best)]
     return found, planes, notes
@@ -279,7 +302,7 @@ def _decide(cam: _Camera, best, restart: bool = True) -> tuple:
     chi = cam.chi(T)
     sc = cam.score(chi)
     changed = int(np.sum((assign != cam.labels) | (var != 0)))
-    scale = _scatter(chi[var, np.arange(len(assign)), assign], changed)
+    scale = _scatter(chi[var, np.arange(len(assign)), assign], cam.dof, changed)
     out = {}
     for i in range(len(cam.meas)):
         if assign[i] == cam.labels[i] and var[i] == 0:
@@ -302,14 +325,14 @@ def _decide(cam: _Camera, best, restart: bool = True) -> tuple:
     return out, None
 
 
-def _scatter(chi: np.ndarray, changed: int) -> float:
+def _scatter(chi: np.ndarray, dof: np.ndarray, changed: int) -> float:
     """max(1, chi-square per degree of freedom) of the inlier planes' ``chi`` (3 dof each; 6 taken
     by the extrinsic and 3 by each plane the association changed: a plane free to go to any station
     is fitted about as well as by a free parameter); ``inf`` when no degree of freedom is left (no
     redundancy to judge a change by: measured on Chai's six printed planes, five of them moved)."""
-    inl = chi[chi < INLIER_CHI2]
-    dof = 3 * len(inl) - 6 - 3 * changed
-    return max(1.0, float(inl.sum()) / dof) if dof > 0 else np.inf
+    inl = chi2_dist.sf(chi, dof) > INLIER_P
+    left = int(dof[inl].sum()) - 6 - 3 * changed
+    return max(1.0, float(chi[inl].sum()) / left) if left > 0 else np.inf
 
 
 def _report(sensor, cam: _Camera, best, decisions) -> tuple:
@@ -323,7 +346,7 @@ def _report(sensor, cam: _Camera, best, decisions) -> tuple:
     notes, accepted = [], {}
     for i, (conf, alts) in decisions.items():
         label = meas[i].station
-        if chi2_dist.sf(chi_new[i], 3) < PASS_P:
+        if chi2_dist.sf(chi_new[i], cam.dof[i]) < PASS_P:
             notes.append(f"{sensor}: the plane labelled station {label} fits no station at physical noise, as "
                          f"given or with a sign, convention or unit corrected (chi-square {at_label[i]:.0f} at its "
                          f"label): an outlier, or a cause of the model")
@@ -404,5 +427,5 @@ def _corrections(sensor, cam, assign, var, at_label, chi_new, accepted) -> tuple
             corrections.append(Correction(
                 cause, (("sensor", sensor), ("station", new_station)), corrected,
                 note=f"{sensor}: the plane of station {new_station}: {cause} ({detail}) corrected", **common))
-        planes[(new_station, sensor)] = dataclasses.replace(m, station=new_station, n=n_new, d=d_new)
+        planes[(new_station, sensor)] = cam.corrected(i, var[i], new_station)
     return corrections, planes
