@@ -302,6 +302,8 @@ def _row_of_plane(n: np.ndarray, d: float, rows: list) -> tuple[int, list]:
 _NOTE_PLANE = re.compile(r"the plane labelled station (\d+) \(chi-square (\d+) there\) does not fit it; the data cannot "
                          r"tell between \(the best found\) (.*?)(; in every one ([^()]*?) \(the station, not the variant, "
                          r"is unsure\))?: not corrected")
+_NOTE_HYPOTHESIS = re.compile(r"the best association found relocates \d+ of \d+ \((.*?)\) and leaves no redundancy")
+_NOTE_MOVE = re.compile(r"(\d+) -> station (\d+)(?: \(([^)]*)\))?")
 _NOTE_OPTION = re.compile(r"station (\d+)(?: \(([^)]*)\))?")
 
 
@@ -319,6 +321,17 @@ def suspected(notes) -> dict:
         out[int(m.group(1))] = {"chi2_at_label": float(m.group(2)), "candidates": cands,
                                 "every_variant": m.group(5)}
     return out
+
+
+def hypothesis(notes) -> dict:
+    """The association finder's best association when it leaves no redundancy to judge it (a
+    hypothesis, not corrected), from its note: label -> (station, variant or None) for the rows it
+    relocates; {} when there is no such note."""
+    for n in notes:
+        m = _NOTE_HYPOTHESIS.search(n)
+        if m is not None:
+            return {int(a): (int(b), c or None) for a, b, c in _NOTE_MOVE.findall(m.group(1))}
+    return {}
 
 
 def association_margins() -> dict:
@@ -360,7 +373,7 @@ def discovered(diagnosis) -> dict:
         sessions.setdefault(str(st.session), []).append(int(st.station))
     return {"mapping": dict(sorted(mapping.items())), "sign_flips": flips, "sessions": sessions,
             "corrections": [c.to_dict() for c in diagnosis.corrections], "notes": list(diagnosis.notes),
-            "suspected": suspected(diagnosis.notes)}
+            "suspected": suspected(diagnosis.notes), "hypothesis": hypothesis(diagnosis.notes)}
 
 
 def write_corrected(path: Path, diagnosis, out: Path) -> Path:
