@@ -236,3 +236,36 @@ def test_diagnose_corrects_before_the_loop(tmp_path):
     assert sorted(c.label() for c in d.corrections) == [
         "distance_unit(sensor=front_cam, station=30)", "stations_exchanged(sensor=front_cam, stations=[5, 22])"]
     assert d.findings == [] or d.findings == ()
+
+
+@pytest.fixture(scope="module")
+def messor(tmp_path_factory):
+    """The Messor (2D laser scanner + stereo camera), 30 random stations."""
+    from graphcal.commands.simulate import run as simulate_to_folder
+
+    out = tmp_path_factory.mktemp("messor") / "messor"
+    simulate_to_folder(robot="messor", program="random", ground="level", out_dir=out, seed=4, n_stations=30,
+                       n_sessions=1, output="planes", cloud_stride=8, effects=[], progress=False, overwrite=True)
+    ds = read_dataset(out)
+    robot = load_dataset_robot(ds)
+    return DiagnosisModel(ds, robot, calibration_data(ds, robot), model_options(ds))
+
+
+def test_laser_scans_exchanged_and_misfiled(messor):
+    """Laser scans: clean nothing; two stations' scans exchanged, and a scan written over another
+    station's: found, the scans put back; the camera's planes untouched."""
+    assert _find(messor) == ((), messor.data, ())
+    ids = sorted(k[0] for k in messor.data.scan_points if k[1] == "laser")
+    a, b = ids[3], ids[20]
+    sp = dict(messor.data.scan_points)
+    sp[(a, "laser")], sp[(b, "laser")] = sp[(b, "laser")], sp[(a, "laser")]
+    corrections, data, _ = _find(dataclasses.replace(messor, data=dataclasses.replace(messor.data, scan_points=sp)))
+    assert [c.label() for c in corrections] == [f"stations_exchanged(sensor=laser, stations={sorted([a, b])})"]
+    assert data.scan_points[(a, "laser")] is messor.data.scan_points[(a, "laser")]
+    assert data.planes == messor.data.planes
+    sp = dict(messor.data.scan_points)
+    sp[(b, "laser")] = sp.pop((a, "laser"))
+    corrections, data, _ = _find(dataclasses.replace(messor, data=dataclasses.replace(messor.data, scan_points=sp)))
+    assert [c.label() for c in corrections] == [f"station_mislabelled(from_station={b}, sensor=laser, station={a})"]
+    assert (b, "laser") not in data.scan_points
+    assert data.scan_points[(a, "laser")] is messor.data.scan_points[(a, "laser")]

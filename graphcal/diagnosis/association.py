@@ -1,5 +1,5 @@
-"""Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): sensor planes filed under the wrong
-station (two stations' data exchanged, a plane under another station) and sign / convention / unit
+"""Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): sensor planes and laser scans filed under
+the wrong station (two stations' data exchanged, a plane under another station) and sign / convention / unit
 errors of single planes (a normal component's sign, the opposite (n, d) convention, d in mm or cm).
 
 Per camera, every plane is compared with the ground each station predicts without that camera's
@@ -20,8 +20,8 @@ planes (plane_corrections.py: the stance feet, or the commanded pose) at physica
    otherwise a note names the candidates the data cannot tell apart (e.g. poses differing only in
    yaw, which a ground plane cannot see).
 
-Laser scans are not examined (a scan is a line on the ground, not a plane: its association would
-need its own error model; the diagnosis loop still sees scans that fit no station as outliers).
+Laser scans go through the same search with one variant (as given): their range errors at every
+station (scan_association.py); swaps and misfiled scans are found, no sign or unit variants.
 """
 
 from __future__ import annotations
@@ -37,8 +37,9 @@ from scipy.stats import chi2 as chi2_dist
 
 from graphcal.diagnosis.bookkeeping import Correction
 from graphcal.factors.plane_observation import tangent_basis
-from graphcal.diagnosis.plane_corrections import (PLANE_VARIANTS, chi2_rows, fit_extrinsic, plane_rows, plane_variant,
-                                                  station_grounds)
+from graphcal.diagnosis.plane_corrections import (PLANE_VARIANTS, StationGrounds, chi2_rows, fit_extrinsic,
+                                                  plane_rows, plane_variant, station_grounds)
+from graphcal.diagnosis.scan_association import fit_scan_extrinsic, scan_beams, scan_chi2
 
 __all__ = ["find_associations", "GATE_ALPHA", "PASS_P", "MIN_CONFIDENCE"]
 
@@ -80,30 +81,35 @@ def find_associations(model, say) -> tuple:
     """(corrections, corrected data, notes) for the nominal ``model`` (a DiagnosisModel with its
     noise learned); see the module docstring and graphcal/diagnosis/bookkeeping.py."""
     from graphcal.calibration.calibrate import dataset_physical_noise
+    from graphcal.diagnosis.model import model_options
 
     data, ds = model.data, model.ds
     physical, _ = dataset_physical_noise(ds, model.options)
     corrections: list = []
     notes: list = []
-    planes = dict(data.planes)
+    out = {"planes": dict(data.planes), "scan_points": dict(data.scan_points)}
     grounds = None
     for sensor in model.sensors():
-        keys = [(st.station, sensor) for st in data.stations if (st.station, sensor) in data.planes]
-        if len(keys) < 3:
-            continue
-        if grounds is None:
-            grounds = station_grounds(data, model.robot, physical)
-        found, moved, said = search(sensor, _camera(ds, sensor, [data.planes[k] for k in keys], grounds), say)
-        corrections += found
-        notes += said
-        for k in keys:
-            planes.pop(k, None)
-        planes.update(moved)
-    if any(k[1] for k in data.scan_points):
-        log.debug("association: laser scans are not examined")
+        for field, kind in (("planes", "plane"), ("scan_points", "scan")):
+            keys = [(st.station, sensor) for st in data.stations if (st.station, sensor) in getattr(data, field)]
+            if len(keys) < 3:
+                continue
+            if grounds is None:
+                grounds = station_grounds(data, model.robot, physical)
+            if kind == "plane":
+                cam = _camera(ds, sensor, [data.planes[k] for k in keys], grounds)
+            else:
+                cam = _scanner(ds, sensor, data, keys, grounds, model_options(ds).sigma_scan_m)
+            found, moved, said = search(sensor, cam, say)
+            corrections += found
+            notes += said
+            if found:
+                for k in keys:
+                    out[field].pop(k, None)
+                out[field].update(moved)
     if not corrections:
         return (), data, tuple(notes)
-    return tuple(corrections), dataclasses.replace(data, planes=planes), tuple(notes)
+    return tuple(corrections), dataclasses.replace(data, **out), tuple(notes)
 
 
 def _prior(ds, sensor: str) -> tuple:
@@ -128,6 +134,7 @@ class _Camera:
     prior: tuple
     B: np.ndarray
     active: np.ndarray
+    kind: str = "plane"
 
     def at_labels(self, T, cov_S=None) -> np.ndarray:
         """(N,) chi-square of every plane as given at its label."""
@@ -202,6 +209,71 @@ def _camera(ds, sensor, meas, g) -> _Camera:
     B = np.array([[tangent_basis(x) for x in n] for n in ns])
     return _Camera(list(meas), np.array([index[m.station] for m in meas]), g, np.array(ns), np.array(ds_),
                    np.array(cs), _prior(ds, sensor), B, np.ones(len(meas), dtype=bool))
+
+
+@dataclass(frozen=True, eq=False)
+class _Scanner:
+    """One laser scanner's scans, with :class:`_Camera`'s methods (one variant: as given):
+    ``meas`` (N :class:`ScanMeasurement`), ``labels``, ``g``, ``beams`` [(D, rho), ...]
+    (scan_association.scan_beams), ``sigma`` the range noise (m), ``prior``, ``active``."""
+
+    meas: list
+    labels: np.ndarray
+    g: object
+    beams: list
+    sigma: float
+    prior: tuple
+    active: np.ndarray
+    kind: str = "scan"
+
+    @property
+    def dof(self) -> np.ndarray:
+        return np.array([len(r) for _, r in self.beams])
+
+    def at_labels(self, T, cov_S=None) -> np.ndarray:
+        g = self.g
+        out = np.empty(len(self.meas))
+        for i, ((D, rho), j) in enumerate(zip(self.beams, self.labels)):
+            sub = StationGrounds(g.ids[j:j + 1], g.u[j:j + 1], g.z[j:j + 1], g.W[j:j + 1], g.cov[j:j + 1], ())
+            out[i] = scan_chi2(D, rho, sub, T, self.sigma, cov_S)[0]
+        return out
+
+    def chi(self, T, cov_S=None) -> np.ndarray:
+        full = np.full((1, len(self.meas), len(self.g.ids)), FAR)
+        full[0, np.arange(len(self.meas)), self.labels] = self.at_labels(T, cov_S)
+        for i in np.flatnonzero(self.active):
+            full[0, i] = scan_chi2(*self.beams[i], self.g, T, self.sigma, cov_S)
+        return full
+
+    def score(self, chi: np.ndarray) -> np.ndarray:
+        x = chi - self.dof[None, :, None]  # the chi-square beyond its expectation: scans differ in size
+        sc = np.where(x < COST_CAP, x, COST_CAP + np.sqrt(np.maximum(x - COST_CAP, 0.0))) + MOVE_PENALTY
+        sc[:, np.arange(len(self.meas)), self.labels] -= MOVE_PENALTY
+        return sc
+
+    def prior_cost(self, T) -> float:
+        return prior_cost(self.prior, T)
+
+    def fit(self, var, use, assign, T0) -> np.ndarray:
+        return fit_scan_extrinsic([self.beams[i] for i in use], assign[use], self.g, T0, self.prior, self.sigma)
+
+    def corrected(self, i: int, v: int, station: int):
+        return self.meas[i].points
+
+
+@dataclass(frozen=True, eq=False)
+class ScanMeasurement:
+    """A laser scan at ``station``: its points (K, 3) in the sensor frame (m)."""
+
+    station: int
+    points: np.ndarray
+
+
+def _scanner(ds, sensor, data, keys, g, sigma: float) -> _Scanner:
+    index = {int(s): j for j, s in enumerate(g.ids)}
+    meas = [ScanMeasurement(k[0], data.scan_points[k]) for k in keys]
+    return _Scanner(meas, np.array([index[m.station] for m in meas]), g, [scan_beams(m.points) for m in meas],
+                    sigma, _prior(ds, sensor), np.ones(len(meas), dtype=bool))
 
 
 def _assign(cam: _Camera, sc: np.ndarray, forced=None) -> tuple:
@@ -284,7 +356,7 @@ def _hypothesis_note(sensor, cam: _Camera, best) -> str:
     _, assign, var, _ = best
     moved = [f"{m.station} -> {_option(cam.g, assign[i], var[i])}" for i, m in enumerate(cam.meas)
              if assign[i] != cam.labels[i] or var[i]]
-    return (f"{sensor}: the planes do not fit their labelled stations; the best association found relocates "
+    return (f"{sensor}: the {cam.kind}s do not fit their labelled stations; the best association found relocates "
             f"{len(moved)} of {len(cam.meas)} ({'; '.join(moved)}) and leaves no redundancy to judge it "
             f"(each relocated plane is fitted about as well as by a free parameter, the extrinsic by the rest): "
             f"a hypothesis, not corrected")
@@ -347,9 +419,10 @@ def _report(sensor, cam: _Camera, best, decisions) -> tuple:
     for i, (conf, alts) in decisions.items():
         label = meas[i].station
         if chi2_dist.sf(chi_new[i], cam.dof[i]) < PASS_P:
-            notes.append(f"{sensor}: the plane labelled station {label} fits no station at physical noise, as "
-                         f"given or with a sign, convention or unit corrected (chi-square {at_label[i]:.0f} at its "
-                         f"label): an outlier, or a cause of the model")
+            how = " as given or with a sign, convention or unit corrected" if cam.kind == "plane" else ""
+            notes.append(f"{sensor}: the {cam.kind} labelled station {label} fits no free station at physical "
+                         f"noise{how} (chi-square {at_label[i]:.0f} at its label): an outlier (or a copy of another "
+                         f"station's data), or a cause of the model")
         elif conf < MIN_CONFIDENCE:
             cands = [(assign[i], var[i])] + alts
             txt = ", ".join(_option(g, j, v) for j, v in cands[:8])
@@ -358,7 +431,7 @@ def _report(sensor, cam: _Camera, best, decisions) -> tuple:
             if len(shared) == 1 and var[i]:
                 also = f"; in every one {' '.join(PLANE_VARIANTS[var[i]])} (the station, not the variant, is unsure)"
             more = "" if len(cands) <= 8 else ", ..."
-            notes.append(f"{sensor}: the plane labelled station {label} (chi-square {at_label[i]:.0f} there) does "
+            notes.append(f"{sensor}: the {cam.kind} labelled station {label} (chi-square {at_label[i]:.0f} there) does "
                          f"not fit it; the data cannot tell between (the best found) {txt}{more}{also}: not corrected")
         else:
             accepted[i] = (conf, alts)
@@ -383,15 +456,15 @@ def _without_conflicts(cam, assign, accepted, notes, sensor) -> dict:
         if not clash:
             return accepted
         for i in clash:
-            notes.append(f"{sensor}: the plane labelled station {cam.meas[i].station} belongs to station "
-                         f"{int(cam.g.ids[assign[i]])}, whose own plane could not be placed: not corrected")
+            notes.append(f"{sensor}: the {cam.kind} labelled station {cam.meas[i].station} belongs to station "
+                         f"{int(cam.g.ids[assign[i]])}, whose own {cam.kind} could not be placed: not corrected")
             accepted.pop(i)
 
 
 def _corrections(sensor, cam, assign, var, at_label, chi_new, accepted) -> tuple:
     """(Corrections, corrected planes) of the accepted changes {plane index: (confidence, alternatives)}."""
     g, meas = cam.g, cam.meas
-    planes = {(m.station, sensor): m for i, m in enumerate(meas) if i not in accepted}
+    planes = {(m.station, sensor): cam.corrected(i, 0, m.station) for i, m in enumerate(meas) if i not in accepted}
     station_of = {i: int(g.ids[assign[i]]) for i in accepted}
     corrections, done = [], set()
     for i, (conf, alts) in accepted.items():
@@ -410,16 +483,16 @@ def _corrections(sensor, cam, assign, var, at_label, chi_new, accepted) -> tuple
                               confidence=min(conf, accepted[k][0]))
                 common["p_value"] = float(chi2_dist.sf(max(common["statistic"], 0.0), 6))
                 corrections.append(Correction("stations_exchanged", (("sensor", sensor), ("stations", pair)),
-                                              (("stations", pair),), note=f"{sensor}: the planes of stations "
+                                              (("stations", pair),), note=f"{sensor}: the {cam.kind}s of stations "
                                               f"{pair[0]} and {pair[1]} are exchanged", **common))
             elif i not in done:
                 corrections.append(Correction(
                     "station_mislabelled", (("from_station", m.station), ("sensor", sensor), ("station", new_station)),
                     (("station_given", m.station), ("station_corrected", new_station)),
-                    note=f"{sensor}: the plane labelled station {m.station} belongs to station {new_station}",
+                    note=f"{sensor}: the {cam.kind} labelled station {m.station} belongs to station {new_station}",
                     **common))
-        n_new, d_new = cam.n[var[i], i], float(cam.d[var[i], i])
         if var[i]:
+            n_new, d_new = cam.n[var[i], i], float(cam.d[var[i], i])
             cause, detail = PLANE_VARIANTS[var[i]]
             corrected = {"normal_sign": (("component", detail), ("n_given", tuple(m.n)), ("n_corrected", tuple(n_new))),
                          "plane_convention": (("n_given", tuple(m.n)), ("n_corrected", tuple(n_new))),
