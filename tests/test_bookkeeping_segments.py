@@ -175,3 +175,20 @@ def test_a_height_step_among_declared_sessions_relabels_the_stations_at_the_othe
     assert corrections[0].get("from_station") == boundary
     new = dict(corrections[0].corrected)["new_session"]
     assert {st.station for st in data.stations if st.session == new} == set(range(lo, hi + 1))
+
+
+@pytest.mark.slow  # the Messor's simulation (laser scans): 15-40 s a case on this machine
+@pytest.mark.parametrize("sensor, station", [("stereo", 29), ("laser", 15)])
+def test_two_sensors_the_knocked_one_is_named(sensor, station, tmp_path):
+    """The Messor (2D laser scanner + stereo camera), 30 stations: a knock of one sensor puts the
+    two in conflict; which one moved is decided by fitting each (the linear scores put a 2.3 deg knock
+    of the stereo 2 stations from the end on the laser: 9979 against 9627)."""
+    from graphcal.commands.simulate import run as simulate_to_folder
+
+    folder = tmp_path / "messor"
+    simulate_to_folder(robot="messor", program="random", ground="level", out_dir=folder, seed=5, n_stations=30,
+                       n_sessions=1, output="planes", cloud_stride=8, progress=False,
+                       effects=[("extrinsic_change", {"sensor": sensor, "station": str(station), "angle_rad": "0.04"})])
+    model, corrections, data, notes = _find(folder)
+    assert [c.label() for c in corrections] == [f"extrinsic_knock(from_station={station}, sensor={sensor})"], notes
+    assert corrections[0].confidence > 2.0
