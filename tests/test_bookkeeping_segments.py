@@ -177,7 +177,6 @@ def test_a_height_step_among_declared_sessions_relabels_the_stations_at_the_othe
     assert {st.station for st in data.stations if st.session == new} == set(range(lo, hi + 1))
 
 
-@pytest.mark.slow  # the Messor's simulation (laser scans): 15-40 s a case on this machine
 @pytest.mark.parametrize("sensor, station", [("stereo", 29), ("laser", 15)])
 def test_two_sensors_the_knocked_one_is_named(sensor, station, tmp_path):
     """The Messor (2D laser scanner + stereo camera), 30 stations: a knock of one sensor puts the

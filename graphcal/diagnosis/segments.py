@@ -392,11 +392,15 @@ def find_segments(model, say) -> tuple:
     data = model.data
     cur = model
     for rnd in range(MAX_BOUNDARIES):
+        if rnd == 0:
+            # the gate: no boundary passes even against the model alone, linearised at its initial
+            # estimate (the extrinsics fitted to the kinematic body poses; the projection in _scores
+            # is the Gauss-Newton step from there) -- no solve, no screening variables, no leg
+            # parameters to linearise: nothing to look for
+            problem = cur.build()
+            if not _passing(*_search(cur, problem, problem.initial)[2:]):
+                break
         problem, values = cur.solve()
-        if rnd == 0 and not _passing(*_search(cur, problem, values)[2:]):
-            # the gate: no boundary passes even against the model alone (the cheap system: no
-            # screening variables, no leg parameters to linearise): nothing to look for
-            break
         # the screening graph: every catalogued cause's variable at its nominal value, projected
         # out with the model's own (_scores): a boundary must explain what none of them can
         problem = cur.build(screen=True, initial=values)
