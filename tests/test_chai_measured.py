@@ -2,7 +2,9 @@
 the transcription, the frame conversion, calibrate against Eq. 32, and diagnose.
 
 examples/octopus_chai2015/run.py does the work once (module fixture); the numbers asserted here are
-the ones measured on 2026-11-21 and quoted in examples/octopus_chai2015/README.md. Margins:
+the ones measured on 2026-11-21 and quoted in examples/octopus_chai2015/README.md (the tables as
+printed with the text's prior, issue 29: measured 2026-11-27, README.md "The tables as printed").
+Margins:
 
 * pure geometry on the paper's printed numbers (checks, residuals of Eq. 32 against the set poses):
   deterministic, so a tight tolerance (1e-3 deg, 0.02 mm) that only floating point can meet;
@@ -220,3 +222,161 @@ def test_summary_lists_only_the_noise_groups_the_data_has(load_example, tmp_path
     nudged = T @ se3_exp(np.r_[1e-6, 0, 0, 2e-5, 0, 0])  # 20x the graph's 1e-6 m floor on a zero sigma
     assert prior_conflict(nudged, T, 0.0, 0.0) == ""
     assert "times its stated sigma" in prior_conflict(nudged, T, 1e-9, 1e-9)
+
+
+# ----------------------------------------------------------------------------- issue 29: as printed
+# The tables as printed (labels as printed, no sessions, no row removed, Table A1's heights) with a
+# prior read from the paper's text alone (make_dataset.text_prior_T_body_sensor: h ~ 1 m, the
+# sweet-spot borders 1.2 / 3.5 m, the 43.5 deg field of view; 5 deg / 500 mm). What graphcal
+# discovers there is asserted below (README.md, "The tables as printed").
+
+@pytest.fixture(scope="module")
+def printed_text(load_example):
+    run = load_example("octopus_chai2015/run.py", "chai2015_run")
+    t0, c0 = time.perf_counter(), time.process_time()
+    r = run.as_printed()
+    r["_wall_s"], r["_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
+    return r
+
+
+def test_text_prior_comes_from_the_text_not_from_eq32(load_example, printed_text):
+    md = load_example("octopus_chai2015/make_dataset.py", "chai2015_make_dataset")
+    # the geometry of Section 2 / Fig. 4: asin(1/1.2) = 56.44, asin(1/3.5) = 16.60, mean 36.52 deg
+    assert md.text_tilt_deg() == pytest.approx(36.522, abs=1e-3)
+    T = md.text_prior_T_body_sensor()
+    assert T[:3, 3] == pytest.approx([0.0, 0.0, 1.0 - 0.6794038], abs=1e-6)  # h - mean Table A1 height
+    # 2.94 deg and 528 mm (forward: not in the text) from Eq. 32: not a rounding of the answer
+    e = printed_text["prior_vs_eq32"]
+    assert e["rotation_deg"] == pytest.approx(2.941, abs=1e-3)
+    assert e["translation_body_xyz_mm"] == pytest.approx([-527.9, -33.4, -44.2], abs=0.1)
+
+
+#: the Table A1 pose of each Table 2 row by the paper's own Table 3 (test_table3_identifies_the_poses_and_heights)
+TABLE3_POSES = {1: 1, 10: 15, 15: 8, 29: 25, 34: 37, 49: 45}
+#: why the association is not decided (README.md): neighbouring Table A1 poses are 1-2 deg apart; at
+#: graphcal's physical noise (commanded pose 1 deg / 10 mm) that is a chi-square difference of 0.9-3.7,
+#: below the finder's 12 (graphcal/diagnosis/association.py MIN_CONFIDENCE)
+AMBIGUOUS = ("at physical noise (commanded pose 1 deg / 10 mm) neighbouring Table A1 poses, 1-2 deg apart, "
+             "differ by a chi-square of 0.9-3.7, below association.py's MIN_CONFIDENCE 12: the finder names "
+             "candidates and corrects nothing (README.md, 'The tables as printed')")
+
+
+def test_as_printed_finds_which_rows_are_misfiled(printed_text):
+    """From the tables as printed, the association finder names the five rows that do not fit their
+    labels (row 1 does: it is pose 1) and, for four of them, the candidates include the pose the
+    paper's Table 3 was computed for."""
+    s = printed_text["discovered"]["suspected"]
+    assert sorted(s) == [10, 15, 29, 34, 49]
+    for label in (15, 29, 34, 49):
+        assert TABLE3_POSES[label] in [st for st, _ in s[label]["candidates"]], (label, s[label])
+    assert s[10]["chi2_at_label"] > 1000 and s[15]["chi2_at_label"] > 1000  # 38 deg off their labels
+
+
+def test_as_printed_finds_the_sign_of_row10(printed_text):
+    """Row 10's printed c has the wrong sign (Table 2 -0.2324, Table 3 +0.2341): every station the
+    finder considers for it needs the optical-x component (Chai's c) flipped."""
+    s = printed_text["discovered"]["suspected"][10]
+    assert s["every_variant"] == "normal_sign x"
+    assert {v for _, v in s["candidates"]} == {"normal_sign x"}
+    assert all(v != "normal_sign x" for _, v in printed_text["discovered"]["suspected"][49]["candidates"])  # a row printed right: no flip
+
+
+def test_as_printed_hypothesis(printed_text):
+    """With no redundancy left to judge it, the finder gives its best association as a hypothesis
+    (not corrected): it agrees with Table 3 on rows 1 (kept), 29 -> 25, 49 -> 45 and on row 10's
+    sign, and not on rows 10, 15, 34 (36, 28, 38 instead of 15, 8, 37: neighbours or the other
+    height band). Measured state: if the finder gets more right, update this and README.md."""
+    h = printed_text["discovered"]["hypothesis"]
+    assert sorted(h) == [10, 15, 29, 34, 49]  # row 1 stays at pose 1
+    assert h[29] == (25, None) and h[49] == (45, None) and h[10][1] == "normal_sign x"
+    assert {k: h[k][0] for k in (10, 15, 34)} == {10: 36, 15: 28, 34: 38}
+    assert all(h[k][1] is None for k in (15, 29, 34, 49))
+
+
+def test_as_printed_measured_state(printed_text):
+    """What graphcal does today with the tables as printed: nothing is corrected (ambiguous), so the
+    model still does not fit and its extrinsic is far from Eq. 32; calibrate warns."""
+    r = printed_text
+    assert r["discovered"]["corrections"] == []
+    assert r["discovered"]["mapping"] == {k: k for k in TABLE3_POSES}
+    assert r["diagnose"]["answer"] == "neither" and r["diagnose"]["unexplained_structure"] is True
+    assert r["calibrate"]["vs_eq32"]["rotation_deg"] > 20.0  # measured 49.2
+    assert r["diagnose_extrinsic"]["vs_eq32"]["rotation_deg"] > 10.0  # measured 22.6
+
+
+def test_association_margins_explain_the_ambiguity(load_example):
+    """With row 10's c flipped and the rows at Table 3's poses, each row's normal against every
+    pose (the rotation fitted to the other five): the right pose is best for every row, but the
+    runner-up is only 0.89-1.85 deg further (pure geometry on the printed numbers)."""
+    run = load_example("octopus_chai2015/run.py", "chai2015_run")
+    m = run.association_margins()
+    assert {k: v[0] for k, v in m.items()} == TABLE3_POSES
+    margins = {k: v[3] - v[1] for k, v in m.items()}
+    assert min(margins.values()) == pytest.approx(0.891, abs=1e-3)  # row 29: pose 25 vs pose 6
+    assert max(v[1] for v in m.values()) == pytest.approx(0.627, abs=1e-3)  # row 1
+    # at 1 deg per axis no row is decided by a chi-square of 12; at 0.25 deg every row is
+    assert all((v[3] ** 2 - v[1] ** 2) / 1.0 ** 2 < 12.0 for v in m.values())
+    assert all((v[3] ** 2 - v[1] ** 2) / 0.25 ** 2 > 12.0 for v in m.values())
+
+
+@pytest.mark.xfail(strict=True, reason=AMBIGUOUS)
+def test_goal_as_printed_association_and_sign_corrected(printed_text):
+    d = printed_text["discovered"]
+    assert d["mapping"] == TABLE3_POSES
+    assert d["sign_flips"] == {10: [0]}  # optical x = Chai's c
+
+
+@pytest.mark.xfail(strict=True, reason=AMBIGUOUS + "; so the extrinsic is that of the misfiled rows")
+def test_goal_as_printed_rotation_within_graphcal_sigma_of_eq32(printed_text):
+    e = printed_text["diagnose_extrinsic"]
+    assert all(abs(w) <= s for w, s in zip(e["vs_eq32"]["rotation_body_xyz_deg"], e["sigma_rot_body_deg"]))
+
+
+def test_as_printed_runtime(printed_text):
+    assert printed_text["_cpu_s"] < 30.0  # measured 7 s (calibrate + diagnose with the bookkeeping finders)
+
+
+@pytest.fixture(scope="module")
+def hand(load_example):
+    run = load_example("octopus_chai2015/run.py", "chai2015_run")
+    return run.hand_corrected()
+
+
+def test_what_if_the_suspected_corrections_were_made(hand):
+    """What-if: the rows moved to Table 3's poses and row 10's c flipped by hand (what the finder
+    points to but cannot decide), the text's prior, Table A1's heights, no sessions. The rotation
+    is Eq. 32's within graphcal's 1-sigma; the translation is not (Table A1's heights of the two pose
+    groups differ from the experiment's by 35 mm) and no height step is found undeclared."""
+    v = hand["none"]
+    c = v["calibrate"]
+    assert c["vs_eq32"]["rotation_deg"] < 0.25  # measured 0.136
+    assert all(abs(w) <= s for w, s in zip(c["vs_eq32"]["rotation_body_xyz_deg"], c["sigma_rot_body_deg"]))
+    dx, dy, dz = c["vs_eq32"]["translation_body_xyz_mm"]  # sigma 22, 33, 6 mm
+    assert dx == pytest.approx(-25.7, abs=5.0) and dy == pytest.approx(37.3, abs=8.0)
+    assert dz == pytest.approx(-17.2, abs=3.0)
+    assert abs(dz) > 2 * c["sigma_xyz_body_mm"][2]  # 2.9 sigma: not Eq. 32
+    assert c["outliers"] == []
+    assert v["findings"] == [] and v["corrections"] == [] and v["answer"] == "nominal"
+
+
+def test_what_if_with_the_pose_groups_declared(hand):
+    """The same with Table A1's blocks as sessions: diagnose names the height step of poses 1-20
+    against the rest, 33.9 mm (Table 3 implies 35.0: +2.0 and -33.0 mm)."""
+    v = hand["blocks"]
+    assert [(f[0], f[1]) for f in v["findings"]] == [("session_offset", {"session": "poses01-20"})]
+    assert abs(v["findings"][0][2]["offset_m"]) == pytest.approx(0.0339, abs=0.004)
+
+
+@pytest.mark.slow
+def test_prior_width_does_not_change_the_discovery(load_example):
+    """The text's prior at 2 and 10 deg, and even a prior centred on Eq. 32 itself at 0.5 deg: the
+    same five rows, row 10's sign in every candidate, nothing corrected (the ambiguity is the
+    data's, not the prior's)."""
+    run = load_example("octopus_chai2015/run.py", "chai2015_run")
+    cases = {**{("text", s): v for s, v in run.prior_width((2.0, 10.0)).items()},
+             **{("cad", s): v for s, v in run.prior_width((0.5,), prior="cad").items()}}
+    for case, v in cases.items():
+        d = v["discovered"]
+        assert sorted(d["suspected"]) == [10, 15, 29, 34, 49], case
+        assert d["suspected"][10]["every_variant"] == "normal_sign x", case
+        assert d["corrections"] == [] and d["mapping"] == {k: k for k in TABLE3_POSES}, case

@@ -2,6 +2,10 @@
 
     python examples/octopus_chai2015/make_dataset.py OUT_DIR [--association printed|table3]
         [--sessions none|blocks] [--exclude-label N ...] [--heights table_a1|table3_implied]
+        [--prior cad|text] [--prior-sigma-deg DEG] [--prior-sigma-mm MM]
+
+``--prior text`` with the defaults (printed association, no sessions, nothing excluded, Table A1
+heights) is the dataset "as printed" of issue 29: nothing in it comes from the paper's answer.
 
 Inputs (this folder): ``table2_ground_planes.csv`` (the six measured ground planes, as printed),
 ``table3_theoretical_planes.csv`` (the paper's six predicted planes, used only to check frames and
@@ -33,7 +37,10 @@ Conversion (README.md has the derivation and the checks):
   ``feet: []``: with ``model: octopus`` an empty feet list means the six default feet, and the
   contract then requires joint-angle columns the paper does not give. Sensor ``depth``
   (depth_camera) with the built-in CAD prior -- itself Eq. 32 rounded (graphcal/models/builtin.py) --
-  and sigmas 100 mm / 10 deg (:data:`PRIOR_SIGMA_MM`, :data:`PRIOR_SIGMA_DEG`).
+  and sigmas 100 mm / 10 deg (:data:`PRIOR_SIGMA_MM`, :data:`PRIOR_SIGMA_DEG`). ``prior="text"``
+  replaces that prior by one read from the paper's text alone (:func:`text_prior_T_body_sensor`:
+  Section 2 and Fig. 4's caption, never Eq. 32 or Table 3), 5 deg / 500 mm (README.md, "The
+  dataset as printed").
 * **Which station is "ground equation N"?** ``association="printed"`` takes the label N as the
   Table A1 pose number, as the text implies. ``association="table3"`` uses the poses whose
   predicted planes (Eq. 32 + Table A1) match the paper's own Table 3 row to 0.003 deg (labels
@@ -56,7 +63,8 @@ import yaml
 
 from graphcal.geometry import pose_matrix, xyz_quat_wxyz_from_pose
 from graphcal.io.dataset import Dataset, PosePrior, RobotSpec, SensorSpec, Table, write_dataset
-from graphcal.models.builtin import builtin_info, builtin_urdf
+from graphcal.geometry import rot_y
+from graphcal.models.builtin import R_BODY_OPTICAL, builtin_info, builtin_urdf
 from graphcal.simulation.programs import CHAI2015_TABLE_A1, chai2015_pose
 
 HERE = Path(__file__).resolve().parent
@@ -78,6 +86,24 @@ SENSOR = "depth"
 PRIOR_SIGMA_MM = 100.0
 PRIOR_SIGMA_DEG = 10.0
 
+#: The Kinect's mounting as the paper's text states it (Section 2, the paragraph on Fig. 4): "The
+#: height of the 3D vision sensor, denoted by h, is about 1 m. The short border VA of the green
+#: area [the 1.2-3.5 m sweet spot] is about 1.2 m and the long border VB is about 3.5 m", with the
+#: Kinect's 43.5 deg vertical field of view (same paragraph), "installed at the top of the robot",
+#: tilted down "to detect the terrain in front". Nothing here is read from Eq. 32 or Table 3.
+TEXT_H_M = 1.0
+TEXT_VA_M = 1.2
+TEXT_VB_M = 3.5
+TEXT_VFOV_DEG = 43.5
+#: Table A1's set body heights p_y' (615-750 mm): the body height at which Fig. 4's h is taken is
+#: not stated; their mean (679 mm) is used.
+#: Prior sigmas of ``prior="text"``: 5 deg (a CAD drawing's; the text's tilt is 34.7-38.4 deg from
+#: the two borders, and "about 1 m" moves it by several degrees), 500 mm (the text gives no
+#: forward position at all, and graphcal's prior has one sigma for the three translations).
+TEXT_PRIOR_SIGMA_DEG = 5.0
+TEXT_PRIOR_SIGMA_MM = 500.0
+
+PRIORS = ("cad", "text")
 ASSOCIATIONS = ("printed", "table3")
 SESSIONS = ("none", "blocks")
 HEIGHTS = ("table_a1", "table3_implied")
@@ -174,6 +200,28 @@ def station_of_label(association: str = "printed") -> dict:
     raise ValueError(f"association must be one of {ASSOCIATIONS}, got {association!r}")
 
 
+# ----------------------------------------------------------------------------- the text's prior
+def text_tilt_deg() -> float:
+    """The Kinect's downward tilt (deg) the text implies: the lower and upper edges of the 43.5 deg
+    vertical field of view meet the floor, from h = 1 m, at the sweet spot's borders VA = 1.2 m and
+    VB = 3.5 m: depressions asin(h/VA) = 56.4 deg and asin(h/VB) = 16.6 deg; the view axis is their
+    mean, 36.5 deg (each border alone with the 43.5 deg field of view: 34.7 and 38.4 deg)."""
+    lo = np.degrees(np.arcsin(TEXT_H_M / TEXT_VA_M))
+    hi = np.degrees(np.arcsin(TEXT_H_M / TEXT_VB_M))
+    return float((lo + hi) / 2.0)
+
+
+def text_prior_T_body_sensor() -> np.ndarray:
+    """The prior of ``prior="text"`` (graphcal's frames: body REP 103, sensor optical, m): looking
+    straight ahead (yaw 0, roll 0: the text says "in front" and nothing of a roll), pitched down by
+    :func:`text_tilt_deg`; on the robot's centre line (y = 0), at h = 1 m minus the mean Table A1
+    body height (z = 0.321 m), x = 0 (the text gives no forward position: the prior's 500 mm
+    sigma covers a body of any plausible size)."""
+    heights_m = np.array([row[3] for row in CHAI2015_TABLE_A1], dtype=float) / 1000.0
+    xyz = [0.0, 0.0, TEXT_H_M - float(heights_m.mean())]
+    return pose_matrix(rot_y(np.radians(text_tilt_deg())) @ R_BODY_OPTICAL, xyz)
+
+
 # ----------------------------------------------------------------------------- the dataset
 def table3_implied_height_offsets(answer: dict | None = None) -> dict:
     """Table A1 block label -> the body-height offset (m) under which Eq. 32 reproduces the paper's
@@ -198,7 +246,7 @@ def session_of(pose_number: int) -> str:
 def build_dataset(out_dir: str | Path, *, association: str = "printed", sessions: str = "none",
                   exclude_labels=(), prior_sigma_mm: float = PRIOR_SIGMA_MM,
                   prior_sigma_deg: float = PRIOR_SIGMA_DEG, heights: str = "table_a1",
-                  overwrite: bool = False) -> Path:
+                  prior: str = "cad", flip_c=(), overwrite: bool = False) -> Path:
     """Write the graphcal dataset folder of Chai's Table A1 + Table 2 to ``out_dir``; returns it.
 
     Args:
@@ -210,7 +258,12 @@ def build_dataset(out_dir: str | Path, *, association: str = "printed", sessions
             a hypothesis, so that a per-block height offset can be tested).
         exclude_labels: Table 2 rows (labels) left out of planes.csv, e.g. ``(10,)``: the row whose
             printed sign disagrees with Table 3 (README.md). Nothing is ever corrected.
-        prior_sigma_mm, prior_sigma_deg: sigmas of the CAD prior (the built-in octopus CAD).
+        prior_sigma_mm, prior_sigma_deg: sigmas of the extrinsic prior.
+        prior: ``"cad"`` (the built-in octopus CAD: Eq. 32 rounded) or ``"text"`` (read from the
+            paper's text alone, :func:`text_prior_T_body_sensor`; pass the sigmas, e.g.
+            :data:`TEXT_PRIOR_SIGMA_MM` / :data:`TEXT_PRIOR_SIGMA_DEG`).
+        flip_c: Table 2 rows (labels) whose printed ``c`` is used with the opposite sign: a what-if
+            (the correction graphcal's association finder points to for row 10), never the default.
         heights: ``"table_a1"`` (the set heights p_y' as printed) or ``"table3_implied"`` (each
             Table A1 block's heights shifted by :func:`table3_implied_height_offsets`: the heights
             the paper's Table 3 was computed with; a what-if, not a measurement).
@@ -219,12 +272,14 @@ def build_dataset(out_dir: str | Path, *, association: str = "printed", sessions
         raise ValueError(f"sessions must be one of {SESSIONS}, got {sessions!r}")
     if heights not in HEIGHTS:
         raise ValueError(f"heights must be one of {HEIGHTS}, got {heights!r}")
+    if prior not in PRIORS:
+        raise ValueError(f"prior must be one of {PRIORS}, got {prior!r}")
     dz = table3_implied_height_offsets() if heights == "table3_implied" else {}
     label_station = station_of_label(association)
     info = builtin_info("octopus")
-    cad = info.sensors[SENSOR]
+    T_prior = info.sensors[SENSOR].T_body_sensor if prior == "cad" else text_prior_T_body_sensor()
     sensors = {SENSOR: SensorSpec(SENSOR, "depth_camera", PosePrior.from_matrix(
-        cad.T_body_sensor, prior_sigma_mm / 1000.0, float(np.radians(prior_sigma_deg))))}
+        T_prior, prior_sigma_mm / 1000.0, float(np.radians(prior_sigma_deg))))}
 
     stations: dict[str, list] = {"station": []}
     if sessions == "blocks":
@@ -245,7 +300,7 @@ def build_dataset(out_dir: str | Path, *, association: str = "printed", sessions
     planes: dict[str, list] = {"station": [], "sensor": [], "nx": [], "ny": [], "nz": [], "d": []}
     rows = [r for r in read_plane_table(TABLE2_CSV) if r["label"] not in set(exclude_labels)]
     for r in sorted(rows, key=lambda r: label_station[r["label"]]):
-        n, d = plane_in_sensor_frame(r["a"], r["b"], r["c"], r["d_m"])
+        n, d = plane_in_sensor_frame(r["a"], r["b"], -r["c"] if r["label"] in set(flip_c) else r["c"], r["d_m"])
         planes["station"].append(label_station[r["label"]])
         planes["sensor"].append(SENSOR)
         for c, v in zip(("nx", "ny", "nz"), n):
@@ -265,8 +320,12 @@ def build_dataset(out_dir: str | Path, *, association: str = "printed", sessions
             "paper": "Chai et al. 2015, Sensors 15:9519 (Octopus hexapod, Kinect)",
             "stations": "Table A1 set poses (commanded), converted to z-up (examples/octopus_chai2015/README.md)",
             "planes": f"Table 2 measured ground equations, V-CS -> optical frame; association {association}"
-                      + (f"; rows {sorted(exclude_labels)} left out" if exclude_labels else ""),
+                      + (f"; rows {sorted(exclude_labels)} left out" if exclude_labels else "")
+                      + (f"; rows {sorted(flip_c)} with c sign-flipped (what-if)" if flip_c else ""),
             "heights": heights,
+            "prior": ("built-in octopus CAD (Eq. 32 rounded)" if prior == "cad" else
+                      "the paper's text: h ~ 1 m, sweet-spot borders 1.2 / 3.5 m, 43.5 deg field of view "
+                      "(examples/octopus_chai2015/README.md)") + f", sigma {prior_sigma_mm:g} mm / {prior_sigma_deg:g} deg",
             "sessions": "none" if sessions == "none" else "Table A1 height bands 1-20, 21-40, 41-52 (hypothesis)",
         }},
         stations=Table.from_columns(stations),
@@ -282,10 +341,20 @@ def main(argv=None) -> None:
     ap.add_argument("--sessions", choices=SESSIONS, default="none")
     ap.add_argument("--exclude-label", type=int, action="append", default=[])
     ap.add_argument("--heights", choices=HEIGHTS, default="table_a1")
+    ap.add_argument("--prior", choices=PRIORS, default="cad",
+                    help="extrinsic prior: cad (built-in, Eq. 32 rounded) or text (the paper's text only)")
+    ap.add_argument("--prior-sigma-deg", type=float, default=None,
+                    help=f"default {PRIOR_SIGMA_DEG:g} (cad) / {TEXT_PRIOR_SIGMA_DEG:g} (text)")
+    ap.add_argument("--prior-sigma-mm", type=float, default=None,
+                    help=f"default {PRIOR_SIGMA_MM:g} (cad) / {TEXT_PRIOR_SIGMA_MM:g} (text)")
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
+    text = a.prior == "text"
+    deg = a.prior_sigma_deg if a.prior_sigma_deg is not None else (TEXT_PRIOR_SIGMA_DEG if text else PRIOR_SIGMA_DEG)
+    mm = a.prior_sigma_mm if a.prior_sigma_mm is not None else (TEXT_PRIOR_SIGMA_MM if text else PRIOR_SIGMA_MM)
     print(build_dataset(a.out_dir, association=a.association, sessions=a.sessions,
-                        exclude_labels=tuple(a.exclude_label), heights=a.heights, overwrite=a.overwrite))
+                        exclude_labels=tuple(a.exclude_label), heights=a.heights, prior=a.prior,
+                        prior_sigma_mm=mm, prior_sigma_deg=deg, overwrite=a.overwrite))
 
 
 if __name__ == "__main__":

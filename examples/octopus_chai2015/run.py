@@ -21,11 +21,20 @@ What it does (README.md gives the results and what they mean):
    message, traceback, time), not worked around.
 
 ``main()`` returns every number as a dict.
+
+Issue 29, the tables as printed with nothing supplied by hand (``run.py [OUT] --as-printed``):
+:func:`as_printed` builds :data:`AS_PRINTED` (labels as printed, no sessions, no row removed,
+Table A1 heights, the prior read from the paper's text: make_dataset.text_prior_T_body_sensor),
+calibrates and diagnoses it, and reports what the bookkeeping stage of diagnose found (the
+label -> station mapping, sign flips, height steps), the extrinsic of the corrected data (diagnose's
+and calibrate's on the corrected planes) against Eq. 32; :func:`prior_width` repeats the diagnosis
+with the text prior's rotation sigma at 2, 5, 10 deg.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import sys
 import tempfile
 import time
@@ -52,6 +61,9 @@ VARIANTS = {
     "table3_heights": {"association": "table3", "sessions": "blocks", "exclude_labels": (10,),
                        "heights": "table3_implied"},
 }
+#: issue 29: the tables as printed, nothing from the paper's answer (README.md, "The dataset as printed")
+AS_PRINTED = {"association": "printed", "sessions": "none", "prior": "text",
+              "prior_sigma_mm": md.TEXT_PRIOR_SIGMA_MM, "prior_sigma_deg": md.TEXT_PRIOR_SIGMA_DEG}
 #: variants main() diagnoses (table3_heights is a what-if on derived heights: calibrate only, to
 #: keep the test within its time budget; its diagnosis found nothing, README.md)
 DIAGNOSED = ("printed", "table3", "table3_without_row10")
@@ -276,6 +288,240 @@ def prior_sensitivity(out_dir: str | Path | None = None) -> dict:
     return out
 
 
+# ----------------------------------------------------------------------------- issue 29: as printed
+def _row_of_plane(n: np.ndarray, d: float, rows: list) -> tuple[int, list]:
+    """(Table 2 label, components whose sign differs from the printed row) of a plane (n, d) in the
+    sensor frame: the row with the nearest d and |n| components (a sign correction keeps both)."""
+    printed = [md.plane_in_sensor_frame(r["a"], r["b"], r["c"], r["d_m"]) for r in rows]
+    cost = [abs(d - dp) + float(np.abs(np.abs(n) - np.abs(np_)).sum()) for np_, dp in printed]
+    i = int(np.argmin(cost))
+    flipped = [int(k) for k in range(3) if abs(n[k]) > 1e-6 and np.sign(n[k]) != np.sign(printed[i][0][k])]
+    return rows[i]["label"], flipped
+
+
+_NOTE_PLANE = re.compile(r"the plane labelled station (\d+) \(chi-square (\d+) there\) does not fit it; the data cannot "
+                         r"tell between \(the best found\) (.*?)(; in every one ([^()]*?) \(the station, not the variant, "
+                         r"is unsure\))?: not corrected")
+_NOTE_HYPOTHESIS = re.compile(r"the best association found relocates \d+ of \d+ \((.*?)\) and leaves no redundancy")
+_NOTE_MOVE = re.compile(r"(\d+) -> station (\d+)(?: \(([^)]*)\))?")
+_NOTE_OPTION = re.compile(r"station (\d+)(?: \(([^)]*)\))?")
+
+
+def suspected(notes) -> dict:
+    """The association finder's unresolved cases, from its notes: Table 2 label -> {"chi2_at_label",
+    "candidates": [(station, variant or None), ...] best first, "every_variant": the sign / unit
+    variant every candidate shares (e.g. "normal_sign x") or None}. Labels the finder passed (the
+    plane fits its label) are absent."""
+    out = {}
+    for n in notes:
+        m = _NOTE_PLANE.search(n)
+        if m is None:
+            continue
+        cands = [(int(a), b or None) for a, b in _NOTE_OPTION.findall(m.group(3))]
+        out[int(m.group(1))] = {"chi2_at_label": float(m.group(2)), "candidates": cands,
+                                "every_variant": m.group(5)}
+    return out
+
+
+def hypothesis(notes) -> dict:
+    """The association finder's best association when it leaves no redundancy to judge it (a
+    hypothesis, not corrected), from its note: label -> (station, variant or None) for the rows it
+    relocates; {} when there is no such note."""
+    for n in notes:
+        m = _NOTE_HYPOTHESIS.search(n)
+        if m is not None:
+            return {int(a): (int(b), c or None) for a, b, c in _NOTE_MOVE.findall(m.group(1))}
+    return {}
+
+
+def association_margins() -> dict:
+    """Why the association is or is not decided (README.md): with row 10's c sign-flipped and the
+    rows at the poses of the paper's Table 3, for each row the extrinsic rotation is fitted to the
+    other five normals (Wahba) and the row's normal compared with every Table A1 pose's predicted
+    ground: label -> (best pose, angle deg, runner-up pose, angle deg). An analysis of the data's
+    power, not an input to graphcal."""
+    rows = md.read_plane_table(md.TABLE2_CSV)
+    n_s = np.array([md.plane_in_sensor_frame(r["a"], r["b"], -r["c"] if r["label"] == 10 else r["c"], r["d_m"])[0]
+                    for r in rows])
+    up_b = np.array([md.set_pose(k)[:3, :3].T @ [0.0, 0.0, 1.0] for k in range(1, len(md.CHAI2015_TABLE_A1) + 1)])
+    pose = md.station_of_label("table3")
+    out = {}
+    for i, r in enumerate(rows):
+        others = [j for j in range(len(rows)) if j != i]
+        U, _, Vt = np.linalg.svd(up_b[[pose[rows[j]["label"]] - 1 for j in others]].T @ n_s[others])
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt  # R n_sensor ~ up in the body
+        ang = np.degrees(np.arccos(np.clip(up_b @ (R @ n_s[i]), -1.0, 1.0)))
+        o = np.argsort(ang)
+        out[r["label"]] = (int(o[0]) + 1, float(ang[o[0]]), int(o[1]) + 1, float(ang[o[1]]))
+    return out
+
+
+def discovered(diagnosis) -> dict:
+    """What the bookkeeping stage of ``diagnosis`` (a graphcal Diagnosis) did to Table 2's rows:
+    label -> station the plane is at in the corrected data, label -> sensor-frame components whose
+    sign was changed (0, 1, 2 = optical x, y, z; Chai's c is optical x), the sessions of the
+    corrected data (stations per session), the corrections and notes as diagnosis.json has them."""
+    rows = md.read_plane_table(md.TABLE2_CSV)
+    mapping, flips = {}, {}
+    for (station, _), pm in sorted(diagnosis.model.data.planes.items()):
+        label, flipped = _row_of_plane(np.asarray(pm.n, float), float(pm.d), rows)
+        mapping[label] = int(station)
+        if flipped:
+            flips[label] = flipped
+    sessions: dict = {}
+    for st in diagnosis.model.data.stations:
+        sessions.setdefault(str(st.session), []).append(int(st.station))
+    return {"mapping": dict(sorted(mapping.items())), "sign_flips": flips, "sessions": sessions,
+            "corrections": [c.to_dict() for c in diagnosis.corrections], "notes": list(diagnosis.notes),
+            "suspected": suspected(diagnosis.notes), "hypothesis": hypothesis(diagnosis.notes)}
+
+
+def write_corrected(path: Path, diagnosis, out: Path) -> Path:
+    """The dataset at ``path`` with planes.csv (and the session column, when the corrected data have
+    more than one session) replaced by the corrected measurements of ``diagnosis``; written to ``out``."""
+    import dataclasses
+
+    from graphcal.io.dataset import Table, read_dataset, write_dataset
+    from graphcal.models.builtin import builtin_urdf
+
+    ds = read_dataset(path)
+    data = diagnosis.model.data
+    planes: dict = {c: [] for c in ("station", "sensor", "nx", "ny", "nz", "d")}
+    for (station, sensor), pm in sorted(data.planes.items()):
+        for c, v in zip(("station", "sensor", "nx", "ny", "nz", "d"), (int(station), sensor, *map(float, pm.n), float(pm.d))):
+            planes[c].append(v)
+    stations = {c: list(ds.stations[c]) for c in ds.stations.columns}
+    session_of = {int(st.station): str(st.session) for st in data.stations}
+    if len(set(session_of.values())) > 1:
+        stations["session"] = [session_of[int(s)] for s in stations["station"]]
+    ds2 = dataclasses.replace(ds, planes=Table.from_columns(planes), stations=Table.from_columns(stations))
+    return write_dataset(ds2, out, overwrite=True, robot_urdf_xml=builtin_urdf("octopus"))
+
+
+def _diagnosis_extrinsic(j: dict, T_paper: np.ndarray) -> dict:
+    from graphcal.geometry import pose_from_xyz_quat_wxyz
+
+    s = j["extended_calibration"]["sensors"][md.SENSOR]
+    T = pose_from_xyz_quat_wxyz(s["T_body_sensor"]["xyz"], s["T_body_sensor"]["quaternion_wxyz"])
+    return {"vs_eq32": compare_extrinsic(T, T_paper), "sigma_rot_body_deg": s["sigma"]["rot_deg"],
+            "sigma_xyz_body_mm": s["sigma"]["xyz_mm"]}
+
+
+def as_printed(out_dir: str | Path | None = None, *, prior_sigma_deg: float = md.TEXT_PRIOR_SIGMA_DEG,
+               calibrate_corrected: bool = True, prior: str = "text") -> dict:
+    """Issue 29: Table 2 and Table A1 as printed, the prior from the paper's text: calibrate,
+    diagnose, what the bookkeeping stage found (:func:`discovered`), the extrinsic of the corrected
+    data against Eq. 32 (diagnose's extended model; calibrate on the corrected planes)."""
+    from graphcal.calibration.calibrate import calibrate
+    from graphcal.diagnosis import diagnose
+
+    T_paper = md.paper_T_body_sensor()
+    with tempfile.TemporaryDirectory(prefix="chai2015_as_printed_") as tmp:
+        base = Path(out_dir) if out_dir is not None else Path(tmp)
+        kw = {**AS_PRINTED, "prior_sigma_deg": prior_sigma_deg, "prior": prior}
+        if prior == "cad":
+            kw["prior_sigma_mm"] = md.PRIOR_SIGMA_MM
+        path = md.build_dataset(base / f"as_printed_{prior}_{prior_sigma_deg:g}deg", overwrite=True, **kw)
+        T_prior = md.text_prior_T_body_sensor() if prior == "text" else md.builtin_info("octopus").sensors[md.SENSOR].T_body_sensor
+        out: dict = {"dataset": str(path), "prior": prior, "prior_sigma_deg": prior_sigma_deg,
+                     "prior_vs_eq32": compare_extrinsic(T_prior, T_paper)}
+        res = calibrate(path)
+        est = res.sensors[md.SENSOR]
+        out["calibrate"] = {"vs_eq32": compare_extrinsic(est.T_body_sensor, T_paper), "outliers": [int(s) for s in res.outliers],
+                            "sigma_rot_body_deg": [float(x) for x in est.sigma_rot_deg],
+                            "sigma_xyz_body_mm": [float(x) for x in est.sigma_xyz_mm]}
+        t0 = time.perf_counter()
+        d = diagnose(path)
+        j = d.to_json()
+        out["diagnose"] = {"seconds": time.perf_counter() - t0, "answer": j["answer"], "findings": j["findings"],
+                           "unexplained_structure": j["unexplained_structure"], "nominal": j["nominal"],
+                           "final": j["final"], "warnings": j["warnings"]}
+        out["discovered"] = discovered(d)
+        out["diagnose_extrinsic"] = _diagnosis_extrinsic(j, T_paper)
+        if calibrate_corrected and d.corrections:
+            fixed = write_corrected(path, d, base / f"as_printed_{prior}_{prior_sigma_deg:g}deg_corrected")
+            r2 = calibrate(fixed)
+            e2 = r2.sensors[md.SENSOR]
+            out["calibrate_corrected"] = {
+                "vs_eq32": compare_extrinsic(e2.T_body_sensor, T_paper), "outliers": [int(s) for s in r2.outliers],
+                "sigma_rot_body_deg": [float(x) for x in e2.sigma_rot_deg],
+                "sigma_xyz_body_mm": [float(x) for x in e2.sigma_xyz_mm], "warnings": list(r2.warnings)}
+    return out
+
+
+def prior_width(sigmas_deg=(2.0, 5.0, 10.0), out_dir: str | Path | None = None, *, prior: str = "text") -> dict:
+    """:func:`as_printed`'s discovery at each rotation sigma of the prior (its centre unchanged:
+    ``prior="text"`` the text's, ``"cad"`` the built-in's, i.e. Eq. 32 rounded -- to tell the
+    prior's part from the data's): sigma (deg) -> what was discovered, answer, diagnose's extrinsic."""
+    out = {}
+    for s in sigmas_deg:
+        r = as_printed(out_dir, prior_sigma_deg=s, calibrate_corrected=False, prior=prior)
+        out[s] = {"discovered": r["discovered"], "answer": r["diagnose"]["answer"],
+                  "findings": [(f["cause"], f["where"]) for f in r["diagnose"]["findings"]],
+                  "diagnose_extrinsic": r["diagnose_extrinsic"], "seconds": r["diagnose"]["seconds"]}
+    return out
+
+
+def hand_corrected(out_dir: str | Path | None = None) -> dict:
+    """What-if (README.md): the corrections the association finder points to, made by hand -- the
+    rows at the poses of the paper's Table 3, row 10's c sign-flipped -- with the text's prior and
+    Table A1's heights; once without sessions (is the height step between the pose groups found
+    undeclared?) and once with Table A1's blocks declared. Calibrate and diagnose on each."""
+    from graphcal.calibration.calibrate import calibrate
+    from graphcal.diagnosis import diagnose
+
+    T_paper = md.paper_T_body_sensor()
+    out = {}
+    with tempfile.TemporaryDirectory(prefix="chai2015_hand_") as tmp:
+        base = Path(out_dir) if out_dir is not None else Path(tmp)
+        for sessions in ("none", "blocks"):
+            path = md.build_dataset(base / f"hand_corrected_{sessions}", overwrite=True,
+                                    **{**AS_PRINTED, "association": "table3", "sessions": sessions, "flip_c": (10,)})
+            res = calibrate(path)
+            est = res.sensors[md.SENSOR]
+            d = diagnose(path)
+            j = d.to_json()
+            out[sessions] = {
+                "calibrate": {"vs_eq32": compare_extrinsic(est.T_body_sensor, T_paper), "outliers": [int(s) for s in res.outliers],
+                              "sigma_rot_body_deg": [float(x) for x in est.sigma_rot_deg],
+                              "sigma_xyz_body_mm": [float(x) for x in est.sigma_xyz_mm]},
+                "diagnose_extrinsic": _diagnosis_extrinsic(j, T_paper), "answer": j["answer"],
+                "findings": [(f["cause"], f["where"], f["parameters"]) for f in j["findings"]],
+                "corrections": [c.to_dict() for c in d.corrections], "notes": list(d.notes),
+                "screening_first_round": (j.get("screening") or [[]])[0][:3]}
+    return out
+
+
+def _extrinsic_line(name: str, part: dict) -> str:
+    e = part["vs_eq32"]
+    return (f"  {name}: vs Eq. 32 rotation {e['rotation_deg']:.3f} deg ("
+            + ", ".join(f"{x:+.2f}" for x in e["rotation_body_xyz_deg"]) + "), translation "
+            + ", ".join(f"{x:+.1f}" for x in e["translation_body_xyz_mm"]) + " mm; 1-sigma "
+            + ", ".join(f"{x:.2f}" for x in part["sigma_rot_body_deg"]) + " deg, "
+            + ", ".join(f"{x:.1f}" for x in part["sigma_xyz_body_mm"]) + " mm")
+
+
+def as_printed_summary(r: dict) -> str:
+    """Lines for :func:`as_printed`'s result."""
+    e = r["prior_vs_eq32"]
+    lines = [f"as printed, text prior (sigma {r['prior_sigma_deg']:g} deg, {md.TEXT_PRIOR_SIGMA_MM:g} mm; "
+             f"prior vs Eq. 32: {e['rotation_deg']:.2f} deg, "
+             + ", ".join(f"{x:+.0f}" for x in e["translation_body_xyz_mm"]) + " mm)"]
+    lines += [_extrinsic_line(key, r[key]) for key in ("calibrate", "diagnose_extrinsic", "calibrate_corrected") if key in r]
+    dg, disc = r["diagnose"], r["discovered"]
+    lines.append(f"  diagnose ({dg['seconds']:.1f} s): answer {dg['answer']}; unexplained {dg['unexplained_structure']}")
+    lines.append(f"  mapping label -> station: {disc['mapping']}; sign flips {disc['sign_flips']}; "
+                 f"sessions {[(k, min(v), max(v)) for k, v in disc['sessions'].items()]}")
+    for c in disc["corrections"]:
+        lines.append(f"    correction {c['cause']} {c['where']} {c['corrected']} stat {c['statistic']:.1f}/{c['dof']} "
+                     f"p {c['p_value']:.2g} confidence {c['confidence']:.1f}; {c['note']}")
+    for f in dg["findings"]:
+        lines.append(f"    finding {f['cause']} {f['where']}")
+    for n in disc["notes"]:
+        lines.append(f"    note: {n}")
+    return "\n".join(lines)
+
+
 # ----------------------------------------------------------------------------- printing
 def summary(r: dict) -> str:
     c = r["checks"]
@@ -325,7 +571,25 @@ def summary(r: dict) -> str:
 
 
 if __name__ == "__main__":
-    res = main(sys.argv[1] if len(sys.argv) > 1 else None)
+    _out = sys.argv[1] if len(sys.argv) > 1 and not sys.argv[1].startswith("--") else None
+    if "--as-printed" in sys.argv:
+        print(as_printed_summary(as_printed(_out)))
+        if "--prior-width" in sys.argv:
+            for _p, _sig in (("text", (2.0, 5.0, 10.0)), ("cad", (0.5, 2.0, 10.0))):
+                for _s, _v in prior_width(_sig, out_dir=_out, prior=_p).items():
+                    _e, _d = _v["diagnose_extrinsic"]["vs_eq32"], _v["discovered"]
+                    print(f"{_p} prior sigma {_s:g} deg: mapping {_d['mapping']}, flips {_d['sign_flips']}, answer "
+                          f"{_v['answer']}, rotation vs Eq. 32 {_e['rotation_deg']:.2f} deg ({_v['seconds']:.1f} s); unresolved: "
+                          + "; ".join(f"{k} -> {[c[0] for c in x['candidates']]}" + (f" all {x['every_variant']}" if x["every_variant"] else "")
+                                      for k, x in _d["suspected"].items()))
+        if "--hand-corrected" in sys.argv:
+            for _k, _v in hand_corrected(_out).items():
+                print(f"hand-corrected, sessions {_k}: answer {_v['answer']}, findings {_v['findings']}, corrections "
+                      f"{[c['cause'] for c in _v['corrections']]}")
+                print(_extrinsic_line("calibrate", _v["calibrate"]))
+                print(_extrinsic_line("diagnose_extrinsic", _v["diagnose_extrinsic"]))
+        sys.exit(0)
+    res = main(_out)
     print(summary(res))
     if "--prior-sensitivity" in sys.argv:
         print("\nprior sensitivity (table3_without_row10):")
