@@ -34,7 +34,7 @@ set (kinds ``BLIND_KINDS``: stations exchanged far apart, mirrored legs, the sec
 component's sign, centimetres; seeds from 7000; octopus, qingzhui and the custom hexapod of
 graphcal/testing.py in turn) is run once, at the end.
 
-Run: ``python examples/diagnosis_bookkeeping.py [--set dev|blind] [--per 4] [--jobs 1] [--cache DIR]``.
+Run: ``python examples/diagnosis_bookkeeping.py [--set dev|blind] [--per 4] [--clean 20] [--jobs 1] [--cache DIR]``.
 """
 
 from __future__ import annotations
@@ -186,13 +186,18 @@ def run_case(seed: int, robot: str, kind: str, cache: Path, workdir: Path) -> Bo
     return BookCase(seed, robot, kind, truth, outcome, labels, cw, detail, seconds)
 
 
-def cases(kinds, per: int, first_seed: int, robots) -> list[tuple[int, str, str]]:
-    """(seed, robot, kind): ``per`` cases of each kind, one seed each, robots in turn."""
+def cases(kinds, per: int, clean: int, first_seed: int, robots) -> list[tuple[int, str, str]]:
+    """(seed, robot, kind): ``per`` cases of each kind but "clean", then ``clean`` clean cases, one
+    seed each, robots in turn."""
     out, seed = [], first_seed
     for _ in range(per):
         for kind in kinds:
-            out.append((seed, robots[seed % len(robots)], kind))
-            seed += 1
+            if kind != "clean":
+                out.append((seed, robots[seed % len(robots)], kind))
+                seed += 1
+    for _ in range(clean):
+        out.append((seed, robots[seed % len(robots)], "clean"))
+        seed += 1
     return out
 
 
@@ -232,16 +237,16 @@ def summarize(results: list[BookCase]) -> dict:
     }
 
 
-def main(which: str = "dev", per: int = 4, jobs: int = 1, cache: Path = DEFAULT_CACHE, kinds=None,
+def main(which: str = "dev", per: int = 4, clean: int = 20, jobs: int = 1, cache: Path = DEFAULT_CACHE, kinds=None,
          verbose: bool = True, json_out: Path | None = None) -> dict:
-    """Run the DEVELOPMENT (``dev``) or BLIND (``blind``) battery; returns {"results": [BookCase],
-    **:func:`summarize`}."""
+    """Run the DEVELOPMENT (``dev``) or BLIND (``blind``) battery: ``per`` cases of each kind and
+    ``clean`` clean ones; returns {"results": [BookCase], **:func:`summarize`}."""
     from graphcal.simulation.bookkeeping import BLIND_KINDS, DEV_KINDS
 
     if which == "dev":
-        todo = cases(kinds or DEV_KINDS, per, DEV_FIRST_SEED, DEV_ROBOTS)
+        todo = cases(kinds or DEV_KINDS, per, clean, DEV_FIRST_SEED, DEV_ROBOTS)
     elif which == "blind":
-        todo = cases(kinds or BLIND_KINDS, per, BLIND_FIRST_SEED, BLIND_ROBOTS)
+        todo = cases(kinds or BLIND_KINDS, per, clean, BLIND_FIRST_SEED, BLIND_ROBOTS)
     else:
         raise ValueError(f"--set must be dev or blind, got {which!r}")
     with tempfile.TemporaryDirectory(prefix="graphcal-bookkeeping-") as tmp:
@@ -277,9 +282,10 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--set", default="dev", choices=("dev", "blind"))
     ap.add_argument("--per", type=int, default=4)
+    ap.add_argument("--clean", type=int, default=20)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     ap.add_argument("--kinds", default="", help="comma-separated subset of the set's kinds")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
-    main(a.set, a.per, a.jobs, a.cache, tuple(a.kinds.split(",")) if a.kinds else None, json_out=a.json)
+    main(a.set, a.per, a.clean, a.jobs, a.cache, tuple(a.kinds.split(",")) if a.kinds else None, json_out=a.json)
