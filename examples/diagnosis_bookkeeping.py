@@ -188,13 +188,12 @@ def run_case(seed: int, robot: str, kind: str, cache: Path, workdir: Path) -> Bo
 
 def cases(kinds, per: int, clean: int, first_seed: int, robots) -> list[tuple[int, str, str]]:
     """(seed, robot, kind): ``per`` cases of each kind but "clean", then ``clean`` clean cases, one
-    seed each, robots in turn."""
+    seed each; each kind's cases go to the robots in turn (round r, kind k: robot (r + k) mod n)."""
     out, seed = [], first_seed
-    for _ in range(per):
-        for kind in kinds:
-            if kind != "clean":
-                out.append((seed, robots[seed % len(robots)], kind))
-                seed += 1
+    for r in range(per):
+        for k, kind in enumerate(x for x in kinds if x != "clean"):
+            out.append((seed, robots[(r + k) % len(robots)], kind))
+            seed += 1
     for _ in range(clean):
         out.append((seed, robots[seed % len(robots)], "clean"))
         seed += 1
