@@ -236,6 +236,42 @@ def summarize(results: list[BookCase]) -> dict:
     }
 
 
+def overhead(n: int = 10, cache: Path = DEFAULT_CACHE, first_seed: int = DEV_FIRST_SEED + 500) -> dict:
+    """CPU time of the bookkeeping stage (:func:`graphcal.diagnosis.bookkeeping.find_bookkeeping`)
+    within ``diagnose`` on ``n`` clean datasets (DEV robots in turn): {"diagnose_s", "bookkeeping_s",
+    "share"} (means over the datasets, CPU seconds of this process)."""
+    import graphcal.diagnosis.bookkeeping as bk_module
+    from graphcal.diagnosis import diagnose
+    from graphcal.simulation.bookkeeping import make_case
+
+    spent = []
+    original = bk_module.find_bookkeeping
+
+    def timed(model, say):
+        t0 = time.process_time()
+        try:
+            return original(model, say)
+        finally:
+            spent.append(time.process_time() - t0)
+
+    total, book = [], []
+    bk_module.find_bookkeeping = timed
+    try:
+        with tempfile.TemporaryDirectory(prefix="graphcal-bookkeeping-") as tmp:
+            for i in range(n):
+                out = Path(tmp) / f"clean_{i}"
+                make_case("clean", DEV_ROBOTS[i % len(DEV_ROBOTS)], first_seed + i, Path(cache), out)
+                spent.clear()
+                t0 = time.process_time()
+                diagnose(out)
+                total.append(time.process_time() - t0)
+                book.append(sum(spent))
+    finally:
+        bk_module.find_bookkeeping = original
+    return {"diagnose_s": float(np.mean(total)), "bookkeeping_s": float(np.mean(book)),
+            "share": float(np.sum(book) / np.sum(total))}
+
+
 def main(which: str = "dev", per: int = 4, clean: int = 20, jobs: int = 1, cache: Path = DEFAULT_CACHE, kinds=None,
          verbose: bool = True, json_out: Path | None = None) -> dict:
     """Run the DEVELOPMENT (``dev``) or BLIND (``blind``) battery: ``per`` cases of each kind and
@@ -286,5 +322,12 @@ if __name__ == "__main__":
     ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     ap.add_argument("--kinds", default="", help="comma-separated subset of the set's kinds")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--overhead", type=int, default=0, help="only measure the bookkeeping stage's CPU share "
+                    "of diagnose on this many clean datasets")
     a = ap.parse_args()
+    if a.overhead:
+        o = overhead(a.overhead, a.cache)
+        print(f"clean data, {a.overhead} datasets: diagnose {o['diagnose_s']:.3f} s CPU, of which the bookkeeping "
+              f"stage {o['bookkeeping_s']:.3f} s ({o['share']:.1%})")
+        raise SystemExit(0)
     main(a.set, a.per, a.clean, a.jobs, a.cache, tuple(a.kinds.split(",")) if a.kinds else None, json_out=a.json)
