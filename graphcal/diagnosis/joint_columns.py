@@ -1,14 +1,361 @@
 """Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): two legs' joint columns exchanged in the logger.
 
-NOT YET IMPLEMENTED: finds nothing (issue 29 in progress).
+A logger that files leg a's encoder columns under leg b (and b's under a) leaves every stance foot
+of those two legs far from where the other legs and the sensors put the body: the nominal model
+then reads it as huge joint offsets (measured on an independent hexapod: two coxa offsets of +87
+and -86 deg, confidently wrong). Looked for in three steps, each gated on the previous one:
+
+1. **Gate** (free): the stance-foot noise the nominal model learned (``model.options``) against the
+   physical noise (:func:`graphcal.diagnosis.model.model_options`). When the learned variance is
+   within :data:`~graphcal.diagnosis.structure.MIN_EXCESS` of the physical one the stance feet fit
+   and nothing else is done (clean data: learned 0.02 deg / 0.08 mm against 0.1 deg / 1 mm).
+2. **Per-leg residuals** (one solve): the nominal model solved at physical noise, each leg's
+   stance-foot chi-square. The search goes on only when the misfit concentrates on two legs
+   (:data:`CONCENTRATION`) and is large at most of their stations (:data:`MIN_LEG_CHI2`); the
+   :data:`CANDIDATE_LEGS` legs that fail worst give the candidate pairs (legs with different joint
+   counts cannot be exchanged).
+3. **Hypotheses** (one solve each, physical noise): for each candidate pair, the q columns of legs a
+   and b exchanged in every station's ``q_by_foot``; for the best pair also every mirror sign
+   pattern (a logger that converts left to right conventions: the exchanged angles negated joint by
+   joint) and, when no whole-run exchange fits, an exchange from one station on or before one
+   station (the station found as the change point of the per-station evidence). Each hypothesis is
+   scored by the chi-square of the whole nominal model at physical noise.
+
+A correction (cause ``legs_exchanged``; ``where``: ``legs``, and ``from_station`` /
+``until_station`` -- the first station no longer exchanged -- when it covers part of the run) is
+made only when the best hypothesis explains the data -- it fits at physical noise (chi2/dof <=
+MIN_EXCESS or its chi-square tail above STRUCTURE_ALPHA), or, with another cause left in the data,
+it beats the same two legs' joint offsets and link lengths freed by MIN_CONFIDENCE -- AND beats the
+next-best hypothesis (other pairs, sign patterns, spans, and the data as given) by at least
+:data:`MIN_CONFIDENCE` in chi-square; otherwise what was suspected goes to the notes. The
+Correction's ``statistic`` is the chi-square drop (data as given minus corrected) at physical
+noise, ``dof`` the degrees of freedom of the corrected fit (rows minus parameters), ``p_value`` the
+tail probability of the data as given at that dof (how surely they do not fit), ``confidence`` the
+chi-square margin over the next-best hypothesis; ``corrected`` holds the mirror signs applied, both
+fits' chi2/dof, the corrected fit's p-value and the free legs' chi-square (nan when not needed).
 """
 
 from __future__ import annotations
 
-__all__ = ["find_joint_columns"]
+import dataclasses
+import itertools
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from graphcal.diagnosis.bookkeeping import Correction
+from graphcal.diagnosis.model import chi2_of, model_options
+from graphcal.diagnosis.structure import MIN_EXCESS, STRUCTURE_ALPHA
+from graphcal.errors import GraphcalError
+
+__all__ = ["find_joint_columns", "exchange_legs", "candidate_pairs", "leg_chi2", "concentration", "span_text",
+           "Hypothesis",
+           "CANDIDATE_LEGS", "CONCENTRATION", "MIN_LEG_CHI2", "CHANGE_CONCENTRATION", "CHANGE_PAIRS", "MIN_CONFIDENCE"]
+
+log = logging.getLogger(__name__)
+
+#: the legs whose stance feet fail worst at physical noise that make the candidate pairs
+CANDIDATE_LEGS = 3
+#: the search goes on only when the stance chi-square concentrates on two legs: the second-worst
+#: leg's at least this many times the third-worst's (measured at physical noise, 30-48 stations:
+#: 13-120 for two legs exchanged for the whole run or from a station on, 1.8-5.3 when the exchanged
+#: angles are also negated; 1.0-1.9 for a joint offset, a link length, an extrinsic knock, outlier
+#: stations)
+CONCENTRATION = 1.5
+#: ... and the second-worst leg's stance-foot chi-square at its 75th percentile over the stations
+#: at least this (about 30 mm of foot displacement at physical noise; a percentile, so that a few
+#: outlier stations do not open the search). Measured: 2 070-41 000 with two legs exchanged (for
+#: the whole run, from station 18 of 30, mirrored); at most 529 for the battery's effects
+#: (outlier stations; extrinsic knocks <= 58, joint offsets <= 5)
+MIN_LEG_CHI2 = 1000.0
+#: ... and the exchange from one station on is tried only above this concentration
+CHANGE_CONCENTRATION = 5.0
+#: chi-square margin (physical noise) by which the best exchange must beat the next-best
+#: hypothesis to be corrected (chi-square 1-dof quantile at 1e-6 is 23.9)
+MIN_CONFIDENCE = 25.0
+#: when no whole-run hypothesis fits, the change point (exchanged from one station on) is tested for
+#: this many pairs that fit best exchanged for the whole run and this many of the legs that fail worst
+CHANGE_PAIRS = 2
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One hypothesis about the joint columns, scored at physical noise.
+
+    Attributes:
+        legs: (a, b) feet exchanged, () for the data as given.
+        signs: per joint, the sign the exchanged angles carry (+1 plain exchange, -1 mirrored).
+        from_station: first station id exchanged (None: from the first station).
+        chi2, dof: the whole model's chi-square at physical noise and its rows minus parameters.
+        until_station: first station id no longer exchanged (None: to the last station).
+    """
+
+    legs: tuple
+    signs: tuple
+    from_station: int | None
+    chi2: float
+    dof: int
+    until_station: int | None = None
+
+    @property
+    def fits(self) -> bool:
+        dof = max(self.dof, 1)
+        return self.chi2 <= MIN_EXCESS * dof or chi2_dist.sf(self.chi2, dof) >= STRUCTURE_ALPHA
+
+    def label(self) -> str:
+        if not self.legs:
+            return "the data as given"
+        s = "" if all(x > 0 for x in self.signs) else f" with signs {list(self.signs)}"
+        return f"legs {self.legs[0]} and {self.legs[1]} exchanged{s}{span_text(self.from_station, self.until_station)}"
+
+
+def span_text(from_station, until_station) -> str:
+    """" from station 18 on", " before station 18", " from station 5 until station 18", or ""."""
+    w = "" if from_station is None else f" from station {from_station}"
+    if until_station is None:
+        return w + (" on" if w else "")
+    return f"{w} until station {until_station}" if w else f" before station {until_station}"
+
+
+def exchange_legs(data, a: str, b: str, signs=None, from_station: int | None = None,
+                  until_station: int | None = None):
+    """A new CalibrationData with the joint columns of feet ``a`` and ``b`` exchanged in every
+    station's ``q_by_foot`` (from station id ``from_station`` on, None: from the first; up to but not
+    including station id ``until_station``, None: to the last; in file order), each exchanged angle
+    multiplied by ``signs`` (per joint; None: all +1). ``data`` is not changed."""
+    started, ended = from_station is None, False
+    stations = []
+    for st in data.stations:
+        started = started or st.station == from_station
+        ended = ended or st.station == until_station
+        if started and not ended and a in st.q_by_foot and b in st.q_by_foot:
+            s = np.ones(len(st.q_by_foot[a])) if signs is None else np.asarray(signs, float)
+            q = dict(st.q_by_foot)
+            q[a], q[b] = s * np.asarray(st.q_by_foot[b], float), s * np.asarray(st.q_by_foot[a], float)
+            st = dataclasses.replace(st, q_by_foot=q)
+        stations.append(st)
+    return dataclasses.replace(data, stations=tuple(stations))
+
+
+def _stance_misfit(model) -> float:
+    """Learned over physical variance of the stance-foot noise (the larger of its joint and
+    contact components); free: read from the options the nominal model learned."""
+    phys = model_options(model.ds)
+    o = model.options
+    return max((o.sigma_joint_rad / phys.sigma_joint_rad) ** 2, (o.sigma_contact_m / phys.sigma_contact_m) ** 2)
+
+
+def _fit(phys, data, legs=(), signs=(), span=None):
+    """(Hypothesis, problem, values) of the nominal model of ``data`` solved at physical noise;
+    ``span``: (from_station, until_station) of the exchange, None for the whole run."""
+    m = dataclasses.replace(phys, data=data, findings=())
+    problem, values = m.solve()
+    chi2, rows = chi2_of(problem, values)
+    n_par = sum(int(d) for _, d in values.dims().items())
+    first, until = span or (None, None)
+    return Hypothesis(tuple(legs), tuple(signs), first, chi2, max(rows - n_par, 1), until), problem, values
+
+
+def _free_legs_chi2(phys, a: str, b: str) -> float:
+    """Chi-square at physical noise of the data as given with every joint offset and link length of
+    legs ``a`` and ``b`` free: the physical explanation the diagnosis would otherwise name."""
+    from graphcal.diagnosis.catalogue import Candidate
+
+    m = phys
+    for foot in (a, b):
+        for name in m.leg_params()[foot].names:
+            joint, kind = name.rsplit(".", 1)
+            cause = {"offset_rad": "joint_offset", "delta_m": "link_length"}.get(kind)
+            if cause is not None:
+                m = m.with_finding(Candidate(cause, (("joint", joint), ("leg", foot))))
+    problem, values = m.solve()
+    return chi2_of(problem, values)[0]
+
+
+def _stance_chi2(phys, problem, values) -> dict:
+    """(station, foot) -> the stance-foot factor's chi-square at ``values``."""
+    from graphcal.factors.keys import F
+    from graphcal.solvers.batch import whitened_errors
+
+    sessions = list(dict.fromkeys(st.session for st in phys.data.stations))
+    foot_of = {int(F(j)): f for j, (s, f) in enumerate((s, f) for s in sessions for f in phys.robot.feet)}
+    x_station = {int(k): st for st, k in problem.station_keys.items()}
+    idx = [i for i, g in problem.factor_groups.items() if g == "stance_foot"]
+    e = whitened_errors(problem.graph, values, idx)
+    out = {}
+    for i, chi in zip(idx, e):
+        keys = [int(k) for k in problem.graph.at(i).keys()]
+        st = next((x_station[k] for k in keys if k in x_station), None)
+        f = next((foot_of[k] for k in keys if k in foot_of), None)
+        if st is not None and f is not None and np.isfinite(chi):
+            out[(st, f)] = float(chi)
+    return out
+
+
+def leg_chi2(per_station: dict) -> dict:
+    """foot -> the sum of its stance-foot chi-squares, worst first (``per_station``: (station,
+    foot) -> chi-square)."""
+    per_leg: dict = {}
+    for (_, f), c in per_station.items():
+        per_leg[f] = per_leg.get(f, 0.0) + c
+    return dict(sorted(per_leg.items(), key=lambda kv: -kv[1]))
+
+
+def concentration(per_leg: dict) -> float:
+    """The second-worst leg's stance chi-square over the third-worst's (inf with two legs)."""
+    c = list(per_leg.values())
+    return float("inf") if len(c) < 3 else float(c[1] / max(c[2], 1e-12))
+
+
+def candidate_pairs(data, per_station: dict) -> list:
+    """Pairs of the CANDIDATE_LEGS feet with the largest stance chi-square that have the same joint
+    count at every station, worst first."""
+    worst = list(leg_chi2(per_station))[:CANDIDATE_LEGS]
+    pairs = []
+    for a, b in itertools.combinations(worst, 2):
+        if all(len(st.q_by_foot.get(a, ())) == len(st.q_by_foot.get(b, ())) > 0 for st in data.stations):
+            pairs.append((a, b))
+    return pairs
+
+
+def _change_spans(data, a: str, b: str, before: dict, after: dict) -> list:
+    """The spans (from_station, until_station) over which the exchange of a and b explains the
+    stance feet better than the data as given (``before``/``after``: per (station, foot)
+    chi-square of the two fits), by the largest cumulative evidence: exchanged from station k on,
+    and exchanged before station k (none that is the whole run)."""
+    ids = [st.station for st in data.stations]
+    gain = np.array([sum(before.get((s, f), 0.0) - after.get((s, f), 0.0) for f in (a, b)) for s in ids])
+    # exchanged from k on: evidence sum(gain[k:]) - sum(gain[:k]) = total - 2 * cumsum(gain)[k-1];
+    # exchanged before k: its negative
+    score = gain.sum() - 2.0 * np.r_[0.0, np.cumsum(gain)[:-1]]
+    spans = []
+    k = int(np.argmax(score))
+    if k > 0:
+        spans.append((ids[k], None))
+    k = int(np.argmin(score[1:])) + 1 if len(ids) > 1 else 0
+    if k > 0:
+        spans.append((None, ids[k]))
+    return spans
+
+
+def _search(model, phys, say) -> tuple:
+    """(every Hypothesis scored, best first; the data of the best) of the exchange search, when the
+    stance misfit concentrates on two legs (:data:`CONCENTRATION`): the candidate pairs plainly
+    exchanged; the mirror sign patterns of the best pair (and of the two worst legs when no plain
+    exchange fits); when still nothing fits, the exchange from one station on and before one station."""
+    given, problem, values = _fit(phys, phys.data)
+    per_station = _stance_chi2(phys, problem, values)
+    pairs = candidate_pairs(phys.data, per_station)
+    per_leg = leg_chi2(per_station)
+    ratio = concentration(per_leg)
+    second = float(np.percentile([c for (_, f), c in per_station.items() if f == list(per_leg)[1]], 75)) \
+        if len(per_leg) > 1 else 0.0
+    if ratio < CONCENTRATION or second < MIN_LEG_CHI2:
+        return [given], phys.data
+    say(f"joint columns: stance feet fail at physical noise (chi2 {given.chi2:.0f} on {given.dof} dof); "
+        f"the two worst legs carry {ratio:.1f}x the third's; testing {len(pairs)} exchanged leg pair(s)")
+    scored = {(): (given, phys.data)}
+
+    def test(a, b, signs, span=None):
+        data = exchange_legs(phys.data, a, b, signs, *(span or (None, None)))
+        try:
+            scored[(a, b, tuple(signs), span)] = (_fit(phys, data, (a, b), signs, span)[0], data)
+        except (GraphcalError, RuntimeError) as exc:  # a hypothesis the solver cannot fit is no candidate
+            log.debug("joint columns: %s %s %s %s not fitted: %s", a, b, signs, span, exc)
+
+    def best(exchanges_only=False):
+        keys = [k for k in scored if k or not exchanges_only]
+        return min(keys, key=lambda k: scored[k][0].chi2) if keys else None
+
+    n_joints = {(a, b): len(phys.data.stations[0].q_by_foot[a]) for a, b in pairs}
+    for a, b in pairs:
+        test(a, b, (1,) * n_joints[(a, b)])
+    top = best(exchanges_only=True)
+    # the best plain pair's patterns; when nothing fits, also those of the two worst legs
+    mirror_pairs = list(dict.fromkeys(([] if top is None else [top[:2]]) +
+                                      ([] if top is not None and scored[top][0].fits else pairs[:1])))
+    for a, b in mirror_pairs:  # a logger converting left and right conventions: exchanged angles negated
+        for signs in itertools.product((1, -1), repeat=n_joints[(a, b)]):
+            if (a, b, signs, None) not in scored:
+                test(a, b, signs)
+    # from one station on: the change point of each pair's evidence
+    if not scored[best()][0].fits and ratio >= CHANGE_CONCENTRATION:
+        ids = [st.station for st in phys.data.stations]
+        by_chi2 = list(dict.fromkeys(k[:2] for k in sorted((k for k in scored if k), key=lambda k: scored[k][0].chi2)))
+        # the pairs that fit best exchanged for the whole run, and those of the legs that fail worst
+        for a, b in dict.fromkeys(by_chi2[:CHANGE_PAIRS] + pairs[:CHANGE_PAIRS]):
+            # the plain exchange and the sign pattern that fits best for the whole run
+            tried = [k for k in scored if k and k[:2] == (a, b) and k[3] is None]
+            if not tried:
+                continue
+            fitted = min(tried, key=lambda k: scored[k][0].chi2)[2]
+            for signs in dict.fromkeys(((1,) * n_joints[(a, b)], fitted)):
+                if (a, b, signs, None) not in scored:
+                    continue
+                _, pr, vals = _fit(phys, scored[(a, b, signs, None)][1])
+                for span in _change_spans(phys.data, a, b, per_station, _stance_chi2(phys, pr, vals)):
+                    test(a, b, signs, span)
+        spans = [key for key in scored if key and key[3] is not None]
+        if spans:  # the neighbours of the best change station
+            a, b, signs, (first, until) = min(spans, key=lambda key: scored[key][0].chi2)
+            k = ids.index(first if first is not None else until)
+            for j in (max(k - 1, 1), min(k + 1, len(ids) - 1)):
+                span = (ids[j], None) if first is not None else (None, ids[j])
+                if (a, b, signs, span) not in scored:
+                    test(a, b, signs, span)
+    order = sorted(scored, key=lambda k: scored[k][0].chi2)
+    return [scored[k][0] for k in order], scored[order[0]][1]
 
 
 def find_joint_columns(model, say) -> tuple:
     """(corrections, corrected data, notes) for the nominal ``model`` (a DiagnosisModel with its
-    noise learned); see graphcal/diagnosis/bookkeeping.py."""
-    return (), model.data, ()
+    noise learned); see graphcal/diagnosis/bookkeeping.py and this module's docstring. ``say(msg)``
+    logs a progress line."""
+    if len(model.robot.feet) < 2 or _stance_misfit(model) <= MIN_EXCESS:
+        return (), model.data, ()
+    phys = dataclasses.replace(model, options=model_options(model.ds), findings=())
+    hyps, data = _search(model, phys, say)
+    given = next(h for h in hyps if not h.legs)
+    best = hyps[0]
+    if not best.legs:
+        return (), model.data, ()
+    runner = hyps[1]
+    margin = runner.chi2 - best.chi2
+    alternatives = tuple(h.label() for h in hyps[1:] if h.chi2 - best.chi2 < MIN_CONFIDENCE)
+    p_given = float(chi2_dist.sf(given.chi2, given.dof))
+    # another cause left in the data keeps the exchange from fitting: it must then beat the physical
+    # explanation of the same two legs (their joint offsets and link lengths free) clearly
+    free = float("nan") if best.fits else _free_legs_chi2(phys, *best.legs)
+    explains = best.fits or best.chi2 + MIN_CONFIDENCE <= free
+    if not explains or margin < MIN_CONFIDENCE:
+        why = (f"the stance feet still do not fit at physical noise after it, and the two legs' joint offsets "
+               f"and link lengths explain them as well (chi-square {free:.0f})") if not explains else \
+            f"{runner.label()} explains the data almost as well (chi-square {margin:.1f} apart)"
+        note = (f"joint columns: {best.label()} is the best explanation of the stance feet tried "
+                f"(chi-square {given.chi2:.0f} -> {best.chi2:.0f} at physical noise, {best.dof} dof), but {why}: "
+                f"not corrected")
+        say(note)
+        return (), model.data, (note,)
+    a, b = sorted(best.legs, key=list(model.robot.feet).index)
+    where = [("legs", (a, b))] + ([] if best.from_station is None else [("from_station", int(best.from_station))]) \
+        + ([] if best.until_station is None else [("until_station", int(best.until_station))])
+    mirrored = not all(s > 0 for s in best.signs)
+    note = (f"the joint columns of legs {a} and {b} are exchanged"
+            f"{span_text(best.from_station, best.until_station)}"
+            f"{' with mirrored signs ' + str(list(best.signs)) if mirrored else ''}: exchanging them back drops the "
+            f"chi-square at physical noise from {given.chi2:.0f} to {best.chi2:.0f} on {best.dof} dof "
+            f"({margin:.0f} better than {runner.label()})"
+            + ("" if best.fits else f"; other causes remain (it does not fit at physical noise), but the two legs' "
+               f"joint offsets and link lengths freed instead leave {free:.0f}"))
+    corr = Correction(
+        cause="legs_exchanged", where=tuple(sorted(where)),
+        corrected=(("signs", tuple(int(s) for s in best.signs)), ("chi2_per_dof_given", given.chi2 / given.dof),
+                   ("chi2_per_dof_corrected", best.chi2 / best.dof),
+                   ("p_value_corrected", float(chi2_dist.sf(best.chi2, best.dof))),
+                   ("chi2_legs_free", free)),
+        statistic=float(given.chi2 - best.chi2), dof=int(best.dof), p_value=p_given, confidence=float(margin),
+        alternatives=alternatives, note=note)
+    say(f"joint columns: {note}")
+    return (corr,), data, ()

@@ -43,6 +43,7 @@ axes (m); RMSE = ``sqrt(mean |e_i|^2)`` over the samples (3-D), in mm in the sum
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -58,6 +59,7 @@ from graphcal.errors import GraphcalError
 from graphcal.geometry import fit_rigid_transform, invert_pose, pose_log_between
 from graphcal.legs.adequacy import Adequacy, adequacy, jackknife_covariance, significance
 from graphcal.legs.identifiability import IdentifiabilityReport, identifiability
+from graphcal.legs.marker_ids import exchange_markers, find_exchanged_markers, find_exchanged_postures
 from graphcal.legs.mocap_data import MarkerTrack, MocapData, PoseTrack
 from graphcal.models.legs import LegModel, leg_model, point_kinematics
 
@@ -859,8 +861,17 @@ def identify_legs_dataset(dataset, *, options: IdentifyOptions = IdentifyOptions
             options = _declared_noise(options, dataset.noise)
         sb = options.sigma_marker_m if sigma_body_marker_m is None else sigma_body_marker_m
         data = dataset if isinstance(dataset, MocapData) else _mocap_data(dataset, sb)
-    return identify_legs(data.robot, data.tracks, options=options, T_body_mocap_nominal=data.T_body_mocap_nominal,
-                         frame=data.frame, source=data.source, warnings=data.warnings, progress=progress)
+    def run(tracks):
+        return identify_legs(data.robot, tracks, options=options, T_body_mocap_nominal=data.T_body_mocap_nominal,
+                             frame=data.frame, source=data.source, warnings=data.warnings, progress=progress)
+
+    # two feet's marker ids, or two postures' samples, exchanged (issue 29): looked for only when nothing fits
+    tracks = data.tracks
+    found, result, notes = find_exchanged_markers(run(tracks), tracks, run)
+    tracks = tracks if found is None else exchange_markers(tracks, *found.markers)
+    _, result, more = find_exchanged_postures(result, tracks, run)
+    notes = tuple(notes) + tuple(more)
+    return dataclasses.replace(result, warnings=tuple(result.warnings) + notes) if notes else result
 
 
 def _declared_noise(options: IdentifyOptions, noise: Mapping[str, float]) -> IdentifyOptions:
