@@ -30,6 +30,11 @@ def summary_text(doc: dict, out: Path | None = None) -> str:
     lines = [f"warning: {w}" for w in doc.get("warnings", [])]
     lines.append(f"nominal model: theta RMS {n['normal_rms_deg']:.4f} deg, e_d RMS {n['distance_rms_mm']:.3f} mm, "
                  f"chi2/dof {n['chi2_per_dof']:.2f}")
+    for c in doc.get("corrections", []):
+        corr = ", ".join(f"{k} {v}" for k, v in c["corrected"].items())
+        alt = f"; cannot be told from {', '.join(c['alternatives'])}" if c["alternatives"] else ""
+        lines.append(f"corrected {c['cause']} ({where_text(c['where'])})" + (f": {corr}" if corr else "")
+                     + f"; chi2 drop {c['statistic']:.1f} on {c['dof']} dof, p = {c['p_value']:.2g}{alt}")
     if not doc["findings"]:
         lines.append("findings: none (no catalogued effect is significant)")
     for fd in doc["findings"]:

@@ -39,6 +39,9 @@ ALPHA = 1e-3
 MAX_FINDINGS = 4
 #: stations on each side of an extrinsic-change candidate
 MIN_SEGMENT_STATIONS = 3
+#: stations on each side of an extrinsic-change candidate the bookkeeping stage found as a knock
+#: (diagnosis/segments.py: a knock with two stations on one side, told from two outlier measurements)
+MIN_KNOCK_STATIONS = 2
 #: at most this share of the stations is named as outliers; beyond it the model, not the data, is wrong
 MAX_OUTLIER_SHARE = 0.2
 #: rounds that may add a significant but negligible effect (a nuisance) on top of the named findings
@@ -86,7 +89,9 @@ class Diagnosis:
             after it are fitted to the corrected measurements, ``nominal`` summarises the data as given.
         answer: whose extrinsic is the answer: "extended" (every finding supported and no
             structure remains), "nominal" (nothing named, or no finding predicts held-out stations
-            significantly better) or "neither" (structure remains: neither model fits).
+            significantly better) or "neither" (structure remains: neither model fits); "corrected" when
+            bookkeeping errors were corrected and the model of the corrected data (with its findings)
+            fits: its extrinsic is the answer, not calibrate's on the files as given.
     """
 
     nominal: ModelSummary
@@ -191,8 +196,10 @@ def _extension_values(diag: Diagnosis) -> dict:
 
 
 # ---------------------------------------------------------------------------- candidates
-def _candidates(model: DiagnosisModel, problem, system) -> list[CandidateColumns]:
-    """Every candidate not yet in the model, with how it enters the screening linearisation."""
+def _candidates(model: DiagnosisModel, problem, system, knocks: frozenset = frozenset()) -> list[CandidateColumns]:
+    """Every candidate not yet in the model, with how it enters the screening linearisation;
+    ``knocks``: (sensor, station) of the knocks the bookkeeping stage found, tested with
+    MIN_KNOCK_STATIONS on each side."""
     ek = problem.extension_keys
     out: list[CandidateColumns] = []
 
@@ -236,12 +243,13 @@ def _candidates(model: DiagnosisModel, problem, system) -> list[CandidateColumns
         ms = sorted(((order[st], st) for (st, name) in system.measurement_rows if name == s))
         keys = {st: problem.measurement_keys[(st, s)] for _, st in ms}
         n_fam = max(len(ms) - 2 * MIN_SEGMENT_STATIONS, 1)
-        for i in range(MIN_SEGMENT_STATIONS, len(ms) - MIN_SEGMENT_STATIONS + 1):
+        for i in range(min(MIN_KNOCK_STATIONS, MIN_SEGMENT_STATIONS), len(ms) - MIN_KNOCK_STATIONS + 1):
             st = ms[i][1]
             key = keys[st]
             same = [t for _, t in ms if keys[t] == key]
             pos = same.index(st)
-            if pos < MIN_SEGMENT_STATIONS or len(same) - pos < MIN_SEGMENT_STATIONS:
+            least = MIN_KNOCK_STATIONS if (s, int(st)) in knocks else MIN_SEGMENT_STATIONS
+            if pos < least or len(same) - pos < least:
                 continue
             rows = np.concatenate([system.measurement_rows[(t, s)] for t in same[pos:]])
             c = Candidate("extrinsic_change", (("sensor", s), ("station", int(st))), n_fam)
@@ -461,12 +469,14 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     too_many_outliers = False
     inconsistent = False  # a fitted cause of impossible size: the data, not the model
     order = [st.station for st in data.stations]
+    knocks = frozenset((c.get("sensor"), int(c.get("from_station"))) for c in bookkeeping.corrections
+                       if c.cause == "extrinsic_knock")
     for _round in range(max_findings + MAX_NUISANCE):
         if len(findings) >= max_findings:
             break
         screen = model.build(screen=True, initial=values)
         system = linear_system(screen, screen.initial)
-        cands = [c for c in _candidates(model, screen, system) if c.candidate not in rejected]
+        cands = [c for c in _candidates(model, screen, system, knocks) if c.candidate not in rejected]
         scores = score_candidates(system, cands)
         causes_tested = len({s.candidate.cause for s in scores}) or 1
         threshold = np.log10(alpha / causes_tested)
@@ -562,6 +572,8 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
 
     findings.sort(key=lambda f: f.evidence.log10_p_family)
     v = _verdicts(findings, (model, problem, values), (nominal_model, nominal_problem, nominal_values), notes, say)
+    if bookkeeping.corrections and v["answer"] != "neither":
+        v["answer"] = "corrected"  # calibrate on the files as given is not the answer: the corrected data's is
     return Diagnosis(nominal, final, tuple(v["findings"]), unexplained or v["structure"], st, tuple(screening), model,
                      values, problem, residual_records(nominal_model, nominal_problem, nominal_values),
                      residual_records(model, problem, values), stance_records(nominal_model, nominal_problem, nominal_values),

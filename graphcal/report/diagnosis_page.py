@@ -63,9 +63,17 @@ def _verdict(doc: dict) -> list[str]:
     answer = doc.get("answer", "nominal")
     text = {"extended": "the extended model fits at physical noise: its extrinsic (below) is the answer.",
             "nominal": "no cause is named: the nominal calibration (graphcal calibrate) is the answer.",
+            "corrected": "the data hold bookkeeping errors (below); corrected, the model fits at physical noise: the "
+                         "extrinsic below, fitted to the corrected measurements, is the answer (not graphcal calibrate's "
+                         "on the files as given).",
             "neither": "structure remains: neither model fits at physical noise; the extended model's extrinsic is "
                        "not the answer."}[answer]
     out.append(f"<p><b>Answer:</b> {esc(text)}</p>")
+    if doc.get("corrections"):
+        out.append(f'<div class="warn">{len(doc["corrections"])} bookkeeping error(s) found in the data and corrected '
+                   "before the causes were looked for (below): the models were fitted to the corrected measurements; "
+                   "the files were not changed.</div>")
+    out.extend(_adequacy_line(doc.get("adequacy") or {}))
     groups = doc.get("physical_noise_tests", {}).get("final", [])
     if groups:
         out.append('<table><tr><th class="l">group</th><th>chi2 / dof at physical noise</th><th>p</th>'
@@ -76,6 +84,33 @@ def _verdict(doc: dict) -> list[str]:
             out.append(f'<tr><td class="l">{esc(g["group"])}{flag}</td><td>{_fmt(g["chi2_per_dof"])}</td>'
                        f'<td>{_fmt(g["p_value"])}</td><td class="l">{cor}</td></tr>')
         out.append("</table>")
+    return out
+
+
+def _adequacy_line(a: dict) -> list[str]:
+    """The final model's adequacy verdict at physical noise (diagnosis.json ``adequacy``)."""
+    if not a:
+        return []
+    if a.get("verdict") == "not judged":
+        return [f"<p><b>Final model:</b> not judged ({esc(a.get('reason', ''))}).</p>"]
+    text = (f"{a['verdict']} (statistic {_fmt(a['statistic'])} against {esc(a['reference'])}, p = {_fmt(a['p_value'])}; "
+            f"worst group {esc(a['worst_group'])})")
+    return [f"<p><b>Final model, judged as calibrate judges it:</b> {text}.</p>"]
+
+
+def _corrections(doc: dict) -> list[str]:
+    """The bookkeeping errors found and corrected (diagnosis.json ``corrections``)."""
+    out = ['<table><tr><th class="l">cause</th><th class="l">where</th><th class="l">the data hold → corrected</th>'
+           '<th class="l">evidence</th><th>confidence (χ² margin to the next best)</th><th class="l">note</th></tr>']
+    for c in doc["corrections"]:
+        corr = "<br>".join(f"{esc(k)} = {_fmt(v)}" for k, v in c["corrected"].items()) or "-"
+        alt = f"<br>cannot be told from: {esc(', '.join(c['alternatives']))}" if c["alternatives"] else ""
+        out.append(f'<tr><td class="l"><b>{esc(c["cause"])}</b></td><td class="l">{esc(where_text(c["where"]))}</td>'
+                   f'<td class="l">{corr}</td><td class="l">χ² drop {_fmt(c["statistic"])} on {c["dof"]} dof, '
+                   f'p = {_fmt(c["p_value"])}</td><td>{_fmt(c["confidence"])}{alt}</td><td class="l">{esc(c["note"])}</td></tr>')
+    out.append("</table>")
+    out.append('<p class="small">Stations numbered as in stations.csv; values in SI (m, rad) as in diagnosis.json. '
+               "Method: docs/diagnosis.md, \"Bookkeeping errors\".</p>")
     return out
 
 
@@ -159,12 +194,13 @@ def diagnosis_html(diag, doc: dict, title: str) -> str:
 
     n, f = doc["nominal"], doc["final"]
     res = ['<table><tr><th class="l">model</th><th>theta RMS [deg]</th><th>e_d RMS [mm]</th><th>chi2 / dof</th></tr>']
-    for name, m in (("nominal", n), ("with the findings", f)):
+    for name, m in (("nominal (the data as given)", n), ("with the corrections and findings", f)):
         res.append(f'<tr><td class="l">{name}</td><td>{_fmt(m["normal_rms_deg"])}</td><td>{_fmt(m["distance_rms_mm"])}</td>'
                    f"<td>{_fmt(m['chi2_per_dof'])}</td></tr>")
     res.append("</table>")
     sections = [
         Section("Verdict", *_verdict(doc)),
+        *([Section("Bookkeeping errors found and corrected", *_corrections(doc))] if doc.get("corrections") else []),
         Section("Residuals", *res),
         Section("Findings", *_findings(doc)),
         Section("Residuals against the revealing covariate, before and after; where structure remains",
