@@ -159,8 +159,9 @@ FAST_CASES = [
     (1012, "octopus", "clean"),
 ]
 #: cases the finders did not find at the last measurement (filled in from the final battery run)
-FAST_MISSED: dict = {c: "the finder of this cause is a stub on this branch (wt-battery alone)"
-                     for c in FAST_CASES if c[2] not in ("knock_mid", "clean")}
+MM_REFUSED = ("a plane distance in millimetres (d ~ 0.5-1 m read as 500-1000) is refused by the dataset reader "
+              "(io/dataset/checks.py: d > 100 m, 'looks like millimetres') before the association finder runs")
+FAST_MISSED: dict = {(1005, "qingzhui", "distance_unit"): MM_REFUSED}
 
 
 @pytest.mark.parametrize("seed,robot,kind", [
@@ -178,7 +179,8 @@ def test_battery_case(seed, robot, kind, tmp_path):
 TARGET_FOUND = 0.95
 TARGET_FALSE_ALARM = 0.05
 #: why the DEVELOPMENT / BLIND batteries miss the targets at the last measurement ("" = they meet them)
-DEV_MISS = "the finders are stubs on this branch (wt-battery alone): found 8.3 % (the loop's knocks mid-run)"
+DEV_MISS = ("measured 2026-11-27 07:50: 44/48 (91.7 %) found or honestly noted, 0/20 false alarms; the 4 misses are "
+            "the 4 millimetre slips: " + MM_REFUSED)
 BLIND_MISS = "the finders are stubs on this branch (wt-battery alone)"
 
 
