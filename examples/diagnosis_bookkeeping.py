@@ -16,8 +16,9 @@ Scoring (:func:`score`):
   new state for height steps and knocks, exactly: at 10-35 mm and 1.5-3 deg every station tells);
   for a knock an ``extrinsic_change`` finding at the station and sensor counts too, for a height step
   a ``session_offset`` finding whose place names the station;
-* **noted**: the case is *ambiguous* (the new state holds at one station only, at the first or last
-  station: an outlier station reads the same, so no data can tell the cause) and nothing wrong is
+* **noted**: the case is *ambiguous* (a knock with one station on one side of it, the first or the
+  last: an outlier station reads the same, so no data can tell the cause; a one-station height step
+  is not ambiguous: it moves the plane distance alone) and nothing wrong is
   corrected, but a note of the diagnosis names that station (or a correction there lists its
   alternatives): the honest answer there. An ``outlier_stations`` finding alone is not a note (it
   names one cause and not the other);
@@ -128,10 +129,7 @@ def matches(truth: dict, cause: str, where: dict) -> bool:
 
 def _odd_station(truth: dict) -> int | None:
     """The one station whose state differs, in an ambiguous case."""
-    w = truth["where"]
-    if truth["cause"] == "height_step":
-        return int(w["stations"][0])
-    k = int(w["from_station"])
+    k = int(truth["where"]["from_station"])
     return k - 1 if k <= 2 else k  # a knock at station 2: station 1 is the odd one; at the last: itself
 
 

@@ -136,11 +136,12 @@ def test_scoring_rules():
     knock = {"cause": "extrinsic_knock", "where": {"sensor": "depth", "from_station": 47}, "ambiguous": False}
     assert m.matches(knock, "extrinsic_change", {"sensor": "depth", "station": 47})
     assert not m.matches(knock, "extrinsic_change", {"sensor": "depth", "station": 46})
-    step = {"cause": "height_step", "where": {"from_station": 2, "stations": [1]}, "ambiguous": True}
+    end = {"cause": "extrinsic_knock", "where": {"sensor": "depth", "from_station": 2}, "ambiguous": True}
     doc = {"corrections": [], "findings": [{"cause": "outlier_stations", "where": {"stations": [1]}}], "notes": []}
-    assert m.score(step, doc)[0] == "missed"  # an outlier finding alone does not say "or a height step"
-    doc["notes"] = ["station 1: an outlier or a height step at the first station; one station cannot tell"]
-    assert m.score(step, doc)[0] == "noted"
+    assert m.score(end, doc)[0] == "missed"  # an outlier finding alone does not say "or a knock"
+    doc["notes"] = ["station 1: an outlier measurement of depth, or depth knocked after it; one station cannot tell"]
+    assert m.score(end, doc)[0] == "noted"
+    assert m.score({**end, "ambiguous": False}, doc)[0] == "missed"
     wrong = {"cause": "joint_offset", "where": {}, "alternatives": []}
     clean = {"cause": "", "where": {}}
     assert m.score(clean, {"corrections": [wrong]})[:2] == ("false_alarm", True)

@@ -93,9 +93,10 @@ class BookkeepingTruth:
             (foot frames), ``component`` (0-2: nx, ny, nz), ``from_station`` (the first station of
             the new state, height steps and knocks), ``station`` (the station a row is filed under).
         corrected: the true values (SI units: metres, radians, unit normals).
-        ambiguous: the data cannot tell this cause from another (a height step or knock that holds
-            at one station only, at the first or last station: an outlier station reads the same);
-            a note naming the place counts as an honest answer.
+        ambiguous: the data cannot tell this cause from another (a knock with one station on one
+            side, the first or the last: an outlier station reads the same); a note naming the
+            place counts as an honest answer. A height step is never ambiguous: even at one station
+            it moves the plane distance alone.
     """
 
     kind: str
@@ -417,19 +418,19 @@ def _edit_case(kind: str, rng, base: Path, dst: Path, ids: list[int], sensors: l
     raise GraphcalError(f"unknown kind {kind!r}; expected one of {', '.join(KIND_CAUSE)}")
 
 
-def _step_block(kind: str, rng, ids: list[int], sessions: list[str]) -> tuple[list[int], int, bool]:
-    """(stations at the new height, first station after the boundary, ambiguous) of a height step."""
+def _step_block(kind: str, rng, ids: list[int], sessions: list[str]) -> tuple[list[int], int]:
+    """(stations at the new height, first station after the boundary) of a height step."""
     m = int(rng.integers(1, 3))
     if kind == "height_step_first":
-        return ids[:m], ids[m], m == 1
+        return ids[:m], ids[m]
     if kind == "height_step_last":
-        return ids[-m:], ids[-m], m == 1
+        return ids[-m:], ids[-m]
     labels = list(dict.fromkeys(sessions))
     s = str(rng.choice(labels))
     idx = [i for i, x in enumerate(sessions) if x == s]
     k = int(rng.integers(idx[0] + 3, idx[-1] - 1))  # >= 3 stations before, >= 2 at the new height
     block = [ids[i] for i in range(k, idx[-1] + 1)]
-    return block, ids[k], False
+    return block, ids[k]
 
 
 def _sim_case(kind: str, rng, config, base: Path, cache: Path, dst: Path, ids, sessions, sensors) -> BookkeepingTruth:
@@ -437,12 +438,13 @@ def _sim_case(kind: str, rng, config, base: Path, cache: Path, dst: Path, ids, s
     root = Path(cache) / f"{config.robot}_{config.seed}"
     if kind.startswith("height_step"):
         h = float(rng.uniform(*HEIGHT_STEP_M)) * float(rng.choice([-1.0, 1.0]))
-        block, boundary, ambiguous = _step_block(kind, rng, ids, sessions)
+        block, boundary = _step_block(kind, rng, ids, sessions)
         twin = simulate_base(height_step_config(config, h), root / f"step_{h:+.5f}")
         splice_stations(base, twin, dst, block)
+        # never ambiguous: even at one station a height step moves d alone, which a knock (a rotation)
+        # or another station's data do not
         return BookkeepingTruth(kind, "height_step", {"from_station": boundary, "stations": block},
-                                {"offset_m": h, "note": "offset_m > 0: the feet of these stations sank by it"},
-                                ambiguous)
+                                {"offset_m": h, "note": "offset_m > 0: the feet of these stations sank by it"})
     m = int(rng.integers(1, 3))
     if kind == "knock_first":
         k = ids[m]  # m stations before the knock
