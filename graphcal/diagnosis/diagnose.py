@@ -417,16 +417,33 @@ def _structure_test(model: DiagnosisModel, problem, values) -> tuple | None:
 # ---------------------------------------------------------------------------- the loop
 def _nominal(ds, robot, data, say) -> tuple:
     """(summary of the nominal model of the data as given, the bookkeeping errors found
-    (bookkeeping.py), (model, problem, values) of the nominal model of the corrected data)."""
-    from graphcal.diagnosis.bookkeeping import find_bookkeeping
+    (bookkeeping.py), (model, problem, values) of the nominal model of the corrected data).
 
-    model = DiagnosisModel(ds, robot, data, model_options(ds))
+    Planes whose distance lies beyond what a sensor sees (:data:`MM_LIMIT_PLANE_D_M`: a unit slip
+    the reader kept for the diagnosis) are left out of the nominal fit -- a plane a kilometre away
+    would swamp it -- and shown to the bookkeeping finders; those no finder corrects stay out, with
+    a note."""
+    from graphcal.diagnosis.bookkeeping import BookkeepingResult, find_bookkeeping
+    from graphcal.io.dataset import MM_LIMIT_PLANE_D_M
+
+    far = {k for k, pl in data.planes.items() if pl.d > MM_LIMIT_PLANE_D_M}
+    fit_data = dataclasses.replace(data, planes={k: v for k, v in data.planes.items() if k not in far}) if far else data
+    model = DiagnosisModel(ds, robot, fit_data, model_options(ds))
     model, problem, values = model.learn_noise()
     nominal = _summary(model, problem, values)
     say(f"nominal model: theta RMS {nominal.normal_rms_deg:.4f} deg, e_d RMS {nominal.distance_rms_mm:.3f} mm, "
-        f"chi2/dof {nominal.chi2_per_dof:.2f}")
-    bookkeeping = find_bookkeeping(model, say)
-    if bookkeeping.data is not model.data:
+        f"chi2/dof {nominal.chi2_per_dof:.2f}" + (f" ({len(far)} plane(s) beyond {MM_LIMIT_PLANE_D_M:g} m left out)"
+                                                  if far else ""))
+    shown = dataclasses.replace(model, data=data) if far else model
+    bookkeeping = find_bookkeeping(shown, say)
+    still_far = sorted(k for k, pl in bookkeeping.data.planes.items() if pl.d > MM_LIMIT_PLANE_D_M)
+    if still_far:
+        kept = {k: v for k, v in bookkeeping.data.planes.items() if k not in set(still_far)}
+        bookkeeping = BookkeepingResult(bookkeeping.corrections, dataclasses.replace(bookkeeping.data, planes=kept),
+                                        bookkeeping.notes + tuple(
+                                            f"station {st}, {name}: d = {data.planes[(st, name)].d:.6g} m is beyond what a "
+                                            "sensor sees and no unit explains it: left out" for st, name in still_far))
+    if bookkeeping.data is not shown.data:
         # the nominal model of the corrected measurements: the diagnosis goes on from there
         model, problem, values = DiagnosisModel(ds, robot, bookkeeping.data, model_options(ds)).learn_noise()
         corrected = _summary(model, problem, values)
@@ -453,7 +470,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         if progress:
             log.info(f"diagnose: {msg}")
 
-    ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+    ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset, keep_unit_slips=True)
     require_sensors(ds, "diagnose")
     robot = load_dataset_robot(ds)
     data = calibration_data(ds, robot, progress=progress)

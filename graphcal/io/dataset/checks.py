@@ -4,6 +4,8 @@ ids, times, markers, joint columns against the robot); each raises one
 
 from __future__ import annotations
 
+import logging
+
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -39,6 +41,8 @@ from graphcal.io.dataset.text import MILLIMETRES_HINT, did_you_mean
 
 
 #: (columns, largest magnitude, what it is) of the values a robot can have, checked first
+log = logging.getLogger(__name__)
+
 _MAGNITUDES = (
     (("time",), MAX_ABS_TIME_S, "seconds"),
     (BODY_POSE_COLUMNS[:3], MAX_ABS_BODY_M, "a body position in metres"),
@@ -158,10 +162,19 @@ def check_timeseries(p: ParsedCsv, header: YamlHeader, root: Path) -> set[Path]:
     return referenced
 
 
-def check_planes(p: ParsedCsv, header: YamlHeader, station_ids: np.ndarray | None) -> None:
+#: at most this share of planes.csv's rows may hold a distance in millimetres when the reader is
+#: asked to keep them (``graphcal diagnose``: a unit slip in a few rows is a bookkeeping error it
+#: names and corrects); more, and the column is in the wrong unit: refused
+MAX_UNIT_SLIP_SHARE = 0.2
+
+
+def check_planes(p: ParsedCsv, header: YamlHeader, station_ids: np.ndarray | None, *,
+                 keep_unit_slips: bool = False) -> None:
     """planes.csv: unit normals, ``d >= 0`` in metres, counts, rms, covariances (symmetric, PSD, of
     full rank across the plane), sensors of ``header`` and stations among ``station_ids`` (the ids
-    of stations.csv, None without it)."""
+    of stations.csv, None without it). ``keep_unit_slips``: a few rows (at most
+    :data:`MAX_UNIT_SLIP_SHARE`) whose d looks like millimetres are kept, with a warning, for the
+    diagnosis to name and correct (graphcal/diagnosis/association.py); otherwise refused."""
     t = p.table
     n = np.stack([t["nx"], t["ny"], t["nz"]], axis=1)
     norm = np.linalg.norm(n, axis=1)
@@ -178,7 +191,10 @@ def check_planes(p: ParsedCsv, header: YamlHeader, station_ids: np.ndarray | Non
     bad = d > MM_LIMIT_PLANE_D_M
     if bad.any():
         i = int(np.argmax(bad))
-        raise p.err(i, "d", f"metres (d <= {MM_LIMIT_PLANE_D_M:g}); {MILLIMETRES_HINT}", float(d[i]))
+        if not keep_unit_slips or bad.mean() > MAX_UNIT_SLIP_SHARE:
+            raise p.err(i, "d", f"metres (d <= {MM_LIMIT_PLANE_D_M:g}); {MILLIMETRES_HINT}", float(d[i]))
+        log.warning(f"{p.err(i, 'd', f'metres (d <= {MM_LIMIT_PLANE_D_M:g}); {MILLIMETRES_HINT}', float(d[i]))} "
+                    f"({int(bad.sum())} of {len(d)} rows): kept for the diagnosis to test as a unit slip")
     bad = d < MIN_PLANE_D_M
     if bad.any():
         i = int(np.argmax(bad))

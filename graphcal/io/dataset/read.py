@@ -60,10 +60,12 @@ def _check_dataset_file(root: Path, f: Path) -> None:
         raise DatasetError(f, "file", f"a regular file ({f.name} of the dataset)", exc.strerror or str(exc)) from None
 
 
-def read_dataset_parts(path: str | Path) -> tuple[Dataset, object | None, dict[str, ParsedCsv], set[Path]]:
+def read_dataset_parts(path: str | Path, *, keep_unit_slips: bool = False
+                       ) -> tuple[Dataset, object | None, dict[str, ParsedCsv], set[Path]]:
     """:func:`read_dataset` and what it found on the way: ``(dataset, robot, parsed, referenced)``
     with the loaded :class:`~graphcal.models.robot.RobotModel` (None without a robot), the CSV files
-    read by kind (rows with their file lines) and the cloud files named in timeseries.csv."""
+    read by kind (rows with their file lines) and the cloud files named in timeseries.csv.
+    ``keep_unit_slips``: see :func:`read_dataset`."""
     root = _dataset_root(path)
     yaml_file = root / "dataset.yaml"
     header = parse_dataset_yaml(yaml_file)
@@ -106,7 +108,7 @@ def read_dataset_parts(path: str | Path) -> tuple[Dataset, object | None, dict[s
     if "timeseries" in parsed:
         referenced = check_timeseries(parsed["timeseries"], header, root)
     if "planes" in parsed:
-        check_planes(parsed["planes"], header, station_ids)
+        check_planes(parsed["planes"], header, station_ids, keep_unit_slips=keep_unit_slips)
     if "mocap" in parsed:
         times = [
             parsed[k].table["time"] for k in ("stations", "timeseries") if k in parsed and parsed[k].table.has("time")
@@ -139,12 +141,18 @@ def read_dataset_parts(path: str | Path) -> tuple[Dataset, object | None, dict[s
     return ds, robot, parsed, referenced
 
 
-def read_dataset(path: str | Path) -> Dataset:
+def read_dataset(path: str | Path, *, keep_unit_slips: bool = False) -> Dataset:
     """Read and check a ``graphcal-dataset/1`` folder (or its ``dataset.yaml``).
 
     Checks everything in docs/dataset.md except the points inside the PLY files (their names,
     sensors, stations and locations are checked; :func:`~graphcal.io.dataset.validate.validate_dataset` reads them). The robot
     is loaded to check joint columns, feet and marker links.
+
+    Args:
+        path: the folder or its dataset.yaml.
+        keep_unit_slips: keep a few planes.csv rows whose distance looks like millimetres (a
+            warning each time; :func:`~graphcal.io.dataset.checks.check_planes`): only ``graphcal
+            diagnose`` asks for it, to name and correct them; every other command refuses them.
 
     Returns:
         The :class:`Dataset`, SI units.
@@ -152,4 +160,4 @@ def read_dataset(path: str | Path) -> Dataset:
     Raises:
         DatasetError: the first problem found, naming file, row or key, and what was expected.
     """
-    return read_dataset_parts(path)[0]
+    return read_dataset_parts(path, keep_unit_slips=keep_unit_slips)[0]
