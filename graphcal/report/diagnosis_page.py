@@ -194,7 +194,7 @@ def diagnosis_html(diag, doc: dict, title: str) -> str:
 
     n, f = doc["nominal"], doc["final"]
     res = ['<table><tr><th class="l">model</th><th>theta RMS [deg]</th><th>e_d RMS [mm]</th><th>chi2 / dof</th></tr>']
-    for name, m in (("nominal (the data as given)", n), ("with the corrections and findings", f)):
+    for name, m in (("nominal (before the corrections)", n), ("with the corrections and findings", f)):
         res.append(f'<tr><td class="l">{name}</td><td>{_fmt(m["normal_rms_deg"])}</td><td>{_fmt(m["distance_rms_mm"])}</td>'
                    f"<td>{_fmt(m['chi2_per_dof'])}</td></tr>")
     res.append("</table>")
