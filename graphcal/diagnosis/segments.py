@@ -62,7 +62,7 @@ from graphcal.diagnosis.correction import Correction
 from graphcal.diagnosis.catalogue import Candidate
 from graphcal.diagnosis.scores import linear_system
 
-__all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MAX_OUTLIERS", "MIN_CONFIDENCE", "RANK_RTOL"]
+__all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MAX_OUTLIERS", "MIN_CONFIDENCE", "RANK_RTOL", "REFIT_KNOCKS", "KNOCK_GRID"]
 
 log = logging.getLogger(__name__)
 
@@ -347,28 +347,55 @@ def _relabel(data, lay: _Layout, k: int, end: int, label: str):
     return dataclasses.replace(data, stations=stations)
 
 
+#: knocks fitted (solved) to place a knock: the strongest linear scores and their neighbours, a
+#: grid of every KNOCK_GRID-th place, and the places around the best fitted one
+REFIT_KNOCKS = 8
+KNOCK_GRID = 3
+
+
 def _refit_knocks(model, best: _Test, tests: list[_Test], lay: _Layout) -> tuple:
-    """(the knock that fits best, the runner-up or None, their chi-square difference) among the knocks
-    of any sensor within a station of ``best`` that score at least a quarter of it, each FITTED (the model
-    with that extrinsic change, solved): a large knock is far from the nominal linearisation, and
-    with two sensors the conflict between them at a few stations can be put on either (measured:
-    a 2.3 deg knock of the Messor's stereo camera 2 stations from the end scored 9627 for the stereo
-    and 9979 for the laser; fitted, the stereo's is the better one)."""
+    """(the knock that fits best, the runner-up or None, their chi-square difference, the fitted
+    knocks as (chi2, test)): the :data:`REFIT_KNOCKS` knocks of any sensor with the strongest linear
+    scores (at least a quarter of ``best``'s), the neighbours of ``best``, every :data:`KNOCK_GRID`-th
+    place of those sensors, then the places around the best of them, each FITTED (the model with
+    that extrinsic change, solved). A large knock is far from the nominal linearisation: the linear
+    score can peak stations away from it (measured: a 2.6 deg knock at station 26 scored best at 32,
+    48 at 26; fitted, 26 is the best, by 90 over 32), and with two sensors the conflict between them
+    at a few stations can be put on either (measured: a 2.3 deg knock of the Messor's stereo camera
+    2 stations from the end scored 9627 for the stereo and 9979 for the laser; fitted, the stereo's
+    is the better one)."""
     from graphcal.diagnosis.model import chi2_of
 
-    near = [t for t in tests if t.kind == "knock" and abs(t.index - best.index) <= 1
-            and t.statistic >= 0.25 * best.statistic]
+    knocks = sorted((t for t in tests if t.kind == "knock"), key=lambda t: -t.statistic)
+    strong = [t for t in knocks if t.statistic >= 0.25 * best.statistic]
+    by_place = {(t.sensor, t.index): t for t in knocks}
+    # the strongest linear scores, the neighbours of the best, and a coarse grid over every sensor's
+    # knocks (every KNOCK_GRID-th place); then the places around the best fitted one
+    first = strong[:REFIT_KNOCKS] + [t for t in strong if abs(t.index - best.index) <= 1]
+    for sensor in {t.sensor for t in strong}:
+        first += sorted((t for t in knocks if t.sensor == sensor), key=lambda t: t.index)[::KNOCK_GRID]
     chi0 = chi2_of(*model.solve())[0]
-    fitted = []
-    for t in near:
+    fitted: dict = {}
+
+    def fit(t):
+        if (t.sensor, t.index) in fitted:
+            return
         cand = Candidate("extrinsic_change", (("sensor", t.sensor), ("station", int(lay.stations[t.index].station))), 1)
         chi = chi2_of(*model.with_finding(cand).solve())[0]
         # its statistic: the fitted likelihood ratio (the outliers it is compared with are exact)
-        fitted.append((chi, dataclasses.replace(t, statistic=max(chi0 - chi, 0.0))))
+        fitted[(t.sensor, t.index)] = (chi, dataclasses.replace(t, statistic=max(chi0 - chi, 0.0)))
+
+    for t in first:
+        fit(t)
+    top = min(fitted.values(), key=lambda x: x[0])[1]
+    for k in range(top.index - KNOCK_GRID + 1, top.index + KNOCK_GRID):
+        if (top.sensor, k) in by_place:
+            fit(by_place[(top.sensor, k)])
+    fitted = list(fitted.values())
     fitted.sort(key=lambda x: x[0])
     if len(fitted) < 2:
-        return fitted[0][1], None, float("inf")
-    return fitted[0][1], fitted[1][1], fitted[1][0] - fitted[0][0]
+        return fitted[0][1], None, float("inf"), fitted
+    return fitted[0][1], fitted[1][1], fitted[1][0] - fitted[0][0], fitted
 
 
 def _search(model, problem, values) -> tuple:
@@ -417,12 +444,15 @@ def find_segments(model, say) -> tuple:
             cur = cur.with_finding(Candidate("session_offset", (("session", session),), 1))
             continue
         rival = None
+        located = tests
         if best.kind == "knock":
-            best, rival, margin = _refit_knocks(cur, best, tests, lay)
+            best, rival, margin, fitted = _refit_knocks(cur, best, tests, lay)
+            st = lay.stations[best.index].station
+            located = [t for _, t in fitted]  # its location from the fitted likelihoods, not the linear scores
         alts = _alternatives(best, tests, system, lay)
         alt = max(alts, key=lambda t: t.bic(n_rows)) if alts else None
         confidence = best.bic(n_rows) - alt.bic(n_rows) if alt is not None else float("inf")
-        p_k, (lo, hi) = _posterior(tests, best, lay)
+        p_k, (lo, hi) = _posterior(located, best, lay)
         close = tuple(_label(t, lay) for t in alts if best.bic(n_rows) - t.bic(n_rows) < 2 * MIN_CONFIDENCE + 6)
         if rival is not None and margin < confidence:
             alt, confidence = rival, margin
