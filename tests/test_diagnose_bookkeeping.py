@@ -126,6 +126,18 @@ def test_reader_keeps_a_few_millimetre_distances_only_for_the_diagnosis(base, tm
         read_dataset(folder, keep_unit_slips=True)
 
 
+def test_a_far_plane_no_unit_explains_is_left_out_with_a_warning(base, tmp_path):
+    """d times 137 is no unit slip: the diagnosis corrects nothing, leaves the plane out and warns
+    first (calibrate refuses the file), rather than answering quietly without it."""
+    from graphcal.diagnosis import diagnose
+
+    bk.distance_unit(base, tmp_path / "odd", 6, "depth", 137.0)
+    d = diagnose(tmp_path / "odd")
+    assert not d.corrections
+    assert any("station 6, depth" in w and "left out" in w for w in d.warnings), d.warnings
+    assert (6, "depth") not in d.model.data.planes
+
+
 def test_height_step_twin_differs_only_in_plane_distance(base, tmp_path):
     """The sunk twin has the same joints, IMU and commanded poses; its plane distances are shorter
     by the step (a floor plane seen from a body ``h`` lower); spliced, only the block changes."""

@@ -38,13 +38,19 @@ class BookkeepingResult:
     corrections: tuple
     data: object
     notes: tuple = field(default=())
+    #: (station, sensor) of measurements left out because no correction explains them (a plane
+    #: distance beyond what a sensor sees): a warning in the diagnosis
+    left_out: tuple = field(default=())
 
 
-def find_bookkeeping(model, say) -> BookkeepingResult:
+def find_bookkeeping(model, say, *, implausible=None) -> BookkeepingResult:
     """Run the bookkeeping finders on the nominal ``model`` (a
     :class:`graphcal.diagnosis.model.DiagnosisModel` with its noise learned); ``say(msg)`` logs a
     progress line. Each finder has the signature ``finder(model, say) -> (corrections, data,
-    notes)`` and returns ``model.data`` unchanged when it finds nothing."""
+    notes)`` and returns ``model.data`` unchanged when it finds nothing. ``implausible(plane) ->
+    bool``: planes no sensor can see (a distance beyond 100 m); those the association finder does
+    not correct are taken out of the data before the segments finder (which would read one as a
+    knock) and listed in ``left_out``."""
     import dataclasses
 
     from graphcal.diagnosis.association import find_associations
@@ -53,10 +59,16 @@ def find_bookkeeping(model, say) -> BookkeepingResult:
 
     corrections: list = []
     notes: list = []
+    left_out: tuple = ()
     for finder in (find_joint_columns, find_associations, find_segments):
+        if finder is find_segments and implausible is not None:
+            left_out = tuple(sorted(k for k, pl in model.data.planes.items() if implausible(pl)))
+            if left_out:
+                planes = {k: v for k, v in model.data.planes.items() if k not in set(left_out)}
+                model = dataclasses.replace(model, data=dataclasses.replace(model.data, planes=planes), findings=())
         found, data, said = finder(model, say)
         corrections += list(found)
         notes += list(said)
         if data is not model.data:
             model = dataclasses.replace(model, data=data, findings=())
-    return BookkeepingResult(tuple(corrections), model.data, tuple(notes))
+    return BookkeepingResult(tuple(corrections), model.data, tuple(notes), left_out)

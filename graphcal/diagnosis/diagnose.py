@@ -422,8 +422,8 @@ def _nominal(ds, robot, data, say) -> tuple:
     Planes whose distance lies beyond what a sensor sees (:data:`MM_LIMIT_PLANE_D_M`: a unit slip
     the reader kept for the diagnosis) are left out of the nominal fit -- a plane a kilometre away
     would swamp it -- and shown to the bookkeeping finders; those no finder corrects stay out, with
-    a note."""
-    from graphcal.diagnosis.bookkeeping import BookkeepingResult, find_bookkeeping
+    a warning (:func:`_left_out_warnings`)."""
+    from graphcal.diagnosis.bookkeeping import find_bookkeeping
     from graphcal.io.dataset import MM_LIMIT_PLANE_D_M
 
     far = {k for k, pl in data.planes.items() if pl.d > MM_LIMIT_PLANE_D_M}
@@ -435,14 +435,7 @@ def _nominal(ds, robot, data, say) -> tuple:
         f"chi2/dof {nominal.chi2_per_dof:.2f}" + (f" ({len(far)} plane(s) beyond {MM_LIMIT_PLANE_D_M:g} m left out)"
                                                   if far else ""))
     shown = dataclasses.replace(model, data=data) if far else model
-    bookkeeping = find_bookkeeping(shown, say)
-    still_far = sorted(k for k, pl in bookkeeping.data.planes.items() if pl.d > MM_LIMIT_PLANE_D_M)
-    if still_far:
-        kept = {k: v for k, v in bookkeeping.data.planes.items() if k not in set(still_far)}
-        bookkeeping = BookkeepingResult(bookkeeping.corrections, dataclasses.replace(bookkeeping.data, planes=kept),
-                                        bookkeeping.notes + tuple(
-                                            f"station {st}, {name}: d = {data.planes[(st, name)].d:.6g} m is beyond what a "
-                                            "sensor sees and no unit explains it: left out" for st, name in still_far))
+    bookkeeping = find_bookkeeping(shown, say, implausible=lambda pl: pl.d > MM_LIMIT_PLANE_D_M)
     if bookkeeping.data is not shown.data:
         # the nominal model of the corrected measurements: the diagnosis goes on from there
         model, problem, values = DiagnosisModel(ds, robot, bookkeeping.data, model_options(ds)).learn_noise()
@@ -595,7 +588,16 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
                      values, problem, residual_records(nominal_model, nominal_problem, nominal_values),
                      residual_records(model, problem, values), stance_records(nominal_model, nominal_problem, nominal_values),
                      stance_records(model, problem, values), tuple(notes), tuple(nuisance), tuple(thresholds), v["groups"],
-                     v["nominal_groups"], v["warnings"], v["answer"], bookkeeping.corrections)
+                     v["nominal_groups"], _left_out_warnings(bookkeeping, data) + v["warnings"], v["answer"],
+                     bookkeeping.corrections)
+
+
+def _left_out_warnings(bookkeeping, data) -> tuple:
+    """One warning per plane the diagnosis left out because no correction explains its distance:
+    every other command refuses the file, so the answer holds for the data without them only."""
+    return tuple(f"station {st}, {name}: planes.csv d = {data.planes[(st, name)].d:.6g} m is beyond what a sensor "
+                 "sees and no unit, sign or station explains it: left out of every model here (graphcal calibrate "
+                 "refuses the file until it is fixed)" for st, name in bookkeeping.left_out)
 
 
 #: a finding is supported when its held-out gain's paired test (heldout.paired_test) is below this
