@@ -245,10 +245,10 @@ def overhead(n: int = 10, cache: Path = DEFAULT_CACHE, first_seed: int = DEV_FIR
     spent = []
     original = bk_module.find_bookkeeping
 
-    def timed(model, say):
+    def timed(model, say, **kwargs):
         t0 = time.process_time()
         try:
-            return original(model, say)
+            return original(model, say, **kwargs)
         finally:
             spent.append(time.process_time() - t0)
 
