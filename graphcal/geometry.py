@@ -200,6 +200,16 @@ def so3_exp(omega) -> np.ndarray:
     return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * K @ K
 
 
+def cross_batch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products (N, 3) of (N, 3) vectors ``a`` and ``b``: ``np.cross(a, b)`` without its
+    axis handling, which costs ~10x the arithmetic on the small batches of per-factor kinematics."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
 def skew_batch(v: np.ndarray) -> np.ndarray:
     """(..., 3, 3) cross-product matrices of (..., 3) vectors (:func:`skew` of each)."""
     S = np.zeros(v.shape[:-1] + (3, 3))

@@ -23,6 +23,7 @@ stations are left out of the evaluation of both models.
 from __future__ import annotations
 
 import numpy as np
+from scipy import sparse
 
 from graphcal.diagnosis.catalogue import Gain
 
@@ -33,15 +34,16 @@ N_FOLDS = 2
 
 def _predict(A_train, b_train, A_held, b_held) -> np.ndarray:
     """Held-out residuals after the least-squares step on the training rows (normal equations with
-    Jacobi column scaling and Cholesky; an SVD least squares where that is singular: ~50x slower)."""
-    N = A_train.T @ A_train
+    Jacobi column scaling and Cholesky; an SVD least squares where that is singular: ~50x slower).
+    ``A_train``, ``A_held``: scipy.sparse CSR (a factor touches few variables)."""
+    N = (A_train.T @ A_train).toarray()
     dg = np.sqrt(np.clip(np.diag(N), 1e-300, None))
     try:
         Lc = np.linalg.cholesky(N / dg[:, None] / dg[None, :])
         y = np.linalg.solve(Lc, (A_train.T @ b_train) / dg)
         delta = np.linalg.solve(Lc.T, y) / dg
     except np.linalg.LinAlgError:
-        delta, *_ = np.linalg.lstsq(A_train, b_train, rcond=None)
+        delta, *_ = np.linalg.lstsq(A_train.toarray(), b_train, rcond=None)
     return b_held - A_held @ delta
 
 
@@ -58,7 +60,7 @@ def heldout_gain(system, j_cols: np.ndarray, K: np.ndarray | None, station_order
         skip_stations: stations left out of the evaluation of both models.
     """
     A, b = system.A, system.b
-    J = A[:, j_cols]
+    J = sparse.csr_matrix(A[:, j_cols])
     skip = skip_stations or set()
     meas_rows = {}
     for (st, _), rows in system.measurement_rows.items():
@@ -78,12 +80,12 @@ def heldout_gain(system, j_cols: np.ndarray, K: np.ndarray | None, station_order
         evaluate = np.array([r for r in held if system.row_station[r] not in skip], dtype=int)
         if evaluate.size == 0:
             continue
-        r0 = _predict(J[train], b[train], J[evaluate], b[evaluate])
+        r0 = _predict(J[np.flatnonzero(train)], b[train], J[evaluate], b[evaluate])
         train_ext = train.copy()
         if drop_rows is not None:
             train_ext[drop_rows] = False
-        A_ext = J if K is None else np.hstack([J, K])
-        r1 = _predict(A_ext[train_ext], b[train_ext], A_ext[evaluate], b[evaluate])
+        A_ext = J if K is None else sparse.hstack([J, sparse.csr_matrix(K)], format="csr")
+        r1 = _predict(A_ext[np.flatnonzero(train_ext)], b[train_ext], A_ext[evaluate], b[evaluate])
         sums += [r0 @ r0, r1 @ r1]
         count += evaluate.size
         for st, a, c in zip(system.row_station[evaluate], r0, r1):

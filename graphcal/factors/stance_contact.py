@@ -41,12 +41,14 @@ from graphcal.models.kinematics import foot_positions, joint_frames, leg_jacobia
 from graphcal.models.legs import fk_with_params
 from graphcal.models.robot import Leg
 
-__all__ = ["lower_leg_direction", "compliance_lever", "complied_angles", "stance_contact_error", "stance_contact_factor"]
+__all__ = ["lower_leg_direction", "compliance_lever", "complied_angles", "complied_kinematics", "stance_contact_error", "stance_contact_factor"]
 
 
 #: Newton rounds of the complied angle (quadratic convergence from the measured angle: the
 #: deflection is a few degrees; 3 rounds reach machine precision)
 NEWTON_ROUNDS = 3
+#: a Newton step below this (rad) ends the iteration (the lever's change over it is ~1e-15 m)
+NEWTON_STEP_RAD = 1e-12
 
 
 def lower_leg_direction(leg: Leg, q) -> np.ndarray:
@@ -73,12 +75,13 @@ def _skew(v) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
-def complied_angles(leg: Leg, q, joint_index: int, k: float, R_lever) -> tuple[np.ndarray, float]:
+def complied_angles(leg: Leg, q, joint_index: int, k: float, R_lever, x0: float | None = None) -> tuple[np.ndarray, float]:
     """(q' (n,), d q'_j / d k) of a leg whose joint ``joint_index`` flexes by ``k * lever(q')`` from the
     measured ``q`` (n,): ``q'_j = q_j + k lever(q')`` (the torque is that of the pose the leg is
     really in), by Newton's method; the derivative by implicit differentiation,
     ``lever / (1 - k dlever/dq_j)`` (dlever/dq_j by central differences). ``R_lever``: (3, 3) body
-    attitude of the lever (:func:`compliance_lever`)."""
+    attitude of the lever (:func:`compliance_lever`). ``x0``: a first guess of ``q'_j`` (rad; default
+    ``q_j``), e.g. the last one extrapolated to this ``k``."""
     j = int(joint_index)
     qc = np.array(q, dtype=float)
     n_b = np.asarray(R_lever, dtype=float).T @ np.array([0.0, 0.0, 1.0])
@@ -90,13 +93,25 @@ def complied_angles(leg: Leg, q, joint_index: int, k: float, R_lever) -> tuple[n
         lv = leg_jacobian(leg, batch)[:, :, j] @ n_b  # one batched kinematics
         return float(lv[0]), float((lv[1] - lv[2]) / (2 * h))
 
-    x = float(q[j])
+    x = float(q[j]) if x0 is None else float(x0)
     for _ in range(NEWTON_ROUNDS):  # x - q_j - k lever(x) = 0
         lever, dl = lever_and_slope(x)
-        x -= (x - q[j] - k * lever) / (1.0 - k * dl)
+        step = (x - q[j] - k * lever) / (1.0 - k * dl)
+        x -= step
+        if abs(step) < NEWTON_STEP_RAD:  # converged: lever and slope at x are those just taken
+            break
+    else:
+        lever, dl = lever_and_slope(x)
     qc[j] = x
-    lever, dl = lever_and_slope(x)
     return qc, float(lever / (1.0 - k * dl))
+
+
+def complied_kinematics(leg: Leg, q, joint_index: int, k: float, R_lever, x0: float | None = None) -> tuple:
+    """(q' (n,), d q'_j / d k, FK(q') (3,) m, d FK / d q_j at q' (3,) m/rad) of the nominal leg: what the
+    stance-contact error needs of a compliance ``k`` (:func:`complied_angles`, first guess ``x0``), base
+    frame."""
+    qc, dq_dk = complied_angles(leg, q, joint_index, k, R_lever, x0)
+    return qc, dq_dk, foot_positions(leg, qc), leg_jacobian(leg, qc)[:, int(joint_index)]
 
 
 def _fixed_leg_error(T_world_body, p_world_foot, p_fk, want_jacobians: bool):
@@ -116,7 +131,7 @@ def _fixed_leg_error(T_world_body, p_world_foot, p_fk, want_jacobians: bool):
 
 def stance_contact_error(T_world_body, p_world_foot, q, leg: Leg, *, radius=None, a_b=None, compliance=None,
                          joint_index: int = 0, R_lever=None, param=None, theta=None,
-                         want_jacobians: bool = True, p_fk=None):
+                         want_jacobians: bool = True, p_fk=None, complied=None):
     """Error (3,) m (body frame) and Jacobians of the stance-foot factor with a foot radius and/or a
     joint compliance (module docstring).
 
@@ -129,15 +144,20 @@ def stance_contact_error(T_world_body, p_world_foot, q, leg: Leg, *, radius=None
         param, theta: the leg's parameterization and values (or None: the nominal leg).
         p_fk: FK(q) (3,) of the nominal leg when the caller has it (used without ``param`` and
             ``compliance``: the kinematics is then a constant).
+        complied: :func:`complied_kinematics` of this ``q``, ``joint_index``, ``compliance`` and
+            ``R_lever`` (nominal leg) when the caller has them (a factor keeps the last one: they
+            depend on k alone).
     Returns:
         (e, [H_X (3,6), H_F (3,3)] + [H_L (3,p)] + [H_r (3,1)] + [H_k (3,1)]) in that order, or (e, None).
     """
     q = np.asarray(q, dtype=float)
     qc = q.copy()
-    dq_dk = 0.0
-    if compliance is not None:
+    dq_dk, dp = 0.0, None
+    if compliance is not None and param is None:  # the nominal leg: FK at the complied angles, a constant for k
+        qc, dq_dk, p_fk, dp = complied or complied_kinematics(leg, q, int(joint_index), float(compliance), R_lever)
+    elif compliance is not None:
         qc, dq_dk = complied_angles(leg, q, int(joint_index), float(compliance), R_lever)
-    if p_fk is not None and compliance is None and param is None:  # the nominal leg's kinematics, constant
+    if p_fk is not None and param is None:  # the nominal leg's kinematics, constant
         e, Hs = _fixed_leg_error(T_world_body, p_world_foot, np.asarray(p_fk, dtype=float), want_jacobians)
     else:
         e, Hs = stance_foot_error(T_world_body, p_world_foot, qc, leg, param, theta, want_jacobians)
@@ -154,9 +174,7 @@ def stance_contact_error(T_world_body, p_world_foot, q, leg: Leg, *, radius=None
         Hs[0] = H_X
         Hs.append((np.asarray(a_b, dtype=float) - n_b).reshape(3, 1))
     if compliance is not None:
-        if param is None:
-            dp = leg_jacobian(leg, qc)[:, int(joint_index)]
-        else:  # the parameterised leg's d FK / d q_j by central differences (no closed form in models.legs)
+        if param is not None:  # the parameterised leg's d FK / d q_j by central differences (no closed form in models.legs)
             h = 1e-6
             dq = np.zeros_like(qc)
             dq[int(joint_index)] = h
@@ -192,15 +210,23 @@ def stance_contact_factor(x_key: int, f_key: int, q, leg: Leg, cov_m2, *, r_key:
         keys.append(k_key), dims.append(1), kinds.append("Vector")
     a = None if a_b is None else np.array(a_b, dtype=float)
     p_fk = foot_positions(leg, q) if (l_key is None and k_key is None) else None
+    last = {}  # k -> complied_angles(k): the solver evaluates each k several times
 
     def error_fn(X, F, *rest, want):
         rest = list(rest)
         theta = rest.pop(0) if l_key is not None else None
         r = float(rest.pop(0)[0]) if r_key is not None else None
         k = float(rest.pop(0)[0]) if k_key is not None else None
+        if k is not None and l_key is None and k not in last:
+            x0 = None
+            if last:  # the last solution moved along its slope: Newton then needs one or two rounds
+                (k0, (qc0, dq0, *_)), = last.items()
+                x0 = qc0[joint_index] + (k - k0) * dq0
+            last.clear()
+            last[k] = complied_kinematics(leg, q, joint_index, k, R_lever, x0)
         return stance_contact_error(X, F, q, leg, radius=r, a_b=a, compliance=k, joint_index=joint_index, R_lever=R_lever,
                                     param=param if l_key is not None else None, theta=theta, want_jacobians=want,
-                                    p_fk=p_fk)
+                                    p_fk=p_fk, complied=last.get(k))
 
     def fn(*args):
         *vals, want = args

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from graphcal.errors import ModelError
+from graphcal.geometry import cross_batch
 from graphcal.models.robot import Leg
 
 __all__ = [
@@ -42,12 +43,16 @@ def as_batch(leg: Leg, q) -> tuple[np.ndarray, bool]:
     return q, single
 
 
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
+
+
 def rodrigues_batch(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """(N, 3, 3) rotations about the unit ``axis`` (3,) by ``angles`` (N,) rad."""
     K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
     s = np.sin(angles)[:, None, None]
     c = np.cos(angles)[:, None, None]
-    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+    return _EYE3 + s * K + (1.0 - c) * (K @ K)
 
 
 def chain_frames(leg: Leg, q: np.ndarray, dt: np.ndarray | None = None):
@@ -128,7 +133,7 @@ def position_jacobian(joint_types, axes_base: np.ndarray, origins_base: np.ndarr
     J = np.empty((axes_base.shape[0], 3, len(joint_types)))
     for j, jtype in enumerate(joint_types):
         if jtype == "revolute":
-            J[:, :, j] = np.cross(axes_base[:, j], p_base - origins_base[:, j])
+            J[:, :, j] = cross_batch(axes_base[:, j], p_base - origins_base[:, j])
         else:
             J[:, :, j] = axes_base[:, j]
     return J
