@@ -48,6 +48,7 @@ class CaseResult:
     detail: str
     seconds: float
     unexplained: bool = False
+    final_verdict: str = ""  # diagnosis.json adequacy: the final model judged at physical noise
 
     @property
     def passed(self) -> bool:
@@ -153,19 +154,21 @@ def run_case(seed: int, robot: str, hidden: str, workdir: Path) -> CaseResult:
                 raise
     diag = diagnose(out).to_json()
     unexplained = bool(diag["unexplained_structure"])
+    final = str((diag.get("adequacy") or {}).get("verdict", ""))
     truth = yaml.safe_load((out / "truth.yaml").read_text())  # read only after the diagnosis
     findings = diag["findings"]
     named = findings[0]["cause"] if findings else ""
     if hidden == "clean":
         detail = "nothing found" if not findings else f"false alarm: {[f['cause'] for f in findings]}"
-        return CaseResult(seed, robot, hidden, {}, named, True, True, detail, time.perf_counter() - t0, unexplained)
+        return CaseResult(seed, robot, hidden, {}, named, True, True, detail, time.perf_counter() - t0, unexplained,
+                          final)
     eff = truth["effects"][hidden]
     if named != hidden:
         return CaseResult(seed, robot, hidden, eff, named, False, False,
-                          f"named {[f['cause'] for f in findings]}", time.perf_counter() - t0, unexplained)
+                          f"named {[f['cause'] for f in findings]}", time.perf_counter() - t0, unexplained, final)
     where_ok, ok, text = _compare(hidden, truth["effects"], findings[0], truth)
     return CaseResult(seed, robot, hidden, eff, named, where_ok, ok,
-                      f"where {findings[0]['where']}; {text}", time.perf_counter() - t0, unexplained)
+                      f"where {findings[0]['where']}; {text}", time.perf_counter() - t0, unexplained, final)
 
 
 def _run_one(args):
@@ -201,13 +204,18 @@ def main(per_cause: int = 5, clean: int = 6, jobs: int = 2, first_seed: int = 10
     top1 = float(np.mean([r.named == r.hidden for r in effect])) if effect else float("nan")
     full = float(np.mean([r.passed for r in effect])) if effect else float("nan")
     fa = float(np.mean([not r.passed for r in clean_r])) if clean_r else float("nan")
+    # the final model's verdict where the diagnosis is right: it should fit (a cause left over would not)
+    right = [r for r in results if r.passed]
+    final_fits = float(np.mean([r.final_verdict == "fits" for r in right])) if right else float("nan")
     if verbose:
         for r in results:
             print(f"{'PASS' if r.passed else 'FAIL'} seed {r.seed} {r.robot:8s} {r.hidden:18s} -> "
-                  f"{r.named or '-':18s} {r.seconds:5.1f} s  {r.detail}" + ("  [structure remains]" if r.unexplained else ""))
+                  f"{r.named or '-':18s} {r.seconds:5.1f} s  {r.detail}" + ("  [structure remains]" if r.unexplained else "")
+                  + f"  [final model: {r.final_verdict}]")
         print(f"battery: {len(effect)} hidden-effect cases, {len(clean_r)} clean: top-1 {top1:.1%}, "
-              f"all checks {full:.1%}, false alarms {fa:.1%}")
-    return {"results": results, "top1": top1, "passed": full, "false_alarm": fa}
+              f"all checks {full:.1%}, false alarms {fa:.1%}; the final model fits in {final_fits:.1%} of the "
+              f"{len(right)} right diagnoses")
+    return {"results": results, "top1": top1, "passed": full, "false_alarm": fa, "final_fits": final_fits}
 
 
 if __name__ == "__main__":

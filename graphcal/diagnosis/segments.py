@@ -351,9 +351,12 @@ def _relabel(data, lay: _Layout, k: int, end: int, label: str):
 #: grid of every KNOCK_GRID-th place, and the places around the best fitted one
 REFIT_KNOCKS = 8
 KNOCK_GRID = 3
+#: the grid is fitted only when the strongest knocks fitted explain at least this share of what the
+#: best outlier explanation does
+GRID_SHARE = 0.5
 
 
-def _refit_knocks(model, best: _Test, tests: list[_Test], lay: _Layout) -> tuple:
+def _refit_knocks(model, best: _Test, tests: list[_Test], lay: _Layout, outlier: _Test | None = None) -> tuple:
     """(the knock that fits best, the runner-up or None, their chi-square difference, the fitted
     knocks as (chi2, test)): the :data:`REFIT_KNOCKS` knocks of any sensor with the strongest linear
     scores (at least a quarter of ``best``'s), the neighbours of ``best``, every :data:`KNOCK_GRID`-th
@@ -363,7 +366,9 @@ def _refit_knocks(model, best: _Test, tests: list[_Test], lay: _Layout) -> tuple
     48 at 26; fitted, 26 is the best, by 90 over 32), and with two sensors the conflict between them
     at a few stations can be put on either (measured: a 2.3 deg knock of the Messor's stereo camera
     2 stations from the end scored 9627 for the stereo and 9979 for the laser; fitted, the stereo's
-    is the better one)."""
+    is the better one). ``outlier``: the best outlier explanation (:func:`_alternatives`); when the
+    strongest knocks fitted explain less than :data:`GRID_SHARE` of its statistic, the grid is not
+    fitted (an outlier station scores as a knock beside it: ~25 solves saved)."""
     from graphcal.diagnosis.model import chi2_of
 
     knocks = sorted((t for t in tests if t.kind == "knock"), key=lambda t: -t.statistic)
@@ -372,6 +377,7 @@ def _refit_knocks(model, best: _Test, tests: list[_Test], lay: _Layout) -> tuple
     # the strongest linear scores, the neighbours of the best, and a coarse grid over every sensor's
     # knocks (every KNOCK_GRID-th place); then the places around the best fitted one
     first = strong[:REFIT_KNOCKS] + [t for t in strong if abs(t.index - best.index) <= 1]
+    strong_first = list(first)
     for sensor in {t.sensor for t in strong}:
         first += sorted((t for t in knocks if t.sensor == sensor), key=lambda t: t.index)[::KNOCK_GRID]
     chi0 = chi2_of(*model.solve())[0]
@@ -385,14 +391,26 @@ def _refit_knocks(model, best: _Test, tests: list[_Test], lay: _Layout) -> tuple
         # its statistic: the fitted likelihood ratio (the outliers it is compared with are exact)
         fitted[(t.sensor, t.index)] = (chi, dataclasses.replace(t, statistic=max(chi0 - chi, 0.0)))
 
+    for t in strong_first:
+        fit(t)
+    top = min(fitted.values(), key=lambda x: x[0])[1]
+    if outlier is not None and top.statistic < GRID_SHARE * outlier.statistic:
+        # the knocks of strongest score fitted explain less than half of what outliers do: no place
+        # the grid could find turns that around (the grid moves a knock by at most a tenth of its
+        # statistic: 90 of ~1000 measured), and the outliers win below
+        return _ranked(fitted)
     for t in first:
         fit(t)
     top = min(fitted.values(), key=lambda x: x[0])[1]
     for k in range(top.index - KNOCK_GRID + 1, top.index + KNOCK_GRID):
         if (top.sensor, k) in by_place:
             fit(by_place[(top.sensor, k)])
-    fitted = list(fitted.values())
-    fitted.sort(key=lambda x: x[0])
+    return _ranked(fitted)
+
+
+def _ranked(fitted: dict) -> tuple:
+    """(best, runner-up or None, their chi-square difference, fitted as (chi2, test) best first)."""
+    fitted = sorted(fitted.values(), key=lambda x: x[0])
     if len(fitted) < 2:
         return fitted[0][1], None, float("inf"), fitted
     return fitted[0][1], fitted[1][1], fitted[1][0] - fitted[0][0], fitted
@@ -446,7 +464,12 @@ def find_segments(model, say) -> tuple:
         rival = None
         located = tests
         if best.kind == "knock":
-            best, rival, margin, fitted = _refit_knocks(cur, best, tests, lay)
+            outliers = [t for t in _alternatives(best, tests, system, lay) if t.kind in ("outlier", "measurement")]
+            outlier = max(outliers, key=lambda t: t.statistic) if outliers else None
+            best, rival, margin, fitted = _refit_knocks(cur, best, tests, lay, outlier)
+            if outlier is not None and best.statistic < GRID_SHARE * outlier.statistic:
+                say(f"segments: {_label(best, lay)} is explained better by {_label(outlier, lay)}; no boundary")
+                break
             st = lay.stations[best.index].station
             located = [t for _, t in fitted]  # its location from the fitted likelihoods, not the linear scores
         alts = _alternatives(best, tests, system, lay)
