@@ -181,3 +181,23 @@ def test_wrong_data_are_not_named_as_a_kinematic_error(knee_flipped):
     weak = [f for f in result.findings if f.gain is not None and f.gain.heldout_rms_after >= f.gain.heldout_rms_before]
     for f in weak:
         assert any(f.candidate.label() in n and "does not predict held-out" in n for n in result.notes)
+
+
+def test_final_model_of_a_right_outlier_diagnosis_is_judged_with_its_noise_learned_again(tmp_path):
+    """Three outlier stations: during the search the joints' noise collapsed to its floor (1e-6 rad)
+    and the final model's stance feet read x2.4 their physical noise ("does not fit") although the
+    outliers were found; judged with every noise group learned afresh, as calibrate does, it fits
+    (stance feet x0.9)."""
+    from graphcal.commands.simulate import run as simulate_to_folder
+    from graphcal.diagnosis import diagnose
+
+    out = tmp_path / "outliers"
+    simulate_to_folder(robot="octopus", program="random", ground="level", out_dir=out, seed=206, n_stations=48,
+                       n_sessions=3, output="planes", cloud_stride=8, progress=False,
+                       effects=[("outlier_stations", {})], session_heading_step_deg=40.0)
+    doc = diagnose(out).to_json()
+    assert [f["cause"] for f in doc["findings"]] == ["outlier_stations"]
+    a = doc["adequacy"]
+    assert a["verdict"] == "fits", a
+    assert "learned from graphcal's defaults" in a["model"]
+    assert a["groups"]["stance_foot"]["ratio"] < 1.5

@@ -167,8 +167,9 @@ class DiagnosisModel:
         lm = solve_lm(problem.graph, problem.initial, check_determined=False)
         return problem, lm.values
 
-    def learn_noise(self, values: gtsam.Values | None = None, rounds: int = VCE_ROUNDS):
-        """This model with its noise re-estimated (variance components), and (problem, values)."""
+    def learn_noise(self, values: gtsam.Values | None = None, rounds: int = VCE_ROUNDS, fixed: tuple = FIXED_NOISE):
+        """This model with its noise re-estimated (variance components), and (problem, values); the
+        noise fields ``fixed`` (CalibrationOptions names) are held at their values."""
         from graphcal.calibration.noise_estimation import rescaled_options
 
         model = self
@@ -178,7 +179,7 @@ class DiagnosisModel:
             opts, changed, _ = rescaled_options(model.options, problem, values, converge=False)
             planes = tuple((s, v) for s, v in opts.plane_sigma_scales if s not in keep_planes)
             opts = dataclasses.replace(opts, plane_sigma_scales=planes,
-                                       **{name: getattr(self.options, name) for name in FIXED_NOISE})
+                                       **{name: getattr(self.options, name) for name in fixed})
             model = dataclasses.replace(model, options=opts)
             problem, values = model.solve(initial=values)
             if not changed:
