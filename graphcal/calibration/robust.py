@@ -45,7 +45,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["station_chi2", "variance_factor", "jackknife_covariances", "shift_covariances", "misfit_sensors",
            "with_robust_covariance", "robust_parts", "RobustTerm", "LEG_GROUPS", "PLANE_GROUP_PREFIX",
-           "PLAUSIBLE_RANGE_SCALE_ERROR"]
+           "PLAUSIBLE_RANGE_SCALE_ERROR", "plausible_range_scales"]
 
 #: noise groups a wrong leg (joint offset, link length) shows in
 LEG_GROUPS = frozenset({"stance_foot", "stance_foot/joint", "stance_foot/contact", "foot_on_ground"})
@@ -216,6 +216,12 @@ def misfit_sensors(groups) -> tuple[str, ...]:
                  if g.misfit and g.group.startswith(PLANE_GROUP_PREFIX))
 
 
+def plausible_range_scales(scales: dict) -> bool:
+    """Whether every range scale of ``scales`` (sensor -> (scale, 1-sigma)) is within
+    :data:`PLAUSIBLE_RANGE_SCALE_ERROR` of 1 (a sensor's scale error, not another misfit)."""
+    return all(abs(float(v) - 1.0) <= PLAUSIBLE_RANGE_SCALE_ERROR for v, _ in scales.values())
+
+
 def with_robust_covariance(result, extra: dict[str, list[RobustTerm]], scale: float):
     """``result`` with every sensor's covariance replaced by its robust one,
     ``scale * C_model + sum(extra[sensor])`` (:class:`RobustTerm` s); the model's kept as
@@ -270,7 +276,7 @@ def robust_parts(problem, values, outliers, result, groups, legs_calibration: Ca
     sensors = misfit_sensors(groups)
     if range_calibration is not None and sensors:
         solved = range_calibration(sensors)
-        if solved is not None and any(abs(v - 1.0) > PLAUSIBLE_RANGE_SCALE_ERROR for v, _ in solved[1].values()):
+        if solved is not None and not plausible_range_scales(solved[1]):
             log.info("robust covariance: no range-scale term: the scale that fits best ("
                      + ", ".join(f"{s} {v:.4g}" for s, (v, _) in solved[1].items())
                      + f") is more than {PLAUSIBLE_RANGE_SCALE_ERROR:.0%} from 1, no sensor's scale error")
