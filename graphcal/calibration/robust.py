@@ -53,8 +53,8 @@ LEG_GROUPS = frozenset({"stance_foot", "stance_foot/joint", "stance_foot/contact
 PLANE_GROUP_PREFIX = "plane:"
 #: a range scale further than this from 1 is no depth sensor's scale error (depth cameras and laser
 #: scanners: a few per cent at most; the simulator draws 1-3 %): the misfit is something else and
-#: the shift to that solution no measure of the error (measured: a sensor knocked by 1.6 deg
-#: mid-session read as a scale of 1.26 and a 245 mm shift, its error 12 mm)
+#: the shift to that solution no measure of the error (measured: a sensor knocked by 2.8 deg
+#: mid-session read as a scale of 1.26 and a 245 mm shift, its error 1.6 deg / 12 mm)
 PLAUSIBLE_RANGE_SCALE_ERROR = 0.1
 
 
