@@ -135,10 +135,57 @@ def test_clean_run_fits_and_keeps_the_model_covariance(tmp_path):
     r = calibrate(tmp_path / "d")
     assert r.adequacy.verdict == "fits" and r.adequacy.gross == ()
     assert r.sensors["depth"].covariance_model is None  # the model's covariance governs
+    assert r.sensors["depth"].robust_terms == ()  # no --legs or range-scale solve paid for
     assert not any("does not fit" in w for w in r.warnings)
     # every group judged against what the simulator declares, below the limit
     assert {g.group for g in r.adequacy.groups} >= {"stance_foot", "imu", "commanded"}
     assert max(g.ratio for g in r.adequacy.groups) < RATIO_LIMIT
+
+
+def test_range_scale_run_governing_sigma_covers_its_error(tmp_path):
+    """A depth scale of 0.98 moves the extrinsic ~2 % of the distance to the floor (~20 mm) alike at
+    every station: the model's sigma (0.1 mm) and the jackknife do not see it (governing NEES 254
+    over 10 runs before the range-scale term); with the shift to the same data solved with a range
+    scale the governing sigma covers the error without being much wider than it."""
+    import re
+
+    from graphcal.calibration.calibrate import calibrate
+    from graphcal.commands.simulate import run as simulate
+    from graphcal.geometry import pose_from_xyz_quat_wxyz, pose_log_between
+    from graphcal.report.calibration_yaml import calibration_to_dict
+    from graphcal.solvers.covariance import nees
+
+    simulate(robot="octopus", program="chai2015", ground="level", out_dir=tmp_path / "d", seed=11, output="planes",
+             cloud_stride=8, effects=[("sensor_range_scale", {"sensor": "depth", "scale": "0.98"})], progress=False)
+    r = calibrate(tmp_path / "d")
+    assert "plane:depth" in {g.group for g in r.adequacy.misfit_groups}
+    s = r.sensors["depth"]
+    t = yaml.safe_load((tmp_path / "d" / "truth.yaml").read_text())["sensors"]["depth"]["T_body_sensor"]
+    T_true = pose_from_xyz_quat_wxyz(t["xyz"], t["quaternion_wxyz"])
+    assert nees(T_true, s.T_body_sensor, s.covariance_model) > 1000  # the model's sigma is confident and wrong
+    assert nees(T_true, s.T_body_sensor, s.covariance) < NEES_LIMIT  # the governing one covers the error
+    err_mm = 1e3 * np.linalg.norm(pose_log_between(s.T_body_sensor, T_true)[3:])
+    assert err_mm > 10 and max(s.sigma_xyz_mm) < 2 * err_mm  # not absurdly wide
+    terms = dict(s.robust_terms)
+    assert "range_scale_shift" in terms and list(terms)[:2] == ["model", "jackknife"]
+    scale = float(re.search(r"depth ([0-9.]+) \+- ", terms["range_scale_shift"]).group(1))
+    assert scale == pytest.approx(0.98, abs=0.002)  # the scale that explains the planes
+    doc = calibration_to_dict(r)["sensors"]["depth"]
+    assert doc["sigma_from"] == "robust" and set(doc["robust_terms"]) == set(terms)
+
+
+def test_implausible_range_scale_is_no_term():
+    from graphcal.calibration.robust import PLAUSIBLE_RANGE_SCALE_ERROR, misfit_sensors, plausible_range_scales
+
+    assert plausible_range_scales({"depth": (0.97, 5e-4), "laser": (1.02, 1e-3)})
+    # a sensor knocked mid-session read as a scale of 1.26 (extrinsic_change, seed 2004)
+    assert not plausible_range_scales({"depth": (1.26, 0.027)})
+    assert not plausible_range_scales({"depth": (1.0 - 1.01 * PLAUSIBLE_RANGE_SCALE_ERROR, 1e-3)})
+    phys, src = physical_noise(None)
+    groups = (group_check("plane:depth", (("plane_scale:depth", 3.5),), 1.0, 100.0, phys, src, 3),
+              group_check("plane:laser", (("plane_scale:laser", 1.1),), 1.0, 100.0, phys, src, 3),
+              group_check("stance_foot/joint", (("sigma_joint_rad", np.radians(0.3)),), 1.0, 500.0, phys, src, 3))
+    assert misfit_sensors(groups) == ("depth",)
 
 
 def test_chai_table3_flags_the_sign_error_row(tmp_path):
@@ -181,5 +228,5 @@ def test_reduced_hidden_effect_battery(tmp_path):
         if r["effect"] in ("joint_offset", "link_length", "sensor_range_scale", "extrinsic_change", "session_offset"):
             assert r["verdict"] == "does not fit", r
             assert r["nees_model"] > NEES_LIMIT, r  # the model's sigma alone would be confident and wrong
-        if r["effect"] in ("joint_offset", "link_length", "session_offset", "extrinsic_change"):
+        if r["effect"] in ("joint_offset", "link_length", "session_offset", "extrinsic_change", "sensor_range_scale"):
             assert r["nees_governing"] < NEES_LIMIT, r  # the robust sigma covers the error

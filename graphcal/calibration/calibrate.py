@@ -48,19 +48,19 @@ def _outlier_measurements(problem: CalibrationProblem, values, options: Calibrat
 
 
 def _passing_again(ds, robot, data: CalibrationData, options: CalibrationOptions, problem: CalibrationProblem,
-                   values, excluded: frozenset) -> set:
+                   values, excluded: frozenset, extensions=None) -> set:
     """The left-out measurements that pass the chi-square test at ``values``, the solution of
     ``problem`` (built without them) under ``options``: each measurement's innovation, whitened by its
     own noise plus the uncertainty of the variables it sees (their joint marginal in ``problem``),
     the test of the change detector (:func:`~graphcal.calibration.change_detection.innovation_nis`).
     Tested against its own noise alone, a good plane fails: the body pose it would have moved is
-    far less certain than the plane."""
+    far less certain than the plane. ``extensions``: the graph's extension (None: none)."""
     import gtsam
 
     from graphcal import stats as chi2_dist
     from graphcal.calibration.change_detection import innovation_nis, joint_covariance
 
-    full = build_problem(ds, robot, data, options, initial=values)
+    full = build_problem(ds, robot, data, options, extensions=extensions, initial=values)
     try:
         marginals = gtsam.Marginals(problem.graph, values)
     except RuntimeError:  # an undetermined direction (gtsam's IndeterminantLinearSystem): keep them out
@@ -90,12 +90,15 @@ def solve_problem(problem: CalibrationProblem, *, progress: bool = False, stage:
 @dataclass(frozen=True, eq=False)
 class BatchInputs:
     """What every solve of one batch calibration reads: the dataset ``ds``, its ``robot``, the
-    measurements ``data`` (:class:`CalibrationData`), and ``progress`` (one line per solve to stderr)."""
+    measurements ``data`` (:class:`CalibrationData`), ``progress`` (one line per solve to stderr)
+    and ``extensions``, extra variables of the graph (a
+    :class:`~graphcal.calibration.graph.GraphExtension`; None: calibrate's graph)."""
 
     ds: object
     robot: object
     data: CalibrationData
     progress: bool = False
+    extensions: object = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -124,7 +127,7 @@ def resolve(inputs: BatchInputs, state: BatchState, options: CalibrationOptions,
     the graph differs only in noise or left-out measurements. ``stage`` names the solve in the
     progress line."""
     problem = build_problem(inputs.ds, inputs.robot, inputs.data, options, exclude=frozenset(state.outliers),
-                            initial=state.values if start is None else start)
+                            extensions=inputs.extensions, initial=state.values if start is None else start)
     lm = solve_problem(problem, progress=inputs.progress, stage=stage)
     # the noise statistics were read at the previous solution
     return dataclasses.replace(state, problem=problem, values=lm.values, iterations=state.iterations + lm.iterations,
@@ -211,16 +214,28 @@ def calibrate(
     if data is None:
         data = calibration_data(ds, robot, progress=progress, plane_max_points=plane_max_points)
     inputs = BatchInputs(ds, robot, data, progress)
-    base_options = options
-    problem = build_problem(ds, robot, data, options)
-    lm = solve_problem(problem, progress=progress, stage="first solve (closed-form start, default noise)")
-    state = BatchState(problem, lm.values, lm.iterations)
     # a laser scanner's clouds that are not scans first: what follows from them is its consequence
     warnings: list[str] = [off_plane_scan_warning(sensor, off, n)
                            for sensor, (off, n) in sorted(getattr(data, "scans_off_plane", {}).items())]
     warnings += plane_source_warnings(plane_max_points, planes_given, ds, data.planes)
     warnings += ground_choice_warnings(data)
+    state, final_options, more = solve_batch(inputs, options)
+    result = read_result(inputs, state, final_options, warnings + more)
+    if judge:
+        result = judge_result(inputs, state, final_options, result, warnings + more, base_options=options)
+    return result
 
+
+def solve_batch(inputs: BatchInputs, options: CalibrationOptions) -> tuple[BatchState, CalibrationOptions, list[str]]:
+    """The batch solves of :func:`calibrate` on ``inputs`` from ``options``: first solve, outliers
+    screened at the default noise, noise learned, screened measurements put back when they pass,
+    outliers left out, noise learned again. Returns the final state, the final options (learned
+    noise) and the warnings of the outlier rounds."""
+    ds, robot, data, progress = inputs.ds, inputs.robot, inputs.data, inputs.progress
+    problem = build_problem(ds, robot, data, options, extensions=inputs.extensions)
+    lm = solve_problem(problem, progress=progress, stage="first solve (closed-form start, default noise)")
+    state = BatchState(problem, lm.values, lm.iterations)
+    warnings: list[str] = []
     per_sensor: dict = {}
     for m in problem.plane_factors.values():
         per_sensor[m[1]] = per_sensor.get(m[1], 0) + 1
@@ -236,7 +251,8 @@ def calibrate(
     if options.robust:
         screened = state.outliers
         if screened and options.estimate_noise:
-            back = _passing_again(ds, robot, data, options, state.problem, state.values, screened)
+            back = _passing_again(ds, robot, data, options, state.problem, state.values, screened,
+                                  extensions=inputs.extensions)
             if back:
                 state = dataclasses.replace(state, outliers=state.outliers - back)
                 state = resolve(inputs, state, options, f"{len(back)} screened measurement(s) put back (they pass "
@@ -245,10 +261,7 @@ def calibrate(
         warnings += more
         if state.outliers != screened and options.estimate_noise:
             state, options = estimate_noise(inputs, state, options)
-    result = read_result(inputs, state, options, warnings)
-    if judge:
-        result = judge_result(inputs, state, options, result, warnings, base_options=base_options)
-    return result
+    return state, options, warnings
 
 
 def read_result(inputs: BatchInputs, state: BatchState, options: CalibrationOptions,
@@ -284,7 +297,7 @@ def judge_result(inputs: BatchInputs, state: BatchState, options: CalibrationOpt
     join the outliers, the graph is solved and the noise learned again), every noise group judged
     against the physical noise, and when the model does not fit the robust covariance governing
     (robust.py) and the warning first. ``base_options``: the caller's options (before the noise was
-    learned), from which the ``--legs`` solve of the robust covariance starts."""
+    learned), from which the ``--legs`` and range-scale solves of the robust covariance start."""
     from graphcal.calibration.adequacy import adequacy_verdict, group_checks, gross_stations, misfit_warning
     from graphcal.calibration.robust import robust_parts, station_chi2, with_robust_covariance
 
@@ -313,10 +326,41 @@ def judge_result(inputs: BatchInputs, state: BatchState, options: CalibrationOpt
                                      data=inputs.data, judge=False)
                 except (GraphcalError, RuntimeError):  # legs not determined by these data
                     return None
-        extra, scale = robust_parts(state.problem, state.values, state.outliers, result, groups, legs)
+        extra, scale = robust_parts(state.problem, state.values, state.outliers, result, groups, legs,
+                                    lambda sensors: range_scale_calibration(inputs, base_options, sensors))
         result = with_robust_covariance(result, extra, scale)
     first = tuple(w for w in (misfit_warning(verdict),) if w)
     return dataclasses.replace(result, adequacy=verdict, warnings=first + result.warnings)
+
+
+#: prior sigma of the range scale (measured / true range) of the robust covariance's range-scale
+#: solve: wide enough not to bias any realistic scale (diagnose frees its scale with the same)
+RANGE_SCALE_PRIOR_SIGMA = 0.2
+
+
+def range_scale_calibration(inputs: BatchInputs, base_options: CalibrationOptions, sensors: tuple[str, ...]):
+    """The same data calibrated (:func:`solve_batch`, from ``base_options``: outliers and noise
+    learned again) with a range scale of each of ``sensors`` (graph.py's
+    :class:`~graphcal.calibration.graph.RangeScaleExtension`, prior 1 +- :data:`RANGE_SCALE_PRIOR_SIGMA`):
+    (its :class:`CalibrationResult`, with the extrinsics' covariances marginal over the scales;
+    sensor -> (scale, its 1-sigma)), or None when these data do not determine it. For the robust
+    covariance's range-scale term (robust.py)."""
+    from graphcal.calibration.graph import RangeScaleExtension
+    from graphcal.solvers.covariance import marginal_covariances
+
+    log.info(f"calibrate: robust covariance: the same data solved with a range scale of {', '.join(sensors)}")
+    ext = RangeScaleExtension(tuple((s, RANGE_SCALE_PRIOR_SIGMA) for s in sensors))
+    ext_inputs = dataclasses.replace(inputs, extensions=ext)
+    try:
+        state, options, warnings = solve_batch(ext_inputs, base_options)
+        result = read_result(ext_inputs, state, options, warnings)
+        keys = {s: state.problem.extension_keys[f"range_scale:{s}"] for s in sensors}
+        covs = marginal_covariances(state.problem.graph, state.values, list(keys.values()))
+    except (GraphcalError, RuntimeError, KeyError):  # the scale not determined by these data
+        return None
+    scales = {s: (float(state.values.atVector(k)[0]), float(np.sqrt(max(float(np.asarray(covs[k])[0, 0]), 0.0))))
+              for s, k in keys.items()}
+    return result, scales
 
 
 def adequacy_at(ds, options: CalibrationOptions, problem: CalibrationProblem, values):

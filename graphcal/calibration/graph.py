@@ -30,7 +30,7 @@ from typing import Protocol
 import gtsam
 import numpy as np
 
-from graphcal.factors.keys import F, G, L, M, S, X
+from graphcal.factors.keys import C, F, G, L, M, S, X
 from graphcal.errors import GraphcalError
 from graphcal.geometry import to_gtsam_pose
 from graphcal.calibration.kinematic_pose import kinematic_bodies, leg_kinematics
@@ -477,6 +477,41 @@ class NoExtension:
         return None
 
 
+def add_range_scale_variables(build: GraphBuild, range_scale) -> dict:
+    """Add a range scale C(k) (Vector 1, factors/range_scale.py) for each ``(sensor, sigma)`` of
+    ``range_scale``, at 1 with a prior 1 +- sigma (recorded as ``range_scale:<sensor>`` in
+    ``extension_keys`` and ``extension_priors``); returns sensor -> key, for
+    :attr:`ExtensionKeys.range_scale` (the sensor's planes and scans then read scaled ranges)."""
+    sensor_index = {name: k for k, name in enumerate(build.ds.sensors)}
+    out = {}
+    for name, sig in range_scale:
+        if name not in build.sensor_keys:
+            raise GraphcalError(f"range_scale names sensor {name!r}, which has no measurements")
+        key = C(sensor_index[name])
+        build.extension_keys[f"range_scale:{name}"] = out[name] = key
+        build.values.insert(key, np.array([1.0]))
+        build.add_prior(gtsam.PriorFactorVector(key, np.array([1.0]), gtsam.noiseModel.Isotropic.Sigma(1, float(sig))),
+                        f"range_scale:{name}")
+    return out
+
+
+@dataclass(frozen=True)
+class RangeScaleExtension:
+    """calibrate's own extension (the robust covariance's range-scale term, robust.py): a range
+    scale per sensor of ``range_scale`` ((sensor, prior sigma) pairs), nothing else."""
+
+    range_scale: tuple[tuple[str, float], ...] = ()
+
+    def add_variables(self, build: GraphBuild) -> ExtensionKeys:
+        return ExtensionKeys(range_scale=add_range_scale_variables(build, self.range_scale))
+
+    def leg_prior(self, foot: str, key: int, n_params: int):
+        return None
+
+    def imu_mounting_prior(self, R_body_imu: np.ndarray):
+        return None
+
+
 def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions, *,
                   exclude: frozenset = frozenset(), extensions: GraphExtension | None = None,
                   initial: gtsam.Values | None = None) -> CalibrationProblem:
@@ -689,4 +724,5 @@ def predicted_plane_errors(T_world_body: np.ndarray, T_body_sensor: np.ndarray, 
     return float(np.degrees(ang)), float(1e3 * abs(dist))
 
 
-__all__ = ["CalibrationOptions", "CalibrationProblem", "build_problem", "predicted_plane_errors"]
+__all__ = ["CalibrationOptions", "CalibrationProblem", "build_problem", "predicted_plane_errors", "RangeScaleExtension",
+           "add_range_scale_variables"]

@@ -49,6 +49,8 @@ class SensorEstimate:
             the model's covariance and the robust one (robust.py); ``covariance`` and the sigmas
             are then the robust one, which governs. None when the model fits (``covariance`` is the
             model's).
+        robust_terms: when the robust covariance governs, (name, note) of each term summed into it
+            (robust.py: ``model``, ``jackknife``, ``legs_shift``, ``range_scale_shift``); empty otherwise.
     """
 
     name: str
@@ -65,6 +67,7 @@ class SensorEstimate:
     covariance_scale: float = 1.0
     covariance_model: np.ndarray | None = None
     covariance_robust: np.ndarray | None = None
+    robust_terms: tuple[tuple[str, str], ...] = ()
 
     @property
     def model_covariance(self) -> np.ndarray:

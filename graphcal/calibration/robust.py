@@ -14,7 +14,17 @@ offset: 47 sigma off). The robust covariance of each extrinsic is the sum of
 * when a leg's group does not fit and the legs were not calibrated: the shift to the extended
   model (``--legs``) and its covariance, ``C_legs + d d^T``, ``d = Log(T_hat^-1 T_legs)``: the
   error a leg the URDF gets wrong causes, which neither of the above sees (it is the same at every
-  station).
+  station);
+* when a sensor's planes or scans (group ``plane:<sensor>``) do not fit: the shift to the same data
+  solved with a range scale of each such sensor (graph.py's :class:`RangeScaleExtension`,
+  factors/range_scale.py), ``C_ext + d d^T``, ``d = Log(T_hat^-1 T_ext)``: a range (depth) scale
+  moves the extrinsic's translation by the scale error times the distance to the floor at every
+  station alike, which neither the jackknife nor ``--legs`` sees. Left out when the scale that fits
+  best is more than :data:`PLAUSIBLE_RANGE_SCALE_ERROR` from 1 (no sensor's scale error: the misfit
+  is something else).
+
+Each term is kept with its name and a note (:class:`RobustTerm`); the sensor's ``robust_terms``
+(calibration.yaml) lists the ones that went in.
 
 Every covariance is of the right perturbation ``T = T_hat Exp(xi)``, ``xi = [omega (rad), v (m)]``
 in the sensor's axes (calibration's convention).
@@ -23,17 +33,40 @@ in the sensor's axes (calibration's convention).
 from __future__ import annotations
 
 import dataclasses
+import logging
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
 from graphcal.calibration.graph import CalibrationProblem
 
-__all__ = ["station_chi2", "variance_factor", "jackknife_covariances", "legs_shift_covariances",
-           "with_robust_covariance", "LEG_GROUPS"]
+log = logging.getLogger(__name__)
+
+__all__ = ["station_chi2", "variance_factor", "jackknife_covariances", "shift_covariances", "misfit_sensors",
+           "with_robust_covariance", "robust_parts", "RobustTerm", "LEG_GROUPS", "PLANE_GROUP_PREFIX",
+           "PLAUSIBLE_RANGE_SCALE_ERROR", "plausible_range_scales"]
 
 #: noise groups a wrong leg (joint offset, link length) shows in
 LEG_GROUPS = frozenset({"stance_foot", "stance_foot/joint", "stance_foot/contact", "foot_on_ground"})
+#: the noise group of a sensor's planes or scans is this prefix and the sensor's name
+PLANE_GROUP_PREFIX = "plane:"
+#: a range scale further than this from 1 is no depth sensor's scale error (depth cameras and laser
+#: scanners: a few per cent at most; the simulator draws 1-3 %): the misfit is something else and
+#: the shift to that solution no measure of the error (measured: a sensor knocked by 2.8 deg
+#: mid-session read as a scale of 1.26 and a 245 mm shift, its error 1.6 deg / 12 mm)
+PLAUSIBLE_RANGE_SCALE_ERROR = 0.1
+
+
+@dataclass(frozen=True, eq=False)
+class RobustTerm:
+    """One term of a robust covariance: ``name`` (``model``, ``jackknife``, ``legs_shift``,
+    ``range_scale_shift``), its 6x6 ``covariance`` (the extrinsic's tangent, rad and m, sensor
+    axes; for ``model`` the scaled model covariance) and a ``note`` saying what it is (one line)."""
+
+    name: str
+    covariance: np.ndarray
+    note: str
 
 
 def station_chi2(problem: CalibrationProblem, values, stations=None) -> dict[int, tuple[float, float]]:
@@ -159,29 +192,50 @@ def jackknife_covariances(problem: CalibrationProblem, values, outliers: frozens
     return out
 
 
-def legs_shift_covariances(result, legs_result) -> dict[str, np.ndarray]:
-    """sensor -> ``C_legs + d d^T`` (module docstring) from the base ``result`` and the result of the
-    same data calibrated with ``--legs`` (:class:`~graphcal.calibration.result.CalibrationResult` s)."""
+def shift_covariances(result, other) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """sensor -> (``C_other + d d^T``, ``d``) (module docstring), ``d = Log(T_hat^-1 T_other)`` from
+    the base ``result`` to the result of the same data under an extended model (``--legs``, a
+    range scale: :class:`~graphcal.calibration.result.CalibrationResult` s)."""
     out = {}
     for name, s in result.sensors.items():
-        e = legs_result.sensors.get(name)
+        e = other.sensors.get(name)
         if e is None:
             continue
         d = _tangent(np.asarray(s.T_body_sensor), np.asarray(e.T_body_sensor))
-        out[name] = np.asarray(e.covariance) + np.outer(d, d)
+        out[name] = (np.asarray(e.covariance) + np.outer(d, d), d)
     return out
 
 
-def with_robust_covariance(result, extra: dict[str, list[np.ndarray]], scale: float):
+def _shift_text(d: np.ndarray) -> str:
+    return f"{np.degrees(np.linalg.norm(d[:3])):.3g} deg, {1e3 * np.linalg.norm(d[3:]):.3g} mm"
+
+
+def misfit_sensors(groups) -> tuple[str, ...]:
+    """The sensors whose planes or scans (group ``plane:<sensor>``) do not fit, in group order."""
+    return tuple(g.group[len(PLANE_GROUP_PREFIX):] for g in groups
+                 if g.misfit and g.group.startswith(PLANE_GROUP_PREFIX))
+
+
+def plausible_range_scales(scales: dict) -> bool:
+    """Whether every range scale of ``scales`` (sensor -> (scale, 1-sigma)) is within
+    :data:`PLAUSIBLE_RANGE_SCALE_ERROR` of 1 (a sensor's scale error, not another misfit)."""
+    return all(abs(float(v) - 1.0) <= PLAUSIBLE_RANGE_SCALE_ERROR for v, _ in scales.values())
+
+
+def with_robust_covariance(result, extra: dict[str, list[RobustTerm]], scale: float):
     """``result`` with every sensor's covariance replaced by its robust one,
-    ``scale * C_model + sum(extra[sensor])``; the model's kept as ``covariance_model``, the robust
-    one also as ``covariance_robust``; sigmas and correlation (body axes) from the robust one."""
+    ``scale * C_model + sum(extra[sensor])`` (:class:`RobustTerm` s); the model's kept as
+    ``covariance_model``, the robust one also as ``covariance_robust``, the terms' names and notes
+    as ``robust_terms``; sigmas and correlation (body axes) from the robust one."""
     from graphcal.solvers.covariance import body_axis_sigmas
 
     sensors = {}
     for name, s in result.sensors.items():
         C_model = np.asarray(s.covariance)
-        C = scale * C_model + sum((np.asarray(c) for c in extra.get(name, ())), np.zeros((6, 6)))
+        terms = [RobustTerm("model", scale * C_model,
+                            f"the model covariance x {scale:.4g} (the variance factor at the physical noise, "
+                            "at least 1)")] + list(extra.get(name, ()))
+        C = sum((np.asarray(t.covariance) for t in terms), np.zeros((6, 6)))
         C = 0.5 * (C + C.T)
         rot, xyz, corr, _ = body_axis_sigmas(s.T_body_sensor, C)
         segments = s.segments
@@ -189,20 +243,49 @@ def with_robust_covariance(result, extra: dict[str, list[np.ndarray]], scale: fl
             segments = (dataclasses.replace(segments[0], covariance=C),)
         sensors[name] = dataclasses.replace(
             s, covariance=C, covariance_model=C_model, covariance_robust=C, sigma_rot_deg=np.asarray(rot),
-            sigma_xyz_mm=np.asarray(xyz), correlation=np.asarray(corr), segments=segments)
+            sigma_xyz_mm=np.asarray(xyz), correlation=np.asarray(corr), segments=segments,
+            robust_terms=tuple((t.name, t.note) for t in terms))
     return dataclasses.replace(result, sensors=sensors)
 
 
-def robust_parts(problem, values, outliers, result, groups, legs_calibration: Callable | None) -> tuple[dict[str, list[np.ndarray]], float]:
-    """(sensor -> covariances to add to the scaled model one, the scale) of the module docstring.
-    ``legs_calibration``: a function returning the ``--legs`` result of the same data (None: no
-    such term)."""
+def robust_parts(problem, values, outliers, result, groups, legs_calibration: Callable | None,
+                 range_calibration: Callable | None = None) -> tuple[dict[str, list[RobustTerm]], float]:
+    """(sensor -> terms to add to the scaled model covariance, the scale) of the module docstring.
+    The range-scale term is left out when a scale is further than
+    :data:`PLAUSIBLE_RANGE_SCALE_ERROR` from 1.
+
+    Args:
+        problem, values, outliers: the final graph, its solution and the measurements left out.
+        result: the :class:`~graphcal.calibration.result.CalibrationResult` read off them.
+        groups: the judged noise groups (:class:`~graphcal.calibration.adequacy.GroupCheck` s).
+        legs_calibration: ``() ->`` the ``--legs`` result of the same data, or None (None: no such term).
+        range_calibration: ``(sensors) ->`` (the result of the same data with a range scale of each
+            of ``sensors``, sensor -> (scale, 1-sigma)), or None; called only when a ``plane:<sensor>``
+            group does not fit (None: no such term).
+    """
     extra: dict[str, list] = {name: [] for name in result.sensors}
     for name, C in jackknife_covariances(problem, values, frozenset(outliers)).items():
-        extra[name].append(C)
+        extra[name].append(RobustTerm("jackknife", C, "jackknife over stations (each station's planes or scans "
+                                                      "left out in turn)"))
     if legs_calibration is not None and any(g.misfit and g.group in LEG_GROUPS for g in groups):
         legs_result = legs_calibration()
         if legs_result is not None:
-            for name, C in legs_shift_covariances(result, legs_result).items():
-                extra[name].append(C)
+            for name, (C, d) in shift_covariances(result, legs_result).items():
+                extra[name].append(RobustTerm("legs_shift", C, "C_legs + d d^T, d the shift to the --legs solution "
+                                                               f"of the same data ({_shift_text(d)})"))
+    sensors = misfit_sensors(groups)
+    if range_calibration is not None and sensors:
+        solved = range_calibration(sensors)
+        if solved is not None and not plausible_range_scales(solved[1]):
+            log.info("robust covariance: no range-scale term: the scale that fits best ("
+                     + ", ".join(f"{s} {v:.4g}" for s, (v, _) in solved[1].items())
+                     + f") is more than {PLAUSIBLE_RANGE_SCALE_ERROR:.0%} from 1, no sensor's scale error")
+            solved = None
+        if solved is not None:
+            ext_result, scales = solved
+            said = ", ".join(f"{s} {v:.5f} +- {sg:.2g}" for s, (v, sg) in scales.items())
+            for name, (C, d) in shift_covariances(result, ext_result).items():
+                extra[name].append(RobustTerm(
+                    "range_scale_shift", C, f"C_ext + d d^T, d the shift to the solution of the same data with a "
+                                            f"range scale (measured / true range: {said}) ({_shift_text(d)})"))
     return extra, variance_factor(groups)

@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from graphcal.calibration.graph import SEGMENT_KEY_STRIDE, ExtensionKeys, GraphBuild, floored_extrinsic_prior
+from graphcal.calibration.graph import (SEGMENT_KEY_STRIDE, ExtensionKeys, GraphBuild, add_range_scale_variables,
+                                       floored_extrinsic_prior)
 from graphcal.errors import GraphcalError
-from graphcal.factors.keys import C, G, M, S, W
+from graphcal.factors.keys import G, M, S, W
 from graphcal.geometry import to_gtsam_pose
 
 
@@ -73,15 +74,7 @@ class ModelExtensions:
         ds, values = build.ds, build.values
         sensor_keys, ext_keys = build.sensor_keys, build.extension_keys
         sensor_index = {name: k for k, name in enumerate(ds.sensors)}
-        range_scale = {}
-        for name, sig in self.range_scale:
-            if name not in sensor_keys:
-                raise GraphcalError(f"range_scale names sensor {name!r}, which has no measurements")
-            key = C(sensor_index[name])
-            ext_keys[f"range_scale:{name}"] = range_scale[name] = key
-            values.insert(key, np.array([1.0]))
-            build.add_prior(gtsam.PriorFactorVector(key, np.array([1.0]), gtsam.noiseModel.Isotropic.Sigma(1, float(sig))),
-                            f"range_scale:{name}")
+        range_scale = add_range_scale_variables(build, self.range_scale)
         w_key = None
         if self.ground_tilt_sigma_rad is not None and ds.imu is not None:
             # gravity against the ground: W = R_ground_level, its rotation about the vertical pinned

@@ -201,8 +201,14 @@ def _adequacy_section(result) -> str:
            "learned from the same residuals. "
            + ("σ in this report is the model's." if a.fits else
               "σ in this report is the robust one (model covariance scaled by the misfit, plus a jackknife "
-              "over stations, plus the shift to <code>--legs</code> where a leg's group does not fit); "
+              "over stations, plus the shift to <code>--legs</code> where a leg's group does not fit and the "
+              "shift to a solution with a range scale where a sensor's planes do not fit); "
               "the model's is beside it.") + "</p>"]
+    for name, s in result.sensors.items():
+        terms = getattr(s, "robust_terms", ())
+        if terms:
+            out.append(f"<p>Robust covariance of <code>{_e(name)}</code>, the sum of: "
+                       + "; ".join(f"<b>{_e(k)}</b>: {_e(v)}" for k, v in terms) + ".</p>")
     rows = [_row(["group", "learned", "physical", "ratio", "T", "dof", "p", "misfit"], header=True)]
     for g in a.groups:
         rows.append(_row([g.group, g.learned_text(), g.physical_text(), _n(g.ratio, ".3g"), _n(g.statistic, ".4g"),

@@ -168,6 +168,10 @@ def _sensor_dict(s) -> dict:
         entry["sigma_model"] = {"rot_deg": _flist(rot_m), "xyz_mm": _flist(xyz_m)}
         entry["covariance_robust"] = _flist(s.covariance)
         entry["sigma_robust"] = {"rot_deg": _flist(s.sigma_rot_deg), "xyz_mm": _flist(s.sigma_xyz_mm)}
+        # the terms summed into the robust covariance, each with what it is (calibration/robust.py)
+        terms = getattr(s, "robust_terms", ())
+        if terms:
+            entry["robust_terms"] = {str(k): str(v) for k, v in terms}
     if len(s.segments) > 1:
         segs = []
         for seg in s.segments:
@@ -288,7 +292,8 @@ def frames_note(base_frame: str) -> dict[str, str]:
         "correlation": f"6x6 correlation of [rot x, y, z, trans x, y, z] in {base_frame} axes",
         "sigma_from": "model: covariance and sigma are the model's; robust: the model does not fit (adequacy:), "
                       "covariance and sigma are the robust covariance (= covariance_robust, sigma_robust), the "
-                      "model's is beside it as covariance_model, sigma_model (same axes and units)",
+                      "model's is beside it as covariance_model, sigma_model (same axes and units); robust_terms "
+                      "names the terms summed into it (model, jackknife, legs_shift, range_scale_shift)",
     }
 
 
