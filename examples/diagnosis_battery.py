@@ -187,18 +187,9 @@ def main(per_cause: int = 5, clean: int = 6, jobs: int = 2, first_seed: int = 10
     todo = cases(per_cause, clean, first_seed)
     with tempfile.TemporaryDirectory(prefix="graphcal-battery-") as tmp:
         args = [(s, r, c, tmp) for s, r, c in todo]
-        if jobs > 1:
-            import multiprocessing as mp
-            import os
+        from battery_pool import run_cases
 
-            # one BLAS thread per worker: the workers share the cores
-            for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-                os.environ.setdefault(var, "1")
-
-            with mp.get_context("spawn").Pool(jobs) as pool:
-                results = list(pool.imap(_run_one, args, chunksize=1))
-        else:
-            results = [_run_one(a) for a in args]
+        results = run_cases(_run_one, args, jobs)
     effect = [r for r in results if r.hidden != "clean"]
     clean_r = [r for r in results if r.hidden == "clean"]
     top1 = float(np.mean([r.named == r.hidden for r in effect])) if effect else float("nan")

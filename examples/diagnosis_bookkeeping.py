@@ -284,16 +284,9 @@ def main(which: str = "dev", per: int = 4, clean: int = 20, jobs: int = 1, cache
         raise ValueError(f"--set must be dev or blind, got {which!r}")
     with tempfile.TemporaryDirectory(prefix="graphcal-bookkeeping-") as tmp:
         args = [(s, r, k, str(cache), tmp) for s, r, k in todo]
-        if jobs > 1:
-            import multiprocessing as mp
-            import os
+        from battery_pool import run_cases
 
-            for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-                os.environ.setdefault(var, "1")
-            with mp.get_context("spawn").Pool(jobs) as pool:
-                results = list(pool.imap(_run_one, args, chunksize=1))
-        else:
-            results = [_run_one(a) for a in args]
+        results = run_cases(_run_one, args, jobs)
     summary = summarize(results)
     if verbose:
         for r in results:

@@ -127,16 +127,9 @@ def main(generators=DEVELOPED, per: int = 5, jobs: int = 2, first_seed: int = 50
     todo = cases(generators, per, first_seed)
     with tempfile.TemporaryDirectory(prefix="graphcal-openworld-") as tmp:
         args = [(s, r, g, tmp) for s, r, g in todo]
-        if jobs > 1:
-            import multiprocessing as mp
-            import os
+        from battery_pool import run_cases
 
-            for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-                os.environ.setdefault(var, "1")
-            with mp.get_context("spawn").Pool(jobs) as pool:
-                results = list(pool.imap(_run_one, args, chunksize=1))
-        else:
-            results = [_run_one(a) for a in args]
+        results = run_cases(_run_one, args, jobs)
     share = {k: float(np.mean([r.outcome == k for r in results])) for k in ("structure", "wrong", "silent", "error")}
     if verbose:
         for r in results:
