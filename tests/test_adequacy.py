@@ -173,8 +173,8 @@ def test_range_scale_the_data_cannot_see_is_said(tmp_path):
     predicted = -2.0 * c.translation_mm_per_percent
     assert np.linalg.norm(err_mm - predicted) < 1.5  # the error's noise is sigma 0.15-0.72 mm
     assert c.translation_mm == pytest.approx(np.linalg.norm(err_mm) / 2.0, rel=0.15)
-    w = r.warnings[0]
-    assert w.startswith("laser: these data do not determine its range scale (+-7.") and "the sigma assume" in w
+    w = next(x for x in r.warnings if x.startswith("laser: these data do not determine its range scale (+-7."))
+    assert "the sigma assume" in w
     assert verdict_lines(r)[1] == f"warning: {w}"  # with the verdict, first on the console
     # the stereo camera sees the floor from a constant range too: untested there as well
     assert not r.sensors["stereo"].range_scale_check.determined
@@ -271,3 +271,24 @@ def test_reduced_hidden_effect_battery(tmp_path):
             assert r["nees_model"] > NEES_LIMIT, r  # the model's sigma alone would be confident and wrong
         if r["effect"] in ("joint_offset", "link_length", "session_offset", "extrinsic_change", "sensor_range_scale"):
             assert r["nees_governing"] < NEES_LIMIT, r  # the robust sigma covers the error
+
+
+def test_range_scale_limit_per_type_and_declared():
+    """The limit is the sensor type's default unless dataset.yaml's physical_noise declares one."""
+    from types import SimpleNamespace
+
+    from graphcal.calibration.range_observability import RangeScaleCheck, range_scale_limits, range_scale_warning
+    from graphcal.models.sensors import RANGE_SCALE_CHECK_PCT
+
+    ds = SimpleNamespace(sensors={"laser": SimpleNamespace(type="laser_scanner"),
+                                  "cam": SimpleNamespace(type="depth_camera")})
+    lim = range_scale_limits(ds, None)
+    assert lim["laser"][0] == RANGE_SCALE_CHECK_PCT["laser_scanner"] and lim["laser"][1].startswith("default")
+    assert range_scale_limits(ds, {"range_scale_pct": 2.0})["cam"] == (2.0, "dataset.yaml physical_noise range_scale_pct")
+    physical_noise({"range_scale_pct": 2.0})  # a key of the contract
+    with pytest.raises(DatasetError, match=r"physical_noise.range_scale_pct"):
+        physical_noise({"range_scale_pct": -1.0})
+    c = RangeScaleCheck("laser", 0.0049, np.array([0.0, 0.0, 3.0]), np.zeros(3), 0.5, "x")
+    assert c.determined and range_scale_warning(c) == ""
+    c = RangeScaleCheck("laser", 0.0051, np.array([0.0, 0.0, 3.0]), np.zeros(3), 0.5, "x")
+    assert not c.determined and "1 % would move its translation by 3 mm" in range_scale_warning(c)

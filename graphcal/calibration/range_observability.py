@@ -187,17 +187,12 @@ def range_scale_warning(c: RangeScaleCheck) -> str:
 
 def with_range_scale_checks(result, checks: tuple[RangeScaleCheck, ...]):
     """``result`` with each sensor's ``range_scale_check`` set and the warnings of the undetermined
-    ones put right after the adequacy warning (the first warning when the model does not fit)."""
-    from graphcal.calibration.adequacy import misfit_warning
-
+    ones added last (the data's own warnings stay first: a scale is not checked on wrong data;
+    calibrate's console prints them with the verdict, commands/calibrate.py)."""
     by = {c.sensor: c for c in checks}
     sensors = {n: dataclasses.replace(s, range_scale_check=by.get(n)) for n, s in result.sensors.items()}
     said = tuple(w for w in (range_scale_warning(c) for c in checks) if w)
     for c in checks:
         log.info(f"calibrate: range scale of {c.sensor}: +-{100.0 * c.sigma_from_data:.3g} % from the data "
                  f"(limit {c.limit_pct:.2g} %); 1 % moves it {c.translation_mm:.3g} mm, {c.rotation_deg:.3g} deg")
-    a = getattr(result, "adequacy", None)
-    first = misfit_warning(a) if a is not None else ""
-    warnings = tuple(result.warnings)
-    head = warnings[:1] if first and warnings[:1] == (first,) else ()
-    return dataclasses.replace(result, sensors=sensors, warnings=head + said + warnings[len(head):])
+    return dataclasses.replace(result, sensors=sensors, warnings=tuple(result.warnings) + said)
