@@ -147,7 +147,7 @@ def test_clean_run_fits_and_keeps_the_model_covariance(tmp_path):
     assert not any("range scale" in w for w in r.warnings)
 
 
-def test_range_scale_the_data_cannot_see_is_said(tmp_path):
+def test_range_scale_the_data_cannot_see_is_said(tmp_path, monkeypatch):
     """The Messor on Łabęcki's program sees the floor from nearly the same range at every station:
     a 2 % laser range scale fits (``model fits``) and leaves the laser 7.6 mm off with sigma under
     1 mm. No verdict can see it; calibrate says that these data cannot check the range scale and
@@ -181,6 +181,11 @@ def test_range_scale_the_data_cannot_see_is_said(tmp_path):
     doc = calibration_to_dict(r)["sensors"]["laser"]["range_scale_check"]
     assert doc["determined"] is False and doc["sigma_from_data_pct"] > 4.0 and doc["limit_pct"] == 0.5
     assert doc["translation_mm_per_percent"] == pytest.approx(c.translation_mm)
+    from graphcal.report import calibration_page
+
+    monkeypatch.setattr(calibration_page, "report_figures", lambda result: [])  # the figures take seconds
+    html = calibration_page.report_html(r)
+    assert html.index("laser: these data do not determine its range scale") < html.index("Sensor <code>laser</code>")
 
 
 def test_range_scale_run_governing_sigma_covers_its_error(tmp_path):
