@@ -209,7 +209,7 @@ def test_yaml_states_the_frames_of_its_numbers(result):
     readers): the covariance in sensor axes, sigma in body axes, and the two agree once rotated."""
     doc = yaml.safe_load(calibration_yaml_text(result))
     frames = doc["frames"]
-    assert set(frames) == {"T_body_sensor", "covariance", "sigma", "correlation", "sigma_from"}
+    assert set(frames) == {"T_body_sensor", "covariance", "sigma", "correlation", "sigma_from", "range_scale_check"}
     assert "SENSOR axes" in frames["covariance"] and "rad and m" in frames["covariance"]
     assert "BODY axes" in frames["sigma"] and "deg and mm" in frames["sigma"]
     s = doc["sensors"]["depth"]

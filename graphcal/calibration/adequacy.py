@@ -100,7 +100,7 @@ def physical_noise(declared: Mapping | None, *, ground_roughness_m: float = 0.0,
         if key not in PHYSICAL_NOISE_KEYS:
             raise DatasetError(where, f"physical_noise.{key}", "one of " + ", ".join(PHYSICAL_NOISE_KEYS), key)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0:
-            raise DatasetError(where, f"physical_noise.{key}", "a number >= 0 (deg or mm, as its name says)", v)
+            raise DatasetError(where, f"physical_noise.{key}", "a number >= 0 (deg, mm or per cent, as its name says)", v)
     values, sources = {}, {}
     for key, default in PHYSICAL_NOISE_DEFAULTS.items():
         if key in declared:

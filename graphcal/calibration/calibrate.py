@@ -6,7 +6,8 @@ and solve again without them, learn the noise (noise_estimation.py), then read t
 marginal covariances (result.py, solvers/covariance.py). Each solve is a plain function of a frozen
 :class:`BatchState`. Last, :func:`judge_result` gives the result its adequacy verdict (adequacy.py:
 the noise judged against the physical noise, gross stations left out) and, when the model does not
-fit, the robust covariance (robust.py).
+fit, the robust covariance (robust.py); and, for every sensor, whether the data determine its
+range scale, which the model takes as exact (range_observability.py).
 """
 
 from __future__ import annotations
@@ -299,6 +300,7 @@ def judge_result(inputs: BatchInputs, state: BatchState, options: CalibrationOpt
     (robust.py) and the warning first. ``base_options``: the caller's options (before the noise was
     learned), from which the ``--legs`` and range-scale solves of the robust covariance start."""
     from graphcal.calibration.adequacy import adequacy_verdict, group_checks, gross_stations, misfit_warning
+    from graphcal.calibration.range_observability import range_scale_checks, with_range_scale_checks
     from graphcal.calibration.robust import robust_parts, station_chi2, with_robust_covariance
 
     physical, sources = dataset_physical_noise(inputs.ds, options)
@@ -330,7 +332,10 @@ def judge_result(inputs: BatchInputs, state: BatchState, options: CalibrationOpt
                                     lambda sensors: range_scale_calibration(inputs, base_options, sensors))
         result = with_robust_covariance(result, extra, scale)
     first = tuple(w for w in (misfit_warning(verdict),) if w)
-    return dataclasses.replace(result, adequacy=verdict, warnings=first + result.warnings)
+    result = dataclasses.replace(result, adequacy=verdict, warnings=first + result.warnings)
+    return with_range_scale_checks(result, range_scale_checks(
+        inputs.ds, state.problem, state.values, inputs.data, options,
+        (getattr(inputs.ds, "extra", None) or {}).get("physical_noise")))
 
 
 #: prior sigma of the range scale (measured / true range) of the robust covariance's range-scale

@@ -802,24 +802,38 @@ def calibrate_incremental(
     )
     if not judge:
         return result
+    from graphcal.calibration.calibrate import noise_groups_pointed_to
+
     changed = any(cal.change_stations(n) for n in res.sensors)
-    return judge_incremental(ds, options, inc_problem, values, result,
-                             batch_groups=None if changed else batch_noise_groups(ds, robot, sub, options, values))
+    full = None if changed else batch_problem_at(ds, robot, sub, options, values)
+    result = judge_incremental(ds, options, inc_problem, values, result,
+                               batch_groups=None if full is None else noise_groups_pointed_to(options, full,
+                                                                                               full.initial))
+    if full is None:  # a sensor moved: its range scale is not checked (one extrinsic per sensor)
+        return result
+    from graphcal.calibration.range_observability import range_scale_checks, with_range_scale_checks
+
+    return with_range_scale_checks(result, range_scale_checks(
+        ds, full, full.initial, sub, options, (getattr(ds, "extra", None) or {}).get("physical_noise")))
+
+
+def batch_problem_at(ds, robot, data, options: CalibrationOptions, values):
+    """The batch graph of ``data`` under ``options`` at the incremental solution ``values`` (its
+    ``initial``), or None when the batch cannot build it there: the graph iSAM2 holds has noise
+    groups only for the planes."""
+    try:
+        return build_problem(ds, robot, data, options, exclude=frozenset(), initial=values)
+    except (RuntimeError, KeyError, ValueError):  # a graph the batch cannot build there: planes only
+        return None
 
 
 def batch_noise_groups(ds, robot, data, options: CalibrationOptions, values) -> tuple:
-    """The noise groups of the batch graph of ``data`` under ``options`` at the incremental
-    solution ``values``, each σ what its residuals converge to
-    (:func:`~graphcal.calibration.calibrate.noise_groups_pointed_to`): the graph iSAM2 holds has
-    groups only for the planes."""
+    """The noise groups of :func:`batch_problem_at`, each σ what its residuals converge to
+    (:func:`~graphcal.calibration.calibrate.noise_groups_pointed_to`); () when it cannot be built."""
     from graphcal.calibration.calibrate import noise_groups_pointed_to
-    from graphcal.calibration.graph import build_problem
 
-    try:
-        full = build_problem(ds, robot, data, options, exclude=frozenset(), initial=values)
-    except (RuntimeError, KeyError, ValueError):  # a graph the batch cannot build there: planes only
-        return ()
-    return noise_groups_pointed_to(options, full, full.initial)
+    full = batch_problem_at(ds, robot, data, options, values)
+    return () if full is None else noise_groups_pointed_to(options, full, full.initial)
 
 
 def judge_incremental(ds, options: CalibrationOptions, problem, values, result, *, batch_groups: tuple = ()):

@@ -51,6 +51,9 @@ class SensorEstimate:
             model's).
         robust_terms: when the robust covariance governs, (name, note) of each term summed into it
             (robust.py: ``model``, ``jackknife``, ``legs_shift``, ``range_scale_shift``); empty otherwise.
+        range_scale_check: how well the data determine the sensor's range scale and what a scale
+            error would do (:class:`~graphcal.calibration.range_observability.RangeScaleCheck`);
+            None when not checked.
     """
 
     name: str
@@ -68,6 +71,7 @@ class SensorEstimate:
     covariance_model: np.ndarray | None = None
     covariance_robust: np.ndarray | None = None
     robust_terms: tuple[tuple[str, str], ...] = ()
+    range_scale_check: object = None
 
     @property
     def model_covariance(self) -> np.ndarray:

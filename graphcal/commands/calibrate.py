@@ -15,7 +15,7 @@ from graphcal.errors import GraphcalError
 from graphcal.report.write import check_output_folder, write_calibration_outputs
 
 __all__ = ["run", "GROUP_WORDS", "covariance_scale_text", "collapsed_plane_scale_warnings", "COLLAPSED_PLANE_SCALE",
-           "verdict_lines", "verdict_warning"]
+           "verdict_lines", "verdict_warning", "range_scale_warnings"]
 
 #: noise groups (noise_estimation.py) in the words of calibrate's summary line
 GROUP_WORDS = {"stance_foot/joint": "joints", "stance_foot/contact": "contact", "imu": "IMU",
@@ -85,7 +85,17 @@ def verdict_lines(result) -> list[str]:
     w = verdict_warning(result)
     if w:
         lines.append(f"warning: {w}")
+    lines += [f"warning: {x}" for x in range_scale_warnings(result)]
     return lines
+
+
+def range_scale_warnings(result) -> list[str]:
+    """The warnings of the sensors whose range scale these data do not determine
+    (calibration/range_observability.py), printed with the verdict."""
+    from graphcal.calibration.range_observability import range_scale_warning
+
+    checks = [getattr(s, "range_scale_check", None) for s in result.sensors.values()]
+    return [w for w in (range_scale_warning(c) for c in checks if c is not None) if w]
 
 
 def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,
@@ -178,7 +188,7 @@ def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, increme
     if result.outliers:
         lines.append(f"  outlier stations: {', '.join(map(str, result.outliers))}")
     # the misfit warning is printed first (verdict_lines), not again here
-    first = verdict_warning(result)
-    lines += [f"  warning: {w}" for w in result.warnings if w != first]
+    said = {verdict_warning(result), *range_scale_warnings(result)}
+    lines += [f"  warning: {w}" for w in result.warnings if w not in said]
     lines.append("  files: " + ", ".join(sorted(p.name for p in written.values())))
     return "\n".join(lines)

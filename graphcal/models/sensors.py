@@ -34,6 +34,7 @@ __all__ = [
     "PHYSICAL_NOISE_DEFAULTS",
     "PHYSICAL_NOISE_FLOORS",
     "PHYSICAL_NOISE_KEYS",
+    "RANGE_SCALE_CHECK_PCT",
 ]
 
 #: The exteroceptive sensor types of a dataset (dataset.yaml ``sensors.<name>.type``).
@@ -177,5 +178,28 @@ PHYSICAL_NOISE_FLOORS: dict[str, float] = {
     "plane_scale": 1.0,
 }
 
-#: The keys dataset.yaml's ``physical_noise:`` may hold (the others are errors).
-PHYSICAL_NOISE_KEYS: tuple[str, ...] = tuple(k for k in PHYSICAL_NOISE_DEFAULTS if k != "plane_scale")
+#: How well calibrate's data must determine a sensor's range (depth) scale, per sensor type, in per
+#: cent of the range (graphcal/calibration/range_observability.py, docs/calibration.md): the 1-sigma
+#: of the scale from the data alone above this is a warning that the data cannot check the
+#: assumption that the range is exact. Half of the scale error the class may have, so that such an
+#: error stands 2 sigma out of the data:
+#:
+#: * ``laser_scanner`` 0.5: the Hokuyo URG-04LX's datasheet gives its accuracy as +-10 mm up to 1 m
+#:   and +-1 % of the range beyond;
+#: * ``depth_camera`` 0.5: a structured-light or time-of-flight depth is ``f b / disparity`` (or a
+#:   phase) whose scale is the relative error of its factory calibration (focal length times
+#:   baseline, modulation frequency): of the order of 1 %;
+#: * ``stereo_camera`` 0.5: depth ``f b / d``: its scale is off by the relative error of the
+#:   calibrated focal length times baseline (a checkerboard calibration: a few tenths of 1 %).
+#:
+#: dataset.yaml ``physical_noise: {range_scale_pct: ...}`` replaces it for every sensor.
+RANGE_SCALE_CHECK_PCT: dict[str, float] = {
+    "laser_scanner": 0.5,
+    "depth_camera": 0.5,
+    "stereo_camera": 0.5,
+}
+
+#: The keys dataset.yaml's ``physical_noise:`` may hold (the others are errors); ``range_scale_pct``
+#: (per cent) is read by range_observability.py, not judged as a noise group.
+PHYSICAL_NOISE_KEYS: tuple[str, ...] = tuple(k for k in PHYSICAL_NOISE_DEFAULTS if k != "plane_scale") + (
+    "range_scale_pct",)

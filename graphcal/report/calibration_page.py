@@ -220,7 +220,31 @@ def _adequacy_section(result) -> str:
             for s in a.gross) + ".</p>")
     if a.next_steps:
         out.append("<p>Next: " + "; ".join(_e(x) for x in a.next_steps) + ".</p>")
+    out.append(_range_scale_paragraph(result))
     return "".join(out)
+
+
+def _range_scale_paragraph(result) -> str:
+    """Whether the data determine each sensor's range scale (calibration.yaml ``range_scale_check``)."""
+    from graphcal.calibration.range_observability import range_scale_warning
+
+    items = []
+    for name, s in result.sensors.items():
+        c = getattr(s, "range_scale_check", None)
+        if c is None:
+            continue
+        w = range_scale_warning(c)
+        if w:
+            items.append(f'<p class="warn">{_e(w)}.</p>')
+        else:
+            items.append(f"<p><code>{_e(name)}</code>: the data determine its range scale to "
+                         f"±{_n(100.0 * c.sigma_from_data, '.2g')} % (checked to {_n(c.limit_pct, '.2g')} %); a scale "
+                         f"error of 1 % would move its translation by {_n(c.translation_mm, '.2g')} mm and show "
+                         "in the planes' fit.</p>")
+    if not items:
+        return ""
+    return ("<p>The σ assume each sensor's range is exact. Whether these data could see a range scale "
+            "(measured / true range), from the final graph with a scale added:</p>" + "".join(items))
 
 
 def report_html(result, *, title: str = "graphcal calibration report") -> str:

@@ -44,6 +44,7 @@ __all__ = [
     "sigma_body_deg_mm",
     "residual_summary",
     "adequacy_dict",
+    "range_scale_check_dict",
 ]
 
 FORMAT = "graphcal-calibration/1"
@@ -172,6 +173,9 @@ def _sensor_dict(s) -> dict:
         terms = getattr(s, "robust_terms", ())
         if terms:
             entry["robust_terms"] = {str(k): str(v) for k, v in terms}
+    check = getattr(s, "range_scale_check", None)
+    if check is not None:
+        entry["range_scale_check"] = range_scale_check_dict(check)
     if len(s.segments) > 1:
         segs = []
         for seg in s.segments:
@@ -280,6 +284,24 @@ def adequacy_dict(a) -> dict:
     }
 
 
+def range_scale_check_dict(c) -> dict:
+    """A sensor's ``range_scale_check:`` block (docs/outputs.md) of a
+    :class:`~graphcal.calibration.range_observability.RangeScaleCheck`."""
+    sigma = float(c.sigma_from_data)
+    return {
+        "determined": bool(c.determined),
+        # 1-sigma of the range scale (measured / true range) from the data alone, per cent (.inf: none)
+        "sigma_from_data_pct": 100.0 * sigma,
+        "limit_pct": _f(c.limit_pct),
+        "limit_from": str(c.limit_from),
+        # how the estimate moves for a range scale 1 % larger: norm, and along/about the body axes
+        "translation_mm_per_percent": _f(c.translation_mm),
+        "rotation_deg_per_percent": _f(c.rotation_deg),
+        "translation_mm_per_percent_body_xyz": _flist(c.translation_mm_per_percent),
+        "rotation_deg_per_percent_body_xyz": _flist(c.rotation_deg_per_percent),
+    }
+
+
 def frames_note(base_frame: str) -> dict[str, str]:
     """What each sensor entry's numbers mean, written into the file itself (docs/outputs.md)."""
     return {
@@ -294,6 +316,10 @@ def frames_note(base_frame: str) -> dict[str, str]:
                       "covariance and sigma are the robust covariance (= covariance_robust, sigma_robust), the "
                       "model's is beside it as covariance_model, sigma_model (same axes and units); robust_terms "
                       "names the terms summed into it (model, jackknife, legs_shift, range_scale_shift)",
+        "range_scale_check": "the sigma assume each sensor's range is exact; range_scale_check says how well "
+                             "these data determine a range scale (measured / true range) of the sensor: "
+                             "sigma_from_data_pct (1-sigma, per cent, data alone), determined (at most limit_pct), "
+                             "and how far a scale 1 % larger moves the estimate (mm, deg; body axes)",
     }
 
 
