@@ -84,6 +84,9 @@ def _sensor_section(name: str, s, base_frame: str) -> str:
             f"The data does not support the estimate along these directions; each entry names the "
             f"motion that would determine it.</div>"
         )
+    elif getattr(s, "range_scale_check", None) is not None and not s.range_scale_check.determined:
+        parts.append('<p>All six directions are determined by the data <b>if the range is exact</b>: these data do not '
+                     'determine its range scale (section "Does the model fit?").</p>')
     else:
         parts.append('<p class="ok">All six directions are determined by the data.</p>')
     if len(s.segments) > 1 or s.change_stations:
