@@ -95,7 +95,15 @@ def _adequacy_line(a: dict) -> list[str]:
         return [f"<p><b>Final model:</b> not judged ({esc(a.get('reason', ''))}).</p>"]
     text = (f"{a['verdict']} (statistic {_fmt(a['statistic'])} against {esc(a['reference'])}, p = {_fmt(a['p_value'])}; "
             f"worst group {esc(a['worst_group'])})")
-    return [f"<p><b>Final model, judged as calibrate judges it:</b> {text}.</p>"]
+    from graphcal.calibration.adequacy import ALPHA, RATIO_LIMIT
+
+    if a["verdict"] == "fits" and float(a.get("p_value", 1.0)) < ALPHA:
+        text += (f"; the p-value is small but every group's learned σ is within {RATIO_LIMIT:g}× its physical one, "
+                 "which calibrate's rule calls a fit")
+    model = str(a.get("model", "final (extended)"))
+    again = model.split(", ", 1)[1] if ", " in model else ""  # judged again: with what noise
+    how = f" ({esc(again)})" if again else ""
+    return [f"<p><b>Final model, judged as calibrate judges it{how}:</b> {text}.</p>"]
 
 
 def _corrections(doc: dict) -> list[str]:
