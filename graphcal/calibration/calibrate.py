@@ -314,7 +314,8 @@ def judge_result(inputs: BatchInputs, state: BatchState, options: CalibrationOpt
     # learned: the groups as learned; given (--noise-from): what the residuals converge to
     noise_groups = result.noise_groups if options.estimate_noise else noise_groups_pointed_to(
         options, state.problem, state.values)
-    groups = group_checks(noise_groups, physical, sources)
+    groups = group_checks(noise_groups, physical, sources,
+                          None if options.estimate_noise else model_sigmas(options, noise_groups))
     verdict = adequacy_verdict(groups, gross, legs=options.legs)
     if not verdict.fits:
         legs = None
@@ -387,6 +388,19 @@ def noise_groups_pointed_to(options: CalibrationOptions, problem: CalibrationPro
         return ()
     groups, _ = noise_groups_report(u.stats, u.options, given=True)
     return tuple(dataclasses.replace(g, data_scale=1.0) for g in groups)
+
+
+def model_sigmas(options: CalibrationOptions, noise_groups) -> dict[str, float]:
+    """field -> the sigma (SI, or a plane scale for ``plane_scale:<sensor>``) ``options`` give every
+    field of ``noise_groups``: the noise a solve with given noise used (adequacy.py's ``used``)."""
+    out = {}
+    for g in noise_groups:
+        for name, _ in g.fields:
+            if name.startswith("plane_scale:"):
+                out[name] = float(options.plane_scale(name.split(":", 1)[1]))
+            else:
+                out[name] = float(getattr(options, name))
+    return out
 
 
 def dataset_physical_noise(ds, options: CalibrationOptions) -> tuple[dict, dict]:

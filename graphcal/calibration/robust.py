@@ -5,9 +5,17 @@ trusted: the noise learned from the residuals treats a systematic error as indep
 station and shrinks it with the number of stations (the Octopus with a hidden 0.05 rad joint
 offset: 47 sigma off). The robust covariance of each extrinsic is the sum of
 
-* the model covariance scaled by the variance factor at the physical noise,
-  ``max(1, sum_g T_g / sum_g r_g)`` (adequacy.py's group statistics): the residuals judged against
-  the sensors' noise, not the learned one;
+* the model covariance scaled by the residuals' variance factor relative to the noise the model
+  *used*, ``s = max(1, sum_g r_g m_g^2 / sum_g r_g)``, ``m_g`` the sigma the residuals point to
+  over the sigma of the final solve (adequacy.py's ``GroupCheck.model_ratio``, ``r_g`` its dof).
+  With noise learned from the residuals (calibrate's default) ``m_g`` is about 1: the model
+  covariance already carries the misfit, at the learned (inflated) sigma, and scaling it again by
+  the ratio to the *physical* noise (``T_g / r_g``, which the verdict judges by) counted the misfit
+  twice (measured: a sensor knocked by 1.6 deg mid-session got a model term of 34 deg / 822 mm).
+  With noise given (``--noise-from``, ``estimate_noise=False``) ``m_g`` is what the given sigma
+  misses by; a covariance the given-noise check already multiplied by its planes' factor
+  (``covariance_scale``, noise_check.py) is scaled only by what ``s`` adds to it,
+  ``max(1, s / covariance_scale)``;
 * a jackknife over stations: each station's planes (or scans) left out in turn (one Gauss-Newton
   step on the final linearisation, :func:`jackknife_covariances`), ``(n - 1) / n sum (xi_i - mean)(xi_i - mean)^T`` of the extrinsic's
   tangent ``xi_i = Log(T_hat^-1 T_i)``: the spread a station's data cause;
@@ -95,12 +103,13 @@ def station_chi2(problem: CalibrationProblem, values, stations=None) -> dict[int
 
 
 def variance_factor(groups) -> float:
-    """``max(1, sum T_g / sum r_g)`` over :class:`~graphcal.calibration.adequacy.GroupCheck` s: the
-    residuals' variance factor at the physical noise (1 when none is judged)."""
+    """``max(1, sum r_g m_g^2 / sum r_g)`` over :class:`~graphcal.calibration.adequacy.GroupCheck` s
+    (``m_g`` their ``model_ratio``, ``r_g`` their dof): the residuals' variance factor relative to
+    the noise the model used, not the physical one (module docstring; 1 when none is judged)."""
     dof = sum(g.dof for g in groups)
     if dof <= 0:
         return 1.0
-    return float(max(1.0, sum(g.statistic for g in groups) / dof))
+    return float(max(1.0, sum(g.dof * g.model_ratio ** 2 for g in groups) / dof))
 
 
 def _tangent(T_hat: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -224,7 +233,8 @@ def plausible_range_scales(scales: dict) -> bool:
 
 def with_robust_covariance(result, extra: dict[str, list[RobustTerm]], scale: float):
     """``result`` with every sensor's covariance replaced by its robust one,
-    ``scale * C_model + sum(extra[sensor])`` (:class:`RobustTerm` s); the model's kept as
+    ``max(1, scale / covariance_scale) * C_model + sum(extra[sensor])`` (:class:`RobustTerm` s;
+    ``covariance_scale`` the factor the given-noise check already multiplied ``C_model`` by); the model's kept as
     ``covariance_model``, the robust one also as ``covariance_robust``, the terms' names and notes
     as ``robust_terms``; sigmas and correlation (body axes) from the robust one."""
     from graphcal.solvers.covariance import body_axis_sigmas
@@ -232,9 +242,12 @@ def with_robust_covariance(result, extra: dict[str, list[RobustTerm]], scale: fl
     sensors = {}
     for name, s in result.sensors.items():
         C_model = np.asarray(s.covariance)
-        terms = [RobustTerm("model", scale * C_model,
-                            f"the model covariance x {scale:.4g} (the variance factor at the physical noise, "
-                            "at least 1)")] + list(extra.get(name, ()))
+        already = float(getattr(s, "covariance_scale", 1.0) or 1.0)
+        k = max(1.0, scale / already)
+        said = "" if already == 1.0 else f", over the x {already:.4g} already applied for the given plane noise"
+        terms = [RobustTerm("model", k * C_model,
+                            f"the model covariance x {k:.4g} (the residuals' variance factor relative to the noise "
+                            f"the model used, at least 1{said})")] + list(extra.get(name, ()))
         C = sum((np.asarray(t.covariance) for t in terms), np.zeros((6, 6)))
         C = 0.5 * (C + C.T)
         rot, xyz, corr, _ = body_axis_sigmas(s.T_body_sensor, C)
