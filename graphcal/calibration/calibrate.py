@@ -328,7 +328,8 @@ def judge_result(inputs: BatchInputs, state: BatchState, options: CalibrationOpt
                 except (GraphcalError, RuntimeError):  # legs not determined by these data
                     return None
         extra, scale = robust_parts(state.problem, state.values, state.outliers, result, groups, legs,
-                                    lambda sensors: range_scale_calibration(inputs, base_options, sensors))
+                                    lambda sensors: range_scale_calibration(inputs, base_options, sensors),
+                                    lambda at: extrinsic_change_calibration(inputs, base_options, at))
         result = with_robust_covariance(result, extra, scale)
     first = tuple(w for w in (misfit_warning(verdict),) if w)
     return dataclasses.replace(result, adequacy=verdict, warnings=first + result.warnings)
@@ -362,6 +363,30 @@ def range_scale_calibration(inputs: BatchInputs, base_options: CalibrationOption
     scales = {s: (float(state.values.atVector(k)[0]), float(np.sqrt(max(float(np.asarray(covs[k])[0, 0]), 0.0))))
               for s, k in keys.items()}
     return result, scales
+
+
+def extrinsic_change_calibration(inputs: BatchInputs, base_options: CalibrationOptions, at: dict):
+    """The same data calibrated (:func:`solve_batch`, from ``base_options``: outliers and noise
+    learned again) with a second extrinsic of each sensor of ``at`` (sensor -> station) from that
+    station on (graph.py's :class:`~graphcal.calibration.graph.SegmentExtension`): sensor ->
+    ((T_body_sensor 4x4, its 6x6 covariance) before the station, (T, covariance) from it on), or
+    None when these data do not determine them. For the robust covariance's extrinsic-change term
+    (robust.py)."""
+    from graphcal.calibration.graph import SegmentExtension
+    from graphcal.solvers.covariance import marginal_covariances
+
+    log.info("calibrate: robust covariance: the same data solved with a second extrinsic of "
+             + ", ".join(f"{s} from station {k}" for s, k in at.items()))
+    ext_inputs = dataclasses.replace(inputs, extensions=SegmentExtension(tuple(at.items())))
+    try:
+        state, _, _ = solve_batch(ext_inputs, base_options)
+        keys = {s: (state.problem.sensor_keys[s], state.problem.extension_keys[f"segment:{s}:{k}"])
+                for s, k in at.items()}
+        covs = marginal_covariances(state.problem.graph, state.values, [k for pair in keys.values() for k in pair])
+    except (GraphcalError, RuntimeError, KeyError):  # the segments not determined by these data
+        return None
+    return {s: tuple((np.asarray(state.values.atPose3(k).matrix()), np.asarray(covs[k])) for k in pair)
+            for s, pair in keys.items()}
 
 
 def adequacy_at(ds, options: CalibrationOptions, problem: CalibrationProblem, values):
