@@ -30,6 +30,12 @@ offset: 47 sigma off). The robust covariance of each extrinsic is the sum of
   station alike, which neither the jackknife nor ``--legs`` sees. Left out when the scale that fits
   best is more than :data:`PLAUSIBLE_RANGE_SCALE_ERROR` from 1 (no sensor's scale error: the misfit
   is something else).
+* when a sensor's planes or scans do not fit: the shifts to the same data solved with a second
+  extrinsic of the sensor from the station :func:`change_station` picks (a score test of every
+  split; graph.py's :class:`SegmentExtension`), ``sum_j C_j + d_j d_j^T``, ``d_j = Log(T_hat^-1 T_j)``
+  over the extrinsic before and after: a sensor knocked mid-session leaves the one extrinsic
+  estimated between where it sat before and after, which no other term sees (measured on the
+  battery's knocked runs: 3 of 10 above NEES 19.75 without it, 0 with it).
 
 Each term is kept with its name and a note (:class:`RobustTerm`); the sensor's ``robust_terms``
 (calibration.yaml) lists the ones that went in.
