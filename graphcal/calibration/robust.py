@@ -11,7 +11,8 @@ offset: 47 sigma off). The robust covariance of each extrinsic is the sum of
   With noise learned from the residuals (calibrate's default) ``m_g`` is about 1: the model
   covariance already carries the misfit, at the learned (inflated) sigma, and scaling it again by
   the ratio to the *physical* noise (``T_g / r_g``, which the verdict judges by) counted the misfit
-  twice (measured: a sensor knocked by 1.6 deg mid-session got a model term of 34 deg / 822 mm).
+  twice (measured: a sensor knocked by 2.8 deg mid-session, its error 1.6 deg / 12 mm, got a model
+  term of 34 deg / 822 mm).
   With noise given (``--noise-from``, ``estimate_noise=False``) ``m_g`` is what the given sigma
   misses by; a covariance the given-noise check already multiplied by its planes' factor
   (``covariance_scale``, noise_check.py) is scaled only by what ``s`` adds to it,
