@@ -127,6 +127,9 @@ class GroupCheck:
         ratio: learned / physical (the largest over the group's fields).
         statistic, dof, p_value: ``T = dof ratio^2`` against ``chi2(dof)``, its upper tail.
         misfit: ratio above :data:`RATIO_LIMIT` and p below the Bonferroni level.
+        model_ratio: the learned sigma over the sigma the model's solve *used* (the largest over
+            the group's fields): the factor the residuals point to, about 1 for noise learned from
+            them, the misfit of a given noise model otherwise (robust.py's variance factor).
     """
 
     group: str
@@ -138,6 +141,7 @@ class GroupCheck:
     dof: float
     p_value: float
     misfit: bool = False
+    model_ratio: float = 1.0
 
     def learned_text(self) -> str:
         """The learned sigma in words, e.g. ``0.239 deg, 1.08 mm``."""
@@ -216,7 +220,8 @@ class Adequacy:
 
 
 def group_check(group: str, fields: tuple[tuple[str, float], ...], data_scale: float, dof: float,
-                physical: Mapping[str, float], sources: Mapping[str, str], n_groups: int) -> GroupCheck | None:
+                physical: Mapping[str, float], sources: Mapping[str, str], n_groups: int,
+                used: Mapping[str, float] | None = None) -> GroupCheck | None:
     """One group's :class:`GroupCheck`, or None when it carries under 1 dof (nothing to judge).
 
     Args:
@@ -226,6 +231,8 @@ def group_check(group: str, fields: tuple[tuple[str, float], ...], data_scale: f
         dof: the group's redundancy at the solution.
         physical, sources: :func:`physical_noise`.
         n_groups: groups tested together (the Bonferroni divisor).
+        used: field -> the sigma (SI) the model's solve used, when it is not ``fields`` (noise given,
+            not learned: ``fields`` are then what the residuals converge to); None: ``fields``.
     """
     if not np.isfinite(dof) or dof < 1.0 or not np.isfinite(data_scale):
         return None
@@ -236,19 +243,22 @@ def group_check(group: str, fields: tuple[tuple[str, float], ...], data_scale: f
     else:
         return None
     value = dict(fields)
-    learned, phys, ratios = [], [], []
+    model = value if used is None else {**value, **used}
+    learned, phys, ratios, model_ratios = [], [], [], []
     for field, key in pairs:
         s = float(value[field]) * float(data_scale)
         p = physical[key]
         learned.append((field, s))
         phys.append((key, p))
         ratios.append(s / _si(key, p))
+        model_ratios.append(s / float(model[field]) if float(model[field]) > 0 else float(data_scale))
     ratio = float(max(ratios))
     T = float(dof * ratio * ratio)
     p_value = float(stats.sf(T, dof))
     misfit = bool(ratio > RATIO_LIMIT and p_value < ALPHA / max(n_groups, 1))
     source = sources[pairs[0][1]]
-    return GroupCheck(group, tuple(learned), tuple(phys), source, ratio, T, float(dof), p_value, misfit)
+    return GroupCheck(group, tuple(learned), tuple(phys), source, ratio, T, float(dof), p_value, misfit,
+                      float(max(model_ratios)))
 
 
 #: a joint-angle error moves a foot by about this lever times the angle (m; legs of 0.15-0.3 m):
@@ -257,13 +267,14 @@ STANCE_LEVER_M = 0.2
 
 
 def stance_foot_check(joint, contact, physical: Mapping[str, float], sources: Mapping[str, str],
-                      n_groups: int) -> GroupCheck | None:
+                      n_groups: int, used: Mapping[str, float] | None = None) -> GroupCheck | None:
     """The stance foot judged as one group: its joint and contact components (noise groups
     ``stance_foot/joint`` and ``stance_foot/contact``) added into a foot sigma,
     ``sqrt((STANCE_LEVER_M s_joint)^2 + s_contact^2)``, against the same sum of their physical
     values, over the components' summed dof. The data split a foot's noise between its two
     components poorly (an unseen 0.3 deg joint flex was learned as 0.77 mm of contact on one
-    seed, as joint noise on another): each alone would call a good split a misfit."""
+    seed, as joint noise on another): each alone would call a good split a misfit. ``used``: as
+    :func:`group_check`'s (the foot sigma the model used is the same sum of its components)."""
     dof = float(joint.dof + contact.dof)
     if not np.isfinite(dof) or dof < 1.0:
         return None
@@ -276,21 +287,26 @@ def stance_foot_check(joint, contact, physical: Mapping[str, float], sources: Ma
     T = float(dof * ratio * ratio)
     p_value = float(stats.sf(T, dof))
     misfit = bool(ratio > RATIO_LIMIT and p_value < ALPHA / max(n_groups, 1))
+    u = {**dict(joint.fields), **dict(contact.fields), **(used or {})}
+    model = np.hypot(STANCE_LEVER_M * float(u["sigma_joint_rad"]), float(u["sigma_contact_m"]))
     return GroupCheck("stance_foot", (("sigma_joint_rad", s_j), ("sigma_contact_m", s_c)),
-                      (("joint_deg", p_j), ("contact_mm", p_c)), sources["joint_deg"], ratio, T, dof, p_value, misfit)
+                      (("joint_deg", p_j), ("contact_mm", p_c)), sources["joint_deg"], ratio, T, dof, p_value, misfit,
+                      float(learned / model) if model > 0 else 1.0)
 
 
-def group_checks(noise_groups, physical: Mapping[str, float], sources: Mapping[str, str]) -> tuple[GroupCheck, ...]:
+def group_checks(noise_groups, physical: Mapping[str, float], sources: Mapping[str, str],
+                 used: Mapping[str, float] | None = None) -> tuple[GroupCheck, ...]:
     """Every judgeable group of ``noise_groups`` (:class:`~graphcal.calibration.result.NoiseGroupEstimate`);
-    a stance foot's joint and contact components as one (:func:`stance_foot_check`)."""
+    a stance foot's joint and contact components as one (:func:`stance_foot_check`). ``used``: field
+    -> the sigma the model's solve used when the noise was given (:func:`group_check`)."""
     by = {g.group: g for g in noise_groups}
     joint, contact = by.get("stance_foot/joint"), by.get("stance_foot/contact")
     both = joint is not None and contact is not None
     rest = [g for g in noise_groups if not (both and g.group in ("stance_foot/joint", "stance_foot/contact"))]
     n = sum(1 for g in rest if np.isfinite(g.dof) and g.dof >= 1.0) + (1 if both else 0)
-    out = [group_check(g.group, g.fields, g.data_scale, g.dof, physical, sources, n) for g in rest]
+    out = [group_check(g.group, g.fields, g.data_scale, g.dof, physical, sources, n, used) for g in rest]
     if both:
-        out.append(stance_foot_check(joint, contact, physical, sources, n))
+        out.append(stance_foot_check(joint, contact, physical, sources, n, used))
     return tuple(sorted((c for c in out if c is not None), key=lambda c: c.group))
 
 

@@ -316,7 +316,8 @@ def judge_result(inputs: BatchInputs, state: BatchState, options: CalibrationOpt
     # learned: the groups as learned; given (--noise-from): what the residuals converge to
     noise_groups = result.noise_groups if options.estimate_noise else noise_groups_pointed_to(
         options, state.problem, state.values)
-    groups = group_checks(noise_groups, physical, sources)
+    groups = group_checks(noise_groups, physical, sources,
+                          None if options.estimate_noise else model_sigmas(options, noise_groups))
     verdict = adequacy_verdict(groups, gross, legs=options.legs)
     if not verdict.fits:
         legs = None
@@ -329,7 +330,8 @@ def judge_result(inputs: BatchInputs, state: BatchState, options: CalibrationOpt
                 except (GraphcalError, RuntimeError):  # legs not determined by these data
                     return None
         extra, scale = robust_parts(state.problem, state.values, state.outliers, result, groups, legs,
-                                    lambda sensors: range_scale_calibration(inputs, base_options, sensors))
+                                    lambda sensors: range_scale_calibration(inputs, base_options, sensors),
+                                    lambda at: extrinsic_change_calibration(inputs, base_options, at))
         result = with_robust_covariance(result, extra, scale)
     first = tuple(w for w in (misfit_warning(verdict),) if w)
     result = dataclasses.replace(result, adequacy=verdict, warnings=first + result.warnings)
@@ -368,6 +370,30 @@ def range_scale_calibration(inputs: BatchInputs, base_options: CalibrationOption
     return result, scales
 
 
+def extrinsic_change_calibration(inputs: BatchInputs, base_options: CalibrationOptions, at: dict):
+    """The same data calibrated (:func:`solve_batch`, from ``base_options``: outliers and noise
+    learned again) with a second extrinsic of each sensor of ``at`` (sensor -> station) from that
+    station on (graph.py's :class:`~graphcal.calibration.graph.SegmentExtension`): sensor ->
+    ((T_body_sensor 4x4, its 6x6 covariance) before the station, (T, covariance) from it on), or
+    None when these data do not determine them. For the robust covariance's extrinsic-change term
+    (robust.py)."""
+    from graphcal.calibration.graph import SegmentExtension
+    from graphcal.solvers.covariance import marginal_covariances
+
+    log.info("calibrate: robust covariance: the same data solved with a second extrinsic of "
+             + ", ".join(f"{s} from station {k}" for s, k in at.items()))
+    ext_inputs = dataclasses.replace(inputs, extensions=SegmentExtension(tuple(at.items())))
+    try:
+        state, _, _ = solve_batch(ext_inputs, base_options)
+        keys = {s: (state.problem.sensor_keys[s], state.problem.extension_keys[f"segment:{s}:{k}"])
+                for s, k in at.items()}
+        covs = marginal_covariances(state.problem.graph, state.values, [k for pair in keys.values() for k in pair])
+    except (GraphcalError, RuntimeError, KeyError):  # the segments not determined by these data
+        return None
+    return {s: tuple((np.asarray(state.values.atPose3(k).matrix()), np.asarray(covs[k])) for k in pair)
+            for s, pair in keys.items()}
+
+
 def adequacy_at(ds, options: CalibrationOptions, problem: CalibrationProblem, values):
     """The :class:`~graphcal.calibration.adequacy.Adequacy` of a solved graph (``problem`` at
     ``values``, gtsam.Values) under the noise ``options`` it used: every noise group's statistics
@@ -392,6 +418,19 @@ def noise_groups_pointed_to(options: CalibrationOptions, problem: CalibrationPro
         return ()
     groups, _ = noise_groups_report(u.stats, u.options, given=True)
     return tuple(dataclasses.replace(g, data_scale=1.0) for g in groups)
+
+
+def model_sigmas(options: CalibrationOptions, noise_groups) -> dict[str, float]:
+    """field -> the sigma (SI, or a plane scale for ``plane_scale:<sensor>``) ``options`` give every
+    field of ``noise_groups``: the noise a solve with given noise used (adequacy.py's ``used``)."""
+    out = {}
+    for g in noise_groups:
+        for name, _ in g.fields:
+            if name.startswith("plane_scale:"):
+                out[name] = float(options.plane_scale(name.split(":", 1)[1]))
+            else:
+                out[name] = float(getattr(options, name))
+    return out
 
 
 def dataset_physical_noise(ds, options: CalibrationOptions) -> tuple[dict, dict]:

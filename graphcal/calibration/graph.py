@@ -495,6 +495,47 @@ def add_range_scale_variables(build: GraphBuild, range_scale) -> dict:
     return out
 
 
+def add_extrinsic_segments(build: GraphBuild, extrinsic_segments) -> dict:
+    """Add an extrinsic segment S(k + SEGMENT_KEY_STRIDE j) for each ``(sensor, station)`` of
+    ``extrinsic_segments`` (from that station on, in station order, the sensor's measurements use
+    it), at the closed-form extrinsic with the sensor's prior (recorded as
+    ``segment:<sensor>:<station>``); returns sensor -> [(position in station order, key)], for
+    :attr:`ExtensionKeys.segments`."""
+    sensor_index = {name: k for k, name in enumerate(build.ds.sensors)}
+    segments: dict[str, list[tuple[int, int]]] = {}
+    for name, station in extrinsic_segments:
+        if name not in build.sensor_keys:
+            raise GraphcalError(f"extrinsic segment names sensor {name!r}, which has no measurements")
+        if station not in build.station_order:
+            raise GraphcalError(f"extrinsic segment of {name!r} starts at station {station}, which does not exist")
+        j = len(segments.setdefault(name, [])) + 1
+        key = S(sensor_index[name] + SEGMENT_KEY_STRIDE * j)
+        segments[name].append((build.station_order[station], key))
+        build.extension_keys[f"segment:{name}:{station}"] = key
+        build.values.insert(key, to_gtsam_pose(build.initial_extrinsics[name]))
+        T_cad, sig_m, sig_r = build.sensor_priors[name]
+        build.add_prior(floored_extrinsic_prior(key, T_cad, sig_m, sig_r), f"segment:{name}:{station}")
+    return segments
+
+
+@dataclass(frozen=True)
+class SegmentExtension:
+    """calibrate's own extension (the robust covariance's extrinsic-change term, robust.py): a
+    second extrinsic of each sensor of ``extrinsic_segments`` ((sensor, station) pairs) from that
+    station on, nothing else."""
+
+    extrinsic_segments: tuple[tuple[str, int], ...] = ()
+
+    def add_variables(self, build: GraphBuild) -> ExtensionKeys:
+        return ExtensionKeys(segments=add_extrinsic_segments(build, self.extrinsic_segments))
+
+    def leg_prior(self, foot: str, key: int, n_params: int):
+        return None
+
+    def imu_mounting_prior(self, R_body_imu: np.ndarray):
+        return None
+
+
 @dataclass(frozen=True)
 class RangeScaleExtension:
     """calibrate's own extension (the robust covariance's range-scale term, robust.py): a range
@@ -725,4 +766,4 @@ def predicted_plane_errors(T_world_body: np.ndarray, T_body_sensor: np.ndarray, 
 
 
 __all__ = ["CalibrationOptions", "CalibrationProblem", "build_problem", "predicted_plane_errors", "RangeScaleExtension",
-           "add_range_scale_variables"]
+           "add_range_scale_variables", "SegmentExtension", "add_extrinsic_segments"]

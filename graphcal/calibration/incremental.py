@@ -840,18 +840,19 @@ def judge_incremental(ds, options: CalibrationOptions, problem, values, result, 
     """``result`` of the incremental solver with its adequacy verdict (adequacy.py): the given noise
     groups judged against the physical noise at the factor their residuals point to, gross stations
     flagged (not left out: iSAM2 has moved on), and when the model does not fit the robust
-    covariance of robust.py governing (the model's scaled by the misfit plus the jackknife over
+    covariance of robust.py governing (the model's scaled by the given noise's misfit plus the jackknife over
     stations; no ``--legs`` solve) and the warning first. Segments other than the last keep the
     model covariance. ``batch_groups``: :func:`batch_noise_groups` (judged instead of the planes-only
     groups of ``result`` when given)."""
     from graphcal.calibration.adequacy import adequacy_verdict, group_checks, gross_stations, misfit_warning
-    from graphcal.calibration.calibrate import dataset_physical_noise
+    from graphcal.calibration.calibrate import dataset_physical_noise, model_sigmas
     from graphcal.calibration.robust import robust_parts, station_chi2, with_robust_covariance
 
     physical, sources = dataset_physical_noise(ds, options)
     seen = {m[0] for m in problem.plane_factors.values()}
     gross = gross_stations(station_chi2(problem, values, seen))
-    checks = group_checks(batch_groups or result.noise_groups, physical, sources)
+    noise_groups = batch_groups or result.noise_groups
+    checks = group_checks(noise_groups, physical, sources, model_sigmas(options, noise_groups))
     verdict = adequacy_verdict(checks, gross, legs=options.legs, gross_left_out=False)
     if not verdict.fits:
         extra, scale = robust_parts(problem, values, frozenset(problem.excluded), result, checks, None)

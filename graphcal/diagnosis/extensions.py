@@ -13,11 +13,9 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from graphcal.calibration.graph import (SEGMENT_KEY_STRIDE, ExtensionKeys, GraphBuild, add_range_scale_variables,
-                                       floored_extrinsic_prior)
+from graphcal.calibration.graph import ExtensionKeys, GraphBuild, add_extrinsic_segments, add_range_scale_variables
 from graphcal.errors import GraphcalError
-from graphcal.factors.keys import G, M, S, W
-from graphcal.geometry import to_gtsam_pose
+from graphcal.factors.keys import G, M, W
 
 
 @dataclass(frozen=True)
@@ -72,8 +70,7 @@ class ModelExtensions:
         from graphcal.factors.plane_prior import plane_prior_factor
 
         ds, values = build.ds, build.values
-        sensor_keys, ext_keys = build.sensor_keys, build.extension_keys
-        sensor_index = {name: k for k, name in enumerate(ds.sensors)}
+        ext_keys = build.extension_keys
         range_scale = add_range_scale_variables(build, self.range_scale)
         w_key = None
         if self.ground_tilt_sigma_rad is not None and ds.imu is not None:
@@ -84,19 +81,7 @@ class ModelExtensions:
             sig = float(self.ground_tilt_sigma_rad)
             build.add_prior(gtsam.PriorFactorRot3(w_key, gtsam.Rot3(), gtsam.noiseModel.Diagonal.Sigmas(
                 np.array([sig, sig, 1e-6]))), "ground_tilt")
-        segments: dict[str, list[tuple[int, int]]] = {}
-        for name, station in self.extrinsic_segments:
-            if name not in sensor_keys:
-                raise GraphcalError(f"extrinsic segment names sensor {name!r}, which has no measurements")
-            if station not in build.station_order:
-                raise GraphcalError(f"extrinsic segment of {name!r} starts at station {station}, which does not exist")
-            j = len(segments.setdefault(name, [])) + 1
-            key = S(sensor_index[name] + SEGMENT_KEY_STRIDE * j)
-            segments[name].append((build.station_order[station], key))
-            ext_keys[f"segment:{name}:{station}"] = key
-            values.insert(key, to_gtsam_pose(build.initial_extrinsics[name]))
-            T_cad, sig_m, sig_r = build.sensor_priors[name]
-            build.add_prior(floored_extrinsic_prior(key, T_cad, sig_m, sig_r), f"segment:{name}:{station}")
+        segments = add_extrinsic_segments(build, self.extrinsic_segments)
         session_planes = {}
         for s_name, sig in self.session_offset:
             if s_name not in build.sessions:

@@ -315,7 +315,8 @@ def frames_note(base_frame: str) -> dict[str, str]:
         "sigma_from": "model: covariance and sigma are the model's; robust: the model does not fit (adequacy:), "
                       "covariance and sigma are the robust covariance (= covariance_robust, sigma_robust), the "
                       "model's is beside it as covariance_model, sigma_model (same axes and units); robust_terms "
-                      "names the terms summed into it (model, jackknife, legs_shift, range_scale_shift)",
+                      "names the terms summed into it (model, jackknife, legs_shift, range_scale_shift, "
+                      "extrinsic_change_shift)",
         "range_scale_check": "the sigma assume each sensor's range is exact; range_scale_check says how well "
                              "these data determine a range scale (measured / true range) of the sensor: "
                              "sigma_from_data_pct (1-sigma, per cent, data alone), determined (at most limit_pct), "
