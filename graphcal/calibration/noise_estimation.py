@@ -125,8 +125,8 @@ def consistent_helmert_matrix(N: np.ndarray, redundancy) -> np.ndarray:
     C_k)``, below ``tr(R C_k)`` (``R_aa^2 <= R_aa``), and ``theta = N^-1 q`` reads a correct noise
     model too large: measured on the Octopus on Chai's program with the simulator's own noise given,
     the stance feet's theta was 1.28-1.36 where their chi-square over redundancy was 1.00-1.05
-    (seeds 2000-2002), and learning settled 14-17 % above the true foot noise (a contact term of
-    0.08 mm where the simulator has none). Summed over all components of all groups the rows of
+    (seeds 2000-2002): sigma 13-17 % too large, which learning put into a contact term of 0.08 mm
+    where the simulator has none. ``N`` stays as given for :func:`split_determined`. Summed over all components of all groups the rows of
     the exact matrix are ``tr(R C_k R) = tr(R C_k)`` (``R`` a projector in the whitened space): the
     scale restores that. A row that sums to 0 is kept."""
     N = np.asarray(N, dtype=float)
