@@ -1,7 +1,7 @@
 """Hidden-effect battery for calibrate's model-adequacy verdict (issue 27).
 
     .venv/bin/python bench/adequacy_battery.py [--seeds N] [--first-seed S] [--workers W]
-                                               [--held-out] [--json PATH]
+                                               [--held-out] [--json PATH] [--ground-sigma-mm MM]
 
 Each run simulates the Octopus on Chai's 2015 program (level ground, planes written:
 ``--output planes``) with one hidden effect, calibrates it with calibrate's defaults (batch, noise
@@ -23,6 +23,15 @@ one (the robust covariance when the verdict is ``does not fit``), the verdict, w
 misfit warning), the error (deg, mm) and the governing 1-sigma (body axes, deg and mm) and the
 terms of the robust covariance. Prints one line per run and a summary per effect; ``--json``
 writes every run. ``--effects`` picks effects (comma-separated, e.g. ``clean,sensor_range_scale``).
+For the clean runs the summary adds, per body axis (rx, ry, rz, x, y, z), the RMS of error/sigma of
+the model covariance (``graphcal study``'s ``extrinsic_errors``; 1 when honest, with its 95 %
+interval ``sqrt(chi2.ppf(., N) / N)``).
+
+``--ground-sigma-mm MM`` starts calibrate's feet-on-ground sigma (``CalibrationOptions.sigma_ground_m``)
+at MM instead of its 3 mm default, the rest unchanged (noise learned). At 0.001 mm the group carries
+no redundancy and is held there: the simulator's exact floor under point feet (it declares
+``ground_mm: 0``). It isolates the one group whose learned sigma makes the clean NEES conservative
+(docs/calibration.md, "Clean NEES").
 """
 
 from __future__ import annotations
@@ -121,13 +130,20 @@ def held_out(name: str, folder: Path) -> None:
         raise ValueError(name)
 
 
-def run_one(spec: tuple[str, int, str]) -> dict:
-    """Simulate, perturb, calibrate one (effect, seed); returns the run's record."""
-    effect, seed, scratch = spec
+AXES = ("rx", "ry", "rz", "x", "y", "z")
+
+
+def run_one(spec: tuple) -> dict:
+    """Simulate, perturb, calibrate one (effect, seed, scratch[, ground sigma in mm: None for
+    calibrate's default]); returns the run's record."""
+    effect, seed, scratch, *rest = spec
+    ground_mm = rest[0] if rest else None
     sys.path.insert(0, str(REPO))
     import yaml
 
     from graphcal.calibration.calibrate import calibrate
+    from graphcal.calibration.graph import CalibrationOptions
+    from graphcal.commands.study import extrinsic_errors
     from graphcal.commands.simulate import run as simulate
     from graphcal.geometry import pose_from_xyz_quat_wxyz, pose_log_between
     from graphcal.solvers.covariance import nees
@@ -144,13 +160,15 @@ def run_one(spec: tuple[str, int, str]) -> dict:
         truth = yaml.safe_load(open(folder / "truth.yaml"))
         t = truth["sensors"]["depth"]["T_body_sensor"]
         T_true = pose_from_xyz_quat_wxyz(t["xyz"], t["quaternion_wxyz"])
-        res = calibrate(folder)
+        options = CalibrationOptions() if ground_mm is None else CalibrationOptions(sigma_ground_m=1e-3 * ground_mm)
+        res = calibrate(folder, options=options)
         est = res.sensors["depth"]
         adq = getattr(res, "adequacy", None)
         gov = est.covariance  # the governing covariance: the robust one when the model does not fit
         model = est.covariance if est.covariance_model is None else est.covariance_model
         rec = {"effect": effect, "seed": seed, "nees_model": float(nees(T_true, est.T_body_sensor, model)),
                "nees_governing": float(nees(T_true, est.T_body_sensor, gov)),
+               "z2_body_model": extrinsic_errors(est.T_body_sensor, model, T_true)["z2"],
                "verdict": adq.verdict if adq is not None else "?",
                "groups": [g.group for g in adq.misfit_groups] if adq is not None else [],
                "p": float(adq.p_value) if adq is not None else float("nan"),
@@ -183,6 +201,10 @@ def summary(records: list[dict]) -> str:
         if eff == "clean":
             lo, hi = stats.ppf([0.025, 0.975], 6 * len(rs)) / len(rs)
             line += f"  clean mean NEES {np.mean([r['nees_model'] for r in rs]):.2f} (95 % [{lo:.2f}, {hi:.2f}])"
+            z_lo, z_hi = np.sqrt(stats.ppf([0.025, 0.975], len(rs)) / len(rs))
+            rms = np.sqrt(np.mean([r["z2_body_model"] for r in rs], axis=0))
+            line += ("\n    clean RMS error/sigma per body axis: " + "  ".join(f"{a} {v:.2f}" for a, v in zip(AXES, rms))
+                     + f"  (95 % [{z_lo:.2f}, {z_hi:.2f}])")
         out.append(line)
     effect_runs = [r for r in records if r["effect"] != "clean"]
     if effect_runs:
@@ -200,6 +222,8 @@ def main() -> None:
     ap.add_argument("--held-out", action="store_true", help="run the three held-out effects instead")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--ground-sigma-mm", type=float, default=None,
+                    help="calibrate's starting feet-on-ground sigma (mm; default: calibrate's 3 mm)")
     args = ap.parse_args()
     effects = tuple(args.effects.split(","))
     if args.held_out:  # the held-out effects (all, or those of --effects that are held out)
@@ -208,7 +232,7 @@ def main() -> None:
     specs = []
     for eff in effects:
         n = (args.clean or 2 * args.seeds) if eff == "clean" else args.seeds
-        specs += [(eff, args.first_seed + i, scratch) for i in range(n)]
+        specs += [(eff, args.first_seed + i, scratch, args.ground_sigma_mm) for i in range(n)]
     records = []
     with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
         for rec in pool.imap_unordered(run_one, specs):

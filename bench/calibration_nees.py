@@ -16,7 +16,14 @@ Each simulated dataset is calibrated in two variants:
 
 * ``learned``: the product's default (``CalibrationOptions()``, noise learned from the data);
 * ``simulator``: the simulator's own noise model given, ``SIMULATOR_NOISE`` of graphcal/testing.py
-  (the test's too), so that the two stay the same.
+  (the test's too), so that the two stay the same;
+* ``ground-exact``: the default, noise learned, but the feet-on-ground sigma started at the
+  simulator's exact floor (1e-6 m, where the group carries no dof and is held): what the learned
+  model gives without the one group the data cannot learn (docs/calibration.md, "Clean NEES");
+* ``swap:G1+G2``: the noise learned (the default), then the groups named (``joint``, ``contact``,
+  ``ground``, ``imu``, ``commanded``, ``plane``) set to the simulator's values (``SIMULATOR_NOISE``,
+  plane scale 1), the others kept as learned, and the graph solved again with that noise held:
+  which learned group moves the NEES (``swap:`` alone reproduces the learned run).
 
 Per run: NEES = ``xi^T inv(cov) xi`` with ``xi = Log(T_est^-1 T_true)`` (graphcal.solvers.covariance
 ``nees``, calibration's right-perturbation tangent of the sensor frame); the error rotated to the body
@@ -58,7 +65,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-VARIANTS = ("learned", "simulator")
+VARIANTS = ("learned", "simulator", "ground-exact")
 SCENARIOS = {  # name: (sensor, output written, default first seed)
     "chai": ("depth", "planes", 300),
     "unseen": ("front_cam", "clouds", 600),
@@ -67,11 +74,45 @@ GOAL_DEG, GOAL_MM = 0.1, 2.0  # issue 3's "done when"
 AXES = ("rx", "ry", "rz", "x", "y", "z")
 
 
+#: swap:<group> -> the CalibrationOptions fields set to the simulator's values
+SWAP_FIELDS = {"joint": ("sigma_joint_rad",), "contact": ("sigma_contact_m",), "ground": ("sigma_ground_m",),
+               "imu": ("sigma_imu_rad",), "commanded": ("sigma_commanded_rad", "sigma_commanded_m"), "plane": ()}
+
+
+def _swapped(variant: str, ds, sensor: str):
+    """Options of a ``swap:G1+G2`` variant on dataset ``ds``: calibrate's learned noise (one learned
+    run), the groups named at the simulator's values, noise held (not learned again)."""
+    import dataclasses
+
+    from graphcal.calibration.calibrate import calibrate
+    from graphcal.calibration.graph import CalibrationOptions
+    from graphcal.testing import SIMULATOR_NOISE
+
+    groups = [g for g in variant.split(":", 1)[1].split("+") if g]
+    learned = calibrate(ds, judge=False).noise
+    kw = {k: float(v) for k, v in learned.items() if not k.startswith("plane_scale:")}
+    scales = {k.split(":", 1)[1]: float(v) for k, v in learned.items() if k.startswith("plane_scale:")}
+    for g in groups:
+        kw.update({f: getattr(SIMULATOR_NOISE, f) for f in SWAP_FIELDS[g]})
+        if g == "plane":
+            scales[sensor] = 1.0
+    return dataclasses.replace(CalibrationOptions(), estimate_noise=False, plane_sigma_scales=tuple(sorted(scales.items())),
+                               **kw)
+
+
+def _valid_variant(v: str) -> bool:
+    if v.startswith("swap:"):
+        return all(g in SWAP_FIELDS for g in v.split(":", 1)[1].split("+") if g)
+    return v in VARIANTS
+
+
 def _options(variant: str):
     from graphcal.calibration.graph import CalibrationOptions
 
     if variant == "learned":
         return CalibrationOptions()  # the product's default: estimate_noise=True
+    if variant == "ground-exact":  # learned, the feet-on-ground sigma held at the simulator's exact floor
+        return CalibrationOptions(sigma_ground_m=1e-6)
     from graphcal.testing import SIMULATOR_NOISE  # the test's noise model (the simulator's)
 
     return SIMULATOR_NOISE
@@ -113,7 +154,8 @@ def _one_run(job: tuple[int, tuple[str, ...], str, str]) -> dict:
             rec: dict = {}
             try:
                 t1 = time.perf_counter()
-                result = calibrate(ds, options=_options(v))
+                opts = _swapped(v, ds, sensor) if v.startswith("swap:") else _options(v)
+                result = calibrate(ds, options=opts)
                 rec["calibrate_s"] = time.perf_counter() - t1
                 est = result.sensors[sensor]
                 T = np.asarray(est.T_body_sensor, float)
@@ -124,7 +166,7 @@ def _one_run(job: tuple[int, tuple[str, ...], str, str]) -> dict:
                 rec["sigma_body"] = e["sigma"]  # deg, mm
                 rec["error_deg"] = float(np.degrees(rotation_angle_between(T[:3, :3], T_true[:3, :3])))
                 rec["error_mm"] = float(1e3 * np.linalg.norm(T[:3, 3] - T_true[:3, 3]))
-                if v == "learned":
+                if v in ("learned", "ground-exact"):
                     rec["noise"] = {k: float(x) for k, x in result.noise.items()
                                     if isinstance(x, (int, float, np.floating))}
                     rec["noise_groups"] = {g.group: g.status for g in result.noise_groups}
@@ -225,7 +267,10 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=int, default=200, help="simulated calibrations, one seed each (default 200)")
     ap.add_argument("--variants", default="learned,simulator",
-                    help="comma-separated: learned (product default), simulator (the simulator's noise model)")
+                    help="comma-separated: learned (product default), simulator (the simulator's noise model), "
+                         "ground-exact (learned, the feet-on-ground sigma held at the simulator's exact floor), "
+                         "swap:G1+G2 (learned, then groups joint/contact/ground/imu/commanded/plane at the "
+                         "simulator's values, noise held)")
     ap.add_argument("--scenario", choices=tuple(SCENARIOS), default="chai",
                     help="chai: Octopus, Chai's 52 poses, planes (default); unseen: issue 3's acceptance case "
                          "(a hexapod graphcal does not ship, three sessions, clouds)")
@@ -238,7 +283,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--json", type=Path, default=None, help="write the summary and every run to this JSON file")
     args = ap.parse_args(argv)
     variants = tuple(v.strip() for v in args.variants.split(",") if v.strip())
-    bad = [v for v in variants if v not in VARIANTS]
+    bad = [v for v in variants if not _valid_variant(v)]
     if bad or not variants:
         ap.error(f"--variants: unknown {bad}, choose from {', '.join(VARIANTS)}")
     if args.runs < 1 or args.workers < 1:
