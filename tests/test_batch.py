@@ -235,7 +235,9 @@ def test_read_robot_reads_calibration_outputs(local_run):
     assert {v.name for v in r.values} == {"x", "y", "z"} and "depth" in r.rotations
     assert any("not determined" in w for w in r.warnings) and r.notes == ()
     y = next(v for v in r.values if v.name == "y")
-    assert math.isclose(y.value, 2.27, abs_tol=0.1) and y.unit == "mm"
+    # the sensor's y change from its prior, as calibration.yaml holds it (1.37 mm since the Helmert fix of
+    # the stance feet's noise, 2.27 before: docs/calibration.md "Clean NEES"; a poorly determined axis here)
+    assert math.isclose(y.value, 1.37, abs_tol=0.1) and y.unit == "mm"
 
 
 # ----------------------------------------------------------------------------- graphcal study
