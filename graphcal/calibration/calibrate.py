@@ -394,16 +394,17 @@ def extrinsic_change_calibration(inputs: BatchInputs, base_options: CalibrationO
             for s, pair in keys.items()}
 
 
-def adequacy_at(ds, options: CalibrationOptions, problem: CalibrationProblem, values):
+def adequacy_at(ds, options: CalibrationOptions, problem: CalibrationProblem, values, skip: frozenset = frozenset()):
     """The :class:`~graphcal.calibration.adequacy.Adequacy` of a solved graph (``problem`` at
     ``values``, gtsam.Values) under the noise ``options`` it used: every noise group's statistics
     at the solution (one variance-component update), judged against dataset ``ds``'s physical
-    noise. For a model other than calibrate's (diagnose's extended one); no gross-station test."""
+    noise, except the groups named in ``skip``. For a model other than calibrate's (diagnose's
+    extended one); no gross-station test."""
     from graphcal.calibration.adequacy import adequacy_verdict, group_checks
 
     physical, sources = dataset_physical_noise(ds, options)
-    return adequacy_verdict(group_checks(noise_groups_pointed_to(options, problem, values), physical, sources),
-                            legs=options.legs)
+    groups = tuple(g for g in noise_groups_pointed_to(options, problem, values) if g.group not in skip)
+    return adequacy_verdict(group_checks(groups, physical, sources), legs=options.legs)
 
 
 def noise_groups_pointed_to(options: CalibrationOptions, problem: CalibrationProblem, values) -> tuple:
