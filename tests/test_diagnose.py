@@ -61,8 +61,8 @@ def test_battery_targets(battery):
           f"false alarms {battery['false_alarm']:.1%}")
     assert battery["top1"] >= 0.95
     assert battery["false_alarm"] <= 0.05
-    # the final model of a right diagnosis fits when judged as calibrate judges (measured 53 of 55)
-    assert battery["final_fits"] >= 0.95
+    # the final model of a right diagnosis fits when judged as calibrate judges (measured 55 of 55)
+    assert battery["final_fits"] >= 0.98
 
 
 @pytest.mark.slow
