@@ -348,15 +348,15 @@ RANGE_SCALE_PRIOR_SIGMA = 0.2
 def range_scale_calibration(inputs: BatchInputs, base_options: CalibrationOptions, sensors: tuple[str, ...]):
     """The same data calibrated (:func:`solve_batch`, from ``base_options``: outliers and noise
     learned again) with a range scale of each of ``sensors`` (graph.py's
-    :class:`~graphcal.calibration.graph.RangeScaleExtension`, prior 1 +- :data:`RANGE_SCALE_PRIOR_SIGMA`):
+    :class:`~graphcal.calibration.graph.CalibrateExtension`, prior 1 +- :data:`RANGE_SCALE_PRIOR_SIGMA`):
     (its :class:`CalibrationResult`, with the extrinsics' covariances marginal over the scales;
     sensor -> (scale, its 1-sigma)), or None when these data do not determine it. For the robust
     covariance's range-scale term (robust.py)."""
-    from graphcal.calibration.graph import RangeScaleExtension
+    from graphcal.calibration.graph import CalibrateExtension
     from graphcal.solvers.covariance import marginal_covariances
 
     log.info(f"calibrate: robust covariance: the same data solved with a range scale of {', '.join(sensors)}")
-    ext = RangeScaleExtension(tuple((s, RANGE_SCALE_PRIOR_SIGMA) for s in sensors))
+    ext = CalibrateExtension(range_scale=tuple((s, RANGE_SCALE_PRIOR_SIGMA) for s in sensors))
     ext_inputs = dataclasses.replace(inputs, extensions=ext)
     try:
         state, options, warnings = solve_batch(ext_inputs, base_options)
@@ -373,16 +373,16 @@ def range_scale_calibration(inputs: BatchInputs, base_options: CalibrationOption
 def extrinsic_change_calibration(inputs: BatchInputs, base_options: CalibrationOptions, at: dict):
     """The same data calibrated (:func:`solve_batch`, from ``base_options``: outliers and noise
     learned again) with a second extrinsic of each sensor of ``at`` (sensor -> station) from that
-    station on (graph.py's :class:`~graphcal.calibration.graph.SegmentExtension`): sensor ->
+    station on (graph.py's :class:`~graphcal.calibration.graph.CalibrateExtension`): sensor ->
     ((T_body_sensor 4x4, its 6x6 covariance) before the station, (T, covariance) from it on), or
     None when these data do not determine them. For the robust covariance's extrinsic-change term
     (robust.py)."""
-    from graphcal.calibration.graph import SegmentExtension
+    from graphcal.calibration.graph import CalibrateExtension
     from graphcal.solvers.covariance import marginal_covariances
 
     log.info("calibrate: robust covariance: the same data solved with a second extrinsic of "
              + ", ".join(f"{s} from station {k}" for s, k in at.items()))
-    ext_inputs = dataclasses.replace(inputs, extensions=SegmentExtension(tuple(at.items())))
+    ext_inputs = dataclasses.replace(inputs, extensions=CalibrateExtension(extrinsic_segments=tuple(at.items())))
     try:
         state, _, _ = solve_batch(ext_inputs, base_options)
         keys = {s: (state.problem.sensor_keys[s], state.problem.extension_keys[f"segment:{s}:{k}"])

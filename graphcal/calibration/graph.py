@@ -164,7 +164,7 @@ class CalibrationProblem:
             "foot_on_ground", "imu", "commanded"); priors on S and L belong to no group.
         factor_components: factor index -> {component: covariance} for factors whose noise is a sum
             of components (stance feet: "joint", "contact").
-        extensions: the :class:`GraphExtension` the graph was built with (a :class:`NoExtension`
+        extensions: the :class:`GraphExtension` the graph was built with (a :class:`CalibrateExtension`
             without one).
         extension_keys: extension name -> key: ``range_scale:<sensor>``, ``session_offset:<session>``,
             ``ground_tilt``, ``imu_mounting``, ``segment:<sensor>:<station>``.
@@ -463,20 +463,6 @@ class GraphExtension(Protocol):
         or None for the default (:func:`imu_mounting_prior`)."""
 
 
-@dataclass(frozen=True)
-class NoExtension:
-    """The graph as calibrate builds it: no extra variables."""
-
-    def add_variables(self, build: GraphBuild) -> ExtensionKeys:
-        return ExtensionKeys()
-
-    def leg_prior(self, foot: str, key: int, n_params: int):
-        return None
-
-    def imu_mounting_prior(self, R_body_imu: np.ndarray):
-        return None
-
-
 def add_range_scale_variables(build: GraphBuild, range_scale) -> dict:
     """Add a range scale C(k) (Vector 1, factors/range_scale.py) for each ``(sensor, sigma)`` of
     ``range_scale``, at 1 with a prior 1 +- sigma (recorded as ``range_scale:<sensor>`` in
@@ -519,32 +505,18 @@ def add_extrinsic_segments(build: GraphBuild, extrinsic_segments) -> dict:
 
 
 @dataclass(frozen=True)
-class SegmentExtension:
-    """calibrate's own extension (the robust covariance's extrinsic-change term, robust.py): a
-    second extrinsic of each sensor of ``extrinsic_segments`` ((sensor, station) pairs) from that
-    station on, nothing else."""
+class CalibrateExtension:
+    """calibrate's own extensions of its graph: none by default (the graph as calibrate builds it);
+    for the robust covariance's terms (robust.py) a range scale per sensor of ``range_scale``
+    ((sensor, prior sigma) pairs) and a second extrinsic of each sensor of ``extrinsic_segments``
+    ((sensor, station) pairs) from that station on."""
 
+    range_scale: tuple[tuple[str, float], ...] = ()
     extrinsic_segments: tuple[tuple[str, int], ...] = ()
 
     def add_variables(self, build: GraphBuild) -> ExtensionKeys:
-        return ExtensionKeys(segments=add_extrinsic_segments(build, self.extrinsic_segments))
-
-    def leg_prior(self, foot: str, key: int, n_params: int):
-        return None
-
-    def imu_mounting_prior(self, R_body_imu: np.ndarray):
-        return None
-
-
-@dataclass(frozen=True)
-class RangeScaleExtension:
-    """calibrate's own extension (the robust covariance's range-scale term, robust.py): a range
-    scale per sensor of ``range_scale`` ((sensor, prior sigma) pairs), nothing else."""
-
-    range_scale: tuple[tuple[str, float], ...] = ()
-
-    def add_variables(self, build: GraphBuild) -> ExtensionKeys:
-        return ExtensionKeys(range_scale=add_range_scale_variables(build, self.range_scale))
+        return ExtensionKeys(range_scale=add_range_scale_variables(build, self.range_scale),
+                             segments=add_extrinsic_segments(build, self.extrinsic_segments))
 
     def leg_prior(self, foot: str, key: int, n_params: int):
         return None
@@ -565,7 +537,7 @@ def build_problem(ds, robot, data: CalibrationData, options: CalibrationOptions,
         initial: values to start from instead of the closed form, for every variable they hold
             (a warm start from a previous solve of a similar graph).
     """
-    ext = extensions if extensions is not None else NoExtension()
+    ext = extensions if extensions is not None else CalibrateExtension()
     if not data.stations:
         raise GraphcalError(f"{_stations_file(ds)}: no stations (a header without rows): nothing to calibrate")
     if options.legs and not any(st.q_by_foot for st in data.stations):
@@ -765,5 +737,5 @@ def predicted_plane_errors(T_world_body: np.ndarray, T_body_sensor: np.ndarray, 
     return float(np.degrees(ang)), float(1e3 * abs(dist))
 
 
-__all__ = ["CalibrationOptions", "CalibrationProblem", "build_problem", "predicted_plane_errors", "RangeScaleExtension",
-           "add_range_scale_variables", "SegmentExtension", "add_extrinsic_segments"]
+__all__ = ["CalibrationOptions", "CalibrationProblem", "build_problem", "predicted_plane_errors", "CalibrateExtension",
+           "add_range_scale_variables", "add_extrinsic_segments"]

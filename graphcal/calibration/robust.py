@@ -25,7 +25,7 @@ offset: 47 sigma off). The robust covariance of each extrinsic is the sum of
   error a leg the URDF gets wrong causes, which neither of the above sees (it is the same at every
   station);
 * when a sensor's planes or scans (group ``plane:<sensor>``) do not fit: the shift to the same data
-  solved with a range scale of each such sensor (graph.py's :class:`RangeScaleExtension`,
+  solved with a range scale of each such sensor (graph.py's :class:`CalibrateExtension`,
   factors/range_scale.py), ``C_ext + d d^T``, ``d = Log(T_hat^-1 T_ext)``: a range (depth) scale
   moves the extrinsic's translation by the scale error times the distance to the floor at every
   station alike, which neither the jackknife nor ``--legs`` sees. Left out when the scale that fits
@@ -33,7 +33,7 @@ offset: 47 sigma off). The robust covariance of each extrinsic is the sum of
   is something else).
 * when a sensor's planes or scans do not fit: the shifts to the same data solved with a second
   extrinsic of the sensor from the station :func:`change_station` picks (a score test of every
-  split; graph.py's :class:`SegmentExtension`), ``sum_j C_j + d_j d_j^T``, ``d_j = Log(T_hat^-1 T_j)``
+  split; graph.py's :class:`CalibrateExtension`), ``sum_j C_j + d_j d_j^T``, ``d_j = Log(T_hat^-1 T_j)``
   over the extrinsic before and after: a sensor knocked mid-session leaves the one extrinsic
   estimated between where it sat before and after, which no other term sees (measured on the
   battery's knocked runs: 3 of 10 above NEES 19.75 without it, 0 with it).
