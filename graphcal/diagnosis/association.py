@@ -77,9 +77,10 @@ N_OPTIONS = 6
 MAX_RESTARTS = 3
 
 
-def find_associations(model, say) -> tuple:
+def find_associations(model, say, initial=None) -> tuple:
     """(corrections, corrected data, notes) for the nominal ``model`` (a DiagnosisModel with its
-    noise learned); see the module docstring and graphcal/diagnosis/bookkeeping.py."""
+    noise learned); see the module docstring and graphcal/diagnosis/bookkeeping.py. ``initial``: not
+    used (the association is searched in closed form, without a solve)."""
     from graphcal.calibration.calibrate import dataset_physical_noise
     from graphcal.diagnosis.model import model_options
 

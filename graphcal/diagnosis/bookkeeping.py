@@ -43,11 +43,12 @@ class BookkeepingResult:
     left_out: tuple = field(default=())
 
 
-def find_bookkeeping(model, say, *, implausible=None) -> BookkeepingResult:
+def find_bookkeeping(model, say, *, implausible=None, initial=None) -> BookkeepingResult:
     """Run the bookkeeping finders on the nominal ``model`` (a
     :class:`graphcal.diagnosis.model.DiagnosisModel` with its noise learned); ``say(msg)`` logs a
-    progress line. Each finder has the signature ``finder(model, say) -> (corrections, data,
-    notes)`` and returns ``model.data`` unchanged when it finds nothing. ``implausible(plane) ->
+    progress line. Each finder has the signature ``finder(model, say, initial) -> (corrections, data,
+    notes)`` and returns ``model.data`` unchanged when it finds nothing; ``initial`` (gtsam.Values,
+    the nominal model's solution, or None) is where a finder's first solve starts. ``implausible(plane) ->
     bool``: planes no sensor can see (a distance beyond 100 m); those the association finder does
     not correct are taken out of the data before the segments finder (which would read one as a
     knock) and listed in ``left_out``."""
@@ -66,7 +67,7 @@ def find_bookkeeping(model, say, *, implausible=None) -> BookkeepingResult:
             if left_out:
                 planes = {k: v for k, v in model.data.planes.items() if k not in set(left_out)}
                 model = dataclasses.replace(model, data=dataclasses.replace(model.data, planes=planes), findings=())
-        found, data, said = finder(model, say)
+        found, data, said = finder(model, say, initial)
         corrections += list(found)
         notes += list(said)
         if data is not model.data:

@@ -53,7 +53,6 @@ def contact_candidates(model, problem, system, values) -> list[CandidateColumns]
     """The ``foot_radius`` candidate and one ``joint_compliance`` candidate per joint index (every
     leg's joint at that index shares one constant), as dense columns of the screening ``system``
     (problem solved at ``values``); none once either is in the model."""
-    from graphcal.factors.stance_contact import lower_leg_direction
     from graphcal.geometry import from_gtsam_pose
     from graphcal.calibration.kinematic_pose import leg_kinematics
 
@@ -64,6 +63,7 @@ def contact_candidates(model, problem, system, values) -> list[CandidateColumns]
         return []
     q_of = {st.station: st for st in model.data.stations}
     kin = leg_kinematics(model.data, model.robot)
+    a_of = _lower_legs(model, table)
     n_joints = min(model.robot.leg(f).n_joints for f in model.robot.feet)
     n = len(system.b)
     K_r = np.zeros((n, 1))
@@ -73,10 +73,8 @@ def contact_candidates(model, problem, system, values) -> list[CandidateColumns]
         A_F = system.A[np.ix_(rows, np.arange(o, o + d))]
         R_x = from_gtsam_pose(values.atPose3(problem.station_keys[st]))[:3, :3]
         station = q_of[st]
-        leg = model.robot.leg(foot)
-        q = np.asarray(station.q_by_foot[foot], dtype=float)
         n_b = R_x.T @ np.array([0.0, 0.0, 1.0])
-        K_r[rows, 0] = A_F @ (-R_x @ (lower_leg_direction(leg, q) - n_b))
+        K_r[rows, 0] = A_F @ (-R_x @ (a_of[(st, foot)] - n_b))
         J = kin[(st, foot)][1]  # the cached nominal leg Jacobian at the measured angles
         R_cmd = station.T_world_body_cmd[:3, :3] if station.T_world_body_cmd is not None else np.eye(3)
         levers = J.T @ (R_cmd.T @ np.array([0.0, 0.0, 1.0]))  # compliance_lever of every joint at once
@@ -86,6 +84,22 @@ def contact_candidates(model, problem, system, values) -> list[CandidateColumns]
         joints = sorted({model.robot.leg(f).joint_names[j] for f in model.robot.feet})
         out.append(CandidateColumns(Candidate("joint_compliance", (("joint_index", j), ("joints", _common(joints))),
                                               n_joints), None, None, K_k[:, [j]]))
+    return out
+
+
+def _lower_legs(model, table) -> dict:
+    """(station, foot) -> the lower leg's direction (body frame) at the measured angles, for every
+    stance foot of ``table`` (:func:`_stance_rows`); one batch per leg."""
+    from graphcal.factors.stance_contact import lower_leg_directions
+
+    q_of = {st.station: st for st in model.data.stations}
+    by_foot: dict = {}
+    for _, st, foot, _ in table:
+        by_foot.setdefault(foot, []).append(st)
+    out = {}
+    for foot, stations in by_foot.items():
+        Q = np.array([np.asarray(q_of[st].q_by_foot[foot], dtype=float) for st in stations])
+        out.update(zip(((st, foot) for st in stations), lower_leg_directions(model.robot.leg(foot), Q)))
     return out
 
 

@@ -28,7 +28,7 @@ from graphcal.errors import GraphcalError
 from graphcal.geometry import from_gtsam_pose
 from graphcal.diagnosis.catalogue import Candidate, Finding, relevant
 from graphcal.diagnosis.model import VCE_ROUNDS, DiagnosisModel, chi2_of, model_options
-from graphcal.diagnosis.scores import CandidateColumns, current_columns, evidence, linear_system, score_candidates
+from graphcal.diagnosis.scores import CandidateColumns, current_columns, evidence, freed_rows_test, score_candidates
 
 __all__ = ["Diagnosis", "diagnose", "extended_calibration_note", "ALPHA", "MAX_FINDINGS"]
 
@@ -198,7 +198,7 @@ def _final_adequacy(diag: "Diagnosis") -> dict:
             fixed, skip, how = COMMANDED_NOISE, frozenset({"commanded"}), ", the commanded poses held loose as calibrate --legs"
         else:
             fixed, skip, how = (), frozenset(), ""
-        fresh, problem, values = fresh.learn_noise(diag.values, rounds=VCE_ROUNDS + 2, fixed=fixed)
+        fresh, problem, values = fresh.learn_noise(diag.values, rounds=VCE_ROUNDS + 2, fixed=fixed, converge=True)
         return {"model": "final (extended), every noise group learned from graphcal's defaults and the IMU mounting "
                           f"estimated, as calibrate does{how}",
                 **adequacy_dict(adequacy_at(fresh.ds, fresh.options, problem, values, skip=skip))}
@@ -465,7 +465,7 @@ def _nominal(ds, robot, data, say) -> tuple:
         f"chi2/dof {nominal.chi2_per_dof:.2f}" + (f" ({len(far)} plane(s) beyond {MM_LIMIT_PLANE_D_M:g} m left out)"
                                                   if far else ""))
     shown = dataclasses.replace(model, data=data) if far else model
-    bookkeeping = find_bookkeeping(shown, say, implausible=lambda pl: pl.d > MM_LIMIT_PLANE_D_M)
+    bookkeeping = find_bookkeeping(shown, say, implausible=lambda pl: pl.d > MM_LIMIT_PLANE_D_M, initial=values)
     if bookkeeping.data is not shown.data:
         # the nominal model of the corrected measurements: the diagnosis goes on from there
         model, problem, values = DiagnosisModel(ds, robot, bookkeeping.data, model_options(ds)).learn_noise()
@@ -514,8 +514,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     for _round in range(max_findings + MAX_NUISANCE):
         if len(findings) >= max_findings:
             break
-        screen = model.build(screen=True, initial=values)
-        system = linear_system(screen, screen.initial)
+        screen, system = model.screening(values)
         cands = [c for c in _candidates(model, screen, system, knocks) if c.candidate not in rejected]
         scores = score_candidates(system, cands)
         causes_tested = len({s.candidate.cause for s in scores}) or 1
@@ -533,7 +532,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         if cand.cause == "outlier_stations":
             n_already = sum(len(c.get("stations")) for c in model.found("outlier_stations"))
             n_measured = len({st for (st, _) in system.measurement_rows}) + n_already
-            cand = _outlier_group(significant, n_measured, n_already)
+            cand = _outlier_group(significant, n_measured, n_already, system, cands, threshold)
             if cand is None:
                 too_many_outliers = True
                 notes.append(f"more than {MAX_OUTLIER_SHARE:.0%} of the stations with sensor data fail their test: the "
@@ -588,7 +587,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         if old is not None:
             findings = [f for f in findings if f.candidate != old]
         findings.append(Finding(cand, params, sig, ev, sc.evidence, gain))
-        model, problem, values = model.learn_noise(ext_values, rounds=1)
+        model, problem, values = model.learn_noise(rounds=1, solved=(ext_problem, ext_values))
         # backward step: a cause named earlier can shrink once a later one explains the data better
         # (a floor tilt first read as an IMU misalignment: both tilt gravity against the feet, only
         # the heading changes between stations tell them apart). Below the minimum size it stays in
@@ -773,15 +772,32 @@ def implausible_size(cand: Candidate, params: dict, robot) -> str:
     return ""
 
 
-def _outlier_group(significant, n_stations: int, already: int) -> Candidate | None:
-    """The worst significant outlier stations as one finding: those within a factor 2 of the worst
-    statistic (a gross outlier pulls the fit and makes its neighbours look bad; they are tested
-    again in the next round), never more than MAX_OUTLIER_SHARE of the stations in all."""
-    outl = [s for s in significant if s.candidate.cause == "outlier_stations"]
-    worst = max(s.evidence.statistic for s in outl)
+def _outlier_group(significant, n_stations: int, already: int, system, cands: list,
+                   threshold: float) -> Candidate | None:
+    """The significant outlier stations as one finding, by forward selection in the screening's
+    linear ``system`` (candidates ``cands``): the worst first, then, while the test of one more given
+    those picked (their rows freed together: a gross outlier's pull on its neighbours projected out)
+    passes ``threshold`` (log10 of the family-wise p), the one whose test is strongest; never more
+    than MAX_OUTLIER_SHARE of the stations in all. A station significant only through an outlier's
+    pull is not picked; the next round tests the rest again on the refitted model."""
+    outl = sorted((s for s in significant if s.candidate.cause == "outlier_stations"),
+                  key=lambda s: -s.evidence.statistic)
     room = max(int(MAX_OUTLIER_SHARE * n_stations), 1 if already == 0 else 0) - already
     if room <= 0:
         return None
-    picked = [s for s in outl if s.evidence.statistic >= 0.5 * worst][:room]
+    test = freed_rows_test(system, cands)
+    picked, rest = [outl[0]], outl[1:]
+    rows = list(outl[0].columns.rows)
+    stat, dof = test(rows)
+    while rest and len(picked) < room:
+        tried = [(test(rows + list(s.columns.rows)), s) for s in rest]
+        (stat_j, dof_j), s = max(tried, key=lambda x: x[0][0] - stat)
+        ev = evidence("score", stat_j - stat, max(dof_j - dof, 1), s.candidate.family_size, len(system.b))
+        if ev.log10_p_family >= threshold:
+            break
+        picked.append(s)
+        rest.remove(s)
+        rows += list(s.columns.rows)
+        stat, dof = stat_j, dof_j
     stations = tuple(sorted(int(s.candidate.get("stations")[0]) for s in picked))
     return Candidate("outlier_stations", (("stations", stations),), outl[0].candidate.family_size)

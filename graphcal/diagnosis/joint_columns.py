@@ -147,11 +147,12 @@ def _stance_misfit(model) -> float:
     return max((o.sigma_joint_rad / phys.sigma_joint_rad) ** 2, (o.sigma_contact_m / phys.sigma_contact_m) ** 2)
 
 
-def _fit(phys, data, legs=(), signs=(), span=None):
+def _fit(phys, data, legs=(), signs=(), span=None, initial=None):
     """(Hypothesis, problem, values) of the nominal model of ``data`` solved at physical noise;
-    ``span``: (from_station, until_station) of the exchange, None for the whole run."""
+    ``span``: (from_station, until_station) of the exchange, None for the whole run; ``initial``:
+    gtsam.Values to start from (None: the closed form)."""
     m = dataclasses.replace(phys, data=data, findings=())
-    problem, values = m.solve()
+    problem, values = m.solve(initial=initial)
     chi2, rows = chi2_of(problem, values)
     n_par = sum(int(d) for _, d in values.dims().items())
     first, until = span or (None, None)
@@ -240,12 +241,12 @@ def _change_spans(data, a: str, b: str, before: dict, after: dict) -> list:
     return spans
 
 
-def _search(model, phys, say) -> tuple:
+def _search(model, phys, say, initial=None) -> tuple:
     """(every Hypothesis scored, best first; the data of the best) of the exchange search, when the
     stance misfit concentrates on two legs (:data:`CONCENTRATION`): the candidate pairs plainly
     exchanged; the mirror sign patterns of the best pair (and of the two worst legs when no plain
     exchange fits); when still nothing fits, the exchange from one station on and before one station."""
-    given, problem, values = _fit(phys, phys.data)
+    given, problem, values = _fit(phys, phys.data, initial=initial)
     per_station = _stance_chi2(phys, problem, values)
     pairs = candidate_pairs(phys.data, per_station)
     per_leg = leg_chi2(per_station)
@@ -309,14 +310,14 @@ def _search(model, phys, say) -> tuple:
     return [scored[k][0] for k in order], scored[order[0]][1]
 
 
-def find_joint_columns(model, say) -> tuple:
+def find_joint_columns(model, say, initial=None) -> tuple:
     """(corrections, corrected data, notes) for the nominal ``model`` (a DiagnosisModel with its
     noise learned); see graphcal/diagnosis/bookkeeping.py and this module's docstring. ``say(msg)``
-    logs a progress line."""
+    logs a progress line; ``initial``: gtsam.Values the fit of the data as given starts from."""
     if len(model.robot.feet) < 2 or _stance_misfit(model) <= MIN_EXCESS:
         return (), model.data, ()
     phys = dataclasses.replace(model, options=model_options(model.ds), findings=())
-    hyps, data = _search(model, phys, say)
+    hyps, data = _search(model, phys, say, initial)
     given = next(h for h in hyps if not h.legs)
     best = hyps[0]
     if not best.legs:

@@ -25,7 +25,7 @@ from graphcal.solvers.batch import solve_lm, whitened_errors
 from graphcal.diagnosis.catalogue import Candidate
 from graphcal.diagnosis.extensions import ModelExtensions
 
-__all__ = ["DiagnosisModel", "TIGHT_SIGMA", "FREE_SIGMA", "model_options"]
+__all__ = ["DiagnosisModel", "TIGHT_SIGMA", "FREE_SIGMA", "model_options", "noise_moved", "SOLVE_MEMO"]
 
 #: prior sigma of a candidate variable held at its nominal value (SI units)
 TIGHT_SIGMA = 1e-6
@@ -56,6 +56,14 @@ def model_options(ds) -> CalibrationOptions:
     """Calibration options of the diagnosis models: Gaussian (no robust loss: the evidence is a
     likelihood), noise learned here, the IMU mounting a variable (its prior set by the extensions)."""
     return CalibrationOptions(robust=False, estimate_noise=False, estimate_imu_mounting=ds.imu is not None)
+
+
+#: the last solves kept (DiagnosisModel.solve): ((ds, robot, data, initial), (options, findings,
+#: exclude), (problem, values)), newest first; each solve twice, from its start and from its solution
+_SOLVED: list = []
+SOLVE_MEMO = 12
+#: the last screening systems kept (DiagnosisModel.screening), the same way
+_SCREENED: list = []
 
 
 @dataclass(frozen=True, eq=False)
@@ -162,29 +170,75 @@ class DiagnosisModel:
                              extensions=self.extensions(screen=screen), initial=initial)
 
     def solve(self, *, exclude: frozenset = frozenset(), initial: gtsam.Values | None = None):
-        """(problem, solved values) of this model."""
+        """(problem, solved values) of this model; the same model solved again from the same start
+        (the same ``initial`` object), or from the solution itself, is the same answer, taken from
+        the last :data:`SOLVE_MEMO` solves (the nominal model at physical noise: the joint-column
+        finder's and the verdicts'; the nominal model from its solution: the segments finder's).
+        Neither may be modified."""
+        same = (self.options, self.findings, exclude)
+        key = (self.ds, self.robot, self.data, initial)
+        for ids, was, solved in _SOLVED:
+            if all(a is b for a, b in zip(ids, key)) and was == same:
+                return solved
         problem = self.build(exclude=exclude, initial=initial)
-        lm = solve_lm(problem.graph, problem.initial, check_determined=False)
-        return problem, lm.values
+        solved = problem, solve_lm(problem.graph, problem.initial, check_determined=False).values
+        _SOLVED[:0] = [(key, same, solved), (key[:3] + (solved[1],), same, solved)]
+        del _SOLVED[SOLVE_MEMO:]
+        return solved
 
-    def learn_noise(self, values: gtsam.Values | None = None, rounds: int = VCE_ROUNDS, fixed: tuple = FIXED_NOISE):
+    def screening(self, values: gtsam.Values) -> tuple:
+        """(the screening graph (every catalogued cause's variable at its nominal value) built at
+        ``values``, its :class:`~graphcal.diagnosis.scores.LinearSystem` there); the last two are
+        kept (the segments finder's and the diagnosis loop's first round are the same). Neither may
+        be modified."""
+        from graphcal.diagnosis.scores import linear_system
+
+        key = (self.ds, self.robot, self.data, values)
+        for ids, was, screened in _SCREENED:
+            if all(a is b for a, b in zip(ids, key)) and was == (self.options, self.findings):
+                return screened
+        problem = self.build(screen=True, initial=values)
+        screened = problem, linear_system(problem, problem.initial)
+        _SCREENED[:0] = [(key, (self.options, self.findings), screened)]
+        del _SCREENED[2:]
+        return screened
+
+    def learn_noise(self, values: gtsam.Values | None = None, rounds: int = VCE_ROUNDS, fixed: tuple = FIXED_NOISE,
+                    solved: tuple | None = None, converge: bool = False):
         """This model with its noise re-estimated (variance components), and (problem, values); the
-        noise fields ``fixed`` (CalibrationOptions names) are held at their values."""
+        noise fields ``fixed`` (CalibrationOptions names) are held at their values. The first solve
+        starts from ``values``; ``solved``: (problem, values) of this model already solved, no first
+        solve. ``converge``: each round takes the variance components to their fixed point on the
+        graph linearised at the round's solution, as calibrate does (fewer solves from far noise);
+        False: one update per round."""
         from graphcal.calibration.noise_estimation import rescaled_options
 
         model = self
-        problem, values = model.solve(initial=values)
+        problem, values = solved if solved is not None else model.solve(initial=values)
         keep_planes = {name for (st, name), p in self.data.planes.items() if p.cov is not None}
         for _ in range(rounds):
-            opts, changed, _ = rescaled_options(model.options, problem, values, converge=False)
+            opts, changed, _ = rescaled_options(model.options, problem, values, converge=converge)
             planes = tuple((s, v) for s, v in opts.plane_sigma_scales if s not in keep_planes)
             opts = dataclasses.replace(opts, plane_sigma_scales=planes,
                                        **{name: getattr(self.options, name) for name in fixed})
+            # a group held (``fixed``, planes with their own covariance) is no change
+            changed = changed and noise_moved(model.options, opts)
             model = dataclasses.replace(model, options=opts)
             problem, values = model.solve(initial=values)
             if not changed:
                 break
         return model, problem, values
+
+
+def noise_moved(old: CalibrationOptions, new: CalibrationOptions) -> bool:
+    """Whether any noise sigma (or sensor plane scale) of ``new`` differs from ``old``'s by more than
+    the variance components' tolerance (noise_estimation.VCE_TOLERANCE, relative)."""
+    from graphcal.calibration.noise_estimation import VCE_FLOOR, VCE_TOLERANCE
+
+    if any(abs(getattr(new, f) / getattr(old, f) - 1.0) > VCE_TOLERANCE for f in VCE_FLOOR):
+        return True
+    a, b = dict(old.plane_sigma_scales), dict(new.plane_sigma_scales)
+    return any(abs(b.get(s, 1.0) / a.get(s, 1.0) - 1.0) > VCE_TOLERANCE for s in set(a) | set(b))
 
 
 def chi2_of(problem: CalibrationProblem, values: gtsam.Values) -> tuple[float, int]:

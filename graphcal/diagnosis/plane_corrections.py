@@ -151,11 +151,11 @@ def chi2_rows(n_m, d_m, cov3, u, z, W, cov_ab, T_body_sensor, cov_S=None, *, jac
     tangent bases (plane_observation.tangent_basis) when known."""
     R, t = T_body_sensor[:3, :3], T_body_sensor[:3, 3]
     e, J_X, J_S = _errors(n_m, d_m, u, z, W, R, t, B)
-    C = cov3 + np.einsum("kij,kjl,kml->kim", J_X, cov_ab, J_X)
+    C = cov3 + J_X @ cov_ab @ np.swapaxes(J_X, 1, 2)  # matmul: a third of the three-operand einsum's time
     if cov_S is not None:
-        C = C + np.einsum("kij,jl,kml->kim", J_S, cov_S, J_S)
+        C = C + J_S @ cov_S @ np.swapaxes(J_S, 1, 2)
     Ci = np.linalg.inv(C)
-    chi = np.einsum("ki,kij,kj->k", e, Ci, e)
+    chi = np.einsum("kj,kj->k", np.einsum("ki,kij->kj", e, Ci), e)
     return (chi, e, Ci, J_S) if jacobian else chi
 
 

@@ -22,11 +22,11 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 from scipy import sparse
-from scipy.stats import chi2
 
 from graphcal.diagnosis.catalogue import Candidate, Evidence
+from graphcal.stats import logsf as chi2_logsf
 
-__all__ = ["LinearSystem", "linear_system", "score_candidates", "evidence"]
+__all__ = ["LinearSystem", "linear_system", "score_candidates", "freed_rows_test", "evidence"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,29 +74,24 @@ def linear_system(problem, values: gtsam.Values) -> LinearSystem:
                 o, d = col[int(k)]
                 tight.extend(range(o, o + d))
     x_station = {int(k): st for st, k in problem.station_keys.items()}
-    blocks, rhs, rf, rs = [], [], [], []
+    factor_station = {i: m[0] for i, m in problem.plane_factors.items()}
+    blocks = []  # (factor index, its Jacobian, its b, its keys, its station)
+    for i in range(problem.graph.size()):
+        jf = None if i in skip else lin.at(i)
+        if jf is not None:
+            keys = [int(k) for k in jf.keys()]
+            st = factor_station.get(i, next((x_station[k] for k in keys if k in x_station), -1))
+            blocks.append((i, *jf.jacobian(), keys, st))
+    A = np.zeros((sum(len(b) for _, _, b, _, _ in blocks), off))
+    rhs, rf, rs = [], [], []
     mrows = {}
     n = 0
-    factor_station = {i: m[0] for i, m in problem.plane_factors.items()}
-    for i in range(problem.graph.size()):
-        if i in skip:
-            continue
-        jf = lin.at(i)
-        if jf is None:
-            continue
-        Ai, bi = jf.jacobian()
-        keys = [int(k) for k in jf.keys()]
-        m = len(bi)
-        row = np.zeros((m, off))
-        c0 = 0
-        st = factor_station.get(i, -1)
+    for i, Ai, bi, keys, st in blocks:
+        m, c0 = len(bi), 0
         for k in keys:
             o, d = col[k]
-            row[:, o:o + d] = Ai[:, c0:c0 + d]
+            A[n:n + m, o:o + d] = Ai[:, c0:c0 + d]
             c0 += d
-            if st == -1 and k in x_station:
-                st = x_station[k]
-        blocks.append(row)
         rhs.append(bi)
         rf.append(np.full(m, i))
         rs.append(np.full(m, st))
@@ -104,7 +99,7 @@ def linear_system(problem, values: gtsam.Values) -> LinearSystem:
             mrows[problem.plane_factors[i]] = np.arange(n, n + m)
         n += m
     order = {st: j for j, st in enumerate(problem.station_keys)}
-    return LinearSystem(np.vstack(blocks), np.concatenate(rhs), col, np.concatenate(rf), np.concatenate(rs), mrows, order,
+    return LinearSystem(A, np.concatenate(rhs), col, np.concatenate(rf), np.concatenate(rs), mrows, order,
                         np.array(sorted(set(tight)), dtype=int))
 
 
@@ -112,7 +107,7 @@ def evidence(test: str, statistic: float, dof: int, family_size: int, n_rows: in
     """Chi-square evidence with the family-wise (Bonferroni) p-value and the BIC difference."""
     dof = max(int(dof), 1)
     stat = max(float(statistic), 0.0)
-    logsf = float(chi2.logsf(stat, dof))
+    logsf = float(chi2_logsf(stat, dof))
     log10_family = min(0.0, (logsf + np.log(max(family_size, 1))) / np.log(10.0))
     return Evidence(test, stat, dof, float(np.exp(logsf)), float(10.0**log10_family), log10_family,
                     stat - dof * np.log(max(n_rows, 2)))
@@ -176,18 +171,40 @@ def current_columns(system: LinearSystem, candidates: list) -> np.ndarray:
     return np.array([c for c in range(system.A.shape[1]) if c not in out], dtype=int)
 
 
-def score_candidates(system: LinearSystem, candidates: list) -> list[Score]:
-    """Score tests of every candidate (:class:`CandidateColumns`)."""
-    A, b = system.A, system.b
+def _current_projection(system: LinearSystem, candidates: list) -> tuple:
+    """(J, (J^T J)^-1) of the current model's columns (:func:`current_columns`)."""
     j_cols = current_columns(system, candidates)
-    J = sparse.csr_matrix(A[:, j_cols])  # a factor touches few variables: J is >95 % zeros
+    J = sparse.csr_matrix(system.A[:, j_cols])  # a factor touches few variables: J is >95 % zeros
     Q = (J.T @ J).toarray()
     try:
         Lq = np.linalg.cholesky(Q)
         Li = np.linalg.inv(Lq)
-        Qinv = Li.T @ Li
+        return J, Li.T @ Li
     except np.linalg.LinAlgError:
-        Qinv = np.linalg.pinv(Q, rcond=1e-12)
+        return J, np.linalg.pinv(Q, rcond=1e-12)
+
+
+def freed_rows_test(system: LinearSystem, candidates: list):
+    """A function ``rows -> (statistic, dof)``: the score test of setting the whitened rows ``rows``
+    (indices into ``system.b``) free at once, against the current model of ``candidates``
+    (:func:`current_columns`). Several outlier stations freed together: the statistic of a set minus
+    that of a subset is the test of the rest given the subset (a gross outlier's pull on its
+    neighbours' residuals projected out)."""
+    J, Qinv = _current_projection(system, candidates)
+
+    def test(rows) -> tuple[float, int]:
+        rows = np.asarray(rows, dtype=int)
+        Jr = J[rows].toarray()
+        stat, dof, _ = _pinv_quadratic(np.eye(len(rows)) - Jr @ Qinv @ Jr.T, system.b[rows], rtol=1e-6)
+        return stat, dof
+
+    return test
+
+
+def score_candidates(system: LinearSystem, candidates: list) -> list[Score]:
+    """Score tests of every candidate (:class:`CandidateColumns`)."""
+    A, b = system.A, system.b
+    J, Qinv = _current_projection(system, candidates)
     n_rows = len(b)
     out = []
     for cc in candidates:

@@ -41,7 +41,7 @@ from graphcal.models.kinematics import foot_positions, joint_frames, leg_jacobia
 from graphcal.models.legs import fk_with_params
 from graphcal.models.robot import Leg
 
-__all__ = ["lower_leg_direction", "compliance_lever", "complied_angles", "complied_kinematics", "stance_contact_error", "stance_contact_factor"]
+__all__ = ["lower_leg_direction", "lower_leg_directions", "compliance_lever", "complied_angles", "complied_kinematics", "stance_contact_error", "stance_contact_factor"]
 
 
 #: Newton rounds of the complied angle (quadratic convergence from the measured angle: the
@@ -54,12 +54,21 @@ NEWTON_STEP_RAD = 1e-12
 def lower_leg_direction(leg: Leg, q) -> np.ndarray:
     """Unit vector (3,) in the leg's base (body) frame from the foot frame towards the origin of the
     last joint whose origin differs from the foot's, at joint values ``q`` (n,): the lower leg's axis."""
-    _, origins, _, p_foot = joint_frames(leg, np.asarray(q, dtype=float)[None, :])
-    for o in origins[0][::-1]:
-        d = o - p_foot[0]
-        if np.linalg.norm(d) > 1e-6:
-            return d / np.linalg.norm(d)
-    return np.array([0.0, 0.0, 1.0])
+    return lower_leg_directions(leg, np.asarray(q, dtype=float)[None, :])[0]
+
+
+def lower_leg_directions(leg: Leg, Q) -> np.ndarray:
+    """:func:`lower_leg_direction` of a batch of joint values ``Q`` (N, n): (N, 3)."""
+    _, origins, _, p_foot = joint_frames(leg, np.asarray(Q, dtype=float))
+    out = np.tile([0.0, 0.0, 1.0], (len(p_foot), 1))
+    found = np.zeros(len(p_foot), dtype=bool)
+    for j in range(origins.shape[1] - 1, -1, -1):  # the last joint whose origin is off the foot's
+        d = origins[:, j] - p_foot
+        norm = np.linalg.norm(d, axis=1)
+        take = ~found & (norm > 1e-6)
+        out[take] = d[take] / norm[take, None]
+        found |= take
+    return out
 
 
 def compliance_lever(leg: Leg, q, joint_index: int, R_world_body: np.ndarray) -> float:
