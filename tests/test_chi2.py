@@ -22,6 +22,8 @@ def test_matches_scipy_stats(dof):
     x = np.array([0.01, 1.0, dof, 3.0 * dof + 5.0])
     np.testing.assert_allclose(chi2.sf(x, dof), reference.sf(x, dof), rtol=1e-12)
     assert chi2.ppf(0.999, [3, 6]).shape == (2,)  # broadcasts like scipy's
+    np.testing.assert_allclose(chi2.logsf(x, dof), reference.logsf(x, dof), rtol=1e-12, atol=1e-15)
+    assert chi2.logsf(1e4, dof) == reference.logsf(1e4, dof) == -np.inf  # both underflow alike
 
 
 def test_calibrate_and_its_incremental_mode_do_not_import_scipy_stats(tmp_path):

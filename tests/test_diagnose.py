@@ -185,21 +185,73 @@ def test_wrong_data_are_not_named_as_a_kinematic_error(knee_flipped):
         assert any(f.candidate.label() in n and "does not predict held-out" in n for n in result.notes)
 
 
-def test_final_model_of_a_right_outlier_diagnosis_is_judged_with_its_noise_learned_again(tmp_path):
+@pytest.fixture(scope="module")
+def outliers(tmp_path_factory):
+    """bench/diagnose_speed.py's outlier dataset: three outlier stations (14, 44, 48; statistics
+    ~3400, ~1500 and ~250 at the nominal fit), 48 stations in 3 sessions."""
+    from graphcal.commands.simulate import run as simulate_to_folder
+
+    out = tmp_path_factory.mktemp("outliers") / "outliers"
+    simulate_to_folder(robot="octopus", program="random", ground="level", out_dir=out, seed=206, n_stations=48,
+                       n_sessions=3, output="planes", cloud_stride=8, progress=False,
+                       effects=[("outlier_stations", {})], session_heading_step_deg=40.0)
+    return out
+
+
+def test_final_model_of_a_right_outlier_diagnosis_is_judged_with_its_noise_learned_again(outliers):
     """Three outlier stations: during the search the joints' noise collapsed to its floor (1e-6 rad)
     and the final model's stance feet read x2.4 their physical noise ("does not fit") although the
     outliers were found; judged with every noise group learned afresh, as calibrate does, it fits
     (stance feet x0.9)."""
-    from graphcal.commands.simulate import run as simulate_to_folder
     from graphcal.diagnosis import diagnose
 
-    out = tmp_path / "outliers"
-    simulate_to_folder(robot="octopus", program="random", ground="level", out_dir=out, seed=206, n_stations=48,
-                       n_sessions=3, output="planes", cloud_stride=8, progress=False,
-                       effects=[("outlier_stations", {})], session_heading_step_deg=40.0)
-    doc = diagnose(out).to_json()
+    doc = diagnose(outliers).to_json()
     assert [f["cause"] for f in doc["findings"]] == ["outlier_stations"]
     a = doc["adequacy"]
     assert a["verdict"] == "fits", a
     assert "learned from graphcal's defaults" in a["model"]
     assert a["groups"]["stance_foot"]["ratio"] < 1.5
+
+
+def test_three_outlier_stations_are_named_in_one_round_and_no_knock_is_fitted(outliers, monkeypatch, caplog):
+    """The outliers' statistics differ by 14x (~3400 to ~250): with the gross one free, the others
+    are tested given it (forward selection in one linearisation), so one round names all three
+    (three rounds before); and the segments finder, whose strongest knock scores 0.19 of the
+    outliers' statistic linearly, fits no knock (segments.LINEAR_SHARE)."""
+    import logging
+
+    import yaml
+
+    import graphcal.diagnosis.segments as segments
+    from graphcal.diagnosis import diagnose
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("a knock was fitted")
+
+    monkeypatch.setattr(segments, "_refit_knocks", no_fit)
+    truth = yaml.safe_load((outliers / "truth.yaml").read_text())["effects"]["outlier_stations"]["stations"]
+    with caplog.at_level(logging.INFO, logger="graphcal.diagnosis.diagnose"):
+        d = diagnose(outliers, progress=True)
+    assert [f.candidate.label() for f in d.findings] == [f"outlier_stations(stations={sorted(truth)})"]
+    assert len(d.screening) == 2  # the round that names them and the one that finds nothing more
+    assert any("is explained better by outlier_measurement" in r.getMessage() and "linear scores" in r.getMessage()
+               for r in caplog.records)
+
+
+def test_forward_selection_tests_a_station_given_the_gross_outlier():
+    """A mean fitted to ten rows, one of them 100 sigma off: alone, every other row fails its test
+    (the outlier pulls the mean by 10 sigma); given the outlier freed, none does."""
+    import numpy as np
+
+    from graphcal.diagnosis.scores import LinearSystem, freed_rows_test
+
+    b = np.zeros(10)
+    b[0] = 100.0
+    b -= b.mean()  # the whitened residual at the fitted mean (the score test's linearisation point)
+    system = LinearSystem(np.ones((10, 1)), b, {0: (0, 1)}, np.arange(10), np.arange(10), {}, {}, np.array([], dtype=int))
+    test = freed_rows_test(system, [])
+    alone, dof = test([3])
+    assert dof == 1 and alone > 100.0  # (10 sigma)^2 / (1 - 1/10): far beyond any threshold
+    gross, _ = test([0])
+    both, dof2 = test([0, 3])
+    assert dof2 == 2 and gross > 8000.0 and abs(both - gross) < 1e-6

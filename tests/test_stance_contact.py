@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from graphcal.factors.keys import F, L, Q, R, X
-from graphcal.factors.stance_contact import lower_leg_direction, stance_contact_factor
+from graphcal.factors.stance_contact import lower_leg_direction, lower_leg_directions, stance_contact_factor
 from graphcal.factors.stance_foot import stance_foot_factor
 from graphcal.models.builtin import builtin_info
 from graphcal.models.robot import load_robot
@@ -77,3 +77,15 @@ def test_nominal_equals_stance_foot(leg):
     n_b = T[:3, :3].T @ np.array([0.0, 0.0, 1.0])
     np.testing.assert_allclose(d, 0.025 * (lower_leg_direction(lg, q) - n_b), atol=1e-12)
     assert np.linalg.norm(d) > 1e-3
+
+
+def test_lower_leg_directions_batch_is_the_single_one(leg):
+    robot, _ = leg
+    rng = np.random.default_rng(5)
+    for foot in robot.feet:
+        lg = robot.leg(foot)
+        Q = rng.uniform(-1.2, 1.2, (7, lg.n_joints))
+        got = lower_leg_directions(lg, Q)
+        assert got.shape == (7, 3)
+        np.testing.assert_allclose(got, [lower_leg_direction(lg, q) for q in Q], atol=1e-15)
+        np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-12)

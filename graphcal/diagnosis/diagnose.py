@@ -28,7 +28,8 @@ from graphcal.errors import GraphcalError
 from graphcal.geometry import from_gtsam_pose
 from graphcal.diagnosis.catalogue import Candidate, Finding, relevant
 from graphcal.diagnosis.model import VCE_ROUNDS, DiagnosisModel, chi2_of, model_options
-from graphcal.diagnosis.scores import CandidateColumns, current_columns, evidence, freed_rows_test, score_candidates
+from graphcal.diagnosis.scores import (CandidateColumns, current_columns, evidence, freed_rows_test, score_candidates,
+                                       screening_system)
 
 __all__ = ["Diagnosis", "diagnose", "extended_calibration_note", "ALPHA", "MAX_FINDINGS"]
 
@@ -514,7 +515,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
     for _round in range(max_findings + MAX_NUISANCE):
         if len(findings) >= max_findings:
             break
-        screen, system = model.screening(values)
+        screen, system = screening_system(model, values)
         cands = [c for c in _candidates(model, screen, system, knocks) if c.candidate not in rejected]
         scores = score_candidates(system, cands)
         causes_tested = len({s.candidate.cause for s in scores}) or 1

@@ -62,8 +62,6 @@ def model_options(ds) -> CalibrationOptions:
 #: exclude), (problem, values)), newest first; each solve twice, from its start and from its solution
 _SOLVED: list = []
 SOLVE_MEMO = 12
-#: the last screening systems kept (DiagnosisModel.screening), the same way
-_SCREENED: list = []
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,23 +183,6 @@ class DiagnosisModel:
         _SOLVED[:0] = [(key, same, solved), (key[:3] + (solved[1],), same, solved)]
         del _SOLVED[SOLVE_MEMO:]
         return solved
-
-    def screening(self, values: gtsam.Values) -> tuple:
-        """(the screening graph (every catalogued cause's variable at its nominal value) built at
-        ``values``, its :class:`~graphcal.diagnosis.scores.LinearSystem` there); the last two are
-        kept (the segments finder's and the diagnosis loop's first round are the same). Neither may
-        be modified."""
-        from graphcal.diagnosis.scores import linear_system
-
-        key = (self.ds, self.robot, self.data, values)
-        for ids, was, screened in _SCREENED:
-            if all(a is b for a, b in zip(ids, key)) and was == (self.options, self.findings):
-                return screened
-        problem = self.build(screen=True, initial=values)
-        screened = problem, linear_system(problem, problem.initial)
-        _SCREENED[:0] = [(key, (self.options, self.findings), screened)]
-        del _SCREENED[2:]
-        return screened
 
     def learn_noise(self, values: gtsam.Values | None = None, rounds: int = VCE_ROUNDS, fixed: tuple = FIXED_NOISE,
                     solved: tuple | None = None, converge: bool = False):

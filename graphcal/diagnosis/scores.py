@@ -26,7 +26,7 @@ from scipy import sparse
 from graphcal.diagnosis.catalogue import Candidate, Evidence
 from graphcal.stats import logsf as chi2_logsf
 
-__all__ = ["LinearSystem", "linear_system", "score_candidates", "freed_rows_test", "evidence"]
+__all__ = ["LinearSystem", "linear_system", "screening_system", "score_candidates", "freed_rows_test", "evidence"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,6 +101,26 @@ def linear_system(problem, values: gtsam.Values) -> LinearSystem:
     order = {st: j for j, st in enumerate(problem.station_keys)}
     return LinearSystem(A, np.concatenate(rhs), col, np.concatenate(rf), np.concatenate(rs), mrows, order,
                         np.array(sorted(set(tight)), dtype=int))
+
+
+#: the last screening linearisations kept (:func:`screening_system`): ((ds, robot, data, values),
+#: (options, findings), (problem, LinearSystem)), newest first
+_SCREENED: list = []
+
+
+def screening_system(model, values: gtsam.Values) -> tuple:
+    """(the screening graph of ``model`` (a DiagnosisModel: every catalogued cause's variable at its
+    nominal value) built at ``values``, its :func:`linear_system` there); the last two are kept (the
+    segments finder's and the diagnosis loop's first round are the same). Neither may be modified."""
+    key = (model.ds, model.robot, model.data, values)
+    for ids, was, screened in _SCREENED:
+        if all(a is b for a, b in zip(ids, key)) and was == (model.options, model.findings):
+            return screened
+    problem = model.build(screen=True, initial=values)
+    screened = problem, linear_system(problem, problem.initial)
+    _SCREENED[:0] = [(key, (model.options, model.findings), screened)]
+    del _SCREENED[2:]
+    return screened
 
 
 def evidence(test: str, statistic: float, dof: int, family_size: int, n_rows: int) -> Evidence:

@@ -21,10 +21,11 @@ either end):
 Gate: without the nominal model's solution, the boundaries are first scored against the nominal
 model alone at its initial estimate (cheap); when none passes, the finder stops (clean data cost
 one linearisation). Otherwise, and directly when the solution is given (diagnose: the screening
-linearisation is then the diagnosis loop's first, made once for both), they are scored on the
-screening graph with every catalogued cause's variable projected out too (range scale,
-session offsets, ground tilt, IMU mounting, every joint offset and link length): a boundary must
-explain what none of them can (measured: a 1 % range scale otherwise read as three height steps).
+linearisation is then the diagnosis loop's first, made once for both, scores.screening_system),
+they are scored on the screening graph with every catalogued cause's variable projected out too
+(range scale, session offsets, ground tilt, IMU mounting, every joint offset and link length): a
+boundary must explain what none of them can (measured: a 1 % range scale otherwise read as three
+height steps).
 
 Each score ``T`` is chi-square with ``dof`` degrees of freedom when there is no boundary (dof: the
 rank of the information, weak directions below :data:`RANK_RTOL` of the strongest not counted).
@@ -62,9 +63,10 @@ from scipy.stats import chi2 as chi2_dist
 
 from graphcal.diagnosis.correction import Correction
 from graphcal.diagnosis.catalogue import Candidate
-from graphcal.diagnosis.scores import linear_system
+from graphcal.diagnosis.scores import linear_system, screening_system
 
-__all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MAX_OUTLIERS", "MIN_CONFIDENCE", "RANK_RTOL", "REFIT_KNOCKS", "KNOCK_GRID", "GRID_SHARE", "LINEAR_SHARE"]
+__all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MAX_OUTLIERS", "MIN_CONFIDENCE", "RANK_RTOL", "REFIT_KNOCKS",
+           "KNOCK_GRID", "GRID_SHARE", "LINEAR_SHARE"]
 
 log = logging.getLogger(__name__)
 
@@ -357,10 +359,11 @@ KNOCK_GRID = 3
 #: best outlier explanation does
 GRID_SHARE = 0.5
 #: no knock is fitted when the strongest knock's linear score is below this share of the best outlier
-#: explanation's (exact) statistic. Measured: real knocks of 0.6-20 deg at the middle and 3-5 stations
-#: from either end of 24-30 stations, and a Messor stereo camera 2 stations from the end, scored 0.96-4.5 times the outliers' statistic; three outlier
-#: stations 0.06-0.38 times; fitted, a knock's statistic was at most 2.1 times its linear score (the
-#: outliers pull the nominal fit), so below this share it stays under GRID_SHARE fitted
+#: explanation's (exact) statistic. Measured: real knocks of 0.6-20 deg at the middle and 3-5
+#: stations from either end of 24-30 stations, and a Messor stereo camera's 2 stations from the end,
+#: scored 0.96-4.5 times the outliers' statistic; three outlier stations 0.06-0.38 times (6 datasets);
+#: fitted, a knock's statistic was at most 2.1 times its linear score (the outliers pull the nominal
+#: fit), so below this share it stays under GRID_SHARE fitted
 LINEAR_SHARE = GRID_SHARE / 2.1
 
 
@@ -455,7 +458,7 @@ def find_segments(model, say, initial=None) -> tuple:
             # estimate (the extrinsics fitted to the kinematic body poses; the projection in _scores
             # is the Gauss-Newton step from there) -- no solve, no screening variables, no leg
             # parameters to linearise: nothing to look for. Given the solution (diagnose), the
-            # screening below is the diagnosis loop's first (model.screening, made once): no gate
+            # screening below is the diagnosis loop's first (scores.screening_system): no gate
             problem = cur.build()
             if not _passing(*_search(cur, problem, problem.initial)[2:]):
                 break
@@ -463,7 +466,7 @@ def find_segments(model, say, initial=None) -> tuple:
         values = initial = solved[1]
         # the screening graph: every catalogued cause's variable at its nominal value, projected
         # out with the model's own (_scores): a boundary must explain what none of them can
-        problem, system = cur.screening(values)
+        problem, system = screening_system(cur, values)
         system, lay, tests, n_rows = _search(cur, problem, problem.initial, system)
         passing = _passing(tests, n_rows)
         if not passing:

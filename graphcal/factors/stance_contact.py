@@ -41,7 +41,8 @@ from graphcal.models.kinematics import foot_positions, joint_frames, leg_jacobia
 from graphcal.models.legs import fk_with_params
 from graphcal.models.robot import Leg
 
-__all__ = ["lower_leg_direction", "lower_leg_directions", "compliance_lever", "complied_angles", "complied_kinematics", "stance_contact_error", "stance_contact_factor"]
+__all__ = ["lower_leg_direction", "lower_leg_directions", "compliance_lever", "complied_angles", "complied_kinematics",
+           "stance_contact_error", "stance_contact_factor"]
 
 
 #: Newton rounds of the complied angle (quadratic convergence from the measured angle: the
