@@ -202,12 +202,12 @@ class DiagnosisModel:
             planes = tuple((s, v) for s, v in opts.plane_sigma_scales if s not in keep_planes)
             opts = dataclasses.replace(opts, plane_sigma_scales=planes,
                                        **{name: getattr(self.options, name) for name in fixed})
-            # a group held (``fixed``, planes with their own covariance) is no change
-            changed = changed and noise_moved(model.options, opts)
+            if not (changed and noise_moved(model.options, opts)):
+                # converged: nothing learned moves by more than the tolerance (a group held, ``fixed``
+                # or planes with their own covariance, is no change); the model as solved is kept
+                break
             model = dataclasses.replace(model, options=opts)
             problem, values = model.solve(initial=values)
-            if not changed:
-                break
         return model, problem, values
 
 
