@@ -70,10 +70,10 @@ def main(cases: tuple[str, ...], repeat: int = 3, seeds: int = 1) -> list[tuple]
                 t_cal, t_diag, w_cal, w_diag = one(Path(tmp) / f"{effect}_{k}_{j}", robot, effect, seed, repeat)
                 rows.append((effect, robot, seed, t_cal, t_diag, t_diag / t_cal, w_diag / w_cal))
                 print(f"{effect:18s} {robot:9s} seed {seed}  CPU: calibrate {t_cal:6.2f} s  diagnose {t_diag:6.2f} s  "
-                      f"ratio {t_diag / t_cal:4.1f}x | wall: {w_cal:6.2f} s  {w_diag:6.2f} s  ratio "
-                      f"{w_diag / w_cal:4.1f}x", flush=True)
+                      f"ratio {t_diag / t_cal:4.2f}x | wall: {w_cal:6.2f} s  {w_diag:6.2f} s  ratio "
+                      f"{w_diag / w_cal:4.2f}x", flush=True)
     worst = max(rows, key=lambda r: r[5])
-    print(f"worst ratio diagnose / calibrate: {worst[5]:.1f}x ({worst[0]}, seed {worst[2]}; budget 3x)")
+    print(f"worst ratio diagnose / calibrate: {worst[5]:.2f}x ({worst[0]}, seed {worst[2]}; budget 3x)")
     return rows
 
 

@@ -701,14 +701,24 @@ def _vce_eligible(v) -> bool:
     return v.redundancy >= max(VCE_MIN_REDUNDANCY, VCE_MIN_REDUNDANCY_SHARE * v.rows)
 
 
+#: the last :func:`noise_update` (its arguments, its result): asked again for the same solution
+#: (the same problem and values objects, equal options), it is not computed again
+_LAST_UPDATE: list = []
+
+
 def noise_update(options: CalibrationOptions, problem: CalibrationProblem, values, *,
                  converge: bool = True) -> NoiseUpdate:
     """Every noise group's sigma multiplied by its variance-component scale
     (noise_estimation.py) at ``values``. ``converge``: iterate the scales to their fixed point on
     the graph linearised at ``values``
-    (:func:`~graphcal.calibration.noise_estimation.converged_scales`); False: one update."""
+    (:func:`~graphcal.calibration.noise_estimation.converged_scales`); False: one update. The same
+    update asked again (the same ``problem`` and ``values`` objects, equal options) is the last one
+    returned, not computed again (diagnose's re-check learns the noise, then judges it there)."""
     import dataclasses
 
+    for was, update in _LAST_UPDATE:  # the same update asked again (diagnose's re-check, then its verdict)
+        if was[1] is problem and was[2] is values and was[0] == options and was[3] == converge:
+            return update
     bounds = {g: (max(VCE_SCALE_BOUNDS[0], *(VCE_FLOOR[n] / getattr(options, n) for n in names)), VCE_SCALE_BOUNDS[1])
               for g, names in _GROUP_FIELDS.items()}
 
@@ -735,7 +745,10 @@ def noise_update(options: CalibrationOptions, problem: CalibrationProblem, value
             sensor = group.split(":", 1)[1]
             planes[sensor] = planes.get(sensor, 1.0) * s
     update["plane_sigma_scales"] = tuple(sorted(planes.items()))
-    return NoiseUpdate(dataclasses.replace(options, **update), changed, step, first)
+    out = NoiseUpdate(dataclasses.replace(options, **update), changed, step, first)
+    _LAST_UPDATE[:] = [((options, problem, values, converge), out)]
+    return out
+
 
 
 def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, values, *,

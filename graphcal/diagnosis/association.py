@@ -386,7 +386,9 @@ def _decide(cam: _Camera, best, restart: bool = True) -> tuple:
     variant) -- the plane as given at its label among them -- with the extrinsic and every other
     plane's association refitted, divided by the scatter of the best solution's inliers when it
     exceeds physical noise (chi-square per degree of freedom > 1: the data are never trusted more
-    than their own scatter allows). Without ``restart`` a better solution counts as a rise of 0."""
+    than their own scatter allows). Without ``restart`` a better solution counts as a rise of 0. A
+    plane that fits no station where the best solution puts it (p < :data:`PASS_P`) is not forced
+    anywhere: it is never corrected (:func:`_report` notes it as an outlier), so its confidence is 0."""
     T, assign, var, total = best
     chi = cam.chi(T)
     sc = cam.score(chi)
@@ -395,6 +397,11 @@ def _decide(cam: _Camera, best, restart: bool = True) -> tuple:
     out = {}
     for i in range(len(cam.meas)):
         if assign[i] == cam.labels[i] and var[i] == 0:
+            continue
+        if chi2_dist.sf(chi[var[i], i, assign[i]], cam.dof[i]) < PASS_P:
+            # it fits no station where the best solution puts it: an outlier, never corrected
+            # (_report notes it whatever its confidence); its next-best places are worse still
+            out[i] = (0.0, [])
             continue
         row = sc[:, i].copy()
         row[var[i], assign[i]] = np.inf

@@ -29,8 +29,8 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import stdtr
 from scipy.stats import chi2 as chi2_dist
-from scipy.stats import t as t_dist
 
 __all__ = ["GroupTest", "physical_structure", "STRUCTURE_ALPHA", "MIN_EXCESS", "REGRESSOR_ALPHA", "REGRESSORS"]
 
@@ -189,7 +189,7 @@ def _best_regressor(test: GroupTest, model, problem, values) -> GroupTest:
             r = float(np.corrcoef(x[ok], y[ok])[0, 1])
             n = int(ok.sum())
             tstat = r * np.sqrt(max(n - 2, 1) / max(1.0 - r * r, 1e-12))
-            p = float(2.0 * t_dist.sf(abs(tstat), max(n - 2, 1)))
+            p = float(2.0 * stdtr(max(n - 2, 1), -abs(tstat)))  # Student's t upper tail, as scipy.stats.t.sf
             if best is None or p < best[0]:
                 best = (p, name, r, c, tuple(zip(x[ok].tolist(), y[ok].tolist())))
     if best is None:
