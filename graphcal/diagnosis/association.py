@@ -18,7 +18,9 @@ planes (plane_corrections.py: the stance feet, or the commanded pose) at physica
    A correction is made only when the corrected plane passes at physical noise
    (p >= ``PASS_P``) and beats every other (station, variant) by ``MIN_CONFIDENCE`` in chi-square;
    otherwise a note names the candidates the data cannot tell apart (e.g. poses differing only in
-   yaw, which a ground plane cannot see).
+   yaw, which a ground plane cannot see). A plane that fits no station where the best association
+   puts it (p < ``PASS_P``) is noted as an outlier without forcing it to its other places (they fit
+   worse still).
 
 Laser scans go through the same search with one variant (as given): their range errors at every
 station (scan_association.py); swaps and misfiled scans are found, no sign or unit variants.
