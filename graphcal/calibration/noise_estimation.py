@@ -750,7 +750,6 @@ def noise_update(options: CalibrationOptions, problem: CalibrationProblem, value
     return out
 
 
-
 def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, values, *,
                      converge: bool = True) -> tuple[CalibrationOptions, bool, "gtsam.VectorValues | None"]:
     """(options, changed, step) of :func:`noise_update`."""
