@@ -248,7 +248,8 @@ def test_forward_selection_tests_a_station_given_the_gross_outlier():
     b = np.zeros(10)
     b[0] = 100.0
     b -= b.mean()  # the whitened residual at the fitted mean (the score test's linearisation point)
-    system = LinearSystem(np.ones((10, 1)), b, {0: (0, 1)}, np.arange(10), np.arange(10), {}, {}, np.array([], dtype=int))
+    system = LinearSystem(np.ones((10, 1)), b, {0: (0, 1)}, np.arange(10), np.arange(10), {}, {},
+                          np.array([], dtype=int))
     test = freed_rows_test(system, [])
     alone, dof = test([3])
     assert dof == 1 and alone > 100.0  # (10 sigma)^2 / (1 - 1/10): far beyond any threshold
