@@ -153,27 +153,21 @@ class _Camera:
         full = np.full((v, len(self.meas), m), FAR)
         full[0, np.arange(len(self.meas)), self.labels] = self.at_labels(T, cov_S)
         if n:
-            full[:, act] = chi2_rows(*self._pairs, T, cov_S, B=self._pairs_basis).reshape(v, n, m)
+            *rows, B = self._pairs
+            full[:, act] = chi2_rows(*rows, T, cov_S, B=B).reshape(v, n, m)
         return full
 
     @functools.cached_property
     def _pairs(self) -> tuple:
-        """chi2_rows' arguments but the extrinsic for every (variant, active plane, station): the
-        planes repeated over the stations, the stations tiled over the planes (made once: every
-        alternation round reads them)."""
+        """chi2_rows' arguments but the extrinsic, then the planes' tangent bases, for every (variant,
+        active plane, station): the planes repeated over the stations, the stations tiled over the
+        planes (made once: every alternation round reads them)."""
         act = np.flatnonzero(self.active)
         v, n, m = self.d.shape[0], len(act), len(self.g.ids)
         rep = lambda a: np.repeat(a[:, act].reshape(v * n, *a.shape[2:]), m, axis=0)  # noqa: E731
         tile = lambda a: np.tile(a, (v * n,) + (1,) * (a.ndim - 1))  # noqa: E731
         return (rep(self.n), rep(self.d), rep(self.cov3), tile(self.g.u), tile(self.g.z), tile(self.g.W),
-                tile(self.g.cov))
-
-    @functools.cached_property
-    def _pairs_basis(self) -> np.ndarray:
-        """The tangent bases of :attr:`_pairs`' planes."""
-        act = np.flatnonzero(self.active)
-        v, n, m = self.d.shape[0], len(act), len(self.g.ids)
-        return np.repeat(self.B[:, act].reshape(v * n, *self.B.shape[2:]), m, axis=0)
+                tile(self.g.cov), rep(self.B))
 
     def score(self, chi: np.ndarray) -> np.ndarray:
         """(V, N, M) assignment cost: robust chi-square + the variant's and the move's penalty."""
