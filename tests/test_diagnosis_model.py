@@ -48,3 +48,27 @@ def test_a_model_is_not_solved_again_from_the_same_start_or_from_its_solution(mo
     assert len(calls) == 2
     model.solve(initial=problem.initial)  # another start object: solved
     assert len(calls) == 3
+
+
+def test_the_legs_parameter_kinematics_come_in_one_batch_equal_to_each_station_alone(model):
+    """calibration/kinematic_pose.leg_parameter_kinematics (what every stance factor estimating a leg
+    reads at its first linearisation, a screening graph's): per station, the forward kinematics and
+    parameter Jacobian of that station's joint angles at the nominal parameters."""
+    import numpy as np
+
+    from graphcal.calibration.kinematic_pose import leg_parameter_kinematics
+    from graphcal.models.legs import fk_and_param_jacobian, leg_model
+
+    for foot in model.robot.feet[:2]:
+        param = leg_model(model.robot, foot, origins="none")
+        table = leg_parameter_kinematics(model.data, model.robot, foot, param)
+        stations = [st for st in model.data.stations if foot in st.q_by_foot]
+        assert sorted(table) == sorted(st.station for st in stations) and stations
+        for st in stations:
+            theta0, p, J = table[st.station]
+            p1, J1 = fk_and_param_jacobian(model.robot.leg(foot), param, np.asarray(st.q_by_foot[foot], float),
+                                           param.zeros())
+            assert not theta0.any()
+            np.testing.assert_allclose(p, p1, atol=1e-12)
+            np.testing.assert_allclose(J, J1, atol=1e-12)
+        assert leg_parameter_kinematics(model.data, model.robot, foot, param) is table  # cached

@@ -533,6 +533,33 @@ def test_stance_foot_linearize_matches_pure(robots):
         assert_linearize_matches(f, v, e, H)
 
 
+def test_stance_foot_with_its_kinematics_given_linearises_as_computed_and_elsewhere_computes(robots):
+    """kin_at (graph.py's batch per leg) is used at exactly its theta0 and gives the linearisation the
+    factor computes itself; at another theta the factor computes as without it."""
+    from graphcal.models.legs import fk_and_param_jacobian
+
+    r = robots["octopus"]
+    foot = r.feet[0]
+    leg = r.leg(foot)
+    param = leg_model(r, foot, origins="none")
+    rng = np.random.default_rng(SEED + 23)
+    q = _random_leg_q(leg, rng)
+    Xm = pose_from_xyz_rpy([0.1, -0.2, 0.3], [0.05, -0.1, 0.3])
+    p_foot = Xm[:3, :3] @ fk_and_param_jacobian(leg, param, q, param.zeros())[0] + Xm[:3, 3] + [0.004, -0.002, 0.001]
+    theta0 = param.zeros()
+    p0, J0 = fk_and_param_jacobian(leg, param, q, theta0)
+    plain = stance_foot_factor(X(0), F(0), q, leg, 0.003, param=param, l_key=L(0))
+    given = stance_foot_factor(X(0), F(0), q, leg, 0.003, param=param, l_key=L(0), kin_at=(theta0, p0, J0))
+    wrong = stance_foot_factor(X(0), F(0), q, leg, 0.003, param=param, l_key=L(0), kin_at=(theta0, p0 + 1.0, J0))
+    for theta, same in ((theta0, True), (rng.normal(scale=0.02, size=param.dim), False)):
+        v = gtsam_values(x=(X(0), Xm), f=(F(0), ("point3", p_foot)), l=(L(0), theta))
+        a, b = plain.linearize(v), given.linearize(v)
+        np.testing.assert_allclose(b.jacobian()[0], a.jacobian()[0], atol=1e-12)
+        np.testing.assert_allclose(b.jacobian()[1], a.jacobian()[1], atol=1e-12)
+        # the cached kinematics are read only at theta0: a wrong cache shows there and nowhere else
+        assert (abs(wrong.error(v) - plain.error(v)) > 1.0) == same
+
+
 def test_stance_foot_input_errors(robots):
     leg = robots["a1"].leg("fl_foot")
     param = leg_model(robots["a1"], "fl_foot", origins="none")

@@ -33,7 +33,7 @@ import numpy as np
 from graphcal.factors.keys import C, F, G, L, M, S, X
 from graphcal.errors import GraphcalError
 from graphcal.geometry import to_gtsam_pose
-from graphcal.calibration.kinematic_pose import kinematic_bodies, leg_kinematics
+from graphcal.calibration.kinematic_pose import kinematic_bodies, leg_kinematics, leg_parameter_kinematics
 from graphcal.calibration.measurements import CalibrationData
 
 
@@ -305,11 +305,12 @@ def imu_mounting_prior(R_body_imu: np.ndarray, prior_sigma_rad: float, options: 
 
 def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, options: CalibrationOptions, *,
                     R_body_imu: np.ndarray | None, kinematics: dict | None = None, w_key: int | None = None,
-                    stance=None) -> list:
+                    stance=None, parameter_kinematics: dict | None = None) -> list:
     """The proprioceptive factors of one station, as (factor, noise group or None, noise components or None):
     a stance-foot factor per planted foot (noise: joint noise through the leg plus contact noise),
     the IMU attitude, and the commanded-pose prior. ``kinematics``: :func:`leg_kinematics` when
-    already computed; ``stance``: an extension's stance-foot factors (:attr:`ExtensionKeys.stance`)."""
+    already computed; ``stance``: an extension's stance-foot factors (:attr:`ExtensionKeys.stance`);
+    ``parameter_kinematics``: foot -> :func:`leg_parameter_kinematics` of the legs estimated."""
     from graphcal.factors.imu_attitude import imu_attitude_factor, imu_attitude_misaligned_factor
     from graphcal.factors.priors import commanded_pose_prior
     from graphcal.factors.stance_foot import stance_foot_factor
@@ -346,8 +347,9 @@ def station_factors(robot, st, x_key: int, foot_keys: dict, leg_keys: dict, opti
             factor = None if stance is None else stance(st, f, x_key, foot_keys[f], cov_joint + cov_contact, leg_key,
                                                         param)
             if factor is None:
+                at = (parameter_kinematics or {}).get(f, {}).get(st.station) if leg_key is not None else None
                 factor = stance_foot_factor(x_key, foot_keys[f], q, robot.leg(f), l_key=leg_key, param=param,
-                                            cov_m2=cov_joint + cov_contact, p_fk=p_fk)
+                                            cov_m2=cov_joint + cov_contact, p_fk=p_fk, kin_at=at)
             built[j] = (factor, {"joint": cov_joint, "contact": cov_contact})
         out.append((built[j][0], "stance_foot", built[j][1]))
     if st.imu_accel is not None and R_body_imu is not None:
@@ -678,6 +680,7 @@ def _add_stations(b: GraphBuild, robot, station_keys: dict, leg_keys: dict, T_bo
 
     ds, data, options, values = b.ds, b.data, b.options, b.values
     kin = leg_kinematics(data, robot)
+    par_kin = {f: leg_parameter_kinematics(data, robot, f, param) for f, (_, param) in leg_keys.items()}
     foot_index = {(s, f): j for j, (s, f) in enumerate((s, f) for s in b.sessions for f in robot.feet)}
     feet_sum: dict = {}
     R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
@@ -695,7 +698,8 @@ def _add_stations(b: GraphBuild, robot, station_keys: dict, leg_keys: dict, T_bo
         foot_keys = {f: F(foot_index[(st.session, f)]) for f in st.q_by_foot}
         for factor, group, comps in station_factors(robot, st, station_keys[st.station], foot_keys, leg_keys,
                                                     options, R_body_imu=R_body_imu, kinematics=kin,
-                                                    w_key=ek.ground_tilt, stance=ek.stance):
+                                                    w_key=ek.ground_tilt, stance=ek.stance,
+                                                    parameter_kinematics=par_kin):
             b.add(factor, group, comps)
         for f, q in st.q_by_foot.items():
             p_world = T[:3, :3] @ kin[(st.station, f)][0] + T[:3, 3]

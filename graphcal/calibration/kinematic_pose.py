@@ -96,6 +96,31 @@ def leg_kinematics(data, robot) -> dict:
     return out[1]
 
 
+def leg_parameter_kinematics(data, robot, foot: str, param) -> dict:
+    """station -> (theta0 (k,) zeros, p_base_foot (3,) m, d p_base_foot / d theta (3, k)) of the
+    measured joint angles of ``foot`` in ``data`` at the nominal parameters of ``param`` (its
+    :class:`~graphcal.models.legs.LegModel`): what a stance factor estimating the leg evaluates at
+    its first linearisation; one batch per leg, cached with :func:`leg_kinematics` (the arrays
+    read-only)."""
+    from graphcal.models.legs import fk_and_param_jacobian
+
+    per_data = _LEG_CACHE.setdefault(data, {})
+    key = ("parameters", id(robot), foot, param.names)
+    out = per_data.get(key)
+    if out is None or out[0] is not robot:
+        items = [(st.station, q) for st in data.stations for f, q in st.q_by_foot.items() if f == foot]
+        theta0 = param.zeros()
+        table = {}
+        if items:
+            P, J = fk_and_param_jacobian(robot.leg(foot), param, np.array([np.asarray(q, float) for _, q in items]),
+                                         theta0)
+            theta0.flags.writeable = P.flags.writeable = J.flags.writeable = False
+            table = {station: (theta0, P[k], J[k]) for k, (station, _) in enumerate(items)}
+        out = (robot, table)
+        per_data[key] = out
+    return out[1]
+
+
 def kinematic_bodies(data, robot) -> tuple[dict, dict, dict]:
     """Three dicts keyed by station id: ``u_body`` (3,) the ground's up direction in the body frame,
     the body origin's height above the ground (m), and the initial ``T_world_body`` (4x4, m), from

@@ -78,11 +78,7 @@ def stance_foot_error(
         e (3,) m in the body frame, and ``[H_X (3,6), H_F (3,3)]`` plus ``H_L (3,k)`` when
         ``param`` is given; or None.
     """
-    X = np.asarray(T_world_body, dtype=float)
-    F = np.asarray(p_world_foot, dtype=float)
     q = np.asarray(q, dtype=float)
-    R_x, t_x = X[:3, :3], X[:3, 3]
-    p_b = R_x.T @ (F - t_x)
     J_L = None
     if param is None:
         p_fk = foot_positions(leg, q)
@@ -92,12 +88,20 @@ def stance_foot_error(
             p_fk, J_L = fk_and_param_jacobian(leg, param, q, th)
         else:
             p_fk = fk_with_params(leg, param, q, th)
+    return _error_at(T_world_body, p_world_foot, p_fk, J_L, want_jacobians)
+
+
+def _error_at(T_world_body, p_world_foot, p_fk, J_L, want_jacobians: bool):
+    """:func:`stance_foot_error` given the forward kinematics p_fk (3,) m, base frame, and its
+    parameter Jacobian J_L (3, k) (None: no ``H_L``)."""
+    X = np.asarray(T_world_body, dtype=float)
+    F = np.asarray(p_world_foot, dtype=float)
+    R_x, t_x = X[:3, :3], X[:3, 3]
+    p_b = R_x.T @ (F - t_x)
     e = p_fk - p_b
     if not want_jacobians:
         return e, None
-    H_X = _pose_jacobian(p_b)
-    H_F = -R_x.T
-    Hs = [H_X, np.ascontiguousarray(H_F)]
+    Hs = [_pose_jacobian(p_b), np.ascontiguousarray(-R_x.T)]
     if J_L is not None:
         Hs.append(J_L)
     return e, Hs
@@ -116,6 +120,7 @@ def stance_foot_factor(
     robust=None,
     cov_m2=None,
     p_fk=None,
+    kin_at=None,
 ) -> gtsam.NonlinearFactor:
     """Factor on (X, F[, L]) for one planted foot at one station.
 
@@ -134,6 +139,9 @@ def stance_foot_factor(
             ``sigma_m`` (e.g. :func:`joint_noise_covariance`: encoder noise through the leg).
         p_fk: FK(q; theta) (3,) when the caller has it already (without ``l_key`` only). Without
             ``l_key`` the forward kinematics is a constant and computed once, here.
+        kin_at: with ``l_key``, (theta0 (k,), FK(q; theta0) (3,) m, its parameter Jacobian (3, k)) when
+            the caller has them (graph.py computes them for every station of a leg in one batch); an
+            evaluation at exactly theta0 (a screening graph's linearisation) uses them.
     """
     q = np.array(q, dtype=float)
     if q.shape != (leg.n_joints,) or not np.isfinite(q).all():
@@ -178,7 +186,11 @@ def stance_foot_factor(
 
         return checked_custom_factor(noise, [x_key, f_key], error_fn, [6, 3], 3, kinds=["Pose3", "Point3"], name="stance_foot")
 
+    at = None if kin_at is None else tuple(np.array(a, dtype=float) for a in kin_at)
+
     def error_fn_l(X, F, theta_l, want):
+        if at is not None and np.array_equal(theta_l, at[0]):
+            return _error_at(X, F, at[1], at[2] if want else None, want)
         return stance_foot_error(X, F, q, leg, param, theta_l, want)
 
     return checked_custom_factor(
