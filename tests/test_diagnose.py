@@ -290,6 +290,33 @@ def test_three_outlier_stations_are_named_in_one_round_and_no_knock_is_fitted(ou
                for r in caplog.records)
 
 
+def test_no_grid_of_knocks_is_fitted_when_even_its_bound_loses_to_the_outliers(tmp_path_factory, monkeypatch):
+    """Outliers at stations 15, 26 and the last, 48 (octopus seed 228): the strongest knocks fitted
+    (a knock at the last station is the outlier there) explain over half of what the outliers do, so
+    the grid of places was fitted too (25 knock fits, 1.2 s); raised by GRID_GAIN_BOUND, as far as
+    the grid ever raised a knock, the best still loses by BIC, so the grid is skipped. The answer is
+    the same: one station at the end cannot tell a knock from an outlier, and the loop names the
+    three outliers."""
+    import graphcal.diagnosis.model as model_module
+    from graphcal.diagnosis import diagnose
+    from graphcal.diagnosis.segments import REFIT_KNOCKS
+
+    path = _outlier_dataset(tmp_path_factory, 228)
+    knocks = []
+    with_finding = model_module.DiagnosisModel.with_finding
+
+    def counted(self, candidate):
+        if candidate.cause == "extrinsic_change":
+            knocks.append(candidate)
+        return with_finding(self, candidate)
+
+    monkeypatch.setattr(model_module.DiagnosisModel, "with_finding", counted)
+    d = diagnose(path)
+    assert [f.candidate.label() for f in d.findings] == ["outlier_stations(stations=[15, 26, 48])"]
+    assert any("station 48: an outlier measurement of depth, or depth knocked at it" in n for n in d.notes)
+    assert 0 < len(knocks) <= REFIT_KNOCKS + 3  # the strongest and the best's neighbours; no grid of 16
+
+
 def test_forward_selection_tests_a_station_given_the_gross_outlier():
     """A mean fitted to ten rows, one of them 100 sigma off: alone, every other row fails its test
     (the outlier pulls the mean by 10 sigma); given the outlier freed, none does."""

@@ -66,7 +66,7 @@ from graphcal.diagnosis.catalogue import Candidate
 from graphcal.diagnosis.scores import linear_system, screening_system
 
 __all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MAX_OUTLIERS", "MIN_CONFIDENCE", "RANK_RTOL", "REFIT_KNOCKS",
-           "KNOCK_GRID", "GRID_SHARE", "KNOCK_GAIN_BOUND"]
+           "KNOCK_GRID", "GRID_SHARE", "GRID_GAIN_BOUND", "KNOCK_GAIN_BOUND"]
 
 log = logging.getLogger(__name__)
 
@@ -358,18 +358,30 @@ KNOCK_GRID = 3
 #: the grid is fitted only when the strongest knocks fitted explain at least this share of what the
 #: best outlier explanation does
 GRID_SHARE = 0.5
+#: how far the grid of places can raise the best knock fitted first, at most (measured: 90 of ~1000).
+#: The grid is not fitted when even this bound on that knock loses to the best outlier explanation
+#: by BIC (measured: outliers at stations 15, 26 and the last, 48, of octopus seed 228: 25 knock fits,
+#: 1.2 s, that could not change the answer)
+GRID_GAIN_BOUND = 1.1
 #: how far fitting can raise a knock's statistic above its linear score, at most: fitted 2.1x (the
 #: outliers pull the nominal fit; measured over 30 knock and 6 outlier datasets, 2026-11-27), then
-#: the grid of places +10 % (measured: 90 of ~1000). No knock is fitted when even this bound on the
+#: the grid of places (GRID_GAIN_BOUND). No knock is fitted when even this bound on the
 #: strongest knock loses to the best outlier explanation by BIC (outliers clearly explain more).
 #: Measured: real knocks of 0.6-20 deg at the middle and 3-5 stations from either end of 24-30
 #: stations, and a Messor stereo camera's 2 stations from the end, scored 0.96-4.5 times the
 #: outliers' statistic linearly (never skipped); three outlier stations 0.06-0.38 times (6 datasets)
-KNOCK_GAIN_BOUND = 2.1 * 1.1
+KNOCK_GAIN_BOUND = 2.1 * GRID_GAIN_BOUND
+
+
+def _cannot_win(knock: _Test, gain: float, outlier: _Test | None, n_rows: int) -> bool:
+    """Whether ``knock``'s statistic raised ``gain`` times still loses to ``outlier`` by BIC by more
+    than MIN_CONFIDENCE."""
+    return outlier is not None and gain * knock.statistic - knock.dof * np.log(max(n_rows, 2)) < \
+        outlier.bic(n_rows) - MIN_CONFIDENCE
 
 
 def _refit_knocks(model, solved: tuple, best: _Test, tests: list[_Test], lay: _Layout,
-                  outlier: _Test | None = None) -> tuple:
+                  outlier: _Test | None = None, n_rows: int = 0) -> tuple:
     """(the knock that fits best, the runner-up or None, their chi-square difference, the fitted
     knocks as (chi2, test)): the :data:`REFIT_KNOCKS` knocks of any sensor with the strongest linear
     scores (at least a quarter of ``best``'s), the neighbours of ``best``, every :data:`KNOCK_GRID`-th
@@ -381,8 +393,9 @@ def _refit_knocks(model, solved: tuple, best: _Test, tests: list[_Test], lay: _L
     2 stations from the end scored 9627 for the stereo and 9979 for the laser; fitted, the stereo's
     is the better one). ``outlier``: the best outlier explanation (:func:`_alternatives`); when the
     strongest knocks fitted explain less than :data:`GRID_SHARE` of its statistic, the grid is not
-    fitted (an outlier station scores as a knock beside it: ~25 solves saved). ``solved``: (problem,
-    values) of ``model`` solved; every knock's fit starts from those values."""
+    fitted (an outlier station scores as a knock beside it: ~25 solves saved), nor when the best of
+    them raised by :data:`GRID_GAIN_BOUND` loses to it by BIC over ``n_rows`` rows. ``solved``:
+    (problem, values) of ``model`` solved; every knock's fit starts from those values."""
     from graphcal.diagnosis.model import chi2_of
 
     knocks = sorted((t for t in tests if t.kind == "knock"), key=lambda t: -t.statistic)
@@ -409,10 +422,11 @@ def _refit_knocks(model, solved: tuple, best: _Test, tests: list[_Test], lay: _L
     for t in strong_first:
         fit(t)
     top = min(fitted.values(), key=lambda x: x[0])[1]
-    if outlier is not None and top.statistic < GRID_SHARE * outlier.statistic:
-        # the knocks of strongest score fitted explain less than half of what outliers do: no place
-        # the grid could find turns that around (the grid moves a knock by at most a tenth of its
-        # statistic: 90 of ~1000 measured), and the outliers win below
+    if outlier is not None and (top.statistic < GRID_SHARE * outlier.statistic
+                                or _cannot_win(top, GRID_GAIN_BOUND, outlier, n_rows)):
+        # the knocks of strongest score fitted explain less than half of what outliers do, or lose to
+        # them by BIC even raised as much as the grid ever raised one: no place the grid could find
+        # turns that around, and the outliers win below (or one station at an end cannot tell)
         return _ranked(fitted)
     for t in first:
         fit(t)
@@ -486,12 +500,11 @@ def find_segments(model, say, initial=None) -> tuple:
             outliers = [t for t in _alternatives(best, tests, system, lay) if t.kind in ("outlier", "measurement")]
             outlier = max(outliers, key=lambda t: t.statistic) if outliers else None
             strongest = max((t for t in tests if t.kind == "knock"), key=lambda t: t.statistic)
-            bound = KNOCK_GAIN_BOUND * strongest.statistic - strongest.dof * np.log(max(n_rows, 2))
-            if outlier is not None and bound < outlier.bic(n_rows) - MIN_CONFIDENCE:
+            if _cannot_win(strongest, KNOCK_GAIN_BOUND, outlier, n_rows):
                 say(f"segments: {_label(best, lay)} is explained better by {_label(outlier, lay)} (linear scores "
                     f"{strongest.statistic:.0f} and {outlier.statistic:.0f}: fitted, no knock can win); no boundary")
                 break
-            best, rival, margin, fitted = _refit_knocks(cur, solved, best, tests, lay, outlier)
+            best, rival, margin, fitted = _refit_knocks(cur, solved, best, tests, lay, outlier, n_rows)
             if outlier is not None and best.statistic < GRID_SHARE * outlier.statistic:
                 say(f"segments: {_label(best, lay)} is explained better by {_label(outlier, lay)}; no boundary")
                 break
