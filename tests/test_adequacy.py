@@ -177,7 +177,7 @@ def test_range_scale_the_data_cannot_see_is_said(tmp_path, monkeypatch):
     predicted = -2.0 * c.translation_mm_per_percent
     assert np.linalg.norm(err_mm - predicted) < 1.5  # the error's noise is sigma 0.15-0.72 mm
     assert c.translation_mm == pytest.approx(np.linalg.norm(err_mm) / 2.0, rel=0.15)
-    w = next(x for x in r.warnings if x.startswith("laser: these data do not determine its range scale (+-7."))
+    w = next(x for x in r.warnings if x.startswith("laser: these data do not determine its range scale (± 7."))
     assert "the sigma assume" in w
     assert verdict_lines(r)[1] == f"warning: {w}"  # with the verdict, first on the console
     # the stereo camera sees the floor from a constant range too: untested there as well
@@ -218,7 +218,7 @@ def test_range_scale_run_governing_sigma_covers_its_error(tmp_path):
     assert err_mm > 10 and max(s.sigma_xyz_mm) < 2 * err_mm  # not absurdly wide
     terms = dict(s.robust_terms)
     assert "range_scale_shift" in terms and list(terms)[:2] == ["model", "jackknife"]
-    scale = float(re.search(r"depth ([0-9.]+) \+- ", terms["range_scale_shift"]).group(1))
+    scale = float(re.search(r"depth ([0-9.]+) ± ", terms["range_scale_shift"]).group(1))
     assert scale == pytest.approx(0.98, abs=0.002)  # the scale that explains the planes
     doc = calibration_to_dict(r)["sensors"]["depth"]
     assert doc["sigma_from"] == "robust" and set(doc["robust_terms"]) == set(terms)

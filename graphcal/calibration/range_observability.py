@@ -178,7 +178,7 @@ def range_scale_warning(c: RangeScaleCheck) -> str:
     """The warning of a scale these data do not determine ("" when they do)."""
     if c.determined:
         return ""
-    pm = "not at all" if not np.isfinite(c.sigma_from_data) else f"+-{100.0 * c.sigma_from_data:.2g} % from them"
+    pm = "not at all" if not np.isfinite(c.sigma_from_data) else f"± {100.0 * c.sigma_from_data:.2g} % from them"
     return (f"{c.sensor}: these data do not determine its range scale ({pm}; checked to {c.limit_pct:.2g} %): a "
             f"scale error of 1 % would move its translation by {c.translation_mm:.2g} mm ({c.rotation_deg:.2g} deg); "
             "the sigma assume the range is exact. Vary the distance to the floor over the stations (tilts, "

@@ -413,7 +413,7 @@ def robust_parts(problem, values, outliers, result, groups, legs_calibration: Ca
             solved = None
         if solved is not None:
             ext_result, scales = solved
-            said = ", ".join(f"{s} {v:.5f} +- {sg:.2g}" for s, (v, sg) in scales.items())
+            said = ", ".join(f"{s} {v:.5f} ± {sg:.2g}" for s, (v, sg) in scales.items())
             for name, (C, d) in shift_covariances(result, ext_result).items():
                 extra[name].append(RobustTerm(
                     "range_scale_shift", C, f"C_ext + d d^T, d the shift to the solution of the same data with a "
