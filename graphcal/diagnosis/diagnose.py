@@ -626,7 +626,7 @@ def _noise_after(cand: Candidate, model: DiagnosisModel, solved: tuple) -> tuple
     """(model, problem, values) of the extended ``model`` (``solved``: its problem and solution) with
     its noise learned again after the finding ``cand``: one update from the noise so far; after
     outlier stations, from the defaults. That noise was learned with those stations' rows in (three
-    outliers: the stance contact sigma at 57 mm); one bounded update from there drove the joints'
+    outliers: the stance contact sigma at 23-57 mm); one bounded update from there drove the joints'
     to its floor and left the final model at x2.0-2.2 its physical stance noise ("does not fit").
     Learned again from the defaults: x0.6, and the final model fits at its own noise."""
     if cand.cause == "outlier_stations":
