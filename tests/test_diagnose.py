@@ -245,7 +245,7 @@ def test_a_final_model_that_fails_at_the_search_noise_is_judged_again_as_calibra
     assert a["groups"]["imu"]["ratio"] < 1.5
 
 
-def test_the_diagnosis_fits_stop_within_a_hundredth_of_the_smallest_chi2_difference_read(outliers):
+def test_the_diagnosis_fits_end_within_a_twentieth_of_the_smallest_chi2_difference_read(outliers):
     """The nominal model at physical noise, from the final model's solution: diagnose's solve ends
     within a twentieth of the smallest chi-square difference a decision reads (the segments
     finder's 2) of the fit taken on to calibrate's relative 1e-9."""
