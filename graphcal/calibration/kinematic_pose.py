@@ -105,7 +105,9 @@ def leg_parameter_kinematics(data, robot, foot: str, param) -> dict:
     from graphcal.models.legs import fk_and_param_jacobian
 
     per_data = _LEG_CACHE.setdefault(data, {})
-    key = ("parameters", id(robot), foot, param.names)
+    # the parameters' geometry, not only their names (two parameterisations could share names)
+    key = ("parameters", id(robot), foot, param.names, param.offset_joints, param.trans_joints,
+           np.asarray(param.trans_dirs, float).tobytes())
     out = per_data.get(key)
     if out is None or out[0] is not robot:
         items = [(st.station, q) for st in data.stations for f, q in st.q_by_foot.items() if f == foot]

@@ -186,7 +186,7 @@ def stance_foot_factor(
 
         return checked_custom_factor(noise, [x_key, f_key], error_fn, [6, 3], 3, kinds=["Pose3", "Point3"], name="stance_foot")
 
-    at = None if kin_at is None else tuple(np.array(a, dtype=float) for a in kin_at)
+    at = None if kin_at is None else tuple(np.asarray(a, dtype=float) for a in kin_at)  # no copy: read-only batches
 
     def error_fn_l(X, F, theta_l, want):
         if at is not None and np.array_equal(theta_l, at[0]):
