@@ -25,7 +25,8 @@ from graphcal.solvers.batch import solve_lm, whitened_errors
 from graphcal.diagnosis.catalogue import Candidate
 from graphcal.diagnosis.extensions import ModelExtensions
 
-__all__ = ["DiagnosisModel", "TIGHT_SIGMA", "FREE_SIGMA", "model_options", "noise_moved", "SOLVE_MEMO", "SOLVE_CHI2_TOL"]
+__all__ = ["DiagnosisModel", "TIGHT_SIGMA", "FREE_SIGMA", "model_options", "noise_moved", "SOLVE_MEMO", "SOLVE_CHI2_TOL",
+           "SOLVE_REL_TOL"]
 
 #: prior sigma of a candidate variable held at its nominal value (SI units)
 TIGHT_SIGMA = 1e-6
@@ -56,6 +57,13 @@ VCE_ROUNDS = 3
 #: steps, each lowering the chi-square by ~0.02 and moving no variable by more than 0.03 of its
 #: sigma (an outlier dataset at physical noise: 14 steps, 8 with this)
 SOLVE_CHI2_TOL = 0.02
+#: ... or by less than this share of the chi-square, when that is more (above a chi-square of
+#: 2e4). A model far from its noise (outlier stations in, at physical noise or at the defaults:
+#: chi-square 5e5-1e6) had crawled on for 7-16 steps, each lowering it by 0.03-0.3. Now those fits
+#: end 0.01-2.2 from the fit taken on to 1e-9 (octopus seeds 205, 206, 218, 229); the decisions
+#: read on them are the joint-column hypotheses' (margin 25) and the variance components, and at
+#: p = 0 the verdicts'. Fits near their noise still end by SOLVE_CHI2_TOL
+SOLVE_REL_TOL = 1e-6
 
 
 def model_options(ds) -> CalibrationOptions:
@@ -186,7 +194,8 @@ class DiagnosisModel:
                 return solved
         problem = self.build(exclude=exclude, initial=initial)
         solved = problem, solve_lm(problem.graph, problem.initial, check_determined=False,
-                                   absolute_tol=SOLVE_CHI2_TOL / 2.0).values  # gtsam's error is chi2 / 2
+                                   absolute_tol=SOLVE_CHI2_TOL / 2.0,  # gtsam's error is chi2 / 2
+                                   relative_tol=SOLVE_REL_TOL).values
         _SOLVED[:0] = [(key, same, solved), (key[:3] + (solved[1],), same, solved)]
         del _SOLVED[SOLVE_MEMO:]
         return solved
