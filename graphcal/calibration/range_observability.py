@@ -193,6 +193,6 @@ def with_range_scale_checks(result, checks: tuple[RangeScaleCheck, ...]):
     sensors = {n: dataclasses.replace(s, range_scale_check=by.get(n)) for n, s in result.sensors.items()}
     said = tuple(w for w in (range_scale_warning(c) for c in checks) if w)
     for c in checks:
-        log.info(f"calibrate: range scale of {c.sensor}: +-{100.0 * c.sigma_from_data:.3g} % from the data "
+        log.info(f"calibrate: range scale of {c.sensor}: ±{100.0 * c.sigma_from_data:.3g} % from the data "
                  f"(limit {c.limit_pct:.2g} %); 1 % moves it {c.translation_mm:.3g} mm, {c.rotation_deg:.3g} deg")
     return dataclasses.replace(result, sensors=sensors, warnings=tuple(result.warnings) + said)

@@ -61,9 +61,9 @@ def contact_candidates(model, problem, system, values) -> list[CandidateColumns]
     table = _stance_rows(model, problem, system)
     if not table:
         return []
-    q_of = {st.station: st for st in model.data.stations}
+    station_of = {st.station: st for st in model.data.stations}
     kin = leg_kinematics(model.data, model.robot)
-    a_of = _lower_legs(model, table)
+    a_of = _lower_legs(model.robot, station_of, table)
     n_joints = min(model.robot.leg(f).n_joints for f in model.robot.feet)
     n = len(system.b)
     K_r = np.zeros((n, 1))
@@ -72,7 +72,7 @@ def contact_candidates(model, problem, system, values) -> list[CandidateColumns]
         o, d = system.col[fk]
         A_F = system.A[np.ix_(rows, np.arange(o, o + d))]
         R_x = from_gtsam_pose(values.atPose3(problem.station_keys[st]))[:3, :3]
-        station = q_of[st]
+        station = station_of[st]
         n_b = R_x.T @ np.array([0.0, 0.0, 1.0])
         K_r[rows, 0] = A_F @ (-R_x @ (a_of[(st, foot)] - n_b))
         J = kin[(st, foot)][1]  # the cached nominal leg Jacobian at the measured angles
@@ -87,19 +87,19 @@ def contact_candidates(model, problem, system, values) -> list[CandidateColumns]
     return out
 
 
-def _lower_legs(model, table) -> dict:
+def _lower_legs(robot, station_of: dict, table) -> dict:
     """(station, foot) -> the lower leg's direction (body frame) at the measured angles, for every
-    stance foot of ``table`` (:func:`_stance_rows`); one batch per leg."""
+    stance foot of ``table`` (:func:`_stance_rows`; ``station_of``: station id -> its Station);
+    one batch per leg."""
     from graphcal.factors.stance_contact import lower_leg_directions
 
-    q_of = {st.station: st for st in model.data.stations}
     by_foot: dict = {}
     for _, st, foot, _ in table:
         by_foot.setdefault(foot, []).append(st)
     out = {}
     for foot, stations in by_foot.items():
-        Q = np.array([np.asarray(q_of[st].q_by_foot[foot], dtype=float) for st in stations])
-        out.update(zip(((st, foot) for st in stations), lower_leg_directions(model.robot.leg(foot), Q)))
+        Q = np.array([np.asarray(station_of[st].q_by_foot[foot], dtype=float) for st in stations])
+        out.update(zip(((st, foot) for st in stations), lower_leg_directions(robot.leg(foot), Q)))
     return out
 
 

@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from graphcal.factors.plane_observation import plane_cov3, tangent_basis
 
-__all__ = ["StationGrounds", "station_grounds", "PLANE_VARIANTS", "plane_variant", "plane_rows", "chi2_rows",
+__all__ = ["StationGrounds", "station_grounds", "prior_information", "prior_residual", "retract_extrinsic", "PLANE_VARIANTS", "plane_variant", "plane_rows", "chi2_rows",
            "chi2_at_stations", "fit_extrinsic", "DEFAULT_PLANE_COV4"]
 
 #: a plane without a covariance in planes.csv: 1 mm and ~0.06 deg (calibration/graph.py's default)
@@ -184,6 +184,28 @@ def chi2_at_stations(n_m, d_m, cov4, g: StationGrounds, T_body_sensor, cov_S=Non
                      T_body_sensor, cov_S)
 
 
+def prior_information(prior: tuple) -> np.ndarray:
+    """6x6 information [phi, rho] of the CAD ``prior`` (T, sigma_m, sigma_rad) of an extrinsic,
+    each sigma floored at 1e-4."""
+    _, sig_m, sig_rad = prior
+    return np.diag([max(sig_rad, 1e-4) ** -2] * 3 + [max(sig_m, 1e-4) ** -2] * 3)
+
+
+def prior_residual(T: np.ndarray, T_cad: np.ndarray) -> np.ndarray:
+    """[phi, rho] of T_body_sensor ``T`` (4x4) from the CAD extrinsic ``T_cad``: the rotation
+    vector of R_cad^T R (rad) and the translation difference t - t_cad in T's sensor frame (m)."""
+    R, t = T[:3, :3], T[:3, 3]
+    return np.concatenate([Rotation.from_matrix(T_cad[:3, :3].T @ R).as_rotvec(), R.T @ (t - T_cad[:3, 3])])
+
+
+def retract_extrinsic(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """T_body_sensor (4x4) moved by ``delta`` = [phi (rad), rho (m)], both in the sensor frame."""
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3] @ Rotation.from_rotvec(delta[:3]).as_matrix()
+    out[:3, 3] = T[:3, 3] + T[:3, :3] @ delta[3:]
+    return out
+
+
 def fit_extrinsic(n_m, d_m, cov3, g: StationGrounds, rows: np.ndarray, T0: np.ndarray, prior: tuple,
                   *, huber: float = 3.0, iterations: int = 10, B=None) -> tuple[np.ndarray, np.ndarray, float]:
     """(T_body_sensor (4x4), its 6x6 covariance [phi, rho], the cost: the planes' Huber-weighted
@@ -191,8 +213,7 @@ def fit_extrinsic(n_m, d_m, cov3, g: StationGrounds, rows: np.ndarray, T0: np.nd
     :func:`plane_rows`) at the stations ``rows`` (K indices into ``g``), from ``T0``, with the CAD
     ``prior`` (T (4x4), sigma_m, sigma_rad); Gauss-Newton, Huber weight ``huber`` on the square root
     of each plane's chi-square."""
-    T_cad, sig_m, sig_rad = prior
-    P = np.diag([max(sig_rad, 1e-4) ** -2] * 3 + [max(sig_m, 1e-4) ** -2] * 3)
+    P = prior_information(prior)
     rows = np.asarray(rows, dtype=int)
     u, z, W, cab = g.u[rows], g.z[rows], g.W[rows], g.cov[rows]
     T = np.array(T0, dtype=float)
@@ -202,15 +223,12 @@ def fit_extrinsic(n_m, d_m, cov3, g: StationGrounds, rows: np.ndarray, T0: np.nd
         R, t = T[:3, :3], T[:3, 3]
         chi, e, Ci, J = chi2_rows(n_m, d_m, cov3, u, z, W, cab, T, jacobian=True, B=B)
         w = np.where(chi <= huber**2, 1.0, huber / np.sqrt(np.maximum(chi, 1e-300)))
-        r_p = np.concatenate([Rotation.from_matrix(T_cad[:3, :3].T @ R).as_rotvec(), R.T @ (t - T_cad[:3, 3])])
+        r_p = prior_residual(T, prior[0])
         cost = float(np.sum(np.where(chi <= huber**2, chi, 2 * huber * np.sqrt(chi) - huber**2)) + r_p @ P @ r_p)
         H = np.einsum("k,kji,kjl,klm->im", w, J, Ci, J) + P
         b = np.einsum("k,kji,kjl,kl->i", w, J, Ci, e) + P @ r_p
         delta = -np.linalg.solve(H, b)
-        T_new = np.eye(4)
-        T_new[:3, :3] = R @ Rotation.from_rotvec(delta[:3]).as_matrix()
-        T_new[:3, 3] = t + R @ delta[3:]
-        T = T_new
+        T = retract_extrinsic(T, delta)
         if np.linalg.norm(delta) < 1e-10:
             break
     return T, np.linalg.inv(H), cost

@@ -14,9 +14,8 @@ Jacobians, ``C = sigma^2 I + J Sigma J^T``, inverted by the Woodbury identity:
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from graphcal.diagnosis.plane_corrections import StationGrounds
+from graphcal.diagnosis.plane_corrections import StationGrounds, prior_information, prior_residual, retract_extrinsic
 
 __all__ = ["scan_beams", "scan_chi2", "fit_scan_extrinsic", "MIN_GRAZING_COS"]
 
@@ -77,8 +76,7 @@ def fit_scan_extrinsic(scans: list, rows, g: StationGrounds, T0, prior: tuple, s
     """T_body_sensor (4x4) fitted from ``T0`` to ``scans`` ((D, rho) each) at the stations ``rows``
     (indices into ``g``) and the CAD ``prior`` (T, sigma_m, sigma_rad): Gauss-Newton on the range
     errors, Huber weight at ``huber`` sigma per beam (the stations' uncertainty left out)."""
-    T_cad, sig_m, sig_rad = prior
-    P = np.diag([max(sig_rad, 1e-4) ** -2] * 3 + [max(sig_m, 1e-4) ** -2] * 3)
+    P = prior_information(prior)
     T = np.array(T0, dtype=float)
     for _ in range(iterations):
         R, t = T[:3, :3], T[:3, 3]
@@ -90,12 +88,8 @@ def fit_scan_extrinsic(scans: list, rows, g: StationGrounds, T0, prior: tuple, s
             w = np.where(np.abs(e) <= huber * sigma, 1.0, huber * sigma / np.maximum(np.abs(e), 1e-300)) / sigma**2
             H += np.einsum("k,ki,kj->ij", w, J, J)
             bvec += np.einsum("k,ki,k->i", w, J, e)
-        r_p = np.concatenate([Rotation.from_matrix(T_cad[:3, :3].T @ R).as_rotvec(), R.T @ (t - T_cad[:3, 3])])
-        delta = -np.linalg.solve(H, bvec + P @ r_p)
-        T_new = np.eye(4)
-        T_new[:3, :3] = R @ Rotation.from_rotvec(delta[:3]).as_matrix()
-        T_new[:3, 3] = t + R @ delta[3:]
-        T = T_new
+        delta = -np.linalg.solve(H, bvec + P @ prior_residual(T, prior[0]))
+        T = retract_extrinsic(T, delta)
         if np.linalg.norm(delta) < 1e-10:
             break
     return T
