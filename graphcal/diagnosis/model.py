@@ -25,8 +25,8 @@ from graphcal.solvers.batch import solve_lm, whitened_errors
 from graphcal.diagnosis.catalogue import Candidate
 from graphcal.diagnosis.extensions import ModelExtensions
 
-__all__ = ["DiagnosisModel", "TIGHT_SIGMA", "FREE_SIGMA", "model_options", "noise_moved", "SOLVE_MEMO", "SOLVE_CHI2_TOL",
-           "SOLVE_REL_TOL"]
+__all__ = ["DiagnosisModel", "TIGHT_SIGMA", "FREE_SIGMA", "model_options", "noise_moved", "SOLVE_MEMO",
+           "SOLVE_CHI2_TOL", "SOLVE_REL_TOL"]
 
 #: prior sigma of a candidate variable held at its nominal value (SI units)
 TIGHT_SIGMA = 1e-6

@@ -31,8 +31,9 @@ from scipy.spatial.transform import Rotation
 
 from graphcal.factors.plane_observation import plane_cov3, tangent_basis
 
-__all__ = ["StationGrounds", "station_grounds", "prior_information", "prior_residual", "retract_extrinsic", "PLANE_VARIANTS", "plane_variant", "plane_rows", "chi2_rows",
-           "chi2_at_stations", "fit_extrinsic", "DEFAULT_PLANE_COV4"]
+__all__ = ["StationGrounds", "station_grounds", "PLANE_VARIANTS", "plane_variant", "plane_rows", "chi2_rows",
+           "chi2_at_stations", "fit_extrinsic", "prior_information", "prior_residual", "retract_extrinsic",
+           "DEFAULT_PLANE_COV4"]
 
 #: a plane without a covariance in planes.csv: 1 mm and ~0.06 deg (calibration/graph.py's default)
 DEFAULT_PLANE_COV4 = np.diag([1e-6, 1e-6, 1e-6, 1e-6])
@@ -220,7 +221,6 @@ def fit_extrinsic(n_m, d_m, cov3, g: StationGrounds, rows: np.ndarray, T0: np.nd
     H, cost = P, 0.0
     B = np.array([tangent_basis(n) for n in n_m]) if B is None else B
     for _ in range(iterations):
-        R, t = T[:3, :3], T[:3, 3]
         chi, e, Ci, J = chi2_rows(n_m, d_m, cov3, u, z, W, cab, T, jacobian=True, B=B)
         w = np.where(chi <= huber**2, 1.0, huber / np.sqrt(np.maximum(chi, 1e-300)))
         r_p = prior_residual(T, prior[0])
