@@ -188,7 +188,7 @@ def test_exchanged_marker_ids_are_found(four_feet, pair):
         return
     assert not given.adequacy.fits
     assert found is not None and found.markers == pair and found.feet == pair
-    assert found.confidence >= MIN_CONFIDENCE and found.chi2_corrected < 1e-3 * found.chi2_given
+    assert found.evidence.confidence >= MIN_CONFIDENCE and found.evidence.chi2_corrected < 1e-3 * found.evidence.chi2_given
     assert result.adequacy.fits and any("exchanged" in w for w in result.warnings)
     for foot in pair:
         assert max(abs(p.value) for p in result.legs[foot] if p.name.endswith("offset_rad")) < np.radians(1.0)
@@ -224,3 +224,28 @@ def test_exchanged_postures_are_found(four_feet, rows):
     assert result.adequacy.fits
     said = [w for w in result.warnings if "are exchanged (each posture's joint angles" in w]
     assert len(said) == 1 and f"{t[rows[0]]:g} s and {t[rows[1]]:g} s" in said[0]
+
+
+def test_an_exchange_of_labels_is_applied_only_when_it_fits_and_wins_clearly():
+    """The rule both label finders (marker ids, postures) share: the data as given best, nothing; the
+    best exchange within MIN_CONFIDENCE of the runner-up, or not fitting (sigma0 above MAX_SIGMA0),
+    a note and nothing applied; else the exchange, its margin and the hypotheses close to it."""
+    from types import SimpleNamespace
+
+    from graphcal.legs.marker_ids import MAX_SIGMA0, MIN_CONFIDENCE, _best_exchange
+
+    def ident(sigma0):
+        return SimpleNamespace(adequacy=SimpleNamespace(fits=False, sigma0=sigma0))
+
+    given = ("the data as given", 5000.0, ident(40.0), None)
+    assert _best_exchange([given, ("x", 6000.0, ident(45.0), ("a", "b"))], "w") == (None, None)
+    close = [given, ("a-b", 100.0, ident(1.0), ("a", "b")), ("a-c", 100.0 + MIN_CONFIDENCE - 1, ident(1.0), ("a", "c"))]
+    best, note = _best_exchange(close, "the markers' errors")
+    assert best is None and "a-c explains the data almost as well (chi-square 24.0 apart)" in note
+    assert note.startswith("a-b is the best explanation tried of the markers' errors (chi-square 5000 -> 100 ")
+    best, note = _best_exchange([given, ("a-b", 900.0, ident(MAX_SIGMA0 + 1), ("a", "b"))], "w")
+    assert best is None and "the legs still do not fit after it" in note
+    clear = [given, ("a-b", 100.0, ident(1.0), ("a", "b")), ("a-c", 110.0 + MIN_CONFIDENCE, ident(1.0), ("a", "c"))]
+    best, note = _best_exchange(clear, "w")
+    assert note is None and best[2] == ("a", "b") and best[3] == MIN_CONFIDENCE + 10.0 and best[4] == ()
+    assert best[5] == "a-c"

@@ -34,7 +34,7 @@ import numpy as np
 
 from graphcal.legs.mocap_data import MarkerTrack
 
-__all__ = ["MarkerExchange", "exchange_markers", "find_exchanged_markers", "PostureExchange", "exchange_postures",
+__all__ = ["ExchangeEvidence", "MarkerExchange", "exchange_markers", "find_exchanged_markers", "PostureExchange", "exchange_postures",
            "find_exchanged_postures", "CANDIDATE_TRACKS", "CANDIDATE_POSTURES", "MAX_SIGMA0", "MIN_CONFIDENCE"]
 
 #: the marker tracks with the largest "before" errors whose pairs are tested
@@ -48,26 +48,59 @@ MIN_CONFIDENCE = 25.0
 
 
 @dataclass(frozen=True)
-class MarkerExchange:
-    """Two marker tracks' measured positions exchanged (their ids swapped in the export).
+class ExchangeEvidence:
+    """How an exchange of two labels (marker ids, postures) was judged, at the declared noise.
 
     Attributes:
-        markers: (a, b) the marker names; feet: their feet.
-        chi2_given, chi2_corrected: the identification's chi-square at the declared noise, as given
-            and with the positions exchanged; dof: the corrected identification's degrees of freedom.
+        chi2_given, chi2_corrected: the identification's chi-square as given and with the labels
+            exchanged back; dof: the corrected identification's degrees of freedom.
         confidence: chi-square margin over the next-best hypothesis.
         alternatives: hypotheses within MIN_CONFIDENCE of it (labels).
         note: one sentence for the report.
     """
 
-    markers: tuple
-    feet: tuple
     chi2_given: float
     chi2_corrected: float
     dof: int
     confidence: float
     alternatives: tuple = ()
     note: str = ""
+
+
+@dataclass(frozen=True)
+class MarkerExchange:
+    """Two marker tracks' measured positions exchanged (their ids swapped in the export).
+
+    Attributes:
+        markers: (a, b) the marker names; feet: their feet; evidence: how it was judged.
+    """
+
+    markers: tuple
+    feet: tuple
+    evidence: ExchangeEvidence
+
+
+def _best_exchange(scored: list, what: str) -> tuple:
+    """(best, note) of the hypotheses ``scored`` ((label, chi2, identification, key) each; key None
+    for the data as given, which must be among them). ``best``: (chi2, identification, key, margin
+    over the runner-up, alternatives within MIN_CONFIDENCE, the runner-up's label) of the best
+    exchange, or None when the data as given are best, or when the best does not fit (sigma0 above
+    MAX_SIGMA0) or beats the runner-up by less than MIN_CONFIDENCE; ``note``: then the sentence
+    that says so (``what``: what the exchange would explain), else None."""
+    scored = sorted(scored, key=lambda s: s[1])
+    label, chi2, best, key = scored[0]
+    if key is None:
+        return None, None
+    given = next(s[1] for s in scored if s[3] is None)
+    margin = scored[1][1] - chi2
+    alternatives = tuple(s[0] for s in scored[1:] if s[1] - chi2 < MIN_CONFIDENCE)
+    fits = best.adequacy.fits or best.adequacy.sigma0 <= MAX_SIGMA0
+    if not fits or margin < MIN_CONFIDENCE:
+        why = "the legs still do not fit after it" if not fits else \
+            f"{scored[1][0]} explains the data almost as well (chi-square {margin:.1f} apart)"
+        return None, (f"{label} is the best explanation tried of {what} (chi-square {given:.0f} -> {chi2:.0f} at "
+                      f"the declared noise), but {why}: not corrected")
+    return (chi2, best, key, margin, alternatives, scored[1][0]), None
 
 
 def exchange_markers(tracks, a: str, b: str) -> tuple:
@@ -118,28 +151,19 @@ def find_exchanged_markers(result, tracks, identify) -> tuple:
         res = identify(exchange_markers(tracks, a, b))
         if res.adequacy is not None:
             scored.append((f"markers {a} and {b} exchanged", res.adequacy.statistic, res, (a, b)))
-    scored.sort(key=lambda s: s[1])
-    label, chi2, best, pair = scored[0]
-    if pair is None:
-        return None, result, ()
-    margin = scored[1][1] - chi2
-    alternatives = tuple(s[0] for s in scored[1:] if s[1] - chi2 < MIN_CONFIDENCE)
-    fits = best.adequacy.fits or best.adequacy.sigma0 <= MAX_SIGMA0
-    if not fits or margin < MIN_CONFIDENCE:
-        why = "the legs still do not fit after it" if not fits else \
-            f"{scored[1][0]} explains the data almost as well (chi-square {margin:.1f} apart)"
-        note = (f"{label} is the best explanation tried of the markers' errors (chi-square "
-                f"{result.adequacy.statistic:.0f} -> {chi2:.0f} at the declared noise), but {why}: not corrected")
-        return None, result, (note,)
+    exchange, refused = _best_exchange(scored, "the markers' errors")
+    if exchange is None:
+        return None, result, () if refused is None else (refused,)
+    chi2, best, pair, margin, alternatives, runner_up = exchange
     order = [t.marker for t in tracks]
     pair = tuple(sorted(pair, key=order.index))
     feet = tuple(next(t.foot for t in tracks if t.marker == m) for m in pair)
     note = (f"the ids of markers {pair[0]} ({feet[0]}) and {pair[1]} ({feet[1]}) are exchanged in the data: "
             f"exchanging their positions back drops the identification's chi-square at the declared noise from "
             f"{result.adequacy.statistic:.0f} to {chi2:.0f} ({best.adequacy.reference}), {margin:.0f} better than "
-            f"{scored[1][0]}; the legs were identified from the corrected markers")
-    found = MarkerExchange(pair, feet, float(result.adequacy.statistic), float(chi2), int(best.adequacy.dof),
-                           float(margin), alternatives, note)
+            f"{runner_up}; the legs were identified from the corrected markers")
+    found = MarkerExchange(pair, feet, ExchangeEvidence(float(result.adequacy.statistic), float(chi2),
+                                                        int(best.adequacy.dof), float(margin), alternatives, note))
     return found, dataclasses.replace(best, warnings=tuple(best.warnings) + (note,)), ()
 
 
@@ -154,17 +178,11 @@ class PostureExchange:
     motion-capture frame).
 
     Attributes:
-        times: (t1, t2) the postures' times (s).
-        chi2_given, chi2_corrected, dof, confidence, alternatives, note: as in :class:`MarkerExchange`.
+        times: (t1, t2) the postures' times (s); evidence: how it was judged.
     """
 
     times: tuple
-    chi2_given: float
-    chi2_corrected: float
-    dof: int
-    confidence: float
-    alternatives: tuple = ()
-    note: str = ""
+    evidence: ExchangeEvidence
 
 
 def exchange_postures(tracks, t1: float, t2: float) -> tuple:
@@ -203,23 +221,15 @@ def find_exchanged_postures(result, tracks, identify) -> tuple:
             times = tuple(sorted((float(p.time), float(q.time))))
             scored.append((f"postures at {times[0]:g} s and {times[1]:g} s exchanged", res.adequacy.statistic, res,
                            times))
-    scored.sort(key=lambda s: s[1])
-    label, chi2, best, times = scored[0]
-    if times is None:
-        return None, result, ()
-    margin = scored[1][1] - chi2
-    fits = best.adequacy.fits or best.adequacy.sigma0 <= MAX_SIGMA0
-    if not fits or margin < MIN_CONFIDENCE:
-        why = "the legs still do not fit after it" if not fits else \
-            f"{scored[1][0]} explains the data almost as well (chi-square {margin:.1f} apart)"
-        return None, result, (f"{label} is the best explanation tried of the flagged postures (chi-square "
-                              f"{a.statistic:.0f} -> {chi2:.0f} at the declared noise), but {why}: not corrected",)
+    exchange, refused = _best_exchange(scored, "the flagged postures")
+    if exchange is None:
+        return None, result, () if refused is None else (refused,)
+    chi2, best, times, margin, alternatives, runner_up = exchange
     note = (f"the motion-capture samples of the postures at {times[0]:g} s and {times[1]:g} s are exchanged "
             f"(each posture's joint angles logged with the other's markers): exchanging them back drops the "
             f"identification's chi-square at the declared noise from {a.statistic:.0f} to {chi2:.0f} "
-            f"({best.adequacy.reference}), {margin:.0f} better than {scored[1][0]}; the legs were identified "
+            f"({best.adequacy.reference}), {margin:.0f} better than {runner_up}; the legs were identified "
             f"from the corrected samples")
-    alternatives = tuple(s[0] for s in scored[1:] if s[1] - chi2 < MIN_CONFIDENCE)
-    found = PostureExchange(times, float(a.statistic), float(chi2), int(best.adequacy.dof), float(margin),
-                            alternatives, note)
+    found = PostureExchange(times, ExchangeEvidence(float(a.statistic), float(chi2), int(best.adequacy.dof),
+                                                    float(margin), alternatives, note))
     return found, dataclasses.replace(best, warnings=tuple(best.warnings) + (note,)), ()
