@@ -550,6 +550,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         else:
             old, base = None, model
         ext_model = base.with_finding(cand)
+        frees_rows = ext_model.excluded() != model.excluded()
         ext_problem, ext_values = ext_model.solve(initial=values)
         ev, new_rows = _likelihood_ratio(sc, cand, significant, (problem, values), (ext_problem, ext_values))
         params, sig = _parameters(cand, ext_model, ext_problem, ext_values)
@@ -588,7 +589,7 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
         if old is not None:
             findings = [f for f in findings if f.candidate != old]
         findings.append(Finding(cand, params, sig, ev, sc.evidence, gain))
-        model, problem, values = _noise_after(cand, model, (ext_problem, ext_values))
+        model, problem, values = _noise_after(frees_rows, model, (ext_problem, ext_values))
         # backward step: a cause named earlier can shrink once a later one explains the data better
         # (a floor tilt first read as an IMU misalignment: both tilt gravity against the feet, only
         # the heading changes between stations tell them apart). Below the minimum size it stays in
@@ -622,14 +623,15 @@ def diagnose(dataset, *, progress: bool = False, alpha: float = ALPHA, max_findi
                      bookkeeping.corrections)
 
 
-def _noise_after(cand: Candidate, model: DiagnosisModel, solved: tuple) -> tuple:
+def _noise_after(frees_rows: bool, model: DiagnosisModel, solved: tuple) -> tuple:
     """(model, problem, values) of the extended ``model`` (``solved``: its problem and solution) with
-    its noise learned again after the finding ``cand``: one update from the noise so far; after
-    outlier stations, from the defaults. That noise was learned with those stations' rows in (three
-    outliers: the stance contact sigma at 23-57 mm); one bounded update from there drove the joints'
-    to its floor and left the final model at x2.0-2.2 its physical stance noise ("does not fit").
-    Learned again from the defaults: x0.6, and the final model fits at its own noise."""
-    if cand.cause == "outlier_stations":
+    its noise learned again after a finding: one update from the noise so far; from the defaults
+    when the finding freed rows (outlier stations, ``DiagnosisModel.excluded``), since that noise
+    was learned with those rows in (three outliers: the stance contact sigma at 23-57 mm; one
+    bounded update from there drove the joints' to its floor and left the final model at x2.0-2.2
+    its physical stance noise, "does not fit"; learned again from the defaults: x0.6, and the final
+    model fits at its own noise)."""
+    if frees_rows:
         fresh = dataclasses.replace(model, options=model_options(model.ds))
         return fresh.learn_noise(rounds=VCE_ROUNDS, converge=True, at=solved[1])
     return model.learn_noise(rounds=1, solved=solved)

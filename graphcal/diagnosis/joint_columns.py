@@ -52,7 +52,8 @@ from graphcal.diagnosis.model import chi2_of, model_options
 from graphcal.diagnosis.structure import MIN_EXCESS, STRUCTURE_ALPHA
 from graphcal.errors import GraphcalError
 
-__all__ = ["find_joint_columns", "exchange_legs", "candidate_pairs", "leg_chi2", "concentration", "span_text",
+__all__ = ["find_joint_columns", "exchange_legs", "candidate_pairs", "leg_chi2", "second_leg_percentile",
+           "concentration", "span_text",
            "Hypothesis",
            "CANDIDATE_LEGS", "CONCENTRATION", "MIN_LEG_CHI2", "SENSOR_WEIGHT_OUT", "CHANGE_CONCENTRATION", "CHANGE_PAIRS",
            "MIN_CONFIDENCE"]
@@ -211,6 +212,16 @@ def leg_chi2(per_station: dict) -> dict:
     return dict(sorted(per_leg.items(), key=lambda kv: -kv[1]))
 
 
+def second_leg_percentile(per_station: dict) -> float:
+    """The 75th percentile over the stations of the second-worst leg's stance-foot chi-square
+    (``per_station``: (station, foot) -> chi-square); 0 with fewer than two legs."""
+    per_leg = leg_chi2(per_station)
+    if len(per_leg) < 2:
+        return 0.0
+    second = list(per_leg)[1]
+    return float(np.percentile([c for (_, f), c in per_station.items() if f == second], 75))
+
+
 def concentration(per_leg: dict) -> float:
     """The second-worst leg's stance chi-square over the third-worst's (inf with two legs)."""
     c = list(per_leg.values())
@@ -260,11 +271,7 @@ def _kinematic_percentile(phys, initial) -> float:
     scales = tuple((s, SENSOR_WEIGHT_OUT) for s in phys.sensors())
     m = dataclasses.replace(phys, options=dataclasses.replace(phys.options, plane_sigma_scales=scales))
     _, problem, values = _fit(m, m.data, initial=initial)
-    per_station = _stance_chi2(m, problem, values)
-    per_leg = leg_chi2(per_station)
-    if len(per_leg) < 2:
-        return 0.0
-    return float(np.percentile([c for (_, f), c in per_station.items() if f == list(per_leg)[1]], 75))
+    return second_leg_percentile(_stance_chi2(m, problem, values))
 
 
 def _search(model, phys, say, initial=None) -> tuple:
@@ -277,8 +284,7 @@ def _search(model, phys, say, initial=None) -> tuple:
     pairs = candidate_pairs(phys.data, per_station)
     per_leg = leg_chi2(per_station)
     ratio = concentration(per_leg)
-    second = float(np.percentile([c for (_, f), c in per_station.items() if f == list(per_leg)[1]], 75)) \
-        if len(per_leg) > 1 else 0.0
+    second = second_leg_percentile(per_station)
     if ratio < CONCENTRATION or second < MIN_LEG_CHI2:
         return [given], phys.data
     kinematic = _kinematic_percentile(phys, values)

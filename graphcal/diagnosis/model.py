@@ -60,7 +60,7 @@ SOLVE_CHI2_TOL = 0.02
 #: ... or by less than this share of the chi-square, when that is more (above a chi-square of
 #: 2e4). A model far from its noise (outlier stations in, at physical noise or at the defaults:
 #: chi-square 5e5-1e6) had crawled on for 7-16 steps, each lowering it by 0.03-0.3. Now those fits
-#: end 0.01-2.2 from the fit taken on to 1e-9 (octopus seeds 205, 206, 218, 229); the decisions
+#: end 0-2.2 from the fit taken on to 1e-9 (octopus seeds 205, 206, 218, 229); the decisions
 #: read on them are the joint-column hypotheses' (margin 25) and the variance components, and at
 #: p = 0 the verdicts'. Fits near their noise still end by SOLVE_CHI2_TOL
 SOLVE_REL_TOL = 1e-6
