@@ -383,7 +383,8 @@ def _cannot_win(knock: _Test, gain: float, outlier: _Test | None, n_rows: int) -
 def _refit_knocks(model, solved: tuple, best: _Test, tests: list[_Test], lay: _Layout,
                   outlier: _Test | None = None, n_rows: int = 0) -> tuple:
     """(the knock that fits best, the runner-up or None, their chi-square difference, the fitted
-    knocks as (chi2, test)): the :data:`REFIT_KNOCKS` knocks of any sensor with the strongest linear
+    knocks as (chi2, test), the knocks whose fit stalled (model.Fit.stalled)): the
+    :data:`REFIT_KNOCKS` knocks of any sensor with the strongest linear
     scores (at least a quarter of ``best``'s), the neighbours of ``best``, every :data:`KNOCK_GRID`-th
     place of those sensors, then the places around the best of them, each FITTED (the model with
     that extrinsic change, solved). A large knock is far from the nominal linearisation: the linear
@@ -395,7 +396,8 @@ def _refit_knocks(model, solved: tuple, best: _Test, tests: list[_Test], lay: _L
     strongest knocks fitted explain less than :data:`GRID_SHARE` of its statistic, the grid is not
     fitted (an outlier station scores as a knock beside it: ~25 solves saved), nor when the best of
     them raised by :data:`GRID_GAIN_BOUND` loses to it by BIC over ``n_rows`` rows. ``solved``:
-    (problem, values) of ``model`` solved; every knock's fit starts from those values."""
+    (problem, values) of ``model`` solved; every knock's fit starts from those values. A stalled
+    fit's chi-square is an upper bound: it is ranked as it is, and returned so that it is said."""
     from graphcal.diagnosis.model import chi2_of
 
     knocks = sorted((t for t in tests if t.kind == "knock"), key=lambda t: -t.statistic)
@@ -410,12 +412,16 @@ def _refit_knocks(model, solved: tuple, best: _Test, tests: list[_Test], lay: _L
     chi0 = chi2_of(*solved)[0]
     values0 = solved[1]
     fitted: dict = {}
+    stalled: list = []
 
     def fit(t):
         if (t.sensor, t.index) in fitted:
             return
         cand = Candidate("extrinsic_change", (("sensor", t.sensor), ("station", int(lay.stations[t.index].station))), 1)
-        chi = chi2_of(*model.with_finding(cand).solve(initial=values0))[0]
+        done = model.with_finding(cand).fit(initial=values0)
+        chi = chi2_of(done.problem, done.values)[0]
+        if done.stalled:
+            stalled.append(t)
         # its statistic: the fitted likelihood ratio (the outliers it is compared with are exact)
         fitted[(t.sensor, t.index)] = (chi, dataclasses.replace(t, statistic=max(chi0 - chi, 0.0)))
 
@@ -427,14 +433,24 @@ def _refit_knocks(model, solved: tuple, best: _Test, tests: list[_Test], lay: _L
         # the knocks of strongest score fitted explain less than half of what outliers do, or lose to
         # them by BIC even raised as much as the grid ever raised one: no place the grid could find
         # turns that around, and the outliers win below (or one station at an end cannot tell)
-        return _ranked(fitted)
+        return _ranked(fitted) + (tuple(stalled),)
     for t in first:
         fit(t)
     top = min(fitted.values(), key=lambda x: x[0])[1]
     for k in range(top.index - KNOCK_GRID + 1, top.index + KNOCK_GRID):
         if (top.sensor, k) in by_place:
             fit(by_place[(top.sensor, k)])
-    return _ranked(fitted)
+    return _ranked(fitted) + (tuple(stalled),)
+
+
+def _stalled_note(stalled: tuple, best: _Test, margin: float, lay: _Layout) -> str:
+    """The note on knock fits that stalled (model.Fit.stalled): their chi-squares are upper bounds."""
+    from graphcal.diagnosis.model import SOLVE_MAX_STEPS
+
+    return (f"the fit{'s' if len(stalled) > 1 else ''} of {', '.join(_label(t, lay) for t in stalled)} stopped after "
+            f"{SOLVE_MAX_STEPS} Levenberg-Marquardt steps without converging: the chi-square read is an upper bound, "
+            f"and the knocks' ranking on it is not final (best {_label(best, lay)}, by {margin:.1f} over the "
+            "runner-up)")
 
 
 def _ranked(fitted: dict) -> tuple:
@@ -504,7 +520,10 @@ def find_segments(model, say, initial=None) -> tuple:
                 say(f"segments: {_label(best, lay)} is explained better by {_label(outlier, lay)} (linear scores "
                     f"{strongest.statistic:.0f} and {outlier.statistic:.0f}: fitted, no knock can win); no boundary")
                 break
-            best, rival, margin, fitted = _refit_knocks(cur, solved, best, tests, lay, outlier, n_rows)
+            best, rival, margin, fitted, stalled = _refit_knocks(cur, solved, best, tests, lay, outlier, n_rows)
+            if stalled:
+                notes.append(_stalled_note(stalled, best, margin, lay))
+                say(f"segments: {notes[-1]}")
             if outlier is not None and best.statistic < GRID_SHARE * outlier.statistic:
                 say(f"segments: {_label(best, lay)} is explained better by {_label(outlier, lay)}; no boundary")
                 break
