@@ -105,6 +105,24 @@ def test_exchanged_legs_are_found_and_corrected(clean, tmp_path, robot, a, b, si
     assert data is not model.data and not np.allclose(row[f"{a}_foot"], ref.stations[from_row].q_by_foot[f"{a}_foot"])
 
 
+def test_a_hypothesis_fit_that_runs_out_of_steps_is_said(clean, tmp_path, monkeypatch):
+    """Legs lf and lm exchanged (octopus). Every hypothesis fit converges: no note. With the fits cut
+    to one Levenberg-Marquardt step (model.SOLVE_MAX_STEPS), they stop before converging: their
+    chi-squares are upper bounds, and one note says the hypotheses' ranking is not final."""
+    import graphcal.diagnosis.model as model_module
+    from graphcal.diagnosis.joint_columns import find_joint_columns
+
+    folder = _exchanged(clean["octopus"], tmp_path / "x", "lf", "lm")
+    model = _nominal(folder)
+    corrections, _, notes = find_joint_columns(model, lambda msg: None)
+    assert len(corrections) == 1 and not any("without converging" in n for n in notes)
+    monkeypatch.setattr(model_module, "SOLVE_MAX_STEPS", 1)
+    _, _, notes = find_joint_columns(_nominal(folder), lambda msg: None)
+    said = [n for n in notes if "without converging" in n]
+    assert len(said) == 1 and "stopped after 1 Levenberg-Marquardt steps" in said[0]
+    assert "legs lf_foot and lm_foot exchanged" in said[0] and "not final" in said[0]
+
+
 def test_an_exchange_beside_another_cause_is_still_corrected(tmp_path):
     """An extrinsic knock left in the data: the exchange does not fit at physical noise, but it beats
     the two legs' joint offsets and link lengths freed by far, so it is corrected (without that

@@ -98,6 +98,7 @@ class Hypothesis:
         from_station: first station id exchanged (None: from the first station).
         chi2, dof: the whole model's chi-square at physical noise and its rows minus parameters.
         until_station: first station id no longer exchanged (None: to the last station).
+        stalled: its fit ran out of steps (model.Fit.stalled): ``chi2`` is an upper bound.
     """
 
     legs: tuple
@@ -106,6 +107,7 @@ class Hypothesis:
     chi2: float
     dof: int
     until_station: int | None = None
+    stalled: bool = False
 
     @property
     def fits(self) -> bool:
@@ -160,11 +162,12 @@ def _fit(phys, data, legs=(), signs=(), span=None, initial=None):
     ``span``: (from_station, until_station) of the exchange, None for the whole run; ``initial``:
     gtsam.Values to start from (None: the closed form)."""
     m = dataclasses.replace(phys, data=data, findings=())
-    problem, values = m.solve(initial=initial)
-    chi2, rows = chi2_of(problem, values)
-    n_par = sum(int(d) for _, d in values.dims().items())
+    fit = m.fit(initial=initial)
+    chi2, rows = chi2_of(fit.problem, fit.values)
+    n_par = sum(int(d) for _, d in fit.values.dims().items())
     first, until = span or (None, None)
-    return Hypothesis(tuple(legs), tuple(signs), first, chi2, max(rows - n_par, 1), until), problem, values
+    return (Hypothesis(tuple(legs), tuple(signs), first, chi2, max(rows - n_par, 1), until, fit.stalled), fit.problem,
+            fit.values)
 
 
 def _free_legs_chi2(phys, a: str, b: str) -> float:
@@ -357,8 +360,9 @@ def find_joint_columns(model, say, initial=None) -> tuple:
     hyps, data = _search(model, phys, say, initial)
     given = next(h for h in hyps if not h.legs)
     best = hyps[0]
+    stalled = _stalled_note(hyps)
     if not best.legs:
-        return (), model.data, ()
+        return (), model.data, stalled
     runner = hyps[1]
     margin = runner.chi2 - best.chi2
     alternatives = tuple(h.label() for h in hyps[1:] if h.chi2 - best.chi2 < MIN_CONFIDENCE)
@@ -375,7 +379,7 @@ def find_joint_columns(model, say, initial=None) -> tuple:
                 f"(chi-square {given.chi2:.0f} -> {best.chi2:.0f} at physical noise, {best.dof} dof), but {why}: "
                 f"not corrected")
         say(note)
-        return (), model.data, (note,)
+        return (), model.data, (note,) + stalled
     a, b = sorted(best.legs, key=list(model.robot.feet).index)
     where = [("legs", (a, b))] + ([] if best.from_station is None else [("from_station", int(best.from_station))]) \
         + ([] if best.until_station is None else [("until_station", int(best.until_station))])
@@ -396,4 +400,19 @@ def find_joint_columns(model, say, initial=None) -> tuple:
         statistic=float(given.chi2 - best.chi2), dof=int(best.dof), p_value=p_given, confidence=float(margin),
         alternatives=alternatives, note=note)
     say(f"joint columns: {note}")
-    return (corr,), data, ()
+    return (corr,), data, stalled
+
+
+def _stalled_note(hyps: list) -> tuple:
+    """() or the one note on the hypotheses ranked (best first) whose fit stalled: their chi-squares
+    are upper bounds, so the ranking read on them is not final. None ranked (the gate closed): ()."""
+    stalled = [h for h in hyps if h.stalled]
+    if len(hyps) < 2 or not stalled:
+        return ()
+    from graphcal.diagnosis.model import SOLVE_MAX_STEPS
+
+    one = len(stalled) == 1
+    fits, bound = ("fit", "its chi-square is an upper bound") if one else ("fits", "their chi-squares are upper bounds")
+    return (f"joint columns: the {fits} of {', '.join(h.label() for h in stalled)} stopped after {SOLVE_MAX_STEPS} "
+            f"Levenberg-Marquardt steps without converging: {bound}, and the ranking of the hypotheses on "
+            f"{'it' if one else 'them'} is not final (best {hyps[0].label()}, chi-square {hyps[0].chi2:.0f})",)

@@ -227,12 +227,12 @@ class DiagnosisModel:
         fit = Fit(problem, lm.values, lm.iterations, not lm.converged and lm.iterations >= SOLVE_MAX_STEPS)
         if fit.stalled:
             # a progress line, not a warning: a stalled fit biases a test it feeds towards "does not
-            # fit" (its chi-square is too high); a ranking of fitted hypotheses it could turn, and
-            # the knocks' says so in the notes (segments.py). Wrong data stall fits too (a plane
+            # fit" (its chi-square is too high); a ranking of fitted hypotheses it could turn says
+            # so in the notes (segments.py, joint_columns.py). Wrong data stall fits too (a plane
             # distance in cm: the nominal fit of the data as given, before the unit is corrected)
-            log.info(f"diagnose: the fit of the model with {', '.join(c.label() for c in self.findings) or 'no finding'} "
-                     f"stopped after {fit.steps} Levenberg-Marquardt steps without converging: its chi-square "
-                     "is an upper bound")
+            found = ", ".join(c.label() for c in self.findings) or "no finding"
+            log.info(f"diagnose: the fit of the model with {found} stopped after {fit.steps} Levenberg-Marquardt "
+                     "steps without converging: its chi-square is an upper bound")
         _SOLVED[:0] = [(key, same, fit), (key[:3] + (fit.values,), same, fit)]
         del _SOLVED[SOLVE_MEMO:]
         return fit
