@@ -329,9 +329,9 @@ def test_a_knock_fit_that_does_not_converge_is_said_and_its_chi_square_was_an_up
     """Octopus seed 228 (outliers at 15, 26 and the last station, 48): the knock fitted at station 47,
     whose extrinsic after it only two stations' planes see, still lowers its chi-square after
     model.SOLVE_MAX_STEPS Levenberg-Marquardt steps. That fit is marked stalled, said in a progress
-    line, and the diagnosis notes say its chi-square is an upper bound; taken on from where it stopped, the fit does
-    lower its chi-square (the mark is not a false alarm). The knock at 48, which converges, is not
-    named in that note."""
+    line, and the diagnosis notes say its chi-square is an upper bound; taken on from where it
+    stopped, the fit does lower its chi-square (the mark is not a false alarm). The knock at 48,
+    which converges, is not named in that note."""
     import logging
 
     import graphcal.diagnosis.model as model_module
