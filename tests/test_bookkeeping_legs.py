@@ -123,6 +123,31 @@ def test_a_hypothesis_fit_that_runs_out_of_steps_is_said(clean, tmp_path, monkey
     assert "legs lf_foot and lm_foot exchanged" in said[0] and "not final" in said[0]
 
 
+def test_an_exchange_beside_outlier_stations_is_judged_with_the_sensors_weighted_out(tmp_path):
+    """Legs lf and lm exchanged on top of three outlier stations (octopus seed 218, 48 stations). At
+    physical noise the outliers keep the exchange from fitting, and the two legs' joint offsets and
+    link lengths freed explained the data as well (stop 38: not corrected, two coxa offsets named
+    tentatively, answer neither). With the sensors weighted out the exchange fits and beats the
+    freed legs by far: it is corrected, and the diagnosis names the outliers, nothing else."""
+    import yaml
+
+    from graphcal.commands.simulate import run as simulate_to_folder
+    from graphcal.diagnosis import diagnose
+
+    src = tmp_path / "outliers"
+    simulate_to_folder(robot="octopus", program="random", ground="level", out_dir=src, seed=218, n_stations=48,
+                       n_sessions=3, output="planes", cloud_stride=8, progress=False,
+                       effects=[("outlier_stations", {})], session_heading_step_deg=40.0)
+    truth = yaml.safe_load((src / "truth.yaml").read_text())["effects"]["outlier_stations"]["stations"]
+    d = diagnose(_exchanged(src, tmp_path / "x", "lf", "lm"))
+    assert [c.cause for c in d.corrections] == ["legs_exchanged"]
+    c = d.corrections[0]
+    assert set(c.get("legs")) == {"lf_foot", "lm_foot"} and dict(c.corrected)["signs"] == (1, 1, 1)
+    assert "with the sensors weighted out it fits" in c.note
+    assert [f.candidate.label() for f in d.findings] == [f"outlier_stations(stations={sorted(truth)})"]
+    assert d.to_json()["answer"] == "corrected"
+
+
 def test_an_exchange_beside_another_cause_is_still_corrected(tmp_path):
     """An extrinsic knock left in the data: the exchange does not fit at physical noise, but it beats
     the two legs' joint offsets and link lengths freed by far, so it is corrected (without that
