@@ -454,10 +454,8 @@ def _stalled_note(hyps: list) -> tuple:
     stalled = [h for h in hyps if h.stalled]
     if len(hyps) < 2 or not stalled:
         return ()
-    from graphcal.diagnosis.model import SOLVE_MAX_STEPS
+    from graphcal.diagnosis.model import stalled_text
 
-    one = len(stalled) == 1
-    fits, bound = ("fit", "its chi-square is an upper bound") if one else ("fits", "their chi-squares are upper bounds")
-    return (f"joint columns: the {fits} of {', '.join(h.label() for h in stalled)} stopped after {SOLVE_MAX_STEPS} "
-            f"Levenberg-Marquardt steps without converging: {bound}, and the ranking of the hypotheses on "
-            f"{'it' if one else 'them'} is not final (best {hyps[0].label()}, chi-square {hyps[0].chi2:.0f})",)
+    return (f"joint columns: {stalled_text([h.label() for h in stalled])}, and the ranking of the hypotheses on "
+            f"{'it' if len(stalled) == 1 else 'them'} is not final (best {hyps[0].label()}, chi-square "
+            f"{hyps[0].chi2:.0f})",)

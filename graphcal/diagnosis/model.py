@@ -29,7 +29,8 @@ from graphcal.diagnosis.extensions import ModelExtensions
 log = logging.getLogger(__name__)
 
 __all__ = ["DiagnosisModel", "Fit", "TIGHT_SIGMA", "FREE_SIGMA", "model_options", "noise_moved", "SOLVE_MEMO",
-           "SOLVE_CHI2_TOL", "SOLVE_REL_TOL", "SOLVE_MAX_STEPS"]
+           "SOLVE_CHI2_TOL", "SOLVE_REL_TOL", "SOLVE_MAX_STEPS",
+           "stalled_text"]
 
 #: prior sigma of a candidate variable held at its nominal value (SI units)
 TIGHT_SIGMA = 1e-6
@@ -231,8 +232,7 @@ class DiagnosisModel:
             # so in the notes (segments.py, joint_columns.py). Wrong data stall fits too (a plane
             # distance in cm: the nominal fit of the data as given, before the unit is corrected)
             found = ", ".join(c.label() for c in self.findings) or "no finding"
-            log.info(f"diagnose: the fit of the model with {found} stopped after {fit.steps} Levenberg-Marquardt "
-                     "steps without converging: its chi-square is an upper bound")
+            log.info(f"diagnose: {stalled_text([f'the model with {found}'])}")
         _SOLVED[:0] = [(key, same, fit), (key[:3] + (fit.values,), same, fit)]
         del _SOLVED[SOLVE_MEMO:]
         return fit
@@ -267,6 +267,15 @@ class DiagnosisModel:
             model = dataclasses.replace(model, options=opts)
             problem, values = model.solve(initial=values)
         return model, problem, values
+
+
+def stalled_text(what: list) -> str:
+    """What a note says of the fits of ``what`` (labels of the models or hypotheses) that stalled
+    (:attr:`Fit.stalled`)."""
+    one = len(what) == 1
+    bound = "its chi-square is an upper bound" if one else "their chi-squares are upper bounds"
+    return (f"the fit{'' if one else 's'} of {', '.join(what)} stopped after {SOLVE_MAX_STEPS} Levenberg-Marquardt "
+            f"steps without converging: {bound}")
 
 
 def noise_moved(old: CalibrationOptions, new: CalibrationOptions) -> bool:

@@ -445,12 +445,11 @@ def _refit_knocks(model, solved: tuple, best: _Test, tests: list[_Test], lay: _L
 
 def _stalled_note(stalled: tuple, best: _Test, margin: float, lay: _Layout) -> str:
     """The note on knock fits that stalled (model.Fit.stalled): their chi-squares are upper bounds."""
-    from graphcal.diagnosis.model import SOLVE_MAX_STEPS
+    from graphcal.diagnosis.model import stalled_text
 
-    return (f"the fit{'s' if len(stalled) > 1 else ''} of {', '.join(_label(t, lay) for t in stalled)} stopped after "
-            f"{SOLVE_MAX_STEPS} Levenberg-Marquardt steps without converging: the chi-square read is an upper bound, "
-            f"and the knocks' ranking on it is not final (best {_label(best, lay)}, by {margin:.1f} over the "
-            "runner-up)")
+    return (f"{stalled_text([_label(t, lay) for t in stalled])}, and the knocks' ranking on "
+            f"{'it' if len(stalled) == 1 else 'them'} is not final (best {_label(best, lay)}, by {margin:.1f} over "
+            "the runner-up)")
 
 
 def _ranked(fitted: dict) -> tuple:
