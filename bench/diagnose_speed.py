@@ -37,6 +37,7 @@ import numpy as np  # noqa: E402
 from graphcal.calibration.calibrate import calibrate  # noqa: E402
 from graphcal.commands.simulate import run as simulate_to_folder  # noqa: E402
 from graphcal.diagnosis import diagnose  # noqa: E402
+from graphcal.report.diagnosis_json import diagnosis_to_dict  # noqa: E402
 from graphcal.report.calibration_yaml import calibration_to_dict  # noqa: E402
 
 
@@ -48,7 +49,7 @@ def calibrate_to_dict(folder: Path) -> dict:
 def diagnose_to_dict(folder: Path) -> dict:
     """What ``graphcal diagnose`` computes before writing its files: the diagnosis and diagnosis.json's dict
     (which holds the final model's verdict, judged again when it does not fit)."""
-    return diagnose(folder).to_json()
+    return diagnosis_to_dict(diagnose(folder))
 
 
 def command_job(command: str):

@@ -134,6 +134,7 @@ def _compare(cause: str, truth: dict, finding: dict, sim_truth: dict) -> tuple[b
 
 def run_case(seed: int, robot: str, hidden: str, workdir: Path) -> CaseResult:
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
     from graphcal.commands.simulate import run as simulate_to_folder
 
     from graphcal.errors import GraphcalError
@@ -152,7 +153,7 @@ def run_case(seed: int, robot: str, hidden: str, workdir: Path) -> CaseResult:
         except GraphcalError as exc:
             if "cannot reach" not in str(exc) and "cannot stay planted" not in str(exc) or attempt == 2:
                 raise
-    diag = diagnose(out).to_json()
+    diag = diagnosis_to_dict(diagnose(out))
     unexplained = bool(diag["unexplained_structure"])
     final = str((diag.get("adequacy") or {}).get("verdict", ""))
     truth = yaml.safe_load((out / "truth.yaml").read_text())  # read only after the diagnosis

@@ -167,6 +167,7 @@ def _custom_robot(robot: str):
 
 def run_case(seed: int, robot: str, kind: str, cache: Path, workdir: Path) -> BookCase:
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
     from graphcal.errors import DatasetError
     from graphcal.simulation.bookkeeping import make_case
 
@@ -174,7 +175,7 @@ def run_case(seed: int, robot: str, kind: str, cache: Path, workdir: Path) -> Bo
     truth = make_case(kind, robot, seed, Path(cache), out, custom_robot=_custom_robot(robot)).to_dict()
     t0 = time.perf_counter()
     try:
-        doc = diagnose(out).to_json()
+        doc = diagnosis_to_dict(diagnose(out))
     except DatasetError as exc:
         return BookCase(seed, robot, kind, truth, "refused", (), False, f"DatasetError: {str(exc)[-160:]}",
                         time.perf_counter() - t0)

@@ -75,6 +75,7 @@ def draw(generator: str, rng: np.random.Generator, robot, sensors: tuple, sessio
 
 def run_case(seed: int, robot_name: str, generator: str, workdir: Path) -> OpenCase:
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
     from graphcal.simulation.effects import Effects
     from graphcal.simulation.session import SimulationConfig, robot_and_info, simulate
     from graphcal.simulation.write import write_simulation
@@ -90,7 +91,7 @@ def run_case(seed: int, robot_name: str, generator: str, workdir: Path) -> OpenC
 
     result = simulate(replace(base, effects=Effects(open_world=ow)))
     write_simulation(result, out, output="planes", overwrite=True)
-    doc = diagnose(out).to_json()
+    doc = diagnosis_to_dict(diagnose(out))
     named = tuple(f["cause"] for f in doc["findings"])
     if doc["unexplained_structure"]:
         outcome = "structure"

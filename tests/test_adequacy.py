@@ -119,7 +119,7 @@ def test_joint_offset_warns_and_its_governing_sigma_covers_the_error(joint_offse
     err_mm = 1e3 * np.linalg.norm(np.asarray(pose_log_between(T, T_true))[3:])
     assert max(s["sigma"]["xyz_mm"]) < 3 * err_mm  # and not absurdly wider than the error (measured 7.9 / 7.6 mm)
     assert "robust (the model does not fit)" in (tmp_path / "cal" / "static_transforms.sh").read_text()
-    from graphcal.report.calibration_yaml import read_calibration_yaml, validate_calibration_dict
+    from graphcal.io.calibration_yaml import read_calibration_yaml, validate_calibration_dict
 
     assert read_calibration_yaml(tmp_path / "cal" / "calibration.yaml")["adequacy"]["verdict"] == "does not fit"
     doc["adequacy"]["verdict"] = "maybe"

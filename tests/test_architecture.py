@@ -4,7 +4,9 @@
 - no import cycles among graphcal's modules, counting imports inside functions;
 - no function (or method) over ``MAX_FUNCTION_LINES`` lines;
 - one installed top-level package;
-- nothing outside ``graphcal/simulation/`` imports the simulator except ``graphcal/commands/``.
+- nothing outside ``graphcal/simulation/`` imports the simulator except ``graphcal/commands/``;
+- the layers contract (docs/architecture.md, ``LAYERS``): a package imports only packages of lower
+  layers, never one of its own layer or above (imports inside functions counted).
 
 Run this file as a script to print every violation (``python tests/test_architecture.py``).
 """
@@ -20,6 +22,23 @@ PACKAGE = ROOT / "graphcal"
 MAX_FUNCTION_LINES = 150
 # may import graphcal.simulation (besides the simulator itself): the command layer and the test helpers
 SIMULATION_USERS = ("graphcal.commands", "graphcal.simulation", "graphcal.testing")
+#: the library's layers, lowest first (docs/architecture.md): a package may import a package of a
+#: lower layer only. ``simulation`` and ``testing`` sit beside the library, below ``commands``.
+LAYERS = (
+    ("", "geometry", "errors", "stats", "progress"),
+    ("models",),
+    ("io",),
+    ("factors", "solvers"),
+    ("clouds",),
+    ("calibration", "legs", "locomotion", "planning", "logs", "batch"),
+    ("diagnosis",),
+    ("report",),
+    ("simulation",),
+    ("testing",),
+    ("commands",),
+    ("cli",),
+    ("__main__",),
+)
 
 
 def module_name(path: Path) -> str:
@@ -152,6 +171,37 @@ def simulator_imports() -> list[str]:
     return bad
 
 
+def package_of(mod: str) -> str:
+    """``graphcal.calibration.graph`` -> ``calibration``; ``graphcal.cli`` -> ``cli``; ``graphcal`` -> ``""``."""
+    parts = mod.split(".")
+    return parts[1] if len(parts) > 1 else ""
+
+
+def layer_index() -> dict[str, int]:
+    return {pkg: i for i, layer in enumerate(LAYERS) for pkg in layer}
+
+
+def upward_imports(graph: dict[str, set[str]] | None = None) -> list[str]:
+    """Every import of a package of the same or a higher layer (``module -> module``), and every
+    package the layers table does not name."""
+    graph = import_graph() if graph is None else graph
+    rank = layer_index()
+    bad = []
+    for mod in sorted(graph):
+        a = package_of(mod)
+        if a not in rank:
+            bad.append(f"{mod}: package {a!r} is in no layer of LAYERS")
+            continue
+        for target in sorted(graph[mod]):
+            b = package_of(target)
+            if b == a or b not in rank:
+                continue
+            if rank[b] >= rank[a]:
+                where = "beside" if rank[b] == rank[a] else "above"
+                bad.append(f"{mod} -> {target} ({b} is {where} {a})")
+    return bad
+
+
 def installed_top_level() -> list[str]:
     config = tomllib.loads((ROOT / "pyproject.toml").read_text())
     include = config["tool"]["setuptools"]["packages"]["find"]["include"]
@@ -179,6 +229,22 @@ def test_library_never_imports_the_simulator():
     assert simulator_imports() == []
 
 
+def test_layers_contract():
+    assert upward_imports() == []
+
+
+def test_the_layers_check_sees_an_upward_and_a_sideways_import():
+    graph = {"graphcal.calibration.graph": {"graphcal.report.write", "graphcal.io.files"},
+             "graphcal.legs.identify": {"graphcal.locomotion.ekf"},
+             "graphcal.report.write": {"graphcal.calibration.graph"}, "graphcal.io.files": set(),
+             "graphcal.locomotion.ekf": set(), "graphcal.wizard.x": set()}
+    assert upward_imports(graph) == [
+        "graphcal.calibration.graph -> graphcal.report.write (report is above calibration)",
+        "graphcal.legs.identify -> graphcal.locomotion.ekf (locomotion is beside legs)",
+        "graphcal.wizard.x: package 'wizard' is in no layer of LAYERS",
+    ]
+
+
 def test_the_scan_sees_a_cycle_and_a_private_import():
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
     assert cycles(graph) == [["a", "b", "c"]]
@@ -191,6 +257,7 @@ if __name__ == "__main__":
         "cycles": [" -> ".join(c) for c in cycles(import_graph())],
         "long functions": long_functions(),
         "simulator imports": simulator_imports(),
+        "layers (upward or sideways imports)": upward_imports(),
         "top-level packages": installed_top_level(),
     }
     for title, rows in report.items():

@@ -133,6 +133,7 @@ def test_an_exchange_beside_outlier_stations_is_judged_with_the_sensors_weighted
 
     from graphcal.commands.simulate import run as simulate_to_folder
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
 
     src = tmp_path / "outliers"
     simulate_to_folder(robot="octopus", program="random", ground="level", out_dir=src, seed=218, n_stations=48,
@@ -145,7 +146,7 @@ def test_an_exchange_beside_outlier_stations_is_judged_with_the_sensors_weighted
     assert set(c.get("legs")) == {"lf_foot", "lm_foot"} and dict(c.corrected)["signs"] == (1, 1, 1)
     assert "with the sensors weighted out it fits" in c.note
     assert [f.candidate.label() for f in d.findings] == [f"outlier_stations(stations={sorted(truth)})"]
-    assert d.to_json()["answer"] == "corrected"
+    assert diagnosis_to_dict(d)["answer"] == "corrected"
 
 
 def test_an_exchange_beside_another_cause_is_still_corrected(tmp_path):
@@ -184,10 +185,11 @@ def test_diagnose_then_names_no_joint_offset(clean, tmp_path):
     """Without the finder the exchange became two coxa offsets of about +-66 deg (measured); with it
     the correction is reported in diagnosis.json and nothing else is found."""
     from graphcal.diagnosis.diagnose import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
 
     folder = _exchanged(clean["octopus"], tmp_path / "x", "lf", "lm")
     result = diagnose(folder, heldout=False)
-    out = result.to_json()
+    out = diagnosis_to_dict(result)
     assert [c["cause"] for c in out["corrections"]] == ["legs_exchanged"]
     assert sorted(out["corrections"][0]["where"]["legs"]) == ["lf_foot", "lm_foot"]
     assert not [f for f in result.findings if f.candidate.cause in ("joint_offset", "link_length")]

@@ -122,6 +122,7 @@ def test_a_knock_is_found_or_said_ambiguous_at_the_ends(clean, robot, where, tmp
 
 def test_diagnose_names_the_session_offset_of_a_height_step(clean, tmp_path):
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
 
     folder = _height_step(clean["octopus"], tmp_path / "step", 15, STEP_M)
     d = diagnose(folder, heldout=False)
@@ -130,7 +131,7 @@ def test_diagnose_names_the_session_offset_of_a_height_step(clean, tmp_path):
     assert f.candidate.cause == "session_offset" and f.candidate.get("session") in ("s1", "s1@15")
     sign = -1.0 if f.candidate.get("session") == "s1" else 1.0  # offset_m > 0: the feet of the session sank
     assert abs(sign * f.parameters["offset_m"] - STEP_M) < 3 * f.sigma["offset_m"] + 1e-3
-    assert d.to_json()["corrections"][0]["where"] == {"from_station": 15, "session": "s1"}
+    assert diagnosis_to_dict(d)["corrections"][0]["where"] == {"from_station": 15, "session": "s1"}
 
 
 def test_diagnose_names_a_knock_two_stations_from_the_end(tmp_path):

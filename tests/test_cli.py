@@ -117,7 +117,7 @@ def test_example_simulate_and_validate(load_example, tmp_path):
 
 
 def test_calibrate_writes_the_outputs_and_never_into_the_dataset(small_dataset, tmp_path):
-    from graphcal.report.calibration_yaml import read_calibration_yaml
+    from graphcal.io.calibration_yaml import read_calibration_yaml
 
     out = tmp_path / "cal"
     proc = run("calibrate", small_dataset, "--out", out, "--quiet", check_rc=0)
@@ -179,7 +179,7 @@ def test_calibrate_legs_writes_them_and_shows_progress(small_dataset, tmp_path):
     import xml.etree.ElementTree as ET
 
     from graphcal.models.builtin import builtin_urdf
-    from graphcal.report.calibration_yaml import read_calibration_yaml
+    from graphcal.io.calibration_yaml import read_calibration_yaml
 
     out = tmp_path / "cal_legs"
     proc = run("calibrate", small_dataset, "--out", out, "--legs", check_rc=0)
@@ -350,7 +350,7 @@ def test_a_sensor_prior_known_exactly_is_held_and_said_so(small_dataset, tmp_pat
     not reported as undetermined by the data."""
     import shutil
 
-    from graphcal.report.calibration_yaml import read_calibration_yaml
+    from graphcal.io.calibration_yaml import read_calibration_yaml
 
     ds = tmp_path / "ds"
     shutil.copytree(small_dataset, ds)

@@ -210,11 +210,12 @@ def test_once_outlier_stations_are_named_the_noise_is_learned_again_and_the_fina
     with no re-check."""
     from graphcal.calibration.noise_estimation import VCE_FLOOR
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
 
     d = diagnose(outliers)
     assert [f.candidate.cause for f in d.findings] == ["outlier_stations"]
     assert d.model.options.sigma_joint_rad > 100 * VCE_FLOOR["sigma_joint_rad"]
-    a = d.to_json()["adequacy"]
+    a = diagnosis_to_dict(d)["adequacy"]
     assert a["verdict"] == "fits", a
     assert a["model"] == "final (extended)"  # judged at the search's noise: no re-check was needed
     assert a["groups"]["stance_foot"]["ratio"] < 1.0
@@ -233,13 +234,14 @@ def test_a_final_model_that_fails_at_the_search_noise_is_judged_again_as_calibra
     as calibrate does, it fits; diagnosis.json says which model was judged."""
     from graphcal.calibration.calibrate import adequacy_at
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
 
     d = diagnose(outliers_imu)
     assert [f.candidate.cause for f in d.findings] == ["outlier_stations"]
     held = adequacy_at(d.model.ds, d.model.options, d.problem, d.values)
     assert held.verdict == "does not fit"
     assert [g.group for g in held.groups if g.misfit] == ["imu"]
-    a = d.to_json()["adequacy"]
+    a = diagnosis_to_dict(d)["adequacy"]
     assert a["verdict"] == "fits", a
     assert "learned from graphcal's defaults and the IMU mounting estimated" in a["model"]
     assert a["groups"]["imu"]["ratio"] < 1.5

@@ -72,8 +72,9 @@ def test_open_world_generators_change_what_they_say():
 
 def test_clean_data_pass_every_group_at_physical_noise(tmp_path):
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
 
-    doc = diagnose(_simulate(tmp_path / "clean", "octopus", 3)).to_json()
+    doc = diagnosis_to_dict(diagnose(_simulate(tmp_path / "clean", "octopus", 3)))
     assert doc["findings"] == [] and not doc["unexplained_structure"] and doc["answer"] == "nominal"
     groups = {g["group"]: g for g in doc["physical_noise_tests"]["final"]}
     # every group covered, planes included; the documented defaults are conservative (chi2/dof < 0.5)
@@ -86,12 +87,13 @@ def test_a_plate_under_two_feet_is_structure_not_a_session_offset(tmp_path):
     no note. Now the foot-height group fails at physical noise, the offset is at most tentative, the
     answer is neither model, and calibrate-style warnings name the group."""
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
     from graphcal.models.robot import load_robot
     from graphcal.simulation.effects import OpenWorld
 
     feet = load_robot(model="octopus").feet
     folder = _simulate(tmp_path / "plate", "octopus", 3, open_world=OpenWorld(plate=("s1", tuple(feet[:2]), 0.02)))
-    doc = diagnose(folder).to_json()
+    doc = diagnosis_to_dict(diagnose(folder))
     assert doc["unexplained_structure"] and doc["answer"] == "neither"
     assert "foot_on_ground" in doc["structure_remains_in"]
     assert all(not f["supported"] for f in doc["findings"])
@@ -105,9 +107,10 @@ def test_shared_parameter_causes_are_named_once_within_3_sigma(tmp_path, cause, 
     import yaml
 
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
 
     folder = _simulate(tmp_path / cause, "octopus", 5, effects=[(cause, {})])
-    doc = diagnose(folder).to_json()
+    doc = diagnosis_to_dict(diagnose(folder))
     truth = yaml.safe_load((folder / "truth.yaml").read_text())["effects"][cause]
     assert [f["cause"] for f in doc["findings"]] == [cause]
     f = doc["findings"][0]

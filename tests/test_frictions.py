@@ -160,7 +160,7 @@ def test_diagnosis_report_reads_as_words_with_units(diagnosis):
 
 def test_diagnosis_figures_number_stations_as_stations_csv(small):
     from graphcal.diagnosis.diagnose import diagnose
-    from graphcal.diagnosis.plots import diagnosis_figures
+    from graphcal.report.diagnosis_plots import diagnosis_figures
 
     diag = diagnose(small, heldout=False)
     (caption, fig), = diagnosis_figures(diag)

@@ -349,7 +349,7 @@ def test_a_previous_identification_of_either_format_id_may_be_replaced(tmp_path)
     """legs.yaml has its own format id now; a folder written with the old one (graphcal-calibration/1)
     is still recognised as a previous identify-legs output, anything else is refused."""
     from graphcal.io.atomic import OutputExistsError
-    from graphcal.legs.report import check_output_folder
+    from graphcal.report.legs_output import check_output_folder
 
     for fmt in ("graphcal-legs/1", "graphcal-calibration/1"):
         out = tmp_path / fmt.replace("/", "_")

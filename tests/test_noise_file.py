@@ -19,7 +19,7 @@ from graphcal.calibration.graph import CalibrationOptions
 from graphcal.calibration.noise_file import NOISE_KEYS, options_with_noise_from
 from graphcal.errors import DatasetError
 from graphcal.geometry import invert_pose, pose_from_xyz_quat_wxyz, to_gtsam_pose
-from graphcal.report.calibration_yaml import read_calibration_yaml
+from graphcal.io.calibration_yaml import read_calibration_yaml
 from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
 

@@ -39,13 +39,8 @@ from graphcal.models.builtin import builtin_info, builtin_urdf
 from graphcal.models.perturb import LegPerturbation, apply_perturbation, link_length_delta
 from graphcal.models.robot import load_robot
 from graphcal.report import write as write_mod
-from graphcal.report.calibration_yaml import (
-    FORMAT,
-    calibration_to_dict,
-    calibration_yaml_text,
-    pose_from_dict,
-    read_calibration_yaml,
-)
+from graphcal.io.calibration_yaml import FORMAT, pose_from_dict, read_calibration_yaml
+from graphcal.report.calibration_yaml import calibration_to_dict, calibration_yaml_text
 from graphcal.report.ros import static_transform_publisher_command, static_transforms_script
 from graphcal.report.urdf import calibrated_urdf
 from graphcal.report.write import OUTPUT_FILES, write_calibration_outputs

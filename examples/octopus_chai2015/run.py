@@ -223,13 +223,14 @@ def run_variant(path: Path, T_paper: np.ndarray, *, diagnosis: bool = True) -> d
 
 
 def run_diagnose(path: Path) -> dict:
-    """graphcal.diagnosis.diagnose(path).to_json() with its time; the exception if it fails."""
+    """graphcal.diagnosis.diagnosis_to_dict(diagnose(path)) with its time; the exception if it fails."""
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
 
     t0 = time.perf_counter()
     try:
         d = diagnose(path)
-        j = d.to_json()
+        j = diagnosis_to_dict(d)
     except Exception as exc:  # recorded and reported, not worked around (graphcal/diagnosis is not ours)
         return {"ok": False, "seconds": time.perf_counter() - t0, "error_type": type(exc).__name__,
                 "error": str(exc), "traceback": traceback.format_exc()}
@@ -414,6 +415,7 @@ def as_printed(out_dir: str | Path | None = None, *, prior_sigma_deg: float = md
     data against Eq. 32 (diagnose's extended model; calibrate on the corrected planes)."""
     from graphcal.calibration.calibrate import calibrate
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
 
     T_paper = md.paper_T_body_sensor()
     with tempfile.TemporaryDirectory(prefix="chai2015_as_printed_") as tmp:
@@ -432,7 +434,7 @@ def as_printed(out_dir: str | Path | None = None, *, prior_sigma_deg: float = md
                             "sigma_xyz_body_mm": [float(x) for x in est.sigma_xyz_mm]}
         t0 = time.perf_counter()
         d = diagnose(path)
-        j = d.to_json()
+        j = diagnosis_to_dict(d)
         out["diagnose"] = {"seconds": time.perf_counter() - t0, "answer": j["answer"], "findings": j["findings"],
                            "unexplained_structure": j["unexplained_structure"], "nominal": j["nominal"],
                            "final": j["final"], "warnings": j["warnings"]}
@@ -469,6 +471,7 @@ def hand_corrected(out_dir: str | Path | None = None) -> dict:
     undeclared?) and once with Table A1's blocks declared. Calibrate and diagnose on each."""
     from graphcal.calibration.calibrate import calibrate
     from graphcal.diagnosis import diagnose
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
 
     T_paper = md.paper_T_body_sensor()
     out = {}
@@ -480,7 +483,7 @@ def hand_corrected(out_dir: str | Path | None = None) -> dict:
             res = calibrate(path)
             est = res.sensors[md.SENSOR]
             d = diagnose(path)
-            j = d.to_json()
+            j = diagnosis_to_dict(d)
             out[sessions] = {
                 "calibrate": {"vs_eq32": compare_extrinsic(est.T_body_sensor, T_paper), "outliers": [int(s) for s in res.outliers],
                               "sigma_rot_body_deg": [float(x) for x in est.sigma_rot_deg],

@@ -46,7 +46,7 @@ from graphcal.models.sensors import PHYSICAL_NOISE_DEFAULTS, PHYSICAL_NOISE_FLOO
 
 __all__ = ["RATIO_LIMIT", "ALPHA", "GROSS_ALPHA", "GROUP_PHYSICAL_KEYS", "GroupCheck", "StationCheck", "Adequacy",
            "physical_noise", "group_check", "group_checks", "gross_stations", "adequacy_verdict",
-           "misfit_warning", "FITS", "DOES_NOT_FIT"]
+           "misfit_warning", "adequacy_dict", "FITS", "DOES_NOT_FIT"]
 
 FITS, DOES_NOT_FIT = "fits", "does not fit"
 
@@ -384,3 +384,33 @@ def misfit_warning(a: Adequacy) -> str:
             for s in a.gross))
     robust = "" if a.fits else "; sigma is the robust one (sigma_model is the model's)"
     return "; ".join(parts) + robust + "; next: " + "; ".join(a.next_steps)
+
+
+def _group_value_dict(pairs) -> dict:
+    """(name, value) pairs of a group check as a mapping in the units their names say."""
+    return {str(k): float(v) for k, v in pairs}
+
+
+def adequacy_dict(a) -> dict:
+    """The ``adequacy:`` block (docs/outputs.md) of an :class:`~graphcal.calibration.adequacy.Adequacy`."""
+    return {
+        "verdict": str(a.verdict),
+        "statistic": float(a.statistic),
+        "reference": str(a.reference),
+        "p_value": float(a.p_value),
+        "worst_group": str(a.worst_group),
+        "test": ("each noise group's learned sigma s (the sigma of the final solve times the factor its residuals "
+                 "point to) against its physical sigma p (dataset.yaml physical_noise:, else graphcal's defaults): "
+                 "T = dof (s/p)^2 against chi2(dof); a group does not fit when s > "
+                 f"{RATIO_LIMIT:g} p and its p-value is below {ALPHA:g} / groups; p_value is the worst group's "
+                 "times the number of groups (Bonferroni)"),
+        "sigma_from": str(a.covariance),
+        "groups": {str(g.group): {"misfit": bool(g.misfit), "ratio": float(g.ratio), "statistic": float(g.statistic),
+                                  "dof": float(g.dof), "p_value": float(g.p_value),
+                                  "learned_si": _group_value_dict(g.learned),
+                                  "physical": _group_value_dict(g.physical), "physical_from": str(g.source)}
+                   for g in a.groups},
+        "gross_stations": [{"station": int(s.station), "statistic": float(s.statistic), "dof": float(s.dof),
+                            "p_value": float(s.p_value), "factor_over_median": float(s.factor)} for s in a.gross],
+        "next_steps": [str(x) for x in a.next_steps],
+    }

@@ -61,7 +61,7 @@ def options_with_noise_from(path: str | Path, options: CalibrationOptions) -> tu
             that is not a finite number > 0, or a key that is not a sigma or a plane scale (the
             message names the file and the key).
     """
-    from graphcal.report.calibration_yaml import read_calibration_yaml
+    from graphcal.io.calibration_yaml import read_calibration_yaml
 
     path = Path(path)
     doc = read_calibration_yaml(path)
@@ -106,7 +106,7 @@ def noise_from_mismatch(path: str | Path, robot_name: str, sensors) -> tuple[str
         One sentence per mismatch: another robot, no robot recorded (a file written before
         calibration.yaml recorded it), a plane scale of a sensor the dataset does not have.
     """
-    from graphcal.report.calibration_yaml import read_calibration_yaml
+    from graphcal.io.calibration_yaml import read_calibration_yaml
 
     path = Path(path)
     doc = read_calibration_yaml(path)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from graphcal.io.atomic import atomic_directory, atomic_write_text, check_command_output
 from graphcal.diagnosis.diagnose import Diagnosis, diagnose
+from graphcal.report.diagnosis_json import diagnosis_to_dict
 from graphcal.report.diagnosis_page import diagnosis_html, parameter_text, where_text
 
 __all__ = ["run", "write_diagnosis", "summary_text", "DIAGNOSIS_FILES"]
@@ -71,7 +72,7 @@ def write_diagnosis(diag: Diagnosis, out_dir, *, title: str | None = None) -> di
     """Write diagnosis.json and report.html into ``out_dir`` as one atomic set; returns the JSON."""
     out = Path(out_dir)
     _check_out(out)
-    doc = diag.to_json()
+    doc = diagnosis_to_dict(diag)
     text = json.dumps(doc, indent=1, default=float)
     page = diagnosis_html(diag, doc, title or f"graphcal diagnosis of {diag.model.ds.root}")
     with atomic_directory(out, overwrite=True) as tmp:

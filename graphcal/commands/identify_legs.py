@@ -3,7 +3,7 @@
 Reads the dataset (``mocap.csv`` with foot markers, optionally Yuan's body markers), identifies the
 parameters of every leg that carries a marker (:func:`graphcal.legs.identify.identify_legs_dataset`)
 and writes ``legs.yaml``, ``robot_calibrated.urdf``, ``report.html`` and one PNG per foot
-(:func:`graphcal.legs.report.write_identification_outputs`). Bad input raises
+(:func:`graphcal.report.legs_output.write_identification_outputs`). Bad input raises
 :class:`~graphcal.errors.DatasetError` (the command line prints it and exits with code 2).
 """
 
@@ -50,7 +50,7 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, mocap_fr
             ``mocap.sigma_joint_deg``, else 1 mm / 0 deg. The covariance is scaled by sigma0^2.
         robust: robust loss per sample (``none``, ``huber``, ``cauchy``).
     """
-    from graphcal.legs.report import check_output_folder, write_identification_outputs
+    from graphcal.report.legs_output import check_output_folder, write_identification_outputs
 
     import math
 

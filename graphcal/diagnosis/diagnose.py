@@ -31,7 +31,8 @@ from graphcal.diagnosis.model import VCE_ROUNDS, DiagnosisModel, chi2_of, model_
 from graphcal.diagnosis.scores import (CandidateColumns, current_columns, evidence, freed_rows_test, score_candidates,
                                        screening_system)
 
-__all__ = ["Diagnosis", "diagnose", "extended_calibration_note", "ALPHA", "MAX_FINDINGS"]
+__all__ = ["Diagnosis", "diagnose", "extended_calibration_note", "final_adequacy", "extension_values",
+           "ALPHA", "MAX_FINDINGS"]
 
 log = logging.getLogger(__name__)
 
@@ -117,38 +118,6 @@ class Diagnosis:
     answer: str = "nominal"
     corrections: tuple = field(default=())
 
-    def to_json(self) -> dict:
-        from graphcal.calibration.result import calibration_result
-        from graphcal.report.calibration_yaml import calibration_to_dict as calibration_dict
-
-        result = calibration_result(self.model.ds, self.model.robot, self.model.data, self.problem, self.values,
-                                    set(), 0, self.model.options)
-        cal = calibration_dict(result)
-        return {
-            "format": "graphcal-diagnosis/1",
-            "adequacy": _final_adequacy(self),
-            "nominal": self.nominal.to_dict(),
-            "final": self.final.to_dict(),
-            "corrections": [c.to_dict() for c in self.corrections],
-            "findings": [f.to_dict() for f in self.findings],
-            "unexplained_structure": bool(self.unexplained_structure),
-            "structure_test": None if self.structure_test is None else
-            {"chi2": self.structure_test[0], "redundancy": self.structure_test[1], "p_value": self.structure_test[2]},
-            "extended_calibration": {"note": extended_calibration_note(self.model.options),
-                                     "sensors": cal.get("sensors", {}), "legs": cal.get("legs", {}),
-                                     **_extension_values(self)},
-            "screening": [[{"candidate": c, "log10_p_family": p, "statistic": s, "dof": d} for c, p, s, d in r]
-                          for r in self.screening],
-            "screening_threshold_log10_p": list(self.thresholds),
-            "nuisance": list(self.nuisance),
-            "notes": list(self.notes),
-            "warnings": list(self.warnings),
-            "physical_noise_tests": {"nominal": [g.to_dict() for g in self.nominal_groups],
-                                     "final": [g.to_dict() for g in self.groups]},
-            "structure_remains_in": [g.group for g in self.groups if g.structure],
-            "answer": self.answer,
-        }
-
 
 def extended_calibration_note(options) -> str:
     """Why ``extended_calibration`` differs from calibrate's calibration.yaml (``options``: the
@@ -170,11 +139,11 @@ KINEMATIC_CAUSES = frozenset({"joint_offset", "link_length", "foot_radius", "joi
 COMMANDED_NOISE = ("sigma_commanded_rad", "sigma_commanded_m")
 
 
-def _final_adequacy(diag: "Diagnosis") -> dict:
+def final_adequacy(diag: "Diagnosis") -> dict:
     """The verdict on the final (extended) model, judged against the dataset's physical noise as
     calibrate's (calibration.yaml ``adequacy:``, docs/calibration.md); a note when it cannot be read."""
     from graphcal.calibration.calibrate import adequacy_at
-    from graphcal.report.calibration_yaml import adequacy_dict
+    from graphcal.calibration.adequacy import adequacy_dict
 
     try:
         a = adequacy_at(diag.model.ds, diag.model.options, diag.problem, diag.values)
@@ -207,11 +176,11 @@ def _final_adequacy(diag: "Diagnosis") -> dict:
         return {"model": "final (extended)", "verdict": "not judged", "reason": str(exc)}
 
 
-def _extension_values(diag: Diagnosis) -> dict:
+def extension_values(diag: Diagnosis) -> dict:
     """The findings that are not leg parameters (those are in ``legs``), with their values; an
     extrinsic change also gives the sensor's pose from the change on (``sensors`` holds the pose
     before it)."""
-    from graphcal.report.calibration_yaml import pose_to_dict
+    from graphcal.io.calibration_yaml import pose_to_dict
 
     out = {}
     for f in diag.findings:

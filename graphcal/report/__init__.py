@@ -4,13 +4,7 @@ report and its figures (docs/outputs.md).
 ``write_calibration_outputs(result, out_dir)`` writes the four files as one atomic set.
 """
 
-from graphcal.report.calibration_yaml import (
-    FORMAT,
-    calibration_to_dict,
-    calibration_yaml_text,
-    pose_from_dict,
-    read_calibration_yaml,
-)
+from graphcal.report.calibration_yaml import calibration_to_dict, calibration_yaml_text
 from graphcal.report.ros import static_transform_publisher_command, static_transforms_script
 from graphcal.report.urdf import calibrated_urdf
 from graphcal.report.write import OUTPUT_FILES, write_calibration_outputs
@@ -24,13 +18,10 @@ def report_html(result, *, title: str = "graphcal calibration report") -> str:
 
 
 __all__ = [
-    "FORMAT",
     "OUTPUT_FILES",
     "calibration_to_dict",
     "calibration_yaml_text",
     "calibrated_urdf",
-    "pose_from_dict",
-    "read_calibration_yaml",
     "report_html",
     "static_transform_publisher_command",
     "static_transforms_script",

@@ -198,7 +198,7 @@ def _screening(doc: dict) -> list[str]:
 def diagnosis_html(diag, doc: dict, title: str) -> str:
     """The page of a :class:`~graphcal.diagnosis.diagnose.Diagnosis` and its JSON document ``doc``
     (:meth:`Diagnosis.to_json`; RMS in deg and mm, chi-square per degree of freedom)."""
-    from graphcal.diagnosis.plots import diagnosis_figures
+    from graphcal.report.diagnosis_plots import diagnosis_figures
 
     n, f = doc["nominal"], doc["final"]
     res = ['<table><tr><th class="l">model</th><th>theta RMS [deg]</th><th>e_d RMS [mm]</th><th>chi2 / dof</th></tr>']
