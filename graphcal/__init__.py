@@ -6,14 +6,3 @@ order ``[omega, v]``, SI units inside the code).
 
 __version__ = "0.1.0"
 
-
-def _no_tqdm_monitor_thread() -> None:
-    """tqdm starts a monitor thread with its first progress bar, and it lives as long as the process;
-    with another thread alive graphcal does not fork its plane-fitting workers
-    (graphcal.clouds.plane_table) and fits on threads instead. graphcal's bars need no monitor."""
-    import tqdm
-
-    tqdm.tqdm.monitor_interval = 0
-
-
-_no_tqdm_monitor_thread()

@@ -245,6 +245,17 @@ def test_the_layers_check_sees_an_upward_and_a_sideways_import():
     ]
 
 
+def test_importing_graphcal_sets_nothing_in_tqdm_and_its_bar_starts_no_thread():
+    import subprocess
+
+    code = ("import io, threading, tqdm; before = tqdm.tqdm.monitor_interval; import graphcal, graphcal.cli; "
+            "from graphcal.progress import ProgressBar; bar = ProgressBar(total=2, file=io.StringIO()); bar.update(); "
+            "print(before, tqdm.tqdm.monitor_interval, threading.active_count())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[0] == out[1] != "0"  # tqdm's own default (10) untouched
+    assert out[2] == "1"  # no monitor thread beside the main one
+
+
 def test_the_scan_sees_a_cycle_and_a_private_import():
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
     assert cycles(graph) == [["a", "b", "c"]]

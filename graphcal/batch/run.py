@@ -127,10 +127,10 @@ def run_tasks(fn: Callable[[Any], Any], items: Sequence[Any], executor: Executor
     bar = None
     redirect = contextlib.nullcontext()
     if progress:
-        from tqdm import tqdm
+        from graphcal.progress import ProgressBar
         from tqdm.contrib.logging import logging_redirect_tqdm
 
-        bar = tqdm(total=len(items), desc=desc, unit="task", file=sys.stderr, leave=True)
+        bar = ProgressBar(total=len(items), desc=desc, unit="task", file=sys.stderr, leave=True)
         redirect = logging_redirect_tqdm([logging.getLogger("graphcal")])  # messages above the bar
     with redirect:
         return _run(fn, items, executor, on_outcome, bar, max_in_flight, fresh_pool, pool_size)

@@ -235,11 +235,11 @@ def planes_rows(
 
     try:
         if progress:
-            from tqdm import tqdm
+            from graphcal.progress import ProgressBar
 
             if total is None and hasattr(items, "__len__"):
                 total = len(items)
-            bar = tqdm(total=total, desc="planes: clouds", unit="cloud")
+            bar = ProgressBar(total=total, desc="planes: clouds", unit="cloud")
         if futures is not None:
             from concurrent.futures.process import BrokenProcessPool
 

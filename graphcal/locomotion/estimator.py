@@ -733,9 +733,9 @@ def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.
     S_bg[0], S_ba[0] = ekf.body_biases()
     it = range(n_ev)
     if progress:
-        from tqdm import tqdm
+        from graphcal.progress import ProgressBar
 
-        it = tqdm(it, desc="track: EKF", unit="update", mininterval=0.5)
+        it = ProgressBar(it, desc="track: EKF", unit="update", mininterval=0.5)
     next_cov = cfg.record_cov_every
     pose_r, pose_c = np.meshgrid(pose_idx, pose_idx, indexing="ij")
     for e in it:

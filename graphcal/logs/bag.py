@@ -11,7 +11,7 @@ from array import array
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
+from graphcal.progress import ProgressBar
 
 from graphcal.errors import DatasetError
 from graphcal.io.dataset.model import ImuSpec, PosePrior, RobotSpec, SensorSpec
@@ -99,7 +99,7 @@ def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
     received: dict[str, array] = {name: array("q") for name in sensors}
     K: dict[str, np.ndarray] = {}
     every = [*topics, *point_topics, *info_topics]
-    bar = tqdm(total=sum(reader.topics[t].count for t in every), unit="msg", desc="import", disable=not progress,
+    bar = ProgressBar(total=sum(reader.topics[t].count for t in every), unit="msg", desc="import", disable=not progress,
                mininterval=0.5)
     for n, (topic, t_ns, raw) in enumerate(reader.messages(every)):
         if n % 1000 == 0:
@@ -193,7 +193,7 @@ def _pass2(reader: LogReader, m: dict, windows, received: dict, K: dict, progres
     use_header = m["stamps"] == "header"
     pad_ns = 1_000_000_000  # receive time may lag the header stamp (s -> ns)
     frames: dict[str, str] = {}
-    for w in tqdm(windows, desc="import: clouds", unit="station", disable=not progress or not sensors):
+    for w in ProgressBar(windows, desc="import: clouds", unit="station", disable=not progress or not sensors):
         for name, s in sensors.items():
             r = np.frombuffer(received[name], dtype=np.int64) if len(received[name]) else np.zeros(0, np.int64)
             lo, hi = np.searchsorted(r, [int((w.start + offset) * 1e9) - pad_ns, int((w.end + offset) * 1e9) + pad_ns])

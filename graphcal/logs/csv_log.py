@@ -11,7 +11,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
+from graphcal.progress import ProgressBar
 
 from graphcal.errors import DatasetError
 from graphcal.io.dataset.model import ImuSpec, PosePrior, RobotSpec
@@ -128,7 +128,7 @@ def import_csv(path: Path, out_dir: Path, *, map_path: Path, urdf_file: Path | N
         if not header:
             raise DatasetError(path, "header (row 0)", "a header row of column names", "an empty file")
         idx = _columns(header, m, path)
-        for row_no, row in enumerate(tqdm(reader, desc="import: rows", unit="row", disable=not progress,
+        for row_no, row in enumerate(ProgressBar(reader, desc="import: rows", unit="row", disable=not progress,
                                           mininterval=0.5), start=1):
             t, q, acc, gyr, forces = _parse_row(path, m, idx, row, row_no, header)
             stamps(f"column {m['time']['column']}", t, f"row {row_no}")

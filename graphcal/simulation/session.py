@@ -507,9 +507,9 @@ def _stations(config: SimulationConfig, robot, true_robot, commands, stances: _S
     leg_q_true = {}
     it = commands
     if progress:
-        from tqdm import tqdm
+        from graphcal.progress import ProgressBar
 
-        it = tqdm(commands, desc="simulate: stations", unit="station")
+        it = ProgressBar(commands, desc="simulate: stations", unit="station")
     for i, cmd in enumerate(it):
         T_cmd = stances.T_world_stance[cmd.session] @ cmd.T_stance_body
         p_body_cmd = transform_points(invert_pose(T_cmd), stances.feet_world_assumed[cmd.session])
