@@ -827,22 +827,13 @@ def batch_problem_at(ds, robot, data, options: CalibrationOptions, values):
         return None
 
 
-def batch_noise_groups(ds, robot, data, options: CalibrationOptions, values) -> tuple:
-    """The noise groups of :func:`batch_problem_at`, each σ what its residuals converge to
-    (:func:`~graphcal.calibration.calibrate.noise_groups_pointed_to`); () when it cannot be built."""
-    from graphcal.calibration.calibrate import noise_groups_pointed_to
-
-    full = batch_problem_at(ds, robot, data, options, values)
-    return () if full is None else noise_groups_pointed_to(options, full, full.initial)
-
-
 def judge_incremental(ds, options: CalibrationOptions, problem, values, result, *, batch_groups: tuple = ()):
     """``result`` of the incremental solver with its adequacy verdict (adequacy.py): the given noise
     groups judged against the physical noise at the factor their residuals point to, gross stations
     flagged (not left out: iSAM2 has moved on), and when the model does not fit the robust
     covariance of robust.py governing (the model's scaled by the given noise's misfit plus the jackknife over
     stations; no ``--legs`` solve) and the warning first. Segments other than the last keep the
-    model covariance. ``batch_groups``: :func:`batch_noise_groups` (judged instead of the planes-only
+    model covariance. ``batch_groups``: the full batch graph's noise groups at this solution (judged instead of the planes-only
     groups of ``result`` when given)."""
     from graphcal.calibration.adequacy import adequacy_verdict, group_checks, gross_stations, misfit_warning
     from graphcal.calibration.calibrate import dataset_physical_noise, model_sigmas

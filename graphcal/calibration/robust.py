@@ -18,7 +18,7 @@ offset: 47 sigma off). The robust covariance of each extrinsic is the sum of
   (``covariance_scale``, noise_check.py) is scaled only by what ``s`` adds to it,
   ``max(1, s / covariance_scale)``;
 * a jackknife over stations: each station's planes (or scans) left out in turn (one Gauss-Newton
-  step on the final linearisation, :func:`jackknife_covariances`), ``(n - 1) / n sum (xi_i - mean)(xi_i - mean)^T`` of the extrinsic's
+  step on the final linearisation, :func:`jackknife_tangents`), ``(n - 1) / n sum (xi_i - mean)(xi_i - mean)^T`` of the extrinsic's
   tangent ``xi_i = Log(T_hat^-1 T_i)``: the spread a station's data cause;
 * when a leg's group does not fit and the legs were not calibrated: the shift to the extended
   model (``--legs``) and its covariance, ``C_legs + d d^T``, ``d = Log(T_hat^-1 T_legs)``: the
@@ -58,7 +58,7 @@ from graphcal.calibration.graph import CalibrationProblem
 
 log = logging.getLogger(__name__)
 
-__all__ = ["station_chi2", "variance_factor", "jackknife_covariances", "shift_covariances", "misfit_sensors",
+__all__ = ["station_chi2", "variance_factor", "shift_covariances", "misfit_sensors",
            "with_robust_covariance", "robust_parts", "RobustTerm", "LEG_GROUPS", "PLANE_GROUP_PREFIX",
            "PLAUSIBLE_RANGE_SCALE_ERROR", "plausible_range_scales", "jackknife_tangents", "change_station",
            "change_shift_covariances", "MIN_SEGMENT_STATIONS"]
@@ -124,12 +124,6 @@ def _tangent(T_hat: np.ndarray, T: np.ndarray) -> np.ndarray:
     from graphcal.geometry import pose_log_between
 
     return np.asarray(pose_log_between(T_hat, T), dtype=float)
-
-
-def jackknife_covariances(problem: CalibrationProblem, values, outliers: frozenset) -> dict[str, np.ndarray]:
-    """sensor -> 6x6 jackknife covariance over stations (module docstring) of
-    :func:`jackknife_tangents`; empty with fewer than 3 stations with measurements."""
-    return {name: _jackknife_covariance(X) for name, (_, X) in jackknife_tangents(problem, values, outliers).items()}
 
 
 def _jackknife_covariance(X: np.ndarray) -> np.ndarray:

@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from graphcal.factors.plane_observation import plane_cov3, tangent_basis
 
 __all__ = ["StationGrounds", "station_grounds", "PLANE_VARIANTS", "plane_variant", "plane_rows", "chi2_rows",
-           "chi2_at_stations", "fit_extrinsic", "prior_information", "prior_residual", "retract_extrinsic",
+           "fit_extrinsic", "prior_information", "prior_residual", "retract_extrinsic",
            "DEFAULT_PLANE_COV4"]
 
 #: a plane without a covariance in planes.csv: 1 mm and ~0.06 deg (calibration/graph.py's default)
@@ -174,15 +174,6 @@ def chi2_rows(n_m, d_m, cov3, u, z, W, cov_ab, T_body_sensor, cov_S=None, *, jac
     Ci = _inverse3(C)
     chi = np.sum((Ci @ e[:, :, None])[:, :, 0] * e, axis=1)
     return (chi, e, Ci, J_S) if jacobian else chi
-
-
-def chi2_at_stations(n_m, d_m, cov4, g: StationGrounds, T_body_sensor, cov_S=None) -> np.ndarray:
-    """(M,) chi-square (3 dof) of one plane (n_m (3,), d_m m; cov4 its 4x4 covariance or None) at
-    every station of ``g`` for the extrinsic ``T_body_sensor`` (4x4) with covariance ``cov_S``."""
-    n, d, c3 = plane_rows(np.asarray(n_m, dtype=float)[None], [d_m], [cov4])
-    m = len(g.ids)
-    return chi2_rows(np.repeat(n, m, 0), np.repeat(d, m), np.repeat(c3, m, 0), g.u, g.z, g.W, g.cov,
-                     T_body_sensor, cov_S)
 
 
 def prior_information(prior: tuple) -> np.ndarray:

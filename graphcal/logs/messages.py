@@ -13,7 +13,7 @@ from graphcal.errors import DatasetError
 from graphcal.geometry import pose_from_xyz_quat_wxyz
 
 __all__ = ["header_stamp", "joint_state", "imu_sample", "cloud_points", "laser_scan_points",
-           "depth_image_points", "camera_matrix", "foot_value", "foot_values", "FootForces", "static_transforms", "chain_pose"]
+           "depth_image_points", "camera_matrix", "foot_value", "FootForces", "static_transforms", "chain_pose"]
 
 # sensor_msgs/PointField datatypes -> numpy
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -112,16 +112,6 @@ class FootForces:
             values = np.asarray(getattr(msg, self.field), dtype=np.float64).reshape(-1)
             return (values[self.index] - self.offset) * self.scale
         return np.array([foot_value(msg, s) for s in self.specs.values()])
-
-
-def foot_values(msg: Any, specs: dict[str, dict]) -> dict[str, float]:
-    """:func:`foot_value` of every foot in ``specs`` (foot -> its map entry) from one message."""
-    first = next(iter(specs.values()))
-    if len(specs) > 1 and first.get("kind", "array") == "array":
-        values = np.asarray(getattr(msg, first.get("field", "data")), dtype=np.float64).reshape(-1)
-        return {f: (values[int(s.get("index", 0))] - float(s.get("offset", 0.0))) * float(s.get("scale", 1.0))
-                for f, s in specs.items()}
-    return {f: foot_value(msg, s) for f, s in specs.items()}
 
 
 def foot_value(msg: Any, spec: dict) -> float:

@@ -38,7 +38,7 @@ import numpy as np
 from graphcal.errors import ModelError, excerpt
 from graphcal.geometry import from_pinocchio_se3, invert_pose, tangent_from_pinocchio
 
-__all__ = ["Leg", "RobotModel", "load_robot", "leg_q_from_dict"]
+__all__ = ["Leg", "RobotModel", "load_robot"]
 
 _REVOLUTE_SHORTNAMES = ("JointModelRX", "JointModelRY", "JointModelRZ", "JointModelRevoluteUnaligned")
 _UNBOUNDED_SHORTNAMES = ("JointModelRUBX", "JointModelRUBY", "JointModelRUBZ", "JointModelRevoluteUnboundedUnaligned")
@@ -479,11 +479,3 @@ def _extract_leg(m, base_frame: str, foot: str, what: str, link_names: Sequence[
         upper=_readonly(upper),
         base_frame=base_frame,
     )
-
-
-def leg_q_from_dict(leg: Leg, q_by_joint: Mapping[str, float]) -> np.ndarray:
-    """(n,) joint vector of ``leg`` from a joint name -> value mapping (missing joints raise ModelError)."""
-    missing = [j for j in leg.joint_names if j not in q_by_joint]
-    if missing:
-        raise ModelError(f"joint values missing for {', '.join(repr(j) for j in missing)} (leg of {leg.foot!r})")
-    return np.array([float(q_by_joint[j]) for j in leg.joint_names])
