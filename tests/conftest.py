@@ -3,7 +3,8 @@ calibration's truth and errors, the hexapod graphcal does not ship) live in grap
 test modules never import each other.
 
 Markers (pyproject.toml): ``slow`` marks the long end-to-end runs; ``pytest -m "not slow"`` is the
-quick development subset, the full run (CI) includes them.
+quick development subset, the full run (CI) includes them. ``battery`` marks the statistical
+batteries among them (every battery is also slow): ``pytest -m "not battery"`` runs everything else.
 """
 
 from __future__ import annotations

@@ -318,6 +318,7 @@ def test_chai_table3_flags_the_sign_error_row(tmp_path):
 
 
 # ----------------------------------------------------------------------------- reduced battery
+@pytest.mark.battery
 @pytest.mark.slow
 def test_reduced_hidden_effect_battery(tmp_path):
     """bench/adequacy_battery.py, reduced (18 runs, ~40 s): one drawn run of each catalogued effect

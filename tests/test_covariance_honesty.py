@@ -24,6 +24,7 @@ def _dataset(tmp_path, seed):
     return tmp_path / f"s{seed}", true_extrinsic(res.truth, "depth")
 
 
+@pytest.mark.battery
 @pytest.mark.slow
 def test_monte_carlo_nees_of_the_extrinsic_is_in_its_95_percent_interval(tmp_path):
     n_runs = 24
@@ -37,6 +38,7 @@ def test_monte_carlo_nees_of_the_extrinsic_is_in_its_95_percent_interval(tmp_pat
     assert lo <= np.mean(values) <= hi
 
 
+@pytest.mark.battery
 @pytest.mark.slow
 def test_unseen_hexapod_nees_with_the_noise_learned_is_in_its_95_percent_interval(tmp_path):
     """Issue 3's acceptance case with the product's defaults (noise learned from the data), over 10

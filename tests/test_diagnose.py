@@ -45,6 +45,7 @@ KNOWN_MISSES = {(147, "qingzhui", "outlier_stations"):
                 "warning (outlier findings are exempt from the held-out test; measured 49/50 on the battery)"}
 
 
+@pytest.mark.battery
 @pytest.mark.slow
 @pytest.mark.parametrize("k", range(len(CASES)), ids=[f"{s}-{r}-{c}" for s, r, c in CASES])
 def test_battery_case(battery, k, request):
@@ -55,6 +56,7 @@ def test_battery_case(battery, k, request):
     assert r.passed, f"{r.hidden} on {r.robot} (seed {r.seed}): named {r.named or 'nothing'}; {r.detail}"
 
 
+@pytest.mark.battery
 @pytest.mark.slow
 def test_battery_targets(battery):
     print(f"\nbattery: top-1 {battery['top1']:.1%}, all checks {battery['passed']:.1%}, "
@@ -65,6 +67,7 @@ def test_battery_targets(battery):
     assert battery["final_fits"] >= 0.98
 
 
+@pytest.mark.battery
 @pytest.mark.slow
 def test_clean_data_leave_no_unexplained_structure(battery):
     clean = [r for r in battery["results"] if r.hidden == "clean"]

@@ -225,6 +225,7 @@ def _xfail_if(reason: str):
     return pytest.mark.xfail(strict=True, reason=reason) if reason else []
 
 
+@pytest.mark.battery
 @pytest.mark.slow
 @pytest.mark.parametrize("which,miss", [pytest.param("dev", DEV_MISS, marks=_xfail_if(DEV_MISS)),
                                         pytest.param("blind", BLIND_MISS, marks=_xfail_if(BLIND_MISS))])

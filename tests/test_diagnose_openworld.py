@@ -129,6 +129,7 @@ def developed():
     return diagnosis_openworld.main(diagnosis_openworld.DEVELOPED, per=5, jobs=2, verbose=True)
 
 
+@pytest.mark.battery
 @pytest.mark.slow
 def test_open_world_developed_generators(developed):
     """A plate under two feet and a depth error growing with range^2 (the generators developed
@@ -146,6 +147,7 @@ def blind():
     return diagnosis_openworld.main(diagnosis_openworld.BLIND, per=5, jobs=2, first_seed=700, verbose=True)
 
 
+@pytest.mark.battery
 @pytest.mark.slow
 def test_open_world_blind_generators(blind):
     """Feet sinking during a session and an IMU mount drifting over the run: kept out of development

@@ -435,6 +435,7 @@ def geo():
     return _Geometry(7)
 
 
+@pytest.mark.battery
 @pytest.mark.slow
 def test_no_false_alarm_in_100_clean_runs(geo):
     """100 runs of the 52 Chai stations (5200 tests), every measurement synthesised from the
