@@ -15,6 +15,7 @@ import numpy as np
 from graphcal.errors import DatasetError
 from graphcal.geometry import pose_from_xyz_quat_wxyz
 from graphcal.io.dataset import FEET_REPLANTED_AT_EACH_STATION
+from graphcal.models.sensors import sensor_type
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,7 +134,7 @@ def plane_candidates(ds, *, progress: bool = False, plane_max_points: int | None
     else:
         from graphcal.io.dataset import cloud_paths, load_cloud
 
-        cams = {k: v for k, v in cloud_paths(ds).items() if types.get(k[0]) in ("depth_camera", "stereo_camera")}
+        cams = {k: v for k, v in cloud_paths(ds).items() if k[0] in types and sensor_type(types[k[0]]).fits_planes}
         pairs = [(key, functools.partial(load_cloud, ds, *key)) for key in sorted(cams)]  # read by the workers
         rows = planes_rows(pairs, types, progress=progress, total=len(cams), max_points=plane_max_points)
         count = len(rows["station"])
@@ -203,7 +204,7 @@ def scan_points(ds, *, max_points: int = 200, seed: int = 0, max_range_m: float 
 
     out = {}
     for (sensor, station), path in sorted(cloud_paths(ds).items()):
-        if ds.sensors[sensor].type != "laser_scanner":
+        if sensor_type(ds.sensors[sensor].type).fits_planes:
             continue
         pts = load_cloud(ds, sensor, station)
         if off_plane is not None:

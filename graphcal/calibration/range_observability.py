@@ -87,7 +87,7 @@ def range_scale_limits(ds, declared: Mapping | None) -> dict[str, tuple[float, s
     """sensor -> (limit in per cent, where it comes from): dataset.yaml's ``physical_noise:
     range_scale_pct`` when declared (already validated by adequacy.physical_noise), else the
     default of the sensor's type (:data:`~graphcal.models.sensors.RANGE_SCALE_CHECK_PCT`)."""
-    from graphcal.models.sensors import RANGE_SCALE_CHECK_PCT
+    from graphcal.models.sensors import sensor_type
 
     declared = declared if isinstance(declared, Mapping) else {}
     out = {}
@@ -95,7 +95,7 @@ def range_scale_limits(ds, declared: Mapping | None) -> dict[str, tuple[float, s
         if "range_scale_pct" in declared:
             out[name] = (float(declared["range_scale_pct"]), "dataset.yaml physical_noise range_scale_pct")
         else:
-            out[name] = (RANGE_SCALE_CHECK_PCT.get(spec.type, RANGE_SCALE_CHECK_PCT["laser_scanner"]),
+            out[name] = (sensor_type(spec.type).range_scale_check_pct,
                          f"default for a {spec.type} (graphcal/models/sensors.py)")
     return out
 

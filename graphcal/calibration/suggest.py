@@ -53,13 +53,13 @@ import numpy as np
 from graphcal.errors import GraphcalError
 from graphcal.geometry import invert_pose, pose_from_xyz_rpy, xyz_rpy_from_pose
 from graphcal.calibration.graph import DEFAULT_PLANE_COV, CalibrationOptions
+from graphcal.models.sensors import sensor_type
 
 __all__ = ["SuggestedPose", "suggest_poses", "predict_sigmas", "PoseInformationModel", "suggest_with_model", "MIN_GROUND_RAYS"]
 
 #: rays of the strided pixel grid that must hit the ground for a pose to count as a measurement
 MIN_GROUND_RAYS = 30
 _RAY_GRID = (48, 36)  # pixel grid used to predict a plane's covariance (the scale c absorbs it)
-_CAMERAS = ("depth_camera", "stereo_camera")
 #: random candidate poses drawn, and the rotation within which a chosen pose's neighbours are dropped (deg).
 #: Measured on Chai's program, aiming at its sigmas: 500 candidates needed 27 stations (0.85 s),
 #: 2000 needed 25 (2.8 s), 4000 needed 24 (4.9 s)
@@ -106,7 +106,7 @@ class PoseInformationModel:
         self.ds, self.options = ds, options
         self.robot = load_dataset_robot(ds)
         data = calibration_data(ds, self.robot)
-        cams = [n for n, s in ds.sensors.items() if s.type in _CAMERAS]
+        cams = [n for n, s in ds.sensors.items() if sensor_type(s.type).fits_planes]
         if sensor is None:
             if not cams:
                 raise GraphcalError("suggest_poses: the dataset has no camera (depth or stereo); laser scanners "
@@ -114,7 +114,7 @@ class PoseInformationModel:
             sensor = cams[0]
         if sensor not in ds.sensors:
             raise GraphcalError(f"suggest_poses: no sensor {sensor!r}; the dataset has {', '.join(ds.sensors)}")
-        if ds.sensors[sensor].type not in _CAMERAS:
+        if not sensor_type(ds.sensors[sensor].type).fits_planes:
             raise GraphcalError(f"suggest_poses: {sensor!r} is a {ds.sensors[sensor].type}; only cameras are supported")
         self.sensor = sensor
         plain = replace(options, robust=False)

@@ -19,13 +19,10 @@ PLANE_COLUMNS = ("station", "sensor", "nx", "ny", "nz", "d", "n_points", "rms") 
 def range_noise_for(sensor_type: str):
     """The plane-extraction noise model of a sensor type (None: use the empirical rms)."""
     from graphcal.clouds.planes import depth_camera_distance_sigma
-    from graphcal.models.sensors import DepthCamera, StereoCamera
+    from graphcal.models.sensors import sensor_type as record
 
-    if sensor_type == "depth_camera":
-        return depth_camera_distance_sigma(DepthCamera().sigma_along_axis)
-    if sensor_type == "stereo_camera":
-        return depth_camera_distance_sigma(StereoCamera().sigma_along_axis)
-    return None
+    t = record(sensor_type)
+    return depth_camera_distance_sigma(t.model().sigma_along_axis) if t.fits_planes else None
 
 
 def cloud_rng(seed: int, sensor: str, station: int) -> np.random.Generator:
@@ -65,8 +62,9 @@ def _fit_cloud(key: tuple[str, int], points, kind: str, max_planes: int, seed: i
     Too few or degenerate points: no plane (``[]``).
     """
     from graphcal.clouds.planes import extract_planes
+    from graphcal.models.sensors import sensor_type
 
-    if kind == "laser_scanner":
+    if not sensor_type(kind).fits_planes:
         return []
     if callable(points):
         points = points()
@@ -287,9 +285,10 @@ def camera_clouds_without_planes(ds, have) -> dict[str, tuple[list[int], int]]:
     clouds), for the cameras with such stations. ``have``: the ``(sensor, station)`` pairs with a
     plane (from planes.csv, or fitted)."""
     from graphcal.io.dataset import cloud_paths
+    from graphcal.models.sensors import sensor_type
 
     have = {(str(sn), int(st)) for sn, st in have}
-    cameras = {n for n, spec in ds.sensors.items() if spec.type in ("depth_camera", "stereo_camera")}
+    cameras = {n for n, spec in ds.sensors.items() if sensor_type(spec.type).fits_planes}
     clouds = [key for key in cloud_paths(ds) if key[0] in cameras]
     out = {}
     for sensor in sorted({k[0] for k in clouds}):

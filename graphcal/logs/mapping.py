@@ -13,6 +13,7 @@ import yaml
 from graphcal.errors import DatasetError
 from graphcal.logs.reader import LogTopic
 from graphcal.logs.stations import StationThresholds
+from graphcal.models.sensors import SENSOR_TYPE_RECORDS
 
 __all__ = ["MAP_FORMAT", "TYPES", "detect_map", "read_map", "map_yaml_text", "check_map", "thresholds_of", "load_yaml",
            "sensor_name_of"]
@@ -33,7 +34,10 @@ CONTACTS = ("std_msgs/msg/Bool", "std_msgs/msg/UInt8")
 
 #: what each entry of the map must be (the message types it accepts)
 TYPES = {"joints": (JOINT_STATE,), "imu": (IMU,), "tf_static": (TF,), "robot_description": (STRING,),
-         "depth_camera": (CLOUD, IMAGE), "laser_scanner": (SCAN, CLOUD), "camera_info": (CAMERA_INFO,)}
+         "camera_info": (CAMERA_INFO,),
+         **{t.name: t.log_messages for t in SENSOR_TYPE_RECORDS.values() if t.log_messages}}
+#: the sensor types a log can hold (models/sensors.py's records with message types)
+LOG_SENSOR_TYPES = tuple(t.name for t in SENSOR_TYPE_RECORDS.values() if t.log_messages)
 
 _DEFAULT_PRIOR = {"sigma_mm": 50.0, "sigma_rpy_deg": 5.0}
 
@@ -188,8 +192,8 @@ def check_map(m: dict, topics: dict[str, LogTopic], log: Path, map_source: str) 
     if isinstance(urdf, str) and urdf.startswith("/") and not Path(urdf).is_file():
         need(urdf, "robot.urdf", TYPES["robot_description"])
     for name, s in (m.get("sensors") or {}).items():
-        if s.get("type") not in ("depth_camera", "laser_scanner"):
-            raise DatasetError(map_source, f"sensors.{name}.type", "depth_camera or laser_scanner", s.get("type"))
+        if s.get("type") not in LOG_SENSOR_TYPES:
+            raise DatasetError(map_source, f"sensors.{name}.type", " or ".join(LOG_SENSOR_TYPES), s.get("type"))
         need(s.get("topic"), f"sensors.{name}.topic", TYPES[s["type"]])
         s["msgtype"] = topics[s["topic"]].msgtype
         if s["msgtype"] == IMAGE:

@@ -25,6 +25,9 @@ from graphcal.errors import GraphcalError
 
 __all__ = [
     "SENSOR_TYPES",
+    "SensorType",
+    "SENSOR_TYPE_RECORDS",
+    "sensor_type",
     "KINECT_NOISE_COEFF_PER_M",
     "DepthCamera",
     "StereoCamera",
@@ -36,9 +39,6 @@ __all__ = [
     "PHYSICAL_NOISE_KEYS",
     "RANGE_SCALE_CHECK_PCT",
 ]
-
-#: The exteroceptive sensor types of a dataset (dataset.yaml ``sensors.<name>.type``).
-SENSOR_TYPES: tuple[str, ...] = ("depth_camera", "laser_scanner", "stereo_camera")
 
 #: Kinect depth noise: sigma_z = KINECT_NOISE_COEFF_PER_M * z**2 (m), Khoshelham & Elberink 2012,
 #: as used by Chai 2015.
@@ -117,15 +117,44 @@ class LaserScanner:
 Sensor = DepthCamera | StereoCamera | LaserScanner
 
 
-def sensor_for_type(sensor_type: str) -> Sensor:
+@dataclass(frozen=True)
+class SensorType:
+    """One exteroceptive sensor type (dataset.yaml ``sensors.<name>.type``): everything graphcal
+    does differently per type is read from here.
+
+    Attributes:
+        name: the type's name in datasets and import maps.
+        model: its default sensor model (field of view, range noise in m), a class of this module.
+        measures: ``"planes"`` (3-D clouds, fitted with planes into planes.csv, Chai's factor) or
+            ``"scans"`` (2-D scan points, each against the floor, Łabęcki's factor).
+        log_messages: the ROS message types ``graphcal import`` reads it from (() = not importable).
+        range_scale_check_pct: how well the data must determine its range scale, per cent of the
+            range (:data:`RANGE_SCALE_CHECK_PCT`).
+    """
+
+    name: str
+    model: type
+    measures: str
+    log_messages: tuple[str, ...]
+    range_scale_check_pct: float
+
+    @property
+    def fits_planes(self) -> bool:
+        """Its clouds are fitted with planes (a camera); else its scans are used point by point."""
+        return self.measures == "planes"
+
+
+def sensor_type(name: str) -> SensorType:
+    """The record of sensor type ``name``; GraphcalError naming the known ones otherwise."""
+    try:
+        return SENSOR_TYPE_RECORDS[name]
+    except (KeyError, TypeError):
+        raise GraphcalError(f"unknown sensor type {name!r}; expected one of {', '.join(SENSOR_TYPES)}") from None
+
+
+def sensor_for_type(name: str) -> Sensor:
     """Default sensor model for a dataset sensor type."""
-    if sensor_type == "depth_camera":
-        return DepthCamera()
-    if sensor_type == "laser_scanner":
-        return LaserScanner()
-    if sensor_type == "stereo_camera":
-        return StereoCamera()
-    raise GraphcalError(f"unknown sensor type {sensor_type!r}; expected one of {', '.join(SENSOR_TYPES)}")
+    return sensor_type(name).model()
 
 
 def _pinhole_rays(width: int, height: int, hfov_deg: float, vfov_deg: float) -> np.ndarray:
@@ -178,6 +207,15 @@ PHYSICAL_NOISE_FLOORS: dict[str, float] = {
     "plane_scale": 1.0,
 }
 
+_CLOUD = "sensor_msgs/msg/PointCloud2"
+#: every sensor type, in dataset.yaml's order
+SENSOR_TYPE_RECORDS: dict[str, SensorType] = {t.name: t for t in (
+    SensorType("depth_camera", DepthCamera, "planes", (_CLOUD, "sensor_msgs/msg/Image"), 0.5),
+    SensorType("laser_scanner", LaserScanner, "scans", ("sensor_msgs/msg/LaserScan", _CLOUD), 0.5),
+    SensorType("stereo_camera", StereoCamera, "planes", (), 0.5),
+)}
+#: The exteroceptive sensor types of a dataset (dataset.yaml ``sensors.<name>.type``).
+SENSOR_TYPES: tuple[str, ...] = tuple(SENSOR_TYPE_RECORDS)
 #: How well calibrate's data must determine a sensor's range (depth) scale, per sensor type, in per
 #: cent of the range (graphcal/calibration/range_observability.py, docs/calibration.md): the 1-sigma
 #: of the scale from the data alone above this is a warning that the data cannot check the
@@ -193,11 +231,7 @@ PHYSICAL_NOISE_FLOORS: dict[str, float] = {
 #:   calibrated focal length times baseline (a checkerboard calibration: a few tenths of 1 %).
 #:
 #: dataset.yaml ``physical_noise: {range_scale_pct: ...}`` replaces it for every sensor.
-RANGE_SCALE_CHECK_PCT: dict[str, float] = {
-    "laser_scanner": 0.5,
-    "depth_camera": 0.5,
-    "stereo_camera": 0.5,
-}
+RANGE_SCALE_CHECK_PCT: dict[str, float] = {t.name: t.range_scale_check_pct for t in SENSOR_TYPE_RECORDS.values()}
 
 #: The keys dataset.yaml's ``physical_noise:`` may hold (the others are errors); ``range_scale_pct``
 #: (per cent) is read by range_observability.py, not judged as a noise group.

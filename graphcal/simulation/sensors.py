@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graphcal.models.sensors import LaserScanner, Sensor
+from graphcal.models.sensors import Sensor, sensor_type
 from graphcal.simulation.terrain import build_scene
 
 __all__ = ["Scan", "capture"]
@@ -63,7 +63,7 @@ def capture(
     ok = np.isfinite(t)
     t, gid, dirs = t[ok], gid[ok], dirs_sensor[ok]
     true_pts = dirs * t[:, None]
-    if isinstance(sensor, LaserScanner):
+    if not sensor_type(sensor.type).fits_planes:  # a scanner: noise along the beam
         keep = (t >= sensor.min_range_m) & (t <= sensor.max_range_m)
         t, gid, dirs, true_pts = t[keep], gid[keep], dirs[keep], true_pts[keep]
         r = t + rng.normal(0.0, sensor.sigma_m, size=t.shape)

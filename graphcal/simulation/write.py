@@ -92,7 +92,9 @@ def clouds_written(result: SimulationResult, output: str) -> dict:
     every non-empty one with ``clouds`` or ``both``; with ``planes`` only the laser scanners' (a
     scanner's data are its scan points, a 2D scan has no plane to fit: ``--output planes`` would
     otherwise leave it without data)."""
-    scans = {n for n, cad in result.sensor_cad.items() if cad.type == "laser_scanner"}
+    from graphcal.models.sensors import sensor_type
+
+    scans = {n for n, cad in result.sensor_cad.items() if not sensor_type(cad.type).fits_planes}
     return {k: v for k, v in result.clouds.items() if len(v) and (output in ("clouds", "both") or k[0] in scans)}
 
 

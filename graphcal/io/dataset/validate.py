@@ -13,6 +13,7 @@ from graphcal.io.dataset.cloud_files import cloud_paths, off_plane_scan_warning,
 from graphcal.io.dataset.model import FEET_FIXED_WITHIN, FORMAT, SCAN_PLANE_MAX_Z_M
 from graphcal.io.dataset.paths import shown_path
 from graphcal.io.dataset.read import read_dataset_parts
+from graphcal.models.sensors import sensor_type
 
 
 @dataclass(frozen=True)
@@ -94,7 +95,7 @@ def validate_dataset(path: str | Path) -> ValidationReport:
         pts = read_cloud(f)
         n_points += len(pts)
         sensor = sensor_of.get(f)
-        if sensor in ds.sensors and ds.sensors[sensor].type == "laser_scanner":
+        if sensor in ds.sensors and not sensor_type(ds.sensors[sensor].type).fits_planes:
             z90 = scan_off_plane_m(pts)
             if z90 > SCAN_PLANE_MAX_Z_M:
                 off_plane.setdefault(sensor, []).append((shown_path(ds.root, f), z90))
