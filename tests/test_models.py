@@ -439,3 +439,51 @@ def test_outside_limits_skips_joints_without_usable_limits():
     assert leg.outside_limits(q).tolist() == [[False] * 3, [True] * 3, [False] * 3]
     no_limits = replace(leg, lower=np.zeros(3), upper=np.zeros(3))
     assert not no_limits.outside_limits(q).any()
+
+
+def test_each_sensor_type_is_one_record_read_by_import_plane_fitting_and_the_range_check():
+    """models/sensors.py's SensorType records are what the import map, the plane fitting and the
+    range-scale check read (no second list of types elsewhere)."""
+    from graphcal.calibration.range_observability import range_scale_limits
+    from graphcal.clouds.plane_table import range_noise_for
+    from graphcal.errors import GraphcalError
+    from graphcal.logs import mapping
+    from graphcal.models.sensors import SENSOR_TYPE_RECORDS, SENSOR_TYPES, StereoCamera, sensor_type
+
+    assert SENSOR_TYPES == ("depth_camera", "laser_scanner", "stereo_camera")
+    assert mapping.LOG_SENSOR_TYPES == ("depth_camera", "laser_scanner")  # a stereo pair is not imported
+    assert mapping.TYPES["laser_scanner"] == SENSOR_TYPE_RECORDS["laser_scanner"].log_messages
+    assert range_noise_for("laser_scanner") is None
+    pts = np.array([[0.0, 0.0, 1.0], [0.3, -0.2, 2.0], [0.1, 0.4, 3.0]])  # points on rays, optical frame
+    n = np.array([0.0, 0.0, 1.0])  # a fronto-parallel plane: distance noise = depth noise
+    noise = range_noise_for("stereo_camera")
+    assert noise is not None and np.allclose(noise(pts, n), StereoCamera().sigma_along_axis(pts[:, 2]))
+    assert [sensor_type(t).fits_planes for t in SENSOR_TYPES] == [True, False, True]
+    with pytest.raises(GraphcalError, match="unknown sensor type 'lidar'; expected one of depth_camera, laser_scanner"):
+        sensor_type("lidar")
+    class _Ds:  # the two sensors of a dataset.yaml
+        sensors = {"laser": type("S", (), {"type": "laser_scanner"}), "cam": type("S", (), {"type": "stereo_camera"})}
+
+    limits = range_scale_limits(_Ds, None)
+    assert limits["laser"][0] == SENSOR_TYPE_RECORDS["laser_scanner"].range_scale_check_pct
+    assert limits["cam"][1] == "default for a stereo_camera (graphcal/models/sensors.py)"
+
+
+def test_each_cause_is_one_record_with_its_parameters_and_minimum_size():
+    from graphcal.diagnosis.catalogue import relevant
+    from graphcal.models.effects import CAUSE_RECORDS, CAUSES, cause_record
+
+    assert CAUSES == tuple(CAUSE_RECORDS) and len(CAUSES) == 10
+    assert all(c.parameter.endswith(("_m", "_rad", "_per_m")) or c.name == "sensor_range_scale"
+               for c in CAUSE_RECORDS.values() if c.parameters)
+    assert [c for c in CAUSES if cause_record(c).kinematic] == ["joint_offset", "link_length", "foot_radius",
+                                                               "joint_compliance"]
+    # the minimum sizes, either side of them
+    assert not relevant("sensor_range_scale", {"scale": 0.9975}) and relevant("sensor_range_scale", {"scale": 1.0031})
+    assert not relevant("extrinsic_change", {"angle_rad": np.radians(0.49), "translation_m": 0.0049})
+    assert relevant("extrinsic_change", {"angle_rad": np.radians(0.1), "translation_m": -0.0051})
+    assert relevant("joint_offset", {"offset_rad": -np.radians(0.51)})
+    assert not relevant("joint_compliance", {"k_rad_per_m": 0.079})
+    assert relevant("outlier_stations", {})
+    with pytest.raises(KeyError, match="unknown cause 'wobble'"):
+        cause_record("wobble")

@@ -15,28 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from graphcal.models.effects import CAUSES
+from graphcal.models.effects import CAUSES, cause_record
 
-__all__ = ["CAUSES", "Candidate", "Finding", "MIN_RELEVANT", "relevant"]
-
-#: The smallest effect worth reporting (SI units), per cause: below it a statistically significant
-#: effect is real but does not matter for calibration (e.g. a station-averaged accelerometer bias of
-#: 0.05 m/s^2 is a 0.3 deg "misalignment"). Findings are named only above these magnitudes.
-MIN_RELEVANT = {
-    "sensor_range_scale": 0.003,  # |scale - 1|
-    "session_offset": 0.003,  # m
-    "ground_tilt": float(np.radians(0.5)),
-    "imu_misalignment": float(np.radians(0.5)),
-    "joint_offset": float(np.radians(0.5)),
-    "link_length": 0.004,  # m
-    "extrinsic_change": float(np.radians(0.5)),  # or 5 mm of translation
-    "outlier_stations": 0.0,
-    "foot_radius": 0.005,  # m
-    "joint_compliance": 0.08,  # rad per m of lever: 0.5 deg at a 0.1 m lever
-}
-#: translation (m) that makes an extrinsic change relevant on its own
-MIN_RELEVANT_TRANSLATION_M = 0.005
-
+__all__ = ["CAUSES", "Candidate", "Finding", "relevant"]
 
 @dataclass(frozen=True)
 class Candidate:
@@ -156,24 +137,6 @@ def _plain(v):
 
 
 def relevant(cause: str, parameters: dict) -> bool:
-    """Whether estimated ``parameters`` of ``cause`` reach the catalogue's minimum magnitude."""
-    m = MIN_RELEVANT[cause]
-    if cause == "sensor_range_scale":
-        return abs(parameters["scale"] - 1.0) >= m
-    if cause == "session_offset":
-        return abs(parameters["offset_m"]) >= m
-    if cause in ("ground_tilt",):
-        return abs(parameters["tilt_rad"]) >= m
-    if cause == "imu_misalignment":
-        return abs(parameters["angle_rad"]) >= m
-    if cause == "joint_offset":
-        return abs(parameters["offset_rad"]) >= m
-    if cause == "link_length":
-        return abs(parameters["delta_m"]) >= m
-    if cause == "extrinsic_change":
-        return abs(parameters["angle_rad"]) >= m or abs(parameters["translation_m"]) >= MIN_RELEVANT_TRANSLATION_M
-    if cause == "foot_radius":
-        return abs(parameters["radius_m"]) >= m
-    if cause == "joint_compliance":
-        return abs(parameters["k_rad_per_m"]) >= m
-    return True
+    """Whether estimated ``parameters`` of ``cause`` reach the catalogue's minimum magnitude
+    (:attr:`graphcal.models.effects.Cause.relevant_from`)."""
+    return cause_record(cause).relevant(parameters)

@@ -6,7 +6,7 @@
 3. The candidate with the strongest evidence that passes ``alpha`` (divided by the number of
    causes tested) is fitted as an extension; its likelihood-ratio statistic, parameters and sigma
    come from that fit; it is named only if its size reaches the catalogue's minimum
-   (catalogue.MIN_RELEVANT; otherwise the next candidate is tried). The held-out gain
+   (models/effects.py, each Cause's relevant_from; otherwise the next candidate is tried). The held-out gain
    (heldout.py) says how much better the extended model predicts measurements it was not fitted on.
 4. Repeat from 2 with the extended model until no candidate is significant.
 5. Unexplained structure: the planes' chi-square (their covariance is the fit's own, not learned)
@@ -27,6 +27,7 @@ from scipy.stats import chi2 as chi2_dist
 from graphcal.errors import GraphcalError
 from graphcal.geometry import from_gtsam_pose
 from graphcal.diagnosis.catalogue import Candidate, Finding, relevant
+from graphcal.models.effects import cause_record
 from graphcal.diagnosis.model import VCE_ROUNDS, DiagnosisModel, chi2_of, model_options
 from graphcal.diagnosis.scores import (CandidateColumns, current_columns, evidence, freed_rows_test, score_candidates,
                                        screening_system)
@@ -133,8 +134,6 @@ def extended_calibration_note(options) -> str:
             "use calibrate's calibration.yaml; these are the values with the findings modelled.")
 
 
-#: causes that change the legs' kinematics (the controller's commanded poses assumed the nominal legs)
-KINEMATIC_CAUSES = frozenset({"joint_offset", "link_length", "foot_radius", "joint_compliance"})
 #: the commanded-pose noise fields of CalibrationOptions
 COMMANDED_NOISE = ("sigma_commanded_rad", "sigma_commanded_m")
 
@@ -159,7 +158,7 @@ def final_adequacy(diag: "Diagnosis") -> dict:
             # calibrate estimates the IMU's mounting; the search holds it until a misalignment is named
             # (measured: a clean dataset's IMU at x1.8 with the mounting held, x0.3 estimated)
             fresh = fresh.with_finding(Candidate("imu_misalignment", (), 1))
-        if any(c.cause in KINEMATIC_CAUSES for c in fresh.findings):
+        if any(cause_record(c.cause).kinematic for c in fresh.findings):
             # the controller computed the commanded poses with the nominal legs: with a leg error in the
             # model their difference from the real poses is that error's, not noise, and calibrate --legs
             # holds them loose and judges no "commanded" group (calibration/graph.py); so here (measured:
@@ -184,7 +183,7 @@ def extension_values(diag: Diagnosis) -> dict:
 
     out = {}
     for f in diag.findings:
-        if f.candidate.cause in ("joint_offset", "link_length"):
+        if cause_record(f.candidate.cause).leg_parameter:
             continue
         entry = {"cause": f.candidate.cause, "where": f.candidate.where_dict, "parameters": f.to_dict()["parameters"]}
         if f.candidate.cause == "extrinsic_change":
@@ -348,17 +347,16 @@ def _parameters(cand: Candidate, model: DiagnosisModel, problem, values) -> tupl
 
         p, s = _propagate(values, [k], _joint_cov(problem, values, [k]), fn)
         return {"angle_rad": p[0], "axis_rad": p[1]}, {"angle_rad": s[0], "axis_rad": s[1]}
-    if cause in ("joint_offset", "link_length"):
+    if cause_record(cause).leg_parameter:
         key, param = problem.leg_keys[cand.get("leg")]
-        name = f"{cand.get('joint')}." + ("offset_rad" if cause == "joint_offset" else "delta_m")
-        j = param.names.index(name)
+        pname = cause_record(cause).parameter
+        j = param.names.index(f"{cand.get('joint')}.{pname}")
         cov = _joint_cov(problem, values, [key])
-        pname = "offset_rad" if cause == "joint_offset" else "delta_m"
         return {pname: float(values.atVector(key)[j])}, {pname: float(np.sqrt(cov[j, j]))}
     if cause in ("foot_radius", "joint_compliance"):
         k = ek["foot_radius"] if cause == "foot_radius" else ek[f"compliance:{int(cand.get('joint_index'))}"]
         cov = _joint_cov(problem, values, [k])
-        name = "radius_m" if cause == "foot_radius" else "k_rad_per_m"
+        name = cause_record(cause).parameter
         return {name: float(values.atVector(k)[0])}, {name: float(np.sqrt(cov[0, 0]))}
     if cause == "extrinsic_change":
         s, st = cand.get("sensor"), int(cand.get("station"))

@@ -24,6 +24,7 @@ import numpy as np
 from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem, build_problem
 from graphcal.solvers.batch import solve_lm, whitened_errors
 from graphcal.diagnosis.catalogue import Candidate
+from graphcal.models.effects import cause_record
 from graphcal.diagnosis.extensions import ModelExtensions
 
 log = logging.getLogger(__name__)
@@ -163,8 +164,7 @@ class DiagnosisModel:
         imu = FREE_SIGMA["imu_misalignment"] if self.found("imu_misalignment") else TIGHT_SIGMA
         free_legs = {}
         for c in self.found("joint_offset") + self.found("link_length"):
-            suffix = "offset_rad" if c.cause == "joint_offset" else "delta_m"
-            free_legs.setdefault(c.get("leg"), set()).add(f"{c.get('joint')}.{suffix}")
+            free_legs.setdefault(c.get("leg"), set()).add(f"{c.get('joint')}.{cause_record(c.cause).parameter}")
         segments = tuple((c.get("sensor"), int(c.get("station"))) for c in self.found("extrinsic_change"))
         if screen:
             for s in self.sensors():

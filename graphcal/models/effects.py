@@ -27,18 +27,74 @@ joint_compliance     one joint of every leg flexes under the foot's load     k_r
 
 from __future__ import annotations
 
-__all__ = ["CAUSES"]
+import math
+from dataclasses import dataclass
 
-#: The causes, in the catalogue's order.
-CAUSES = (
-    "sensor_range_scale",
-    "session_offset",
-    "ground_tilt",
-    "imu_misalignment",
-    "joint_offset",
-    "link_length",
-    "extrinsic_change",
-    "outlier_stations",
-    "foot_radius",
-    "joint_compliance",
-)
+__all__ = ["CAUSES", "Cause", "CAUSE_RECORDS", "cause_record"]
+
+
+@dataclass(frozen=True)
+class Cause:
+    """One cause of the table above: what diagnose, the simulator and the reports read of it.
+
+    Attributes:
+        name: its name (``simulate --effect NAME``, diagnosis.json ``cause``).
+        parameters: its estimated parameters, ``(name, unit)`` (SI; the name ends in its unit).
+        where: the keys that locate it (``sensor``, ``session``, ``leg`` + ``joint``, ...).
+        relevant_from: ``(parameter, reference, minimum)``: a finding matters when any
+            ``|parameter - reference| >= minimum`` (below, a significant effect is real but does not
+            matter for calibration); () = always.
+        kinematic: it changes the legs' kinematics (the controller's commanded poses assumed the
+            nominal legs).
+        leg_parameter: its parameter is one of a leg model's (``<joint>.<name>``), reported under
+            ``legs`` rather than as an extension.
+    """
+
+    name: str
+    parameters: tuple[tuple[str, str], ...]
+    where: tuple[str, ...]
+    relevant_from: tuple[tuple[str, float, float], ...]
+    kinematic: bool = False
+    leg_parameter: bool = False
+
+    @property
+    def parameter(self) -> str:
+        """Its first (main) parameter's name."""
+        return self.parameters[0][0]
+
+    def relevant(self, values: dict) -> bool:
+        """Whether estimated parameter ``values`` (SI) reach a minimum of :attr:`relevant_from`."""
+        return not self.relevant_from or any(abs(values[k] - ref) >= m for k, ref, m in self.relevant_from)
+
+
+_DEG = math.pi / 180.0
+#: The causes, in the catalogue's order. The minimum sizes: 0.5 deg of any rotation, 3 mm of a
+#: height or 0.3 % of a range scale, 4 mm of a link, 5 mm of a foot radius or a knock's translation,
+#: 0.08 rad per m of lever (0.5 deg at a 0.1 m lever); e.g. a station-averaged accelerometer bias of
+#: 0.05 m/s^2 is a 0.3 deg "misalignment", not one worth naming.
+CAUSE_RECORDS: dict[str, Cause] = {c.name: c for c in (
+    Cause("sensor_range_scale", (("scale", "1"),), ("sensor",), (("scale", 1.0, 0.003),)),
+    Cause("session_offset", (("offset_m", "m"),), ("session",), (("offset_m", 0.0, 0.003),)),
+    Cause("ground_tilt", (("tilt_rad", "rad"), ("axis_rad", "rad")), (), (("tilt_rad", 0.0, 0.5 * _DEG),)),
+    Cause("imu_misalignment", (("angle_rad", "rad"), ("axis_rad", "rad")), (), (("angle_rad", 0.0, 0.5 * _DEG),)),
+    Cause("joint_offset", (("offset_rad", "rad"),), ("leg", "joint"), (("offset_rad", 0.0, 0.5 * _DEG),),
+          kinematic=True, leg_parameter=True),
+    Cause("link_length", (("delta_m", "m"),), ("leg", "joint"), (("delta_m", 0.0, 0.004),),
+          kinematic=True, leg_parameter=True),
+    Cause("extrinsic_change", (("angle_rad", "rad"), ("translation_m", "m")), ("sensor", "station"),
+          (("angle_rad", 0.0, 0.5 * _DEG), ("translation_m", 0.0, 0.005))),
+    Cause("outlier_stations", (), ("stations",), ()),
+    Cause("foot_radius", (("radius_m", "m"),), (), (("radius_m", 0.0, 0.005),), kinematic=True),
+    Cause("joint_compliance", (("k_rad_per_m", "rad/m"),), ("joint_index",), (("k_rad_per_m", 0.0, 0.08),),
+          kinematic=True),
+)}
+#: The causes' names, in the catalogue's order.
+CAUSES: tuple[str, ...] = tuple(CAUSE_RECORDS)
+
+
+def cause_record(name: str) -> Cause:
+    """The record of cause ``name`` (KeyError naming the known ones otherwise)."""
+    try:
+        return CAUSE_RECORDS[name]
+    except KeyError:
+        raise KeyError(f"unknown cause {name!r}; expected one of {', '.join(CAUSES)}") from None

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
+from graphcal.models.effects import cause_record
 from graphcal.report.plots import AFTER_COLOR as _AFTER
 from graphcal.report.plots import BEFORE_COLOR as _BEFORE
 from graphcal.report.plots import MARK_COLOR as _MARK
@@ -81,7 +82,7 @@ def _finding_figure(diag, f) -> tuple[str, Figure]:
     elif c.cause == "imu_misalignment":
         _pair(fig, b, a, "tilt_deg", "angle_deg", "body tilt [deg]", _THETA, label)
         cap = "angle error against the body tilt"
-    elif c.cause in ("joint_offset", "link_length", "foot_radius", "joint_compliance"):
+    elif cause_record(c.cause).kinematic:
         axes = fig.subplots(1, 2, sharey=True)
         for ax, recs, name in ((axes[0], diag.stance_before, "nominal model"), (axes[1], diag.stance_after, "extended model")):
             for leg in dict.fromkeys(r.leg for r in recs):
