@@ -420,6 +420,24 @@ def test_unknown_sensor_and_imu_keys_are_kept(dataset_copy):
     assert ds.imu.extra == {"rate_hz": 400}
 
 
+@pytest.mark.parametrize("old,new,key,near", [
+    ("  feet_fixed_within: session", "  feet_fixed_whithin: station", "stance.feet_fixed_whithin", "feet_fixed_within"),
+    ("  type: level", "  tpye: stairs", "ground.tpye", "type"),
+])
+def test_a_misspelt_ground_or_stance_key_is_refused_with_the_nearest_known_key(dataset_copy, old, new, key, near):
+    """Kept and ignored, the misspelt key would leave the default it meant to change in force."""
+    yaml_replace(f"\n{old}\n", f"\n{new}\n")(dataset_copy)
+    with pytest.raises(DatasetError) as exc:
+        read_dataset(dataset_copy)
+    text = str(exc.value)
+    assert "dataset.yaml" in text and key in text and f"did you mean '{near}'?" in text
+
+
+def test_an_unknown_ground_key_no_known_key_resembles_is_kept(dataset_copy):
+    yaml_replace("  type: level\n", "  type: level\n  surveyed_by: lidar\n")(dataset_copy)
+    assert read_dataset(dataset_copy).ground == {"type": "level", "surveyed_by": "lidar"}
+
+
 def test_yaml12_floats_and_defaults(dataset_copy):
     yaml_replace("sigma_mm: 50", "sigma_mm: 5e1")(dataset_copy)
     yaml_replace("ground:\n  type: level\nstance:\n  feet_fixed_within: session\n", "")(dataset_copy)

@@ -123,6 +123,21 @@ class _Y:
                     )
 
 
+#: the keys graphcal reads under ``ground:`` and ``stance:`` (others are kept as given)
+GROUND_KEYS = ("type", "bump_rms_m", "stairs")
+STANCE_KEYS = ("feet_fixed_within",)
+
+
+def _refuse_misspelt(y: _Y, m: dict, key: str, known: Sequence[str]) -> None:
+    """An unknown key of ``m`` close to a known one (``feet_fixed_whithin``, ``tpye``) is refused as
+    a misspelling: it would be kept and ignored, and the default it meant to change used instead.
+    Other unknown keys are kept (the contract lets a dataset carry its own)."""
+    for k in m:
+        if k not in known and did_you_mean(str(k), known):
+            raise y.err(f"{key}.{k}", f"one of the keys {', '.join(known)}{did_you_mean(str(k), known)}",
+                        f"unknown key {k!r}")
+
+
 def _parse_prior(y: _Y, v, key: str) -> PosePrior:
     m = y.mapping(v, key)
     names = ("xyz", "rpy_deg", "sigma_mm", "sigma_rpy_deg")
@@ -270,11 +285,13 @@ def parse_dataset_yaml(path: Path) -> YamlHeader:
     ground = {"type": "level"}
     if doc.get("ground") is not None:
         ground = dict(y.mapping(doc["ground"], "ground"))
+        _refuse_misspelt(y, ground, "ground", GROUND_KEYS)
         if "type" in ground:
             y.text(ground["type"], "ground.type")
     stance = {"feet_fixed_within": "session"}
     if doc.get("stance") is not None:
         stance = dict(y.mapping(doc["stance"], "stance"))
+        _refuse_misspelt(y, stance, "stance", STANCE_KEYS)
         if "feet_fixed_within" in stance:
             y.text(stance["feet_fixed_within"], "stance.feet_fixed_within")
 
