@@ -217,6 +217,19 @@ def test_fleet_flag_catches_a_shifted_extrinsic_and_not_the_others():
     assert small == []
 
 
+@pytest.mark.parametrize("n,said", [(2, "Not tested: the leave-one-out test needs at least 4 robots; this batch has 2."),
+                                    (3, "Not tested: the leave-one-out test needs at least 4 robots; this batch has 3."),
+                                    (4, "No robot lies outside the fleet's spread.")])
+def test_a_fleet_too_small_to_test_says_not_tested_not_no_outlier(n, said):
+    from graphcal.report.fleet_page import fleet_html
+
+    robots = _fleet(0.0, n=n)
+    table_, flags = fleet_flags(robots)
+    page = fleet_html(robots, table_, flags, title="fleet")
+    assert flags == [] and said in page
+    assert ("No robot lies outside" in page) == (n >= 4)
+
+
 def test_loo_t_is_leave_one_out_and_floored_by_sigma():
     v = np.array([0.0, 1.0, -1.0, 0.5, 10.0])
     t, p, mean, spread = loo_t(v, np.zeros(5))

@@ -95,6 +95,9 @@ def fleet_html(robots, table_: dict, flags, *, title: str, alpha: float | None =
                        f'<span class="flag">{num(f.t, "+.1f")}</span>', num(f.p, ".1e"), str(f.n_others)])
                   for f in flags]
         flagged = table(frows)
+    elif len(robots) < MIN_OTHERS + 1:  # no robot has MIN_OTHERS others to be judged against
+        flagged = Markup(f'<p class="warn">Not tested: the leave-one-out test needs at least {MIN_OTHERS + 1} '
+                         f'robots; this batch has {len(robots)}.</p>')
     else:
         flagged = Markup('<p class="ok">No robot lies outside the fleet\'s spread.</p>')
     sections = [Section("Robots outside the fleet's spread", flagged, Markup(f'<p class="small">{esc(stat)}</p>'))]
