@@ -693,6 +693,20 @@ def written(tmp_path_factory):
     return res, out, paths
 
 
+def test_written_outputs_name_the_dataset_relative_to_the_output_folder_not_by_a_machine_path(tmp_path):
+    import dataclasses
+
+    ds = tmp_path / "runs" / "octopus-2026"
+    res = dataclasses.replace(make_result(seed=2, legs=False), dataset=str(ds))
+    paths = write_calibration_outputs(res, tmp_path / "out" / "calib")
+    for key in ("calibration", "urdf", "static_transforms"):
+        text = paths[key].read_text()
+        assert str(tmp_path) not in text, key
+        assert "../../runs/octopus-2026" in text, key
+    assert read_calibration_yaml(paths["calibration"])["dataset"] == "../../runs/octopus-2026"
+    assert res.dataset == str(ds)  # the result the caller holds is not changed
+
+
 def test_write_outputs_creates_the_four_files(written):
     res, out, paths = written
     assert set(paths) == {"calibration", "urdf", "static_transforms", "report"}

@@ -439,9 +439,9 @@ def dataset_physical_noise(ds, options: CalibrationOptions) -> tuple[dict, dict]
     (defaults where it declares none; the ground at least ``options.ground_unevenness_m``)."""
     from graphcal.calibration.adequacy import physical_noise
 
-    where = (ds.root / "dataset.yaml") if getattr(ds, "root", None) is not None else "dataset.yaml"
+    # "dataset.yaml": the dataset's own (calibration.yaml names the dataset), no machine path
     return physical_noise((getattr(ds, "extra", None) or {}).get("physical_noise"),
-                          ground_roughness_m=options.ground_unevenness_m, where=str(where))
+                          ground_roughness_m=options.ground_unevenness_m, where="dataset.yaml")
 
 
 #: a learned stance-foot noise beyond these is not a robot's encoders and feet but wrong data

@@ -18,6 +18,8 @@ did not write), so pointing ``--out`` at a dataset or home folder by mistake can
 
 from __future__ import annotations
 
+import dataclasses
+
 import os
 from pathlib import Path
 
@@ -28,7 +30,7 @@ from graphcal.report.calibration_yaml import calibration_yaml_text
 from graphcal.report.ros import static_transforms_script
 from graphcal.report.urdf import calibrated_urdf
 
-__all__ = ["OUTPUT_FILES", "write_calibration_outputs", "check_output_folder"]
+__all__ = ["OUTPUT_FILES", "write_calibration_outputs", "check_output_folder", "shown_dataset"]
 
 #: output name -> file name inside the output folder.
 OUTPUT_FILES: dict[str, str] = {
@@ -104,6 +106,16 @@ def _write_report(folder: Path, result, title: str | None) -> Path:
     return atomic_write_text(folder / OUTPUT_FILES["report"], text)
 
 
+def shown_dataset(dataset, out_dir: Path) -> str:
+    """The dataset as the output files name it: its path relative to the output folder
+    (``../octopus-chai2015``), so that a folder of outputs can be shared or moved with its dataset;
+    the dataset's folder name where no relative path exists (another drive)."""
+    try:
+        return os.path.relpath(Path(str(dataset)).resolve(), Path(out_dir).resolve())
+    except ValueError:
+        return Path(str(dataset)).name
+
+
 def write_calibration_outputs(result, out_dir: str | Path, *, overwrite: bool = True, title: str | None = None) -> dict[str, Path]:
     """Write calibration.yaml, robot_calibrated.urdf, static_transforms.sh and report.html into
     ``out_dir`` as one atomic set.
@@ -128,6 +140,7 @@ def write_calibration_outputs(result, out_dir: str | Path, *, overwrite: bool = 
     """
     out = Path(out_dir)
     check_output_folder(out, overwrite=overwrite)
+    result = dataclasses.replace(result, dataset=shown_dataset(result.dataset, out))  # as written, shareable
     with atomic_directory(out, overwrite=True) as tmp:
         _write_yaml(tmp, result)
         _write_urdf(tmp, result)
