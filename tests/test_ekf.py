@@ -11,7 +11,8 @@ import pytest
 
 from graphcal.errors import GraphcalError
 from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim
-from graphcal.locomotion.estimator import TrackerConfig, inputs_from_walking, run_filter
+from graphcal.locomotion.estimator import TrackerConfig, run_filter
+from graphcal.locomotion.track_inputs import inputs_from_walking
 from graphcal.locomotion.metrics import chi2_band, pose_errors, whiteness
 from graphcal.simulation.walking import WalkingConfig, simulate_walking
 

@@ -69,7 +69,8 @@ def test_trot_track_drift_below_1_percent_and_consistent(trot):
 
 
 def test_walk_from_forces_and_from_torques(walk_result):
-    from graphcal.locomotion.estimator import inputs_from_walking, run_filter
+    from graphcal.locomotion.estimator import run_filter
+    from graphcal.locomotion.track_inputs import inputs_from_walking
 
     r = walk_result
     assert set(np.unique(r.contact.sum(axis=1))) == {3, 4}  # one foot at a time in the air

@@ -99,7 +99,8 @@ def ascending_flight(steps) -> tuple[list, list]:
 def track(dataset, *, config=None, progress: bool = False):
     """Read a dataset and run the filter: returns (dataset, inputs, TrackResult)."""
     from graphcal.io.dataset import read_dataset
-    from graphcal.locomotion.estimator import TrackerConfig, inputs_from_dataset, run_filter
+    from graphcal.locomotion.estimator import TrackerConfig, run_filter
+    from graphcal.locomotion.track_inputs import inputs_from_dataset
 
     ds = read_dataset(dataset)
     inp = inputs_from_dataset(ds)
