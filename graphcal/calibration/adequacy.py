@@ -1,36 +1,15 @@
 """Does the model fit? The adequacy verdict of a calibration, judged against physical noise.
 
-Variance-component estimation (noise_estimation.py) learns each noise group's sigma from the
-residuals, so a model that does not fit makes the learned sigma grow until the residuals look like
-noise: a hidden joint offset of 0.05 rad on the Octopus learned a feet-on-ground sigma of 6.2 mm and
-reported the extrinsic 47 sigma off with no warning (issue 27). The verdict here is therefore not
-read from the learned noise but *against the physically plausible one*: the noise dataset.yaml
-declares (``physical_noise:``, docs/calibration.md), else the defaults per sensor type of
-:data:`graphcal.models.sensors.PHYSICAL_NOISE_DEFAULTS`.
+The noise learned from the residuals grows until any misfit looks like noise, so the verdict is
+read *against the physically plausible noise*: the one dataset.yaml declares (``physical_noise:``,
+deg and mm), else :data:`graphcal.models.sensors.PHYSICAL_NOISE_DEFAULTS`. Per noise group g with
+redundancy ``r_g`` and learned sigma ``s_g`` against the physical ``p_g``:
+``T_g = r_g (s_g / p_g)^2 ~ chi2(r_g)``; a group does not fit when ``s_g > RATIO_LIMIT p_g`` and
+its p-value is below :data:`ALPHA` over the groups (Bonferroni). :func:`gross_stations` flags a
+station whose factors' chi-square is far beyond the others'. Plain statistics on numbers a solver
+reports (no graph), shared by calibrate and diagnose; sigmas in SI (m, rad) inside.
 
-Per noise group g (``stance_foot``: its joint and contact components as one foot sigma,
-:func:`stance_foot_check`; ``foot_on_ground``, ``imu``, ``commanded``, ``plane:<sensor>``) with redundancy ``r_g`` (its dof) and learned sigma
-``s_g`` (the sigma of the final solve times the factor its residuals point to), against the
-physical sigma ``p_g``:
-
-    T_g = r_g (s_g / p_g)^2 ~ chi2(r_g)   were the noise physical (to first order: at the learned
-                                          sigma the group's chi-square equals its redundancy),
-
-p_g its upper tail. A group *does not fit* when its learned sigma is more than
-:data:`RATIO_LIMIT` times the physical one **and** ``p`` is below :data:`ALPHA` over the number of
-groups (Bonferroni): the residuals are too large for the sensors, whatever noise the estimation
-settled on. A sigma learned *below* the physical value is fine (the physical value is an upper
-bound of plausibility). The verdict's statistic is the worst group's ``T`` with its ``chi2(r)``
-reference and its Bonferroni-adjusted p-value.
-
-Gross stations (:func:`gross_stations`): a station whose factors (its planes, feet, IMU and
-commanded pose) carry a chi-square far beyond the others', tested against ``chi2(dof)`` scaled
-by the median variance factor of all stations, so that a station is flagged even when the rest
-do not fit well either (Chai's Table 3: one plane ~27 deg from the others, absorbed by its body
-pose).
-
-The functions here are plain statistics on numbers a solver reports (no graph), shared by
-calibrate and diagnose.
+The test, the physical noise table and gross stations: docs/calibration.md, "Does the model fit?".
 """
 
 from __future__ import annotations
@@ -51,8 +30,7 @@ __all__ = ["RATIO_LIMIT", "ALPHA", "GROSS_ALPHA", "GROUP_PHYSICAL_KEYS", "GroupC
 FITS, DOES_NOT_FIT = "fits", "does not fit"
 
 #: a learned sigma more than this many times its physical value is a misfit of its group (when
-#: significant). Measured on the battery (bench/adequacy_battery.py, docs/calibration.md): clean
-#: simulated runs learn 0.6-1.2 of the simulator's declared noise.
+#: significant); clean simulated runs learn less than that (docs/calibration.md, "The test")
 RATIO_LIMIT = 1.5
 #: family-wise false-alarm level of the group tests (Bonferroni over the groups)
 ALPHA = 1e-3
@@ -272,8 +250,8 @@ def stance_foot_check(joint, contact, physical: Mapping[str, float], sources: Ma
     ``stance_foot/joint`` and ``stance_foot/contact``) added into a foot sigma,
     ``sqrt((STANCE_LEVER_M s_joint)^2 + s_contact^2)``, against the same sum of their physical
     values, over the components' summed dof. The data split a foot's noise between its two
-    components poorly (an unseen 0.3 deg joint flex was learned as 0.77 mm of contact on one
-    seed, as joint noise on another): each alone would call a good split a misfit. ``used``: as
+    components poorly (the same unseen joint flex can be learned as contact or as joint noise):
+    each alone would call a good split a misfit. ``used``: as
     :func:`group_check`'s (the foot sigma the model used is the same sum of its components)."""
     dof = float(joint.dof + contact.dof)
     if not np.isfinite(dof) or dof < 1.0:

@@ -1,38 +1,14 @@
 """Change detection for the incremental calibration: has the sensor moved on the body?
 
-The statistic (docs/incremental.md)
------------------------------------
-Before a station's plane (or scan) factor is added, its **innovation** is evaluated: the factor's
-error ``e`` at the current estimate, with the station's body pose predicted WITHOUT that plane
-(from its own stance-foot / IMU / commanded-pose factors and the feet it shares with earlier
-stations) and the current extrinsic estimate. To first order ``e ~ N(0, J P J^T + R)`` when the
-sensor has not moved, with ``J`` the factor's Jacobian with respect to (body pose, extrinsic),
-``P`` the joint marginal covariance of those two variables and ``R`` the measurement covariance.
-The normalised innovation squared
+Before a station's plane (or scan) factor is fused, its innovation is taken against the body pose
+predicted without it and the current extrinsic: ``NIS = e^T (J P J^T + R)^-1 e``, chi-square with
+``dim(e)`` dof (3 for a plane) when the sensor has not moved (:func:`innovation_nis`, in gtsam's
+whitened form). :class:`ChangeDetector` sums the NIS of the last ``window`` stations against the
+chi-square quantile at ``alpha = p_false_alarm / n_tests`` (Bonferroni), locates the change, and
+with the outlier guard holds a failing station until the next one tells a change from an outlier.
+Units: the factors' own (rad, m); the statistic is dimensionless.
 
-    NIS = e^T (J P J^T + R)^-1 e
-
-is then chi-square with ``dof = dim(e)`` (3 for a plane) degrees of freedom, and the innovations
-of successive stations are independent (each one is predicted from the data before it). In the
-whitened form gtsam's linearisation gives (``A = R^-1/2 J``, ``b = -R^-1/2 e``):
-``NIS = b^T (A P A^T + I)^-1 b`` (:func:`innovation_nis`).
-
-Test: the sum of the NIS of the last ``window`` stations is compared with the chi-square quantile
-with the summed dof (3 * window) at level ``alpha``. ``alpha = p_false_alarm / n_tests``
-(Bonferroni): with ``n_tests`` the number of stations in a run, ``p_false_alarm`` bounds the
-probability of ANY false alarm in the run (per sensor). The window tests overlap, so the bound is
-conservative.
-
-Where did it change: the FIRST station of the window whose own NIS is significant at
-``p_station`` (default 0.01: this only locates a change already declared); when none is, the start
-of the window suffix with the largest ``sum(NIS - dof)`` (the CUSUM change point).
-
-Outlier guard (optional, on with a robust calibration): a single wrong measurement (a sensor
-frame under the wrong station label) also has a huge NIS but is not a change. With the guard, a
-station whose own NIS fails the test at ``alpha`` is HELD (not yet fused); the next station of the
-same sensor decides: significant at ``p_station`` too -> a change, located at the held station;
-consistent -> the held station was an outlier (left out, its NIS removed from the window). This
-costs one station of delay for abrupt changes and nothing for gradual ones.
+The statistic, the location and the guard: docs/incremental.md, "The change test".
 """
 
 from __future__ import annotations

@@ -1,48 +1,15 @@
 """Incremental (online) recalibration with iSAM2, one station per update, with change detection.
 
-The graph is the batch one (graph.py: the same variables, factors and noise models), fed to
-gtsam's iSAM2 in dataset order (docs/incremental.md):
+The graph is the batch one (graph.py: the same variables, factors and noise models), fed to gtsam's
+iSAM2 in dataset order, each factor exactly once: per station an update A (its body pose, the
+variables it uses first, its stance-foot / IMU / commanded-pose factors), the change test
+(:mod:`graphcal.calibration.change_detection`) on its planes and scans, then an update B (those
+factors). A detected change starts a new extrinsic key for the sensor. :class:`IncrementalCalibrator`
+is the dataset-free interface; :func:`calibrate_incremental` feeds the batch problem's own factors
+(:func:`station_updates`) and returns a :class:`~graphcal.calibration.result.CalibrationResult`.
+Units and frames as in the batch (rad, m; 1-sigma in body axes); no robust loss, no noise learned.
 
-* every station makes two updates, each with a FRESH ``NonlinearFactorGraph`` and ``Values``
-  (old factors are never fed again — re-feeding counts them twice and makes the covariance
-  overconfident, see the engineering notes):
-
-  A. the station's body pose X(i), the feet F(j) of a session seen for the first time (with their
-     foot-on-ground factors), the extrinsic S(k) of a sensor seen for the first time (with its CAD
-     prior), the leg parameters L(l) (with their priors) the first time, and the station's
-     stance-foot, IMU-attitude and commanded-pose factors;
-  B. the station's plane / scan factors, after the change test (change_detection.py) has
-     computed their innovation against the body pose predicted by update A;
-
-* after update B, the extrinsic estimate and ``isam.marginalCovariance`` give the
-  :class:`~graphcal.calibration.result.IncrementalStep` of every sensor (1-sigma in body axes).
-
-On a detected change of a sensor's extrinsic, a new key ``S(next)`` starts a new extrinsic
-segment: a prior equal to the old estimate with the CAD sigmas, and the plane factors from the
-change station on move to it (already fused ones are removed from iSAM2 by index and added
-again on the new key: removed, not counted twice).
-
-:class:`IncrementalCalibrator` is the lower-level, dataset-free interface: the online EKF / robot
-code feeds it station by station with :meth:`~IncrementalCalibrator.add_station` (joint angles,
-IMU, commanded pose and planes; the factors are built as graph.py builds them), or with ready-made
-factors through :meth:`~IncrementalCalibrator.add_factors`. :func:`calibrate_incremental` builds
-the batch problem with ``build_problem`` and feeds ITS factors, split per station by
-:func:`station_updates`, so the incremental graph is the batch graph factor for factor; it returns
-a :class:`~graphcal.calibration.result.CalibrationResult` like the batch ``calibrate`` (assembled
-by the batch's own :func:`~graphcal.calibration.result.calibration_result` on the graph iSAM2 holds).
-
-Robustness: the plane / scan factors are Gaussian, and outliers are gated by the change test's
-outlier guard (an inconsistent station is held until the next one shows whether it was an
-outlier or a change) instead of the batch's Huber loss. iSAM2 freezes a robust factor's weight
-where it was linearised: just after its station was added, before the body pose had moved to fit
-the plane, almost every plane sits far in the Huber tail (its innovation is dominated by the body
-pose's prediction error, many times the plane's own sigma), and as the variables then move less
-than the relinearisation threshold the weight is never updated: the covariance came out up to
-20 % too large (measured on synthetic runs).
-
-Not done incrementally: the variance-component re-estimation of the noise
-(``options.estimate_noise``) needs every residual at once; the incremental solver uses the
-options' sigmas as given (pass the batch's re-estimated options to get its covariances).
+The scheme and why it differs from the batch: docs/incremental.md, "The incremental scheme".
 """
 
 from __future__ import annotations

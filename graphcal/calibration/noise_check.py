@@ -1,36 +1,16 @@
 """A noise model that was given, not learned, checked against the residuals of the run that used it.
 
 ``calibrate --noise-from`` (and the incremental solver, which cannot learn the noise) uses the
-sigmas as given. They were learned on another session, or are the defaults: nothing guarantees
-that they fit this one. At the final solution, :func:`given_noise_check` reads every noise group's
-variance-component statistics (noise_estimation.py: chi-square over redundancy, the factor the
-residuals point to for the group's sigma) and
+sigmas as given. At the final solution, :func:`given_noise_check` reads every noise group's
+variance-component statistics (status ``given``) and, with ``options.scale_to_plane_residuals``
+(set by ``--noise-from``), multiplies each sensor's extrinsic covariance (rad, m) by its plane
+group's variance factor when that is above 1, iterated to its fixed point on the final
+linearisation with the other groups held; it warns when the factor is significant or above
+:data:`WARN_SCALE`. The defaults are not scaled (conservative as a whole), nor the incremental
+solver's per-station sigmas.
 
-* reports them (status ``given``; the report and ``calibration.yaml`` show them);
-* with ``options.scale_to_plane_residuals`` (set by ``--noise-from``: a noise model learned on
-  another session), multiplies each sensor's extrinsic covariance by its plane group's variance
-  factor when that is above 1 (never below: a noise model larger than the data need stays
-  conservative), and warns when it is significant or above :data:`WARN_SCALE`. The factor is the
-  plane groups' variance components iterated to their fixed point on the final linearisation with
-  the other groups held as given: one update reads too little when the planes are understated,
-  because the body poses then absorb most of their residuals (a plane noise given at 0.25 of what
-  the planes point to: one update x1.8^2, the fixed point x8.4, the truth x9.2).
-
-Why the planes: they carry the extrinsic, and their scatter varies from session to session more
-than chi-square sampling does (with unmodelled joint flex, one update at session B's solution
-under session A's learned noise read 0.77-1.86 over 60 pairs, from 10-56 dof), so the scale learned on one session often
-understates the next one's. Not for the defaults: they are conservative as a whole (large joint
-sigma, small plane noise), and scaling their planes alone made a conservative covariance more so.
-
-Measured (docs/incremental.md): the Octopus on Chai's program, joints flexing 0.3 deg per joint
-and station, noise learned by a batch run on session A and used on session B, 40 pairs (seeds
-20-59): mean NEES of the extrinsic, batch 9.56 as given -> 5.85 with the factor, incremental
-8.52 -> 5.76 (95 % interval for 40 runs [4.97, 7.12]; B's own learned noise: 7.34). Half the
-runs were scaled, their covariance by x1.08-x8.4 (A's learned plane scale is itself an estimate
-from ~30 dof of correlated residuals), 8 of 40 with a warning.
-
-The incremental solver's per-station sigmas (its stop rule, ``history``) are not scaled: the
-factor needs every residual of the run.
+Why the planes, and the measured NEES: docs/incremental.md, "The given noise, checked against
+the run".
 """
 
 from __future__ import annotations

@@ -1,54 +1,14 @@
-"""Variance-component estimation: the sigma of each factor group, learned from the residuals.
+"""Variance-component estimation (Förstner / Helmert): the sigma of each factor group, learned from
+its whitened residuals and redundancy numbers at the solution, ``s_g^2 = sum e_i^2 / sum r_i``.
 
-The defaults of :class:`~graphcal.calibration.graph.CalibrationOptions` (3 mm per foot, 0.5 deg
-IMU, ...) are guesses about a robot we have not seen. If they are too large the covariance is too
-pessimistic; too small and it is overconfident. Helmert/Förstner variance-component estimation fixes
-that from the data: at the solution, for every group g of factors,
+A group whose covariance is a sum of components (a foot: joint noise through the leg Jacobian plus
+isotropic contact noise) gets one scale per component from Helmert's equations
+(:func:`consistent_helmert_matrix`), split only where the data determine it
+(:func:`split_determined`). The scales are iterated to their fixed point on one linearisation
+(:func:`converged_scales`); :func:`group_variances` is one update. Scales are dimensionless
+multipliers of the sigmas of :class:`~graphcal.calibration.graph.CalibrationOptions` (m, rad).
 
-    s_g^2 = sum_{rows in g} e_i^2 / sum_{rows in g} r_i,
-
-with e_i the whitened residual rows and r_i = 1 - h_i their redundancy numbers, h_i the diagonal of
-the hat matrix A (A^T A)^-1 A^T of the whitened linear system (how much of row i the solution
-absorbs). ``sum r_i`` is the degrees of freedom the group contributes; under a correct noise model
-E[s_g^2] = 1. Each group's sigma is multiplied by s_g and the graph is solved again.
-:func:`converged_scales` iterates that update to its fixed point on one linearisation (cheap dense
-algebra, no re-solve of the nonlinear graph) so that one re-solve and one check usually suffice
-(Chai's 52 stations: 2 calls and 1 re-solve). :func:`group_variances`
-is one update at a solution. h_i comes from the joint marginal covariance of the factor's variables: read from
-the inverse of the information matrix, in the blocks a factor can read (:class:`_ArrowLayout`),
-for graphs of up to ``DENSE_MAX_DIM`` unknowns (a calibration of up to ~1,300 stations), otherwise from ``gtsam.Marginals`` factor by factor (cost
-growing with the number of factors, not cubically).
-
-A group whose covariance is a sum of components, ``Sigma = sum_k Sigma_k`` (a foot: joint noise
-through the leg Jacobian plus isotropic contact noise), gets one scale per component (Förstner's
-iterative estimator): in the factor's whitened space ``C_k = W Sigma_k W^T``, ``W`` the whitening
-matrix the linearisation used (GTSAM's upper-triangular ``R`` of the noise model, ``W^T W =
-Sigma^-1``; :func:`whitening_matrix`), ``R = I - A Sigma_x A^T`` its redundancy matrix and ``b``
-its whitened residual,
-
-    s_k^2 = sum_factors b^T C_k b / sum_factors tr(R C_k),
-
-which reduces to the formula above for a single component (``C = I``). Any other square root of
-``Sigma^-1`` (e.g. the inverse Cholesky factor of Sigma) rotates the rows against ``b``, and the
-components land on the wrong residual directions: a mixture of scales 0.5 and 2 was then read as
-1.18 and 1.80 (tests/test_noise_estimation.py). Components that the data
-tell apart only by direction converge slowly with that update, so the components of one group are
-solved together with Helmert's equations instead, ``sum_l tr(R C_k R C_l) theta_l = sum b^T C_k b``
-(summed over the group's factors, each factor's own block of R), and ``s_k^2 = theta_k``. The
-own blocks miss the blocks of R between two factors of the group that share a variable (the feet
-of one body pose), so each row of N is scaled to sum to its component's ``tr(R C_k)``
-(:func:`consistent_helmert_matrix`): the fixed point is then Förstner's (``q_k = tr(R C_k)``);
-unscaled, a correct model read theta 1.28-1.36 for the Octopus's stance feet and learning added a
-contact noise the simulator does not have.
-
-The split is only made where the data determine it. Helmert's ``theta`` has covariance ``2 N^-1``
-(``N`` the matrix of those equations; Gaussian residuals); where a component's standard deviation
-exceeds :data:`SPLIT_MAX_THETA_STD` the data cannot tell it from its absence at 2 sigma, and the
-group's components keep their ratio and share one scale, ``theta = sum_k q_k / sum_kl N_kl`` (the
-single-component formula for their sum). Measured on a hexapod whose feet carried only joint noise
-(0.05 deg, planes only, 40 stations): the split read the joint component as -0.02 +- 0.84 at the
-defaults, clipped it to the floor (0.002 deg) where it carried no redundancy and stayed, and
-calibrate warned that the covariance may be too small (residuals 24x that sigma).
+The method and its formulas: docs/calibration.md, "Variance-component estimation".
 """
 
 from __future__ import annotations
@@ -99,7 +59,7 @@ class GroupVariance:
 
 
 #: a component's Helmert theta (in units of its current variance) with a larger standard deviation
-#: is not determined by the data: its group's components share one scale (module docstring)
+#: is not determined by the data: its group's components share one scale (docs/calibration.md)
 SPLIT_MAX_THETA_STD = 0.5
 
 
@@ -123,12 +83,11 @@ def consistent_helmert_matrix(N: np.ndarray, redundancy) -> np.ndarray:
     blocks between two factors of the group (two feet on one body pose, one foot over the stations
     of its session), all of one sign for ``C = I``. Without them the row sums are ``sum_a tr(R_aa^2
     C_k)``, below ``tr(R C_k)`` (``R_aa^2 <= R_aa``), and ``theta = N^-1 q`` reads a correct noise
-    model too large: measured on the Octopus on Chai's program with the simulator's own noise given,
-    the stance feet's theta was 1.28-1.36 where their chi-square over redundancy was 1.00-1.05
-    (seeds 2000-2002): sigma 13-17 % too large, which learning put into a contact term of 0.08 mm
-    where the simulator has none. ``N`` stays as given for :func:`split_determined`. Summed over all components of all groups the rows of
-    the exact matrix are ``tr(R C_k R) = tr(R C_k)`` (``R`` a projector in the whitened space): the
-    scale restores that. A row that sums to 0 is kept."""
+    model too large, which learning puts into a contact term the data do not have (measured:
+    docs/calibration.md, "Helmert's matrix of the stance feet"). ``N`` stays as given for
+    :func:`split_determined`. Summed over all components of all groups the rows of the exact
+    matrix are ``tr(R C_k R) = tr(R C_k)`` (``R`` a projector in the whitened space): the scale
+    restores that. A row that sums to 0 is kept."""
     N = np.asarray(N, dtype=float)
     sums = N.sum(axis=1)
     red = np.asarray(redundancy, dtype=float)
@@ -142,7 +101,7 @@ def helmert_components(group: str, names: list, N: np.ndarray, q: np.ndarray, re
 
     Args:
         group, names: the group and its component names.
-        N, q: Helmert's equations ``N theta = q`` summed over the group's factors (module docstring);
+        N, q: Helmert's equations ``N theta = q`` summed over the group's factors (docs/calibration.md);
             ``N``'s rows are scaled to ``redundancy`` first (:func:`consistent_helmert_matrix`).
         redundancy: ``sum tr(R C_k)`` per component (its dof).
         rows: residual rows of the group.
@@ -162,12 +121,9 @@ def helmert_components(group: str, names: list, N: np.ndarray, q: np.ndarray, re
 
 
 #: graphs with at most this many unknowns get their joint marginals from one inverse through the
-#: Schur complement of the station poses (:class:`_ArrowLayout`: memory ~ unknowns x globals).
-#: Measured on 1,000 simulated Octopus stations (6,100 unknowns, 5 sessions): calibrate took 18.8 s
-#: when this inverse was dense (peak 1.2 GB; n x n arrays), 83 s with the factor-by-factor marginals
-#: (3000 before: 72,240 jointMarginalCovariance calls, 55 % of the time), and 8.7 s in blocks against
-#: 13.9 s dense (run one after the other), the same noise model and extrinsic. Not raised since the
-#: blocks: larger graphs were not measured
+#: Schur complement of the station poses (:class:`_ArrowLayout`: memory ~ unknowns x globals); larger
+#: graphs use the factor-by-factor marginals, several times slower (docs/calibration.md,
+#: "1,000 stations"); not raised further: larger graphs were not measured
 DENSE_MAX_DIM = 8000
 
 
@@ -194,7 +150,7 @@ def _marginals_reader(graph, values):
 
 def group_variances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, groups: dict,
                     components: dict | None = None) -> dict:
-    """group (or ``group/component``) -> :class:`GroupVariance` at ``values`` (module docstring).
+    """group (or ``group/component``) -> :class:`GroupVariance` at ``values`` (docs/calibration.md).
 
     Args:
         groups: factor index -> group name.
@@ -449,11 +405,10 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
     The graph is linearised once; each iteration re-weights the whitened rows with the current
     scales (a single-component group: rows / s; a sum of components: re-whitened with the Cholesky
     factor of ``sum_k s_k^2 Sigma_k``), solves the normal equations (the linear solution moves with
-    the weights: residuals are taken there) and applies the update of the module docstring. Only
+    the weights: residuals are taken there) and applies the update of docs/calibration.md. Only
     the linearisation is held fixed, so the caller re-solves the nonlinear graph with the result and
     checks it with one more call (the first iteration's statistics are exactly
-    :func:`group_variances` at ``values``). Measured on Chai's 52 stations: 2 calls and 1 re-solve,
-    where one update per re-solve took 3 calls and 2 re-solves to the same sigmas.
+    :func:`group_variances` at ``values``): usually one re-solve and one check suffice.
 
     The algebra works on each factor's own block (its rows over its variables' columns, stacked
     into arrays of equal shape), never on the whole Jacobian: the normal matrix is summed from
@@ -469,8 +424,8 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
         tolerance: stop once every step's scale is within this of 1.
         max_iterations: cap (1: one update, exactly :func:`group_variances` with ``eligible``).
         settled: ``first statistics -> bool``: when True after the first iteration, stop there (the
-            caller keeps its noise and only reads the statistics; measured on Chai's 52 stations:
-            the confirming call of a calibration ran 6 iterations, ~5 ms each, for nothing).
+            caller keeps its noise and only reads the statistics: the iterations of a confirming
+            call would be spent for nothing).
 
     Returns:
         :class:`ConvergedScales`: the first iteration's statistics, the scales, and the linear
@@ -762,8 +717,8 @@ def rescaled_options(options: CalibrationOptions, problem: CalibrationProblem, v
 NOISE_TOO_SMALL_P = 0.01
 
 
-#: a learned plane noise scale above this makes calibrate warn (measured: 0.86-1.01 on flat simulated
-#: floors, 1.7-18 on Chai's little bumpiness, 3 mm RMS, docs/calibration.md)
+#: a learned plane noise scale above this makes calibrate warn: flat floors stay below it, uneven
+#: ground goes above (the learned scales: docs/calibration.md)
 PLANE_SCALE_WARN = 1.5
 
 
@@ -783,8 +738,8 @@ def noise_groups_report(stats: dict, options: CalibrationOptions, *,
 
     ``given``: the noise was not learned (``--noise-from``, or the defaults): every group's status
     is ``given``, and nothing is warned about here: one group's residuals above its sigma does not
-    make the covariance too small when others are conservative (the defaults' planes point to
-    x1.2-x3.2 while the incremental mean NEES was 5.99 over 40 simulated sessions);
+    make the covariance too small when others are conservative (docs/incremental.md, "Noise from
+    an earlier calibration");
     :func:`~graphcal.calibration.noise_check.given_noise_check` scales and warns per sensor."""
     from graphcal import stats as chi2_dist
 

@@ -1,48 +1,15 @@
-"""Covariances that still cover the error when the model does not fit (issue 27).
+"""Covariances that still cover the error when the model does not fit.
 
-When the adequacy verdict (adequacy.py) is ``does not fit``, the model's covariance is not to be
-trusted: the noise learned from the residuals treats a systematic error as independent noise per
-station and shrinks it with the number of stations (the Octopus with a hidden 0.05 rad joint
-offset: 47 sigma off). The robust covariance of each extrinsic is the sum of
-
-* the model covariance scaled by the residuals' variance factor relative to the noise the model
-  *used*, ``s = max(1, sum_g r_g m_g^2 / sum_g r_g)``, ``m_g`` the sigma the residuals point to
-  over the sigma of the final solve (adequacy.py's ``GroupCheck.model_ratio``, ``r_g`` its dof).
-  With noise learned from the residuals (calibrate's default) ``m_g`` is about 1: the model
-  covariance already carries the misfit, at the learned (inflated) sigma, and scaling it again by
-  the ratio to the *physical* noise (``T_g / r_g``, which the verdict judges by) counted the misfit
-  twice (measured: a sensor knocked by 2.8 deg mid-session, its error 1.6 deg / 12 mm, got a model
-  term of 34 deg / 822 mm).
-  With noise given (``--noise-from``, ``estimate_noise=False``) ``m_g`` is what the given sigma
-  misses by; a covariance the given-noise check already multiplied by its planes' factor
-  (``covariance_scale``, noise_check.py) is scaled only by what ``s`` adds to it,
-  ``max(1, s / covariance_scale)``;
-* a jackknife over stations: each station's planes (or scans) left out in turn (one Gauss-Newton
-  step on the final linearisation, :func:`jackknife_tangents`), ``(n - 1) / n sum (xi_i - mean)(xi_i - mean)^T`` of the extrinsic's
-  tangent ``xi_i = Log(T_hat^-1 T_i)``: the spread a station's data cause;
-* when a leg's group does not fit and the legs were not calibrated: the shift to the extended
-  model (``--legs``) and its covariance, ``C_legs + d d^T``, ``d = Log(T_hat^-1 T_legs)``: the
-  error a leg the URDF gets wrong causes, which neither of the above sees (it is the same at every
-  station);
-* when a sensor's planes or scans (group ``plane:<sensor>``) do not fit: the shift to the same data
-  solved with a range scale of each such sensor (graph.py's :class:`CalibrateExtension`,
-  factors/range_scale.py), ``C_ext + d d^T``, ``d = Log(T_hat^-1 T_ext)``: a range (depth) scale
-  moves the extrinsic's translation by the scale error times the distance to the floor at every
-  station alike, which neither the jackknife nor ``--legs`` sees. Left out when the scale that fits
-  best is more than :data:`PLAUSIBLE_RANGE_SCALE_ERROR` from 1 (no sensor's scale error: the misfit
-  is something else).
-* when a sensor's planes or scans do not fit: the shifts to the same data solved with a second
-  extrinsic of the sensor from the station :func:`change_station` picks (a score test of every
-  split; graph.py's :class:`CalibrateExtension`), ``sum_j C_j + d_j d_j^T``, ``d_j = Log(T_hat^-1 T_j)``
-  over the extrinsic before and after: a sensor knocked mid-session leaves the one extrinsic
-  estimated between where it sat before and after, which no other term sees (measured on the
-  battery's knocked runs: 3 of 10 above NEES 19.75 without it, 0 with it).
-
-Each term is kept with its name and a note (:class:`RobustTerm`); the sensor's ``robust_terms``
-(calibration.yaml) lists the ones that went in.
+When the adequacy verdict (:mod:`graphcal.calibration.adequacy`) is ``does not fit``, the model's
+covariance is not to be trusted. The robust covariance of each extrinsic is the sum of the model
+covariance scaled by the residuals' variance factor relative to the noise the model *used*
+(:func:`variance_factor`), a jackknife over stations (:func:`jackknife_tangents`) and, where they
+apply, the shifts (with their covariances) to the legs calibrated, to a range-scale solution and
+to a second extrinsic from the station :func:`change_station` picks. Each term is kept with its
+name and a note (:class:`RobustTerm`); calibration.yaml's ``robust_terms`` lists them.
 
 Every covariance is of the right perturbation ``T = T_hat Exp(xi)``, ``xi = [omega (rad), v (m)]``
-in the sensor's axes (calibration's convention).
+in the sensor's axes. The method and its measurements: docs/calibration.md, "Does the model fit?".
 """
 
 from __future__ import annotations
@@ -68,9 +35,8 @@ LEG_GROUPS = frozenset({"stance_foot", "stance_foot/joint", "stance_foot/contact
 #: the noise group of a sensor's planes or scans is this prefix and the sensor's name
 PLANE_GROUP_PREFIX = "plane:"
 #: a range scale further than this from 1 is no depth sensor's scale error (depth cameras and laser
-#: scanners: a few per cent at most; the simulator draws 1-3 %): the misfit is something else and
-#: the shift to that solution no measure of the error (measured: a sensor knocked by 2.8 deg
-#: mid-session read as a scale of 1.26 and a 245 mm shift, its error 1.6 deg / 12 mm)
+#: scanners: a few per cent at most; the simulator draws 1-3 %): the misfit is something else (a
+#: knocked sensor, say) and the shift to that solution no measure of the error
 PLAUSIBLE_RANGE_SCALE_ERROR = 0.1
 
 

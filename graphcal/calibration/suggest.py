@@ -1,47 +1,15 @@
 """Next-best poses: which body poses to command, in the dataset's stance, so that k stations
-determine a camera's extrinsic best (docs/incremental.md).
+determine a camera's extrinsic best.
 
-Candidates
-----------
-Poses the robot can hold with its feet planted where the dataset's first session planted them:
-roll and pitch uniform within +-25 deg, yaw +-15 deg, height +-15 % and x, y +-3 cm around the
-session's mean pose; a candidate is kept when :func:`graphcal.models.kinematics.ik_leg` reaches
-every planted foot within the joint limits and the camera sees the ground (at least
-``MIN_GROUND_RAYS`` rays of the strided ray grid hit it within the sensor's range). Poses are
-``T_stance_body``: the body in the stance frame, which is the dataset's world frame (the frame of
-its commanded poses; for a simulated dataset the first session's stance frame).
+Candidates are random poses the robot can hold with its feet planted where the dataset's first
+session planted them (:func:`graphcal.models.kinematics.ik_leg`) and from which the camera sees the
+ground. Each is scored with a linear-Gaussian information model of the batch graph's factors
+(:class:`PoseInformationModel`: the extrinsic, the planted feet, the IMU mounting; the body pose
+eliminated), and the greedy choice is D-optimal (or, with sigma targets, the largest sigma /
+target ratio). Poses are ``T_stance_body``: the body in the dataset's world frame (that of its
+commanded poses); angles in degrees, positions in metres at the interface, rad / m inside.
 
-Information model (linear-Gaussian, the batch graph's factors linearised at the candidate)
-------------------------------------------------------------------------------------------
-Parameters ``theta = [S (6), F_1..F_n (3 each), M (3, with estimate_imu_mounting)]``: the
-extrinsic, the planted feet (shared by every station of the stance: their uncertainty does not
-average out) and the IMU mounting. A station at body pose X contributes, with X eliminated by a
-Schur complement:
-
-* one stance-foot factor per foot (``e = FK(q) - R^T (F - t)``, covariance
-  :func:`factors.stance_foot.joint_noise_covariance` with ``options.sigma_joint_rad`` and
-  ``sigma_contact_m``), the IMU attitude factor (``options.sigma_imu_rad``) and the commanded-pose
-  prior (``options.sigma_commanded_*``): the body pose's own information;
-* the plane factor (``factors.plane_observation``): Jacobians with respect to X and S at the
-  predicted ground plane ``(n, d)`` in the sensor frame (through the current extrinsic estimate),
-  and the plane's measurement covariance predicted from the sensor's noise model
-  (:mod:`graphcal.models.sensors`): the rays of the camera's (strided) pixel grid hit the
-  predicted plane, each point's noise along the normal is ``sigma_z(z) |n . u| / u_z``, and the
-  plane fit's information is ``H = sum_i J_i J_i^T / sigma_i^2``, ``J_i = (t1 . x_i, t2 . x_i, 1)``
-  (graphcal/clouds/planes.py's formula). One scalar ``c`` calibrates it to the dataset: the median over the
-  dataset's stations of ``tr(H_i C_i) / 3`` with ``C_i`` the covariance the plane fit reported
-  (it absorbs the cloud stride, the trimming factor and any unmodelled noise). ``cov3 = c H^-1``.
-
-The prior is the CAD prior of the extrinsic, the foot-on-ground factor of every foot and the
-IMU-mounting prior, as in the batch graph.
-
-Criterion: greedy D-optimal design. Each step adds the candidate that maximises
-``log det`` of the extrinsic's marginal information (prior + stations so far + candidate). For a
-linear-Gaussian model this is the expected information gain: the mutual information between the
-new station's measurements and the extrinsic is ``1/2 log det(I_new) - 1/2 log det(I_old)``
-(the entropy drop of the Gaussian posterior), so the greedy choice is the station with the
-largest expected information gain. A candidate closer than ``min_separation_deg`` (and 2 cm) to
-a chosen pose is dropped, so that the program is not k copies of the best corner.
+The candidates, the information model and the criterion: docs/incremental.md, "Next-best poses".
 """
 
 from __future__ import annotations
@@ -61,8 +29,8 @@ __all__ = ["SuggestedPose", "suggest_poses", "predict_sigmas", "PoseInformationM
 MIN_GROUND_RAYS = 30
 _RAY_GRID = (48, 36)  # pixel grid used to predict a plane's covariance (the scale c absorbs it)
 #: random candidate poses drawn, and the rotation within which a chosen pose's neighbours are dropped (deg).
-#: Measured on Chai's program, aiming at its sigmas: 500 candidates needed 27 stations (0.85 s),
-#: 2000 needed 25 (2.8 s), 4000 needed 24 (4.9 s)
+#: More candidates reach a target with fewer stations, at a cost that grows with their number
+#: (docs/incremental.md, "Measured (Chai's 52 poses vs suggestions)")
 N_CANDIDATES = 2000
 MIN_SEPARATION_DEG = 2.0
 _BODY_UNITS = np.r_[[np.degrees(1.0)] * 3, [1e3] * 3]  # rad, m -> deg, mm

@@ -1,42 +1,16 @@
-"""Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): two legs' joint columns exchanged in the logger.
+"""Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): two legs' joint columns exchanged in the
+logger, for the whole run or from / until one station, plainly or with mirrored signs.
 
-A logger that files leg a's encoder columns under leg b (and b's under a) leaves every stance foot
-of those two legs far from where the other legs and the sensors put the body: the nominal model
-then reads it as huge joint offsets (measured on an independent hexapod: two coxa offsets of +87
-and -86 deg, confidently wrong). Looked for in three steps, each gated on the previous one:
+Such an exchange leaves every stance foot of the two legs far from where the other legs and the
+sensors put the body; the nominal model reads it as huge joint offsets. Looked for in three steps,
+each gated on the previous one, all at physical noise: the stance-foot noise learned against the
+physical one (free), the per-leg stance chi-square (:data:`CONCENTRATION`, :data:`MIN_LEG_CHI2`,
+confirmed with the sensors weighted out), then one refit per hypothesis (pairs, sign patterns,
+spans). A :class:`~graphcal.diagnosis.correction.Correction` ``legs_exchanged`` is made only when
+the best hypothesis explains the data and beats the next-best by :data:`MIN_CONFIDENCE` in
+chi-square; otherwise a note. Joint values in rad (m for prismatic joints).
 
-1. **Gate** (free): the stance-foot noise the nominal model learned (``model.options``) against the
-   physical noise (:func:`graphcal.diagnosis.model.model_options`). When the learned variance is
-   within :data:`~graphcal.diagnosis.structure.MIN_EXCESS` of the physical one the stance feet fit
-   and nothing else is done (clean data: learned 0.02 deg / 0.08 mm against 0.1 deg / 1 mm).
-2. **Per-leg residuals** (one solve): the nominal model solved at physical noise, each leg's
-   stance-foot chi-square. The search goes on only when the misfit concentrates on two legs
-   (:data:`CONCENTRATION`) and is large at most of their stations (:data:`MIN_LEG_CHI2`); the
-   :data:`CANDIDATE_LEGS` legs that fail worst give the candidate pairs (legs with different joint
-   counts cannot be exchanged). One more solve confirms it: the same percentile with every sensor's
-   rows weighted out (:data:`SENSOR_WEIGHT_OUT`), so that outlier stations, which pull the stance
-   feet through the sensors, do not open the search.
-3. **Hypotheses** (one solve each, physical noise): for each candidate pair, the q columns of legs a
-   and b exchanged in every station's ``q_by_foot``; for the best pair also every mirror sign
-   pattern (a logger that converts left to right conventions: the exchanged angles negated joint by
-   joint) and, when no whole-run exchange fits, an exchange from one station on or before one
-   station (the station found as the change point of the per-station evidence). Each hypothesis is
-   scored by the chi-square of the whole nominal model at physical noise.
-
-A correction (cause ``legs_exchanged``; ``where``: ``legs``, and ``from_station`` /
-``until_station`` -- the first station no longer exchanged -- when it covers part of the run) is
-made only when the best hypothesis explains the data -- it fits at physical noise (chi2/dof <=
-MIN_EXCESS or its chi-square tail above STRUCTURE_ALPHA), or, with another cause left in the data,
-it beats the same two legs' joint offsets and link lengths freed by MIN_CONFIDENCE, or, when those
-explain the data as well at physical noise (a sensor-side cause: outlier stations), it fits with the
-sensors weighted out and beats them there by MIN_CONFIDENCE (:func:`_explains`) -- AND beats the
-next-best hypothesis (other pairs, sign patterns, spans, and the data as given) by at least
-:data:`MIN_CONFIDENCE` in chi-square; otherwise what was suspected goes to the notes. The
-Correction's ``statistic`` is the chi-square drop (data as given minus corrected) at physical
-noise, ``dof`` the degrees of freedom of the corrected fit (rows minus parameters), ``p_value`` the
-tail probability of the data as given at that dof (how surely they do not fit), ``confidence`` the
-chi-square margin over the next-best hypothesis; ``corrected`` holds the mirror signs applied, both
-fits' chi2/dof, the corrected fit's p-value and the free legs' chi-square (nan when not needed).
+The method, the decision rule and its measurements: docs/diagnosis.md, "Exchanged legs".
 """
 
 from __future__ import annotations
@@ -65,20 +39,17 @@ log = logging.getLogger(__name__)
 #: the legs whose stance feet fail worst at physical noise that make the candidate pairs
 CANDIDATE_LEGS = 3
 #: the search goes on only when the stance chi-square concentrates on two legs: the second-worst
-#: leg's at least this many times the third-worst's (measured at physical noise, 30-48 stations:
-#: 13-120 for two legs exchanged for the whole run or from a station on, 1.8-5.3 when the exchanged
-#: angles are also negated; 1.0-1.9 for a joint offset, a link length, an extrinsic knock, outlier
-#: stations)
+#: leg's at least this many times the third-worst's (an exchange concentrates there, even mirrored;
+#: the other effects spread over the legs: docs/diagnosis.md, "Exchanged legs")
 CONCENTRATION = 1.5
 #: ... and the second-worst leg's stance-foot chi-square at its 75th percentile over the stations
 #: at least this (about 30 mm of foot displacement at physical noise; a percentile, so that a few
-#: outlier stations do not open the search). Measured: 2 070-41 000 with two legs exchanged (for
-#: the whole run, from station 18 of 30, mirrored); at most 529 for the battery's effects
-#: (outlier stations; extrinsic knocks <= 58, joint offsets <= 5)
+#: outlier stations do not open the search); exchanges read several times this, the battery's other
+#: effects well below it (docs/diagnosis.md, "Exchanged legs")
 MIN_LEG_CHI2 = 1000.0
 #: ... and the same percentile again with every sensor's noise scaled by this (the sensors' rows
-#: weighted 1e-6): outlier stations open the plain gate through the sensor rows (seed 218 read
-#: 2.0 and 1 128), exchanged columns pass it on the kinematics alone
+#: weighted 1e-6): outlier stations can open the plain gate through the sensor rows, exchanged
+#: columns pass it on the kinematics alone
 SENSOR_WEIGHT_OUT = 1e3
 #: ... and the exchange from one station on is tried only above this concentration
 CHANGE_CONCENTRATION = 5.0
@@ -268,11 +239,9 @@ def _kinematic_percentile(phys, initial) -> float:
     """The 75th percentile over the stations of the second-worst leg's stance-foot chi-square in
     the nominal model at physical noise with every sensor's rows weighted out
     (:data:`SENSOR_WEIGHT_OUT`): the stance feet against each other, the IMU and the ground alone.
-    Exchanged columns break the legs' kinematics whatever the sensors see (measured 4 073-16 766
-    on seven datasets with two legs' columns exchanged: the tests' five, two more mirrored; the
-    plain gate read 6 184-32 920 on them); outlier stations pull the stance feet only
-    through the sensor rows (below 0.5 on seeds 200, 203, 205, 218, 229, where the plain gate read
-    up to 2 693). ``initial``: gtsam.Values to start from."""
+    Exchanged columns break the legs' kinematics whatever the sensors see; outlier stations pull
+    the stance feet only through the sensor rows (measured: docs/diagnosis.md, "Exchanged legs").
+    ``initial``: gtsam.Values to start from."""
     m = _weighted_out(phys)
     _, problem, values = _fit(m, m.data, initial=initial)
     return second_leg_percentile(_stance_chi2(m, problem, values))
@@ -306,9 +275,9 @@ def _explains(phys, data, best: Hypothesis) -> tuple:
     MIN_CONFIDENCE (another cause left in the data), or -- when a sensor-side cause (outlier
     stations) keeps both from fitting -- fits with the sensors weighted out
     (:func:`_weighted_out`; its dof without the sensors' rows) and beats the freed legs there by
-    MIN_CONFIDENCE. Measured: two legs' columns exchanged on three outlier datasets (octopus seeds
-    200, 206, 218): weighted out the exchange read 114-321 on ~920 dof, the freed legs 107 036-117 305;
-    at physical noise the freed legs had explained the data as well on 200 and 218."""
+    MIN_CONFIDENCE: outlier stations can keep an exchange from fitting at physical noise while the
+    freed legs explain the data as well (docs/diagnosis.md, "Exchanged legs", "Beside outlier
+    stations")."""
     if best.fits:
         return True, float("nan"), ""
     free = _free_legs_chi2(phys, *best.legs)

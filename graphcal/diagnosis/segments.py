@@ -1,55 +1,15 @@
-"""Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): undeclared segment boundaries (height steps,
-knocks) by change-point segmentation over the station sequence.
+"""Bookkeeping finder (graphcal/diagnosis/bookkeeping.py): undeclared segment boundaries -- a
+**height step** (from a station on, the ground every sensor sees lies at another height relative to
+the feet, inside a declared session) or a **knock** (one sensor's extrinsic changes from a station
+on) -- by change-point segmentation over the station sequence (dataset order).
 
-Two things change at a station nobody declared a boundary at:
+Score tests on the nominal model's whitened linearisation (:mod:`graphcal.diagnosis.scores`): a
+step is one column (a vertical shift of the ground seen, m), a knock the extrinsic's six columns
+(rad, m); a BIC-like penalty with a Bonferroni gate (:data:`ALPHA`), a confidence against outlier
+stations (:data:`MIN_CONFIDENCE`), binary segmentation up to :data:`MAX_BOUNDARIES`. A step's
+stations get a new session label (``<session>@<first station>``); each boundary a Correction.
 
-* a **height step**: the feet sink (or are re-planted) at another height, so from that station on
-  the ground every sensor sees lies at another height relative to the feet -- a session offset
-  that starts inside a declared session;
-* a **knock**: one sensor's extrinsic changes from that station on.
-
-The nominal model is solved and linearised (scores.py, ``A delta = b`` whitened). Every boundary
-``k`` of the station sequence (dataset order) is scored, ends included (a segment of one station at
-either end):
-
-* height step at ``k``: one column, the plane factors' Jacobian with respect to a vertical shift of
-  the ground they see (a world-vertical move of the body pose is that shift, seen from the sensor),
-  on the rows of the stations from ``k`` to the end of ``k``'s session, and on those from the
-  session's start to ``k`` (declared sessions share one ground: the two are different hypotheses);
-* knock of sensor ``s`` at ``k``: the extrinsic's six columns on ``s``'s rows from ``k`` on.
-
-Gate: without the nominal model's solution, the boundaries are first scored against the nominal
-model alone at its initial estimate (cheap); when none passes, the finder stops (clean data cost
-one linearisation). Otherwise, and directly when the solution is given (diagnose: the screening
-linearisation is then the diagnosis loop's first, made once for both, scores.screening_system),
-they are scored on the screening graph with every catalogued cause's variable projected out too
-(range scale, session offsets, ground tilt, IMU mounting, every joint offset and link length): a
-boundary must explain what none of them can (measured: a 1 % range scale otherwise read as three
-height steps).
-
-Each score ``T`` is chi-square with ``dof`` degrees of freedom when there is no boundary (dof: the
-rank of the information, weak directions below :data:`RANK_RTOL` of the strongest not counted).
-The penalty is BIC-like: a boundary is accepted when ``T - dof * ln(n_rows) > 0`` AND its
-Bonferroni p-value over every boundary tested passes ``ALPHA``; the strongest by BIC is taken. Its
-confidence is its BIC minus that of the next-best explanation: the other kind of boundary within
-a station, outlier stations (the short side of an end segment; the station at the boundary and the
-next; the :data:`MAX_OUTLIERS` worst-fitting stations). Below :data:`MIN_CONFIDENCE` nothing is
-corrected and a note names both; where outliers explain clearly better the finder is silent (the
-loop tests outlier stations). Where the boundary lies is reported as a posterior over its location
-(``p(k) ~ exp(T_k / 2)``, flat prior over the stations of the segment: the profile likelihood of
-one change point) and its 95 % interval.
-
-Binary segmentation: the boundary found is put into the model (a step as a new session with its
-offset, a knock as an extrinsic change) and the search repeats, at most :data:`MAX_BOUNDARIES`
-times, until no boundary passes.
-
-What the finder returns: for a height step, data whose stations at the other height (from the
-boundary to the session's end, or from its start to the boundary) carry a new session label
-(``<session>@<first station>``) -- the diagnosis loop's session_offset candidate then fits
-and names it -- and a Correction ``height_step``. For a knock, data unchanged and a Correction
-``extrinsic_knock`` (reported through the loop's extrinsic_change, which may then test it within two
-stations of an end); a knock whose segment holds one station cannot be told from an outlier
-measurement and is only said in notes.
+The method and its measurements: docs/diagnosis.md, "Undeclared segment boundaries".
 """
 
 from __future__ import annotations
@@ -80,9 +40,8 @@ MIN_CONFIDENCE = 2.0
 MAX_OUTLIERS = 3
 #: information eigenvalues below this share of the largest are not counted as degrees of freedom of a
 #: boundary: a knock seen on two planes of nearly the same normal is a 3-parameter effect (the
-#: normal's two angles and the distance); its three weak directions carry noise only (measured: 1.3
-#: of a statistic of 401, eigenvalues 0.0005-0.02 of the largest), and counted they would make a knock
-#: at two end stations as costly as two outlier measurements
+#: normal's two angles and the distance); its three weak directions carry noise only, and counted they
+#: would make a knock at two end stations as costly as two outlier measurements
 RANK_RTOL = 0.05
 
 
@@ -314,7 +273,7 @@ def _alternatives(best: _Test, tests: list[_Test], system, lay: _Layout) -> list
     # boundary there and another back reads as them)
     groups = {_short_side(lay, best), (best.index,), tuple(j for j in (best.index, best.index + 1) if j < n)}
     # and the few stations whose data fit worst anywhere: outliers on either side of a boundary pull
-    # it towards them (measured: three outlier stations read as a knock between them)
+    # it towards them (three outlier stations can read as a knock between them)
     single = [o for o in (_outliers(system, lay, (j,), best.sensor) for j in sorted(lay.rows_at)) if o is not None]
     single.sort(key=lambda o: -o.statistic)
     for m in range(1, MAX_OUTLIERS + 1):
@@ -358,18 +317,14 @@ KNOCK_GRID = 3
 #: the grid is fitted only when the strongest knocks fitted explain at least this share of what the
 #: best outlier explanation does
 GRID_SHARE = 0.5
-#: how far the grid of places can raise the best knock fitted first, at most (measured: 90 of ~1000).
-#: The grid is not fitted when even this bound on that knock loses to the best outlier explanation
-#: by BIC (measured: outliers at stations 15, 26 and the last, 48, of octopus seed 228: 25 knock fits,
-#: 1.2 s, that could not change the answer)
+#: how far the grid of places can raise the best knock fitted first, at most. The grid is not fitted
+#: when even this bound on that knock loses to the best outlier explanation by BIC: its ~25 knock fits
+#: could not change the answer (docs/diagnosis.md, "Outliers before knocks")
 GRID_GAIN_BOUND = 1.1
-#: how far fitting can raise a knock's statistic above its linear score, at most: fitted 2.1x (the
-#: outliers pull the nominal fit; measured over 30 knock and 6 outlier datasets, 2026-11-27), then
-#: the grid of places (GRID_GAIN_BOUND). No knock is fitted when even this bound on the
-#: strongest knock loses to the best outlier explanation by BIC (outliers clearly explain more).
-#: Measured: real knocks of 0.6-20 deg at the middle and 3-5 stations from either end of 24-30
-#: stations, and a Messor stereo camera's 2 stations from the end, scored 0.96-4.5 times the
-#: outliers' statistic linearly (never skipped); three outlier stations 0.06-0.38 times (6 datasets)
+#: how far fitting can raise a knock's statistic above its linear score, at most: 2.1x (the outliers
+#: pull the nominal fit), then the grid of places (GRID_GAIN_BOUND). No knock is fitted when even this
+#: bound on the strongest knock loses to the best outlier explanation by BIC (outliers clearly explain
+#: more); real knocks are never skipped (docs/diagnosis.md, "Outliers before knocks")
 KNOCK_GAIN_BOUND = 2.1 * GRID_GAIN_BOUND
 
 
@@ -388,11 +343,9 @@ def _refit_knocks(model, solved: tuple, best: _Test, tests: list[_Test], lay: _L
     scores (at least a quarter of ``best``'s), the neighbours of ``best``, every :data:`KNOCK_GRID`-th
     place of those sensors, then the places around the best of them, each FITTED (the model with
     that extrinsic change, solved). A large knock is far from the nominal linearisation: the linear
-    score can peak stations away from it (measured: a 2.6 deg knock at station 26 scored best at 32,
-    48 at 26; fitted, 26 is the best, by 90 over 32), and with two sensors the conflict between them
-    at a few stations can be put on either (measured: a 2.3 deg knock of the Messor's stereo camera
-    2 stations from the end scored 9627 for the stereo and 9979 for the laser; fitted, the stereo's
-    is the better one). ``outlier``: the best outlier explanation (:func:`_alternatives`); when the
+    score can peak stations away from it, and with two sensors the conflict between them at a few
+    stations can be put on either (docs/diagnosis.md, "Placing a knock by fitted likelihoods").
+    ``outlier``: the best outlier explanation (:func:`_alternatives`); when the
     strongest knocks fitted explain less than :data:`GRID_SHARE` of its statistic, the grid is not
     fitted (an outlier station scores as a knock beside it: ~25 solves saved), nor when the best of
     them raised by :data:`GRID_GAIN_BOUND` loses to it by BIC over ``n_rows`` rows. ``solved``:

@@ -1,31 +1,16 @@
-"""Motion-capture marker factor: markers on a foot, seen by the motion capture, against the leg's kinematics.
+"""Motion-capture marker factor: a marker on a foot, seen by the motion capture, against the leg's
+kinematics.
 
 Variables: ``V`` = T_body_mocap (Pose3: the motion-capture frame -- or Yuan's virtual base -- in
-the body frame), optional ``L`` = theta_leg (Vector: the leg's identification parameters of
-:mod:`graphcal.models.legs`, or a chosen subset of them), optional ``K`` = p_foot_marker (Point3:
-the marker's position in the foot frame).
+the body frame), optional ``L`` = theta_leg (Vector: the parameters of :mod:`graphcal.models.legs`,
+or a subset), optional ``K`` = p_foot_marker (Point3, foot frame). One factor holds all N samples
+of one marker: joint values ``q_i`` (rad / m) and the marker ``p_mocap_i`` (m, mocap frame).
+Error (3N, m, motion-capture frame):
+``e_i = p_mocap_i - T_body_mocap^-1 (p_body_foot(q_i; theta) + R_body_foot(q_i; theta) p_foot_marker)``,
+with analytic Jacobians (right perturbations). Noise: isotropic ``sigma_m`` (default 1 mm) or a
+per-sample covariance (:func:`marker_covariance`), whitened inside the factor.
 
-One factor holds a batch of N samples of one marker (engineering notes: one Python callback per
-sample costs more than the arithmetic). Measurement per sample i: the joint values ``q_i`` (n,)
-and the marker position ``p_mocap_i`` (3,) in the motion-capture frame.
-
-Error (3N, m, motion-capture frame), sample by sample:
-
-    e_i = p_mocap_i - T_body_mocap^-1 (p_body_foot(q_i; theta) + R_body_foot(q_i; theta) p_foot_marker)
-
-Jacobians (right perturbations; ``p_i`` = the predicted marker in the mocap frame, ``R = R_body_mocap``):
-
-* ``T_body_mocap Exp([phi, rho])``: the prediction becomes ``Exp(-xi) p_i ~ p_i + [p_i]x phi - rho``,
-  so ``H_V = [-[p_i]x, I]``;
-* theta: ``H_L = -R^T d p_body_marker / d theta`` (:func:`graphcal.models.legs.point_kinematics`:
-  a joint offset turns the marker about the joint axis, a translation moves it along its direction);
-* p_foot_marker: ``H_K = -R^T R_body_foot``.
-
-Noise: isotropic ``sigma_m`` (default 1 mm: a marker of an optical motion-capture system), or a
-full per-sample covariance ``cov_m2`` (N, 3, 3), e.g. marker noise plus joint-encoder noise
-through the leg (:func:`marker_covariance`) plus the virtual base's uncertainty. With ``cov_m2``
-the factor whitens inside (``L_i e_i`` with ``L_i^T L_i = cov_i^-1``) and uses a unit noise model,
-so ``graph.error`` is still half the sum of squared Mahalanobis distances.
+Jacobians and noise: docs/legs.md, "The factor".
 """
 
 from __future__ import annotations

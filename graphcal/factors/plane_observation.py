@@ -1,31 +1,15 @@
 """Plane observation factor: a sensor sees the ground (or a known/estimated world plane).
 
-Variables: ``X`` = T_world_body (Pose3), ``S`` = T_body_sensor (Pose3), optional ``G`` = the
-world plane (OrientedPlane3). Without ``G`` the world plane is the ground ``n_w = (0, 0, 1)``,
-``d_w = 0`` (or any fixed ``plane_world``).
+Variables: ``X`` = T_world_body (Pose3), ``S`` = T_body_sensor (Pose3), optional ``G`` = the world
+plane (OrientedPlane3); without ``G`` the ground ``n_w = (0, 0, 1)``, ``d_w = 0`` (or a fixed
+``plane_world``). Measurement: the plane ``(n_m, d_m)`` in the sensor frame (unit ``n_m``,
+canonical ``d_m >= 0`` m, ``n_m . x + d_m = 0``) and the 4x4 covariance ``cov4`` of
+``(nx, ny, nz, d)``. Error (3): ``e = [B^T n_s (2, rad) ; d_s - d_m (1, m)]``, the world plane
+predicted in the sensor frame (``T_ws = X S``) against the measured one, ``B`` the tangent basis
+of ``n_m``; analytic Jacobians for right perturbations ``[omega, v]``. The initial normal must be
+within 90 deg of the truth (``n_s = -n_m`` also zeroes the angular rows).
 
-Measurement: the plane ``(n_m, d_m)`` in the sensor frame (unit ``n_m``, canonical ``d_m >= 0``,
-``n_m . x + d_m = 0``) and the 4x4 covariance ``cov4`` of ``(nx, ny, nz, d)``, e.g. from a PCA
-fit of the plane's points.
-
-Prediction (``T_ws = X S``): ``n_s = R_ws^T n_w``, ``d_s = d_w + n_w . t_ws`` (the world plane
-expressed in the sensor frame, as ``gtsam.OrientedPlane3.transform``).
-
-Error (3): ``e = [B^T n_s ; d_s - d_m]`` with ``B = tangent_basis(n_m)`` (3x2, orthonormal,
-orthogonal to ``n_m``; GTSAM's Unit3 basis rule). ``B^T n_s`` is, to first order, the small
-rotation (rad) taking ``n_m`` to ``n_s``; note that ``n_s = -n_m`` also zeroes it, so the initial
-guess must have the normal within 90 deg of the truth (the distance row then disambiguates).
-
-Jacobians (right perturbations, ``[omega, v]``): a perturbation ``eta = [phi, rho]`` of ``T_ws``
-gives ``d n_s = [n_s]x phi`` and ``d d_s = n_s . rho``, so
-``H_T = [[B^T [n_s]x, 0], [0, n_s^T]]``; ``H_S = H_T`` and ``H_X = H_T Ad(S^-1)`` (``X Exp(xi) S
-= X S Exp(Ad(S^-1) xi)``). For ``G`` (retract ``n_w <- Unit3 retract along B_w``, ``d_w <- d_w +
-dd``): ``d n_s = R_ws^T B_w v``, ``d d_s = t_ws . B_w v + dd``.
-
-Noise: Gaussian with ``cov3 = Gm^T cov4 Gm``, ``Gm = blockdiag(B, 1)`` (4x3), plus an optional
-floor ``diag(sa^2, sa^2, sd^2)`` for ground roughness / unmodelled flatness errors
-(``sigma_angle_floor_rad``, ``sigma_distance_floor_m``, both 0 by default: the fit covariance is
-used as is). ``robust=`` wraps it in a GTSAM mEstimator.
+Prediction, Jacobians, noise and floors: docs/factors.md, "1. plane_observation".
 """
 
 from __future__ import annotations

@@ -1,34 +1,15 @@
 """Stance-foot factor with the legs held fixed, as GTSAM's built-in ``BearingRangeFactor3D``.
 
-Variables: ``X`` = T_world_body (Pose3), ``F`` = p_world_foot (Point3).
-Measurement: ``p`` = FK(q) (3,), m, the planted foot in the body frame predicted by the leg with
-its kinematic parameters held fixed, and its covariance ``Sigma`` (3x3, m^2, body frame).
+Variables: ``X`` = T_world_body (Pose3), ``F`` = p_world_foot (Point3). Measurement: ``p`` = FK(q)
+(3,), m, the planted foot in the body frame predicted by the leg with its parameters held fixed,
+and its covariance ``Sigma`` (3x3, m^2, body frame). Error: GTSAM's ``[local(u, u') (2, rad),
+r' - r (1, m)]`` with ``u = p / |p|``, ``r = |p|`` and ``u'``, ``r'`` those of ``X^-1 F``; to first
+order ``e_br = -J e`` (:func:`stance_foot_error_map`) of the Cartesian error of
+:mod:`graphcal.factors.stance_foot`, with noise ``J Sigma J^T``. C++ instead of a Python callback:
+the calibration graph's stance feet become several times cheaper to linearise. A foot within
+:data:`MIN_RANGE_M` of the body origin is refused (the caller keeps the Python factor).
 
-Why: :mod:`factors.stance_foot` is a Python ``CustomFactor``; GTSAM calls back into Python at every
-linearisation and error evaluation (~35 us per call). A calibration graph holds one stance-foot
-factor per planted foot per station (312 of the 476 factors of Chai's 52 stations), so they were
-most of the graph's time. When the legs are not estimated, ``FK(q)`` is a constant and the factor
-is the observation of a point from a pose, which GTSAM has in C++ as a bearing and a range.
-Measured on Chai's 52 stations: ``graph.linearize`` 19 ms -> 5.5 ms, one LM solve 95 -> 50 ms,
-the estimates equal to 3e-5 mm (``bench/README.md``).
-
-Error: GTSAM's ``[local(u, u') (2, rad), r' - r (1, m)]`` with ``u = p / |p|`` (the measured
-bearing, a ``gtsam.Unit3``), ``r = |p|``, and ``u'``, ``r'`` the bearing and range of
-``p' = X^-1 F`` (``local`` is Unit3's local coordinates in the basis ``B`` (3x2) of ``u``). To
-first order at ``p' = p``:
-
-    e_br = J (p' - p) = -J e,    J = [[B^T / r], [u^T]]    (3x3, :func:`stance_foot_error_map`),
-
-``e = p - X^-1 F`` the Cartesian error of :mod:`factors.stance_foot`. The noise is
-``J Sigma J^T``, so the whitened errors agree to first order (``e_br^T (J Sigma J^T)^-1 e_br =
-e^T Sigma^-1 e``): the solution, the chi-square tests and the variance components are those of the
-Cartesian factor up to terms of order ``|e| / r`` (a few mm against a 0.2-0.5 m leg). A sum of
-noise components ``Sigma = sum Sigma_k`` maps term by term (``J Sigma_k J^T``).
-
-Not for a foot near the body origin: the bearing is undefined at ``r = 0``;
-:func:`stance_foot_builtin_factor` refuses ``r < MIN_RANGE_M`` (the caller keeps the Python factor).
-The Jacobians are GTSAM's; ``tests/test_factors.py`` checks the map ``J`` against numerical
-derivatives of the factor's error and the whitened linearisation against the Python factor's.
+Why, the equivalence and the tests: docs/factors.md, "3b. stance_foot_builtin".
 """
 
 from __future__ import annotations

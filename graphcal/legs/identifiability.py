@@ -1,37 +1,16 @@
 """Which parameters the data determine: column-scaled SVD and QR with column pivoting of the
 stacked identification Jacobian, evaluated on the actual data.
 
-Input: the whitened Jacobian ``A`` (m, p) of all residuals (each row divided by its noise, so a
-unit change of a row is one standard deviation of the measurement) with respect to p candidate
-parameters, and a scale per parameter: the size of error one expects a priori (e.g. 2 deg for a
-joint offset, 10 mm for a link length, 1 rad / 1 m for an unknown motion-capture pose). The scaled
-matrix ``B = A diag(scale)`` then measures, for each parameter direction, by how many noise
-standard deviations (root-sum-square over the data set) an error of the expected size moves the
-measurements.
+Input: the whitened Jacobian ``A`` (m, p) of all residuals (each row divided by its noise) and a
+scale per parameter, the error one expects a priori (e.g. 2 deg for a joint offset, 10 mm for a
+link length, 1 rad / 1 m for an unknown motion-capture pose; given in SI, rad and m). Each
+parameter comes out **identifiable**, **only in combination** (structural, or weakly determined by
+these data; the combination in SI units per unit of the parameter) or **not identifiable**; the
+free set is every identifiable parameter completed to the numerical rank by pivoted QR, the
+others held at their nominal value.
 
-Decision (tolerances, all documented in docs/legs.md):
-
-* singular values ``s_i`` of ``B``. A direction is NOT determined by the data when
-  ``s_i < max(rtol * s_max, s_min)``: ``rtol = 1e-8`` catches exact aliasing (round-off level,
-  ~1e-12 relative, e.g. a first-joint offset against a rotation of the motion-capture frame), and
-  ``s_min = 3`` (noise level) directions where an error of the expected size changes the
-  measurements by less than three noise standard deviations in total (posterior sigma more than a
-  third of the a-priori scale).
-* a parameter whose column moves the data by less than ``s_min`` noise standard deviations
-  (``|B_j| < s_min``) is **not identifiable** (no visible effect on these data);
-* otherwise the fraction ``f_j = |N^T e_j|`` of its unit vector inside a null space N decides:
-  exact aliasing is found scale-invariantly, on the column-normalised Jacobian (``A_j / |A_j|``,
-  singular values below ``rtol`` times the largest): ``f_j >= 0.05`` there -> **only in
-  combination**, *structural* (no data of this kind separates the parameters); else the same test
-  on the a-priori scaled matrix with the noise-level threshold -> **only in combination**, weakly
-  determined by these data; else **identifiable**. The combination reported is the null-space
-  direction closest to the parameter, in SI units per unit of the parameter.
-* free set: every identifiable parameter, completed to the numerical rank by QR with column
-  pivoting (``scipy.linalg.qr(..., pivoting=True)``) of the other columns after projecting out
-  the identifiable ones. Pivoting takes the column with the largest remaining (scaled) effect
-  first, so among aliased parameters the one with the larger a-priori scale stays free and
-  absorbs the combination (an unknown motion-capture pose before a joint offset); the others are
-  held at their nominal value.
+The tolerances (:data:`RTOL`, :data:`S_MIN`, :data:`F_IDENTIFIABLE`) and the decision:
+docs/legs.md, "Which parameters: identifiability".
 """
 
 from __future__ import annotations

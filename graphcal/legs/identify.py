@@ -1,44 +1,15 @@
-"""Leg kinematic identification from motion capture: graph, identifiable set, LM to convergence, covariance.
+"""Leg kinematic identification from motion capture (Yuan's virtual fixed base): graph, identifiable
+set, LM to convergence, covariance, verdict.
 
-Unknowns: ``T_body_mocap`` (Pose3, key ``V(0)``: the motion-capture frame, or Yuan's virtual base,
-in the body frame), per leg the parameters ``theta`` of :mod:`graphcal.models.legs` (Vector, key
-``L(l)``), per marker whose position on the foot is not given its ``p_foot_marker`` (Point3, key
-``K(j)``). One :func:`factors.mocap_marker.mocap_marker_factor` per marker holds all its samples;
-one :func:`factors.mocap_pose.mocap_pose_factor` per measured frame (a
-:class:`~graphcal.legs.mocap_data.PoseTrack`: 6-D poses, 6 rows per sample). With a robust loss
-(``IdentifyOptions.robust``) every sample is a factor of its own inside a gtsam mEstimator.
+Unknowns: ``T_body_mocap`` (Pose3, key ``V(0)``: the motion-capture frame, or the virtual base, in
+the body frame), per leg the parameters ``theta`` of :mod:`graphcal.models.legs` (key ``L(l)``),
+per marker whose position on the foot is not given its ``p_foot_marker`` (Point3, key ``K(j)``).
+:func:`identify_legs` fits the nominal model ("before"), chooses the free set
+(:mod:`graphcal.legs.identifiability`), iterates LM over it ("after"), scales the covariance by
+``sigma0^2`` and judges the fit (:mod:`graphcal.legs.adequacy`). Units: m, rad; errors
+(``TrackResiduals``) are measured minus predicted marker positions in BODY axes (m; mm in summaries).
 
-Steps of :func:`identify_legs`:
-
-1. start: ``T_body_mocap`` nominal when known, else a rigid fit (Kabsch) of the nominal-model
-   marker positions to the measured ones, alternated with a linear fit of unknown markers;
-2. **before**: Levenberg-Marquardt (graphcal's Python-driven :func:`~graphcal.solvers.batch.solve_lm`)
-   over ``T_body_mocap`` and the unknown markers with the legs at their nominal URDF -- the best
-   the nominal model can do; its residuals are the "before" errors;
-3. **identifiable set** (:mod:`graphcal.legs.identifiability`) on the stacked whitened Jacobian
-   at that point: every candidate (the free components of ``T_body_mocap``, every leg parameter,
-   the unknown marker coordinates) is identifiable, only in a combination, or not identifiable;
-   the parameters outside the chosen free set are held at their nominal value (leg parameters
-   are removed from the L variable; pose and marker components get a prior of
-   ``HELD_SIGMA`` = 1e-9 rad / m);
-4. **after**: LM iterated to convergence (not Yuan's single linearised step, Eq. 13) over the
-   free set;
-5. covariance (:func:`~graphcal.solvers.covariance.marginal_covariances`), multiplied by the
-   a-posteriori variance factor ``sigma0^2 = chi^2 / (m - u)`` (m residuals, u free unknowns)
-   unless ``IdentifyOptions.scale_covariance`` is False -- the noise level of real data is not
-   known exactly, and ``sigma0 ~ 1`` when the noise model is right;
-6. the model-adequacy verdict, the per-posture outlier test and the leave-one-posture-out
-   jackknife (:mod:`graphcal.legs.adequacy`) on the residuals whitened by the DECLARED noise (the
-   options' sigmas: dataset.yaml's ``mocap.sigma_mm`` / ``sigma_joint_deg`` or the documented
-   defaults with ``noise_source="dataset"``); each parameter's ``sigma`` is the larger of the model
-   and the jackknife sigma (both kept).
-
-Noise model per sample (mocap frame): ``sigma_marker^2 I + sigma_joint^2 J_q J_q^T`` plus the
-virtual base's uncertainty when body markers are used (:attr:`MarkerTrack.cov_extra`), evaluated
-once at the start (nominal legs).
-
-Errors reported (``TrackResiduals``): measured minus predicted marker position rotated into BODY
-axes (m); RMSE = ``sqrt(mean |e_i|^2)`` over the samples (3-D), in mm in the summaries.
+The steps and the noise model: docs/legs.md, "The factor" and "Solving".
 """
 
 from __future__ import annotations
@@ -865,7 +836,7 @@ def identify_legs_dataset(dataset, *, options: IdentifyOptions = IdentifyOptions
         return identify_legs(data.robot, tracks, options=options, T_body_mocap_nominal=data.T_body_mocap_nominal,
                              frame=data.frame, source=data.source, warnings=data.warnings, progress=progress)
 
-    # two feet's marker ids, or two postures' samples, exchanged (issue 29): looked for only when nothing fits
+    # two feet's marker ids, or two postures' samples, exchanged: looked for only when nothing fits
     tracks = data.tracks
     found, result, notes = find_exchanged_markers(run(tracks), tracks, run)
     tracks = tracks if found is None else exchange_markers(tracks, *found.markers)

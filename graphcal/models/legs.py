@@ -1,50 +1,15 @@
-"""The kinematic model of a leg: its parameters ``theta`` and the forward kinematics of a point on its foot.
+"""The one kinematic model of a leg: its parameters ``theta`` (joint offsets, link lengths, joint
+origins) and the forward kinematics of a point on its foot, with its Jacobians.
 
-A :class:`LegModel` names the kinematic parameters ``theta`` (k,) of one leg, used by the
-calibration (Chai's stance feet, :mod:`graphcal.factors.stance_foot`) and by Yuan's leg
-identification (:mod:`graphcal.legs`, :mod:`graphcal.factors.mocap_marker`):
-
-* ``<joint>.offset_rad`` for each moving joint (``<joint>.offset_m`` for a prismatic one): the
-  encoder zero error, ``q_true = q_measured + offset`` -- the same model as
-  :func:`graphcal.models.perturb.apply_perturbation`'s ``joint_offsets_rad``;
-* ``<joint>.delta_m`` for each link-length joint: every moving joint after the first (its origin
-  translation is the previous link) and the FIXED URDF joint whose child link is the foot (the
-  last link, e.g. ``<leg>_foot_joint`` of the built-in models). The link ending at joint ``j`` is
-  lengthened by ``delta`` metres along its own direction ``u_j`` (the unit vector of the nominal
-  URDF origin translation, in its parent frame) -- the same model as
-  :func:`graphcal.models.perturb.link_length_delta`. If the foot frame is not the child of a
-  URDF joint (e.g. a frame that is not a link), the parameter is called ``<foot>.delta_m`` and
-  lengthens the translation of ``Leg.T_lastjoint_foot``. A joint whose origin has no translation
-  (no link ends at it, e.g. two joint axes through one point) gets no ``delta_m`` parameter;
-* with ``origins="first"`` (identification's default) or ``"all"``, 3-D origin translations
-  ``<joint>.dx_m``, ``<joint>.dy_m``, ``<joint>.dz_m``: the change of a URDF joint's
-  ``<origin xyz>`` in its parent link frame. ``"first"``: only the FIRST moving joint -- the hip
-  position in the body frame, which Yuan et al. write with the body length and width ``l_b``,
-  ``w_b`` (their lateral hip offset ``omega`` is the link from the hip joint to the thigh joint,
-  i.e. the A1 ``<leg>_thigh_joint.delta_m``). ``"all"``: every moving joint (and the fixed joint
-  that carries the foot frame) gets a 3-D translation instead of its one link-length parameter, a
-  model close to a full geometric calibration (3 translations + the joint angle offset per joint;
-  the two remaining rotations per joint are not modelled). ``"none"`` (the calibration's model):
-  offsets and link lengths only.
-
-Parameter order in ``theta`` (k,): all offsets (base -> foot), then the translation parameters
-(link deltas and origin components, base -> foot, foot link last). ``theta = 0`` is the nominal URDF.
-
-:func:`point_kinematics` is vectorised over N configurations: the position of a point fixed in the
-foot frame (e.g. a motion-capture marker ``p_foot_marker``; default the foot frame origin) in the
-leg's base frame, its Jacobian with respect to ``theta``, with respect to the measured joint
-values ``q`` (for noise propagation) and the rotation of the foot frame (the Jacobian with respect
-to the point's position in the foot frame is ``R_base_foot``). :func:`fk_with_params`,
-:func:`param_jacobian` and :func:`fk_and_param_jacobian` are its foot-origin views. Jacobian columns:
-
-* offset of joint j: the joint's Jacobian column at ``q_true`` (``axis_j x (p - origin_j)``
-  for a revolute joint, ``axis_j`` for a prismatic one, in the base frame);
-* translation parameter of placement j: ``R_base_frame(j) @ u``, its direction in the base frame,
-  where ``R_base_frame(j)`` is the rotation of the frame that placement's translation is expressed
-  in (the previous joint frame, after its motion). The point is linear in each translation, so
-  this column is exact.
+:class:`LegModel` names the parameters of one leg, used by the calibration
+(:mod:`graphcal.factors.stance_foot`) and by Yuan's leg identification (:mod:`graphcal.legs`,
+:mod:`graphcal.factors.mocap_marker`); ``theta = 0`` is the nominal URDF. :func:`point_kinematics`
+is vectorised over N configurations: the point in the leg's base frame and its Jacobians in
+``theta``, in the measured joint values ``q`` and the foot frame's rotation.
 
 Units: metres, radians. Frames: ``base`` is the leg's base frame (``RobotModel.base_frame``).
+The parameters, their order and the Jacobian columns: docs/factors.md, "Leg parameters";
+docs/legs.md, "The model".
 """
 
 from __future__ import annotations

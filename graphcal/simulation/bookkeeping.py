@@ -1,39 +1,16 @@
-"""Bookkeeping errors hidden in simulated datasets: the battery of issue 29 (examples/diagnosis_bookkeeping.py).
+"""Bookkeeping errors hidden in simulated datasets, for the bookkeeping battery
+(examples/diagnosis_bookkeeping.py).
 
 Each generator takes a written dataset folder (``src``, as ``graphcal simulate --output planes``
-writes it) and writes a mutated copy (``dst``), editing the contract's files as a logger, a
-converter or a printed table would have got them wrong; it returns a :class:`BookkeepingTruth`:
-the cause (a name of :data:`graphcal.diagnosis.bookkeeping.BOOKKEEPING_CAUSES`), the place and the
-value the data should hold. The copy has no ``truth.yaml`` (the simulator's truth stays with
-``src``); nothing in it says what was changed.
-
-File edits (the rows of untouched stations are copied byte for byte):
-
-* :func:`exchange_stations` -- two stations' sensor data (their planes.csv rows) exchanged;
-* :func:`mislabel_row` -- one sensor's row of station ``station`` filed under ``to_station``; that
-  station's own row is lost (overwritten), ``station`` has none;
-* :func:`exchange_legs` -- two legs' joint columns (``q_``, ``tau_``) exchanged in stations.csv,
-  joint by joint along the chain;
-* :func:`flip_normal_sign` -- one component of one plane's normal with the wrong sign (the
-  covariance columns are left as they are: the sign was lost in print, after the fit);
-* :func:`opposite_convention` -- one plane written as n . x = d (n away from the sensor, d >= 0),
-  i.e. (-n, d) where the contract has (n, d);
-* :func:`distance_unit` -- one plane's d in millimetres (``factor`` 1000) or centimetres (100).
-  NOTE: the dataset reader refuses d > 100 m (graphcal/io/dataset/checks.py, "looks like
-  millimetres"), so a millimetre slip of a plane ~1 m away stops ``graphcal diagnose`` with a
-  DatasetError naming the row; a centimetre slip of a plane < 1 m away passes the reader.
-
-Simulated (the physics is the simulator's; no session label is written for it):
-
-* :func:`splice_stations` -- the stations ``stations`` taken from another simulation of the same
-  seed (every file row of theirs: joints, IMU, commanded pose, planes); with ``other`` simulated
-  with every session sunk by h (:func:`height_step_config`) it is an undeclared height step of h at
-  those stations -- mid-run, or at the first / last 1-2 stations;
-* :func:`knock_config` -- an undeclared extrinsic change (a knock) at any station, including 1-2
-  stations from either end (the simulator's :class:`~graphcal.simulation.effects.ExtrinsicChange`).
-
-:func:`make_case` draws one case of a kind (:data:`DEV_KINDS`, :data:`BLIND_KINDS`) from a seed
-and writes it, caching the simulated base datasets under a folder of the caller's choice.
+writes it) and writes a mutated copy (``dst``) without ``truth.yaml``; it returns a
+:class:`BookkeepingTruth` (the cause, a name of
+:data:`graphcal.diagnosis.bookkeeping.BOOKKEEPING_CAUSES`, its place and the value the data should
+hold). File edits: :func:`exchange_stations`, :func:`mislabel_row`, :func:`exchange_legs`,
+:func:`flip_normal_sign`, :func:`opposite_convention`, :func:`distance_unit`; simulated:
+:func:`splice_stations` (height steps, :func:`height_step_config`) and :func:`knock_config`.
+:func:`make_case` draws one case of a kind (:data:`DEV_KINDS`, :data:`BLIND_KINDS`) from a seed.
+Units are the contract's (m, rad; planes in the sensor frame). The kinds: docs/diagnosis.md,
+"Bookkeeping battery".
 """
 
 from __future__ import annotations

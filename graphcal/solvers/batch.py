@@ -1,33 +1,15 @@
 """Levenberg–Marquardt driven from Python over a gtsam factor graph, and per-factor chi-square.
 
 Why not ``gtsam.LevenbergMarquardtOptimizer``: a Python ``CustomFactor`` inside gtsam's C++
-optimizers receives a fresh copy of the whole ``Values`` at every callback (cost grows with the
-number of variables; docs/solvers.md and the shared design notes, engineering-notes.md). Here the loop
-runs in Python and every ``graph.linearize(values)`` / ``graph.error(values)`` is called on a
-``Values`` that Python owns, so pybind11 passes it by reference: same optimum, no copies.
+optimizers receives a fresh copy of the whole ``Values`` at every callback. Here the loop runs in
+Python on a ``Values`` it owns, so pybind11 passes it by reference: same optimum, no copies.
+:func:`solve_lm` damps with gtsam's default ``lambda I`` in whitened units, solves by multifrontal
+Cholesky (QR when gtsam calls the damped system indeterminate), and first factors the undamped
+system once: an under-constrained graph raises :class:`UnderdeterminedError` naming the variable
+(``"S0"``). :func:`whitened_errors` gives each factor's chi-square before the robust loss. Units
+are those of the factors; errors are gtsam's ``graph.error`` (0.5 sum of squared whitened rows).
 
-The loop (docs/solvers.md has the details):
-
-1. ``lin = graph.linearize(values)`` (robust noise models reweight here, as in gtsam);
-2. damped system: ``lin`` plus, for every variable, ``JacobianFactor(key, sqrt(lambda) I, 0)``
-   — gtsam's default (``diagonalDamping = false``) damping ``lambda I`` in whitened units;
-3. solve by multifrontal Cholesky in a COLAMD ordering computed once (the structure does not
-   change); if gtsam finds the damped system indeterminate (only for badly conditioned cliques at
-   tiny lambda) the same system is solved by QR, and if that fails too the step is rejected;
-4. ``values.retract(delta)``; accept when ``graph.error`` does not increase (lambda /= factor),
-   else reject (lambda *= factor) and solve again with the same linearisation.
-
-Stops when an accepted step decreases the error by less than ``absolute_tol`` or by less than
-``relative_tol`` times the error, when a rejected step changed the error by less than that (the
-optimum within round-off; the tolerance is never below ``4 eps * number_of_factors * error``, the
-round-off of summing the factor errors), after ``max_iterations`` linearisations, or when lambda
-exceeds ``lambda_upper_bound``.
-
-Before iterating, the undamped system is factored once: an under-constrained graph (a variable or
-a combination with no information, e.g. a gauge freedom) raises :class:`UnderdeterminedError`
-naming the variable (``"S0"``) instead of returning a number the data does not support. gtsam's
-Cholesky also refuses merely ill-conditioned cliques; those are told apart by a scale-invariant
-QR rank test (relative pivot of the whitened Jacobian below ``1e-9``).
+The loop, the stopping rule and the rank test: docs/solvers.md, "2. Levenberg–Marquardt from Python".
 """
 
 from __future__ import annotations
