@@ -398,6 +398,29 @@ def test_watch_set_shortcut_matches_the_plain_loop(clutter_frame, weighted):
     np.testing.assert_array_equal(ref.keep, keep)
 
 
+def test_points_far_less_noisy_than_the_model_keep_the_model_covariance():
+    """Noise-free points (a simulator's depth image, float32) with the Kinect noise model: the
+    whitened 2-sigma loop stops at its floor instead of trimming rounding noise (whose outcome
+    depends on the machine's BLAS kernels and could drop every point), every point is kept, and
+    the covariance is the model's untruncated H^-1, the same for a reordered frame."""
+    terrain = make_terrain("level")
+    scan = capture(KINECT, terrain.meshes, T_FLOOR, np.random.default_rng(0))
+    n_true, d_true = floor_plane_sensor(T_FLOOR)
+    P = scan.true_points_sensor.astype(np.float32).astype(np.float64)
+    rn = depth_camera_distance_sigma(KINECT.sigma_along_axis)
+    (fit,) = extract_planes(P, range_noise=rn, rng=0)
+    assert fit.n_points == len(P) and fit.converged and fit.iterations == 1
+    assert fit.truncation_sigmas == np.inf
+    assert angle_deg(fit.n, n_true) < 1e-5 and abs(fit.d - d_true) < 1e-6
+    (noisy,) = extract_planes(scan.points_sensor, range_noise=rn, rng=0)
+    # the noisy fit: ~85 % of the points and 1 / tau(1.45) = 1.9x: about 2.2x the variance
+    ratio = fit.cov_tangent(plane_tangent_basis(n_true)).diagonal() / noisy.cov_tangent(plane_tangent_basis(n_true)).diagonal()
+    assert np.all((ratio > 0.35) & (ratio < 0.6)), ratio
+    (rev,) = extract_planes(P[::-1].copy(), range_noise=rn, rng=1)
+    assert rev.n_points == fit.n_points
+    np.testing.assert_allclose(rev.cov, fit.cov, rtol=1e-6, atol=1e-18)
+
+
 # ----------------------------------------------------------------------------- a dataset's clouds
 def test_planes_rows_same_on_one_or_two_threads_and_per_cloud(floor_frame):
     """planes_rows fits clouds on threads: the rows come back in input order, the same as on one

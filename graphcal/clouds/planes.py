@@ -1,114 +1,13 @@
 """Plane extraction from point clouds: RANSAC on a random subsample, then Chai's iterative 2-sigma
-PCA refinement on every point near the RANSAC plane, with an honest covariance.
+PCA refinement on every point near the RANSAC plane, with a covariance of ``(n, d)``.
 
 Frames and units: the points are in the sensor frame (metres), so are the planes. A plane is
 ``(n, d)`` with unit ``n`` and ``n . x + d = 0`` (see :mod:`graphcal.geometry`), canonical
-``d >= 0``: ``n`` points from the plane towards the sensor origin.
+``d >= 0``: ``n`` points from the plane towards the sensor origin. Bad input raises
+:class:`graphcal.errors.GraphcalError`; randomness comes from ``rng`` (seed or Generator).
 
-Method (one plane)
-------------------
-1. **RANSAC on a subsample.** Open3D ``segment_plane(ransac_distance_m, 3, ransac_iterations)``
-   on ``subsample`` random points (Open3D refits its best model by least squares on its
-   inliers). Only a starting plane: its cost grows with the subsample, not with the frame.
-2. **Candidates.** Every point of the full frame within ``candidate_distance_m`` (default
-   ``ransac_distance_m``) of the RANSAC plane (one pass over the frame), gathered once.
-3. **Chai's iteration** (Chai et al. 2015, section 4.1, Eqs. 8-16): PCA plane of the kept
-   candidates (``n`` = eigenvector of the smallest eigenvalue of the scatter matrix, Eq. 15;
-   the plane through the centroid, Eq. 12); drop every point with ``|n . x + d| > 2 sigma_d``,
-   ``sigma_d`` the standard deviation of the distances (Eq. 16, with ``n - 1``); repeat until no
-   point is dropped (at most ``max_iterations``). The distances are *signed* (their mean is 0 for
-   a plane through the centroid, so ``sigma_d`` is their RMS): with Eq. 8's absolute values,
-   ``2 std(|d_i|)`` is always below ``max |d_i|`` and the loop would never stop.
-   For Gaussian noise of std ``s`` the loop converges to the truncation ``|e| < c``,
-   ``c ~= 1.45 s``, keeping ~85 % of the plane's points; clutter (legs, obstacles standing on the
-   ground) only enters through the few points within ``c`` of the plane.
-   With a noise model ``range_noise`` (per-point std ``sigma_i`` along the normal) the same loop
-   runs on the whitened distances ``(n . x_i + d) / sigma_i`` with the weighted PCA (weights
-   ``1 / sigma_i^2``, Chai's Eqs. 9-16 with weighted sums). Without it, far (noisy) points of a
-   depth camera are cut much deeper into their distribution than near ones, which costs accuracy
-   and makes the covariance hard to predict (Kinect Monte Carlo: variances 2.4-5.7x the
-   prediction without ``range_noise``, 1.01-1.05x with it).
-   Implementation: the scatter matrix is kept as running sums (dropped points are subtracted), and
-   after a full pass only a "watch set" (points near the threshold) is re-tested while a bound on
-   the plane's motion proves that no other point can cross the threshold; otherwise a full pass.
-   The result is exactly that of the plain loop. The whitened loop keeps the candidates whitened,
-   ``y_i = x_i / sigma_i`` (its distances are ``n . y_i + d / sigma_i`` and its weighted moments
-   plain sums of ``y``), so no weighted copy of the frame is made.
-4. **Plane check.** Chai's rule only trims a peaked distribution: if the candidates spread over
-   the whole band (inlier rms > 0.42 band; a plane with noise std band/2 gives 0.36, a uniform
-   spread 0.58) RANSAC's plane is no plane (on stairs seen from above, a slanted plane through
-   the nosings has more points within 2 cm than any tread). It is rejected, its candidates are
-   excluded from the RANSAC sampling (not from later planes' candidates) and RANSAC's threshold
-   is halved (down to a quarter), at most 3 times.
-5. For ``max_planes > 1`` the candidates are removed and the next plane is searched in the
-   remaining points.
-
-Speed (300k-point frame, 2 cores, see ``bench/plane_extraction.py``): Open3D's RANSAC costs
-~0.9 ms per 1000 subsampled points (100 iterations), hence the default ``subsample=5000``; the
-rest is a few passes over the frame (22-28 ms per 250k-point Kinect frame on one thread). Thin
-products (N x 3) avoid multi-threaded BLAS, which stalls on a busy core, and each pass is one or a
-few numpy calls (each large call releases the GIL and waits to take it back: fitting threads side
-by side lose most of their gain to chunked loops of small calls). The frame-sized scratch arrays
-live in a :class:`PlaneWorkspace`, reused by the calls of one thread (fresh multi-megabyte arrays
-per frame cost page faults: 1.85 s -> 1.45 s for the 52 Chai clouds with one workspace). The
-Python steps between the passes hold the GIL (~25 % of a frame's time), so a dataset's clouds are
-fitted on worker processes (:func:`graphcal.clouds.plane_table.planes_rows`), threads where fork is not
-safe.
-
-Covariance
-----------
-Parametrise a plane near the estimate ``(n, d)`` by ``delta = (alpha, beta, delta_d)``:
-``n(delta) = normalise(n + alpha t1 + beta t2)`` (two small rotations of ``n``; ``t1, t2`` an
-orthonormal basis of the plane, :func:`plane_tangent_basis`) and ``d(delta) = d + delta_d``.
-A point ``x_i`` has residual ``r_i = n . x_i + d`` with Jacobian
-``J_i = dr_i/d delta = (t1 . x_i, t2 . x_i, 1)``. With per-point noise std ``sigma_i`` along the
-normal, the least-squares information of the inliers is ``H = sum_i J_i J_i^T / sigma_i^2``
-(computed from centred moments for numerical stability).
-
-The inliers are not a fixed set but the points within ``c = a sigma_i`` of the *estimated* plane,
-a hard-trimmed (weighted, ``w_i = 1 / sigma_i^2``) least-squares estimator. Its sandwich
-covariance is ``B^-1 A B^-1`` with ``A = sum w_i^2 Var(r_i | kept) J_i J_i^T = tau H`` (the kept
-residuals have variance ``tau sigma_i^2``) and ``B = sum w_i E[d psi / d r] J_i J_i^T = tau H`` as
-well: moving the plane moves the window, and the points crossing its edges reduce the
-sensitivity from 1 to ``1 - 2 a phi(a) / (2 Phi(a) - 1)``, which for Gaussian noise is exactly
-``tau(a) = 1 - 2 a phi(a) / (2 Phi(a) - 1)``, the variance ratio of a normal truncated at
-``+-a`` std. Hence
-
-    cov_3 = H^-1 / tau(a)
-
-(``tau(1.45) = 0.525``: ~1.9x the naive ``H^-1``; the naive value fails the Monte Carlo test).
-It maps to the stacked ``(nx, ny, nz, d)`` with the 4x3 Jacobian ``G = [[t1, t2, 0], [0, 0, 1]]``:
-``cov = G cov_3 G^T`` (4x4, rank 3, null vector ``(n, 0)``: the unit-norm constraint).
-
-The ``sigma_i`` and ``a``:
-
-* ``range_noise`` given (a callable ``sigma(points_sensor (M, 3), n_sensor (3,)) -> (M,)``, the
-  std of each point's distance along the normal, e.g. :func:`kinect_distance_sigma`): the model's
-  ``sigma_i``, and ``a`` = the final whitened threshold. The model is evaluated at each candidate
-  moved along its ray onto the RANSAC plane (its noise-free position to first order), so that a
-  point's weight does not depend on its own noise (a small effect: 0.02 std at 20k points).
-* otherwise (equal noise on all points assumed): ``a`` solves ``a / sqrt(tau(a)) = c / rms``
-  (``= 2`` at convergence, ``a = 1.45``) and ``sigma = rms / sqrt(tau(a))``, with ``rms`` the
-  point-to-plane RMS of the inliers. For range-dependent noise this is only approximate: pass
-  ``range_noise``.
-
-Errors in variables (``range_noise`` given): range noise moves a point along its ray from the
-sensor origin, not along the plane normal, so the PCA scatter matrix holds, besides the plane's
-spread, the noise's own scatter ``N = sum_i w_i Cov(e_i)`` with
-``Cov(e_i) = sigma_i^2 / (n . u_i)^2 u_i u_i^T`` (``u_i`` the unit ray); since
-``w_i = 1 / sigma_i^2`` and ``x*_i = |x*_i| u_i`` on the plane, ``N = sum_i x*_i x*_i^T / d^2``.
-Its smallest-eigenvector bias is about 0.65 std of the estimate at 20k points (grows with
-sqrt(N)); the final normal is the smallest eigenvector of ``scatter - N`` (adjusted least
-squares). ``N`` is not scaled by ``tau``: the kept residuals' noise scatter is ``tau N`` but
-the trimmed estimator's sensitivity is ``tau H`` too (see above), so the bias to remove is that
-of the untrimmed fit. Measured after the correction: bias < 0.05 std.
-
-Errors: bad input (fewer than 3 points, non-finite values, all points on a line) raises
-:class:`graphcal.errors.GraphcalError`. Finding no plane with ``min_inliers`` points is not an
-error for :func:`extract_planes` (it returns fewer planes) but is for :func:`fit_ground_plane`.
-
-Randomness: the subsample and Open3D's RANSAC are driven by ``rng`` (an ``int`` seed or a
-``numpy.random.Generator``); Open3D's global random seed is set from it before each RANSAC.
+The method (the loop, the plane check, the trimmed covariance ``H^-1 / tau(a)``, the
+errors-in-variables correction) and its speed: docs/planes.md.
 """
 
 from __future__ import annotations
@@ -145,6 +44,14 @@ _WATCH_FRACTION = 0.8  # points with |distance| > this * threshold are re-tested
 # (points spread uniformly over the band give 0.58; a plane with noise std band / 2 gives 0.36).
 _MAX_RMS_OF_BAND = 0.42
 _MAX_REJECTED = 3  # RANSAC planes rejected by that test before extract_planes gives up
+# Weighted loop (range_noise given): the 2-sigma threshold never goes below this many model std.
+# Points that follow the model converge at 1.45; a threshold below 0.5 means points far less noisy
+# than the model (noise-free simulated depth images, a wrong model), whose whitened spread can fall
+# to the rounding error of the moments: the loop would then trim rounding noise (decided by the
+# machine's BLAS/LAPACK kernels), may drop every point, and tau(a) -> 0 would inflate the covariance
+# without bound. At the floor nothing closer than 0.5 model std is dropped, and the covariance is the
+# model's, untruncated (docs/planes.md).
+_MIN_WHITENED_THRESHOLD = 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,7 +63,7 @@ class PlaneFit:
         d: offset (m), canonical ``d >= 0``: ``n . x + d = 0`` on the plane; the distance of the
             origin to the plane.
         cov: (4, 4) covariance of the stacked ``(nx, ny, nz, d)`` (m for d); rank 3, null along
-            ``(n, 0)``. See the module docstring.
+            ``(n, 0)``. See docs/planes.md, "Covariance".
         n_points: number of inliers (the points kept by the 2-sigma loop).
         rms: point-to-plane RMS of the inliers (m).
         inlier_mask: (N,) bool over the input points.
@@ -166,7 +73,9 @@ class PlaneFit:
             ``|n . x + d| <=`` it (weighted fit: the largest inlier distance; the threshold itself
             is per point, ``truncation_sigmas * sigma_i``).
         truncation_sigmas: ``a``, the final threshold in noise std units (1.45 for Gaussian
-            noise at convergence); ``cov`` is inflated by ``1 / tau(a)`` (module docstring).
+            noise at convergence); ``cov`` is inflated by ``1 / tau(a)`` (docs/planes.md).
+            inf: weighted fit of points far less noisy than the model (the threshold at its
+            floor), ``cov`` the model's untruncated one.
         weighted: True when ``range_noise`` was used (whitened loop, weighted PCA, model
             covariance).
     """
@@ -319,8 +228,7 @@ def _ransac(P_sample: np.ndarray, distance_m: float, iterations: int, seed: int)
     """Open3D RANSAC on (S, 3) points -> canonical (n, d), inlier indices; None if no plane.
 
     Not exactly repeatable: Open3D 0.20 draws the samples of its parallel workers (TBB) from one
-    engine in the order the workers ask (measured: run to run, the RANSAC plane of 2-5 of 52 Kinect
-    clouds differs, and the refined normals by up to 4e-7)."""
+    engine in the order the workers ask (how much it varies: docs/planes.md)."""
     o3d = _o3d()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P_sample))
     try:
@@ -338,11 +246,10 @@ def _ransac(P_sample: np.ndarray, distance_m: float, iterations: int, seed: int)
 
 
 # Thin products (N x 3) are done elementwise, never by BLAS: on a loaded 2-core machine OpenBLAS's
-# threaded gemv of a 300k x 3 matrix or ddot of 200k elements waits for a busy core (measured 8 ms
-# instead of 0.2 ms). And as few numpy calls as possible per pass: each call over a large array
-# releases the GIL and must take it back, which waits for the other fitting thread (Python's
-# switch interval), so chunked loops of small calls stall two threads (measured 50-300x slower
-# beside a busy Python thread); ``np.einsum`` does a dot product in one single-threaded call.
+# threaded gemv and ddot wait for a busy core. And as few numpy calls as possible per pass: each
+# call over a large array releases the GIL and must take it back, which waits for the other fitting
+# thread, so chunked loops of small calls stall two threads; ``np.einsum`` does a dot product in one
+# single-threaded call (the costs: docs/planes.md, "Speed").
 
 
 def _matvec_rows(A: np.ndarray, v: np.ndarray, out: np.ndarray | None = None,
@@ -394,10 +301,9 @@ class PlaneWorkspace:
     """Scratch arrays reused by the :func:`extract_planes` calls of one thread.
 
     Fitting a 300k-point frame needs a dozen frame-sized temporaries; fresh ones cost a page fault
-    per 4 kB on every frame (measured on 52 Kinect frames, median of 5 passes: 1.85 s with a new
-    workspace per call, 1.45 s with one). Pass one workspace to the calls of one thread (it is not
-    thread-safe); the arrays grow to the largest frame and are freed with the workspace. Nothing a
-    caller receives lives in it.
+    per 4 kB on every frame (docs/planes.md, "Speed"). Pass one workspace to the calls of one
+    thread (it is not thread-safe); the arrays grow to the largest frame and are freed with the
+    workspace. Nothing a caller receives lives in it.
     """
 
     def __init__(self) -> None:
@@ -511,6 +417,8 @@ def _chai_refine(YT: np.ndarray, n0: np.ndarray, max_iterations: int, inv_sigma:
         n_ref = n
         # Chai Eq. 16: sigma_d^2 = sum of squared (whitened) distances / (n - 1)
         thr_prev, thr = thr, 2.0 * float(np.sqrt(max(ev[0], 0.0) / (count - 1)))
+        if s is not None:
+            thr = max(thr, _MIN_WHITENED_THRESHOLD)
         safe = False
         if watch_idx is not None:
             dn = np.abs(n - ref_n)
@@ -569,7 +477,7 @@ def _chai_refine(YT: np.ndarray, n0: np.ndarray, max_iterations: int, inv_sigma:
 
 
 def _covariance(n: np.ndarray, mean: np.ndarray, scatter_w: np.ndarray, W: float) -> np.ndarray:
-    """4x4 covariance of (n, d) for the information ``H = sum w_i J_i J_i^T`` (module docstring).
+    """4x4 covariance of (n, d) for the information ``H = sum w_i J_i J_i^T`` (docs/planes.md).
 
     ``mean`` is the weighted centroid (sensor frame), ``scatter_w = sum w_i (x_i - m)(x_i - m)^T``
     and ``W = sum w_i``, ``w_i`` the per-point information (1 / variance). With
@@ -595,7 +503,7 @@ def _project_on_plane_along_rays(CT: np.ndarray, q: np.ndarray, nx: np.ndarray, 
     """Candidates (shifted, (3, M)) moved along their rays from the sensor origin onto the plane
     ``(n, d)``, given ``nx`` (M,) = ``n . x`` of each (unshifted) candidate (overwritten): (M, 3)
     sensor-frame points (F-ordered; the transpose of ``out`` (3, M) if given): where the noise model
-    and the errors-in-variables scatter are evaluated (module docstring)."""
+    and the errors-in-variables scatter are evaluated (docs/planes.md)."""
     ok = np.abs(nx) > 1e-3 * max(d, 1e-9)  # grazing or through the origin: keep the point
     scale = nx
     np.divide(-d, nx, out=scale, where=ok)
@@ -685,10 +593,11 @@ def _fit_one(
     else:
         keep_f = ws.array("keep_f", (M,))
         np.copyto(keep_f, ref.keep)
-        if d0 > 0.0:
+        quiet = ref.threshold <= _MIN_WHITENED_THRESHOLD  # far less noise than the model: none to remove
+        if d0 > 0.0 and not quiet:
             # errors in variables: the noise is along the rays, not along the normal; subtract
-            # its expected weighted scatter N = sum x* x*^T / d^2 over the kept points (module
-            # docstring)
+            # its expected weighted scatter N = sum x* x*^T / d^2 over the kept points
+            # (docs/planes.md, "Errors in variables")
             XkT = X_ray.T  # (3, M) rows contiguous; not needed afterwards: zero the dropped points
             XkT *= keep_f
             N = _gram_soa(XkT) / (d0 * d0)
@@ -710,8 +619,10 @@ def _fit_one(
         var = max(rms * rms / tau, np.finfo(float).tiny)  # untruncated sigma^2 (equal noise)
         info_scale = tau / var  # H = sum J J^T / sigma^2, cov = H^-1 / tau
     else:
-        a = ref.threshold  # whitened threshold = truncation in model std units
-        tau = float(truncation_variance_ratio(a))
+        # whitened threshold = truncation in model std units; at the floor the points are far less
+        # noisy than the model, no truncation of the model's noise applies: cov = H^-1 (a = inf)
+        a = math.inf if quiet else ref.threshold
+        tau = 1.0 if quiet else float(truncation_variance_ratio(a))
         info_scale = tau  # H = sum J J^T / sigma_i^2 (ref.scatter, ref.W are weighted)
     n, d = canonical_plane(n_fit, d_shift - n_fit @ q)
     n.flags.writeable = False

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LogPlan", "write_station_log", "write_station_csv", "write_walk_csv", "still_windows", "depth_image"]
+__all__ = ["LogPlan", "write_station_log", "write_station_csv", "write_walk_csv", "still_windows", "depth_image",
+           "simulated_camera_intrinsics", "cloud_depth_image"]
 
 
 @dataclass(frozen=True)
@@ -27,7 +28,10 @@ class LogPlan:
         feet: ``wrench`` (one WrenchStamped topic per foot, N) or ``array`` (one Float32MultiArray
             of raw counts: raw = force / scale + offset).
         points: ``cloud`` (PointCloud2 from the station's cloud) or ``depth`` (32FC1 depth Image +
-            CameraInfo rendered from the station's plane in planes.csv).
+            CameraInfo of the simulated camera: each point of the station's cloud in its pixel, so
+            the image carries the cloud's points, noise included; a dataset without clouds: the
+            image is rendered noise-free from the station's plane in planes.csv, see
+            :func:`depth_image`).
         decoys: append a 0.4 s still period and a 2 s still with one foot unloaded (both rejected).
         raw_offset, raw_scale: the ``array`` feet's count offset and N per count.
         embed_robot: publish the URDF on /robot_description.
@@ -125,6 +129,41 @@ def depth_image(plane_nd: np.ndarray, K=(100.0, 100.0, 80.0, 60.0), shape=(120, 
     return z.astype(np.float32)
 
 
+def simulated_camera_intrinsics(sensor_type: str, stride: int = 1) -> tuple[tuple[float, float, float, float], tuple[int, int]]:
+    """((fx, fy, cx, cy) px, (h, w)) of the camera the simulator casts its rays from
+    (:func:`graphcal.models.sensors.sensor_for_type`, every ``stride``-th pixel row and column, same
+    field of view), in the ROS convention: pixel centres at integer coordinates, so ``cx = w/2 - 0.5``
+    (the simulator's rays go through ``u + 0.5 - w/2``)."""
+    from graphcal.models.sensors import sensor_for_type
+    from graphcal.simulation.session import strided
+
+    cam = strided(sensor_for_type(sensor_type), int(stride))
+    w, h = int(cam.width_px), int(cam.height_px)
+    fx = w / 2.0 / np.tan(np.radians(cam.hfov_deg) / 2.0)
+    fy = h / 2.0 / np.tan(np.radians(cam.vfov_deg) / 2.0)
+    return (fx, fy, w / 2.0 - 0.5, h / 2.0 - 0.5), (h, w)
+
+
+def cloud_depth_image(points: np.ndarray, K, shape) -> np.ndarray:
+    """(h, w) float32 depth (m, along z) holding each point of a simulated camera cloud (N, 3),
+    optical frame, in the pixel its ray went through (0 elsewhere). The simulator moves a point
+    along its ray only (depth noise, range scale), so its pixel ``fx x / z + cx`` is an integer;
+    ValueError for a point that is not on the pixel grid of ``K`` (another camera, a wrong stride)."""
+    fx, fy, cx, cy = K
+    h, w = shape
+    P = np.asarray(points, dtype=np.float64)
+    u = fx * P[:, 0] / P[:, 2] + cx
+    v = fy * P[:, 1] / P[:, 2] + cy
+    iu, iv = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+    off = (np.abs(u - iu) > 1e-3) | (np.abs(v - iv) > 1e-3) | (iu < 0) | (iu >= w) | (iv < 0) | (iv >= h)
+    if off.any() or len(np.unique(iv * w + iu)) != len(P):
+        raise ValueError(f"cloud_depth_image: {int(off.sum())} of {len(P)} points off the {w}x{h} pixel grid "
+                         f"of K = {tuple(map(float, K))} (or two points in one pixel)")
+    z = np.zeros((h, w), dtype=np.float32)
+    z[iv, iu] = P[:, 2]
+    return z
+
+
 def _image_msgs(o: _Out, t: float, frame: str, z: np.ndarray, K):
     T = o.T
     h, w = z.shape
@@ -199,11 +238,19 @@ def write_station_log(dataset: str | Path, out: str | Path, plan: LogPlan = LogP
     base, feet = ds.robot.base_frame, ds.robot.feet
     ids = st["station"]
     planes = {}
-    if plan.points == "depth":
+    depth_from_cloud = plan.points == "depth" and (Path(dataset) / "clouds" / sensor).is_dir()
+    if plan.points == "depth" and not depth_from_cloud:
         p = ds.planes.data
         planes = {int(s): np.array([p["nx"][i], p["ny"][i], p["nz"][i], p["d"][i]])
                   for i, s in enumerate(p["station"]) if p["sensor"][i] == sensor}
-    K = (100.0, 100.0, 80.0, 60.0)
+    K, shape = (100.0, 100.0, 80.0, 60.0), (120, 160)
+    if depth_from_cloud:
+        # the camera the simulator cast its rays from: the image carries the station's cloud
+        import yaml
+
+        truth = Path(dataset) / "truth.yaml"
+        stride = (yaml.safe_load(truth.read_text()).get("config") or {}).get("cloud_stride", 1) if truth.is_file() else 1
+        K, shape = simulated_camera_intrinsics(ds.sensors[sensor].type, stride)
     with _Out(Path(out), plan.fmt) as o:
         T = o.T
         o.shift = plan.receive_offset_s
@@ -240,12 +287,16 @@ def write_station_log(dataset: str | Path, out: str | Path, plan: LogPlan = LogP
                 o.write("/foot_force", "std_msgs/msg/Float32MultiArray", arr, t + 2e-4)
             if still and n % cloud_every == cloud_every // 2:  # the decoys see the last station's view
                 tc = t + 3e-4
+                if kk not in cache:  # the station's cloud, or its depth image
+                    if plan.points == "cloud" or depth_from_cloud:
+                        pts = read_ply(Path(dataset) / "clouds" / sensor / f"{ids[kk]}.ply")
+                        cache = {kk: pts if plan.points == "cloud" else cloud_depth_image(pts, K, shape)}
+                    else:
+                        cache = {kk: depth_image(planes[int(ids[kk])], K, shape)}
                 if plan.points == "cloud":
-                    if kk not in cache:
-                        cache = {kk: read_ply(Path(dataset) / "clouds" / sensor / f"{ids[kk]}.ply")}
                     o.write("/camera/points", "sensor_msgs/msg/PointCloud2", _cloud_msg(o, tc, sensor, cache[kk]), tc)
                 else:
-                    img, info = _image_msgs(o, tc, sensor, depth_image(planes[int(ids[kk])], K), K)
+                    img, info = _image_msgs(o, tc, sensor, cache[kk], K)
                     o.write("/camera/depth/camera_info", "sensor_msgs/msg/CameraInfo", info, tc)
                     o.write("/camera/depth/image_raw", "sensor_msgs/msg/Image", img, tc)
     return still_windows(len(q_st), plan)

@@ -575,7 +575,7 @@ def _sensor_clouds(config: SimulationConfig, robot, true_robot, info, records: l
                 from dataclasses import replace as _replace
 
                 sensor = _replace(sensor, noise_coeff_per_m=sensor.noise_coeff_per_m * config.depth_noise_scale)
-            sensor = _strided(sensor, config.cloud_stride)
+            sensor = strided(sensor, config.cloud_stride)
             scan = capture(
                 sensor,
                 None,
@@ -663,7 +663,7 @@ def simulate(config: SimulationConfig, *, progress: bool = False) -> SimulationR
     return SimulationResult(config, config.robot, tuple(records), clouds, labels, sensor_cad, truth)
 
 
-def _strided(sensor, stride: int):
+def strided(sensor, stride: int):
     """A camera with every ``stride``-th pixel row and column (same field of view)."""
     from dataclasses import replace
 
