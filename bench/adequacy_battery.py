@@ -24,8 +24,8 @@ misfit warning), the error (deg, mm) and the governing 1-sigma (body axes, deg a
 terms of the robust covariance. Prints one line per run and a summary per effect; ``--json``
 writes every run. ``--effects`` picks effects (comma-separated, e.g. ``clean,sensor_range_scale``).
 For the clean runs the summary adds, per body axis (rx, ry, rz, x, y, z), the RMS of error/sigma of
-the model covariance (``graphcal study``'s ``extrinsic_errors``; 1 when honest, with its 95 %
-interval ``sqrt(chi2.ppf(., N) / N)``).
+the model covariance (``graphcal.solvers.covariance.extrinsic_errors``, as ``graphcal study``; 1 when
+honest, with its 95 % interval ``sqrt(chi2.ppf(., N) / N)``).
 
 ``--ground-sigma-mm MM`` starts calibrate's feet-on-ground sigma (``CalibrationOptions.sigma_ground_m``)
 at MM instead of its 3 mm default, the rest unchanged (noise learned). At 0.001 mm the group carries
@@ -143,10 +143,9 @@ def run_one(spec: tuple) -> dict:
 
     from graphcal.calibration.calibrate import calibrate
     from graphcal.calibration.graph import CalibrationOptions
-    from graphcal.commands.study import extrinsic_errors
     from graphcal.commands.simulate import run as simulate
     from graphcal.geometry import pose_from_xyz_quat_wxyz, pose_log_between
-    from graphcal.solvers.covariance import nees
+    from graphcal.solvers.covariance import extrinsic_errors, nees
 
     folder = Path(tempfile.mkdtemp(dir=scratch)) / "ds"
     effects = [(effect, {})] if effect in CATALOGUE else []
@@ -168,7 +167,7 @@ def run_one(spec: tuple) -> dict:
         model = est.covariance if est.covariance_model is None else est.covariance_model
         rec = {"effect": effect, "seed": seed, "nees_model": float(nees(T_true, est.T_body_sensor, model)),
                "nees_governing": float(nees(T_true, est.T_body_sensor, gov)),
-               "z2_body_model": extrinsic_errors(est.T_body_sensor, model, T_true)["z2"],
+               "z2_body_model": extrinsic_errors(est.T_body_sensor, T_true, model)["z2"].tolist(),
                "verdict": adq.verdict if adq is not None else "?",
                "groups": [g.group for g in adq.misfit_groups] if adq is not None else [],
                "p": float(adq.p_value) if adq is not None else float("nan"),

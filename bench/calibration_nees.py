@@ -37,8 +37,8 @@ Per variant the bench reports the mean NEES over the runs, its 95 % interval for
 95 % interval (``chi2.ppf(., N) / N``), the mean |error| (deg, mm) and the time. Runs are spread over
 ``--workers`` processes (default 2, start method spawn, OPENBLAS_NUM_THREADS=1 in each) by graphcal's
 batch executor (graphcal.batch, the engine of ``graphcal study``; ``--scheduler tcp://HOST:PORT`` runs
-them on a Dask cluster instead), and each run is compared with the truth by ``graphcal study``'s
-``extrinsic_errors``; inside a
+them on a Dask cluster instead), and each run is compared with the truth by graphcal study's
+``graphcal.solvers.covariance.extrinsic_errors``; inside a
 worker (a daemon process) the plane fit of ``write_simulation`` uses two threads instead of forked
 processes, as ``planes_rows`` does wherever it cannot fork. Progress (runs done / total) goes to
 stderr. Scratch datasets go to ``--scratch`` (default /tmp/nees) and are removed after each run.
@@ -137,11 +137,11 @@ def _one_run(job: tuple[int, tuple[str, ...], str, str]) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix=f"s{seed}_", dir=scratch))
     try:
         from graphcal.calibration.calibrate import calibrate
-        from graphcal.commands.study import extrinsic_errors
         from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between
         from graphcal.io.dataset import read_dataset
         from graphcal.simulation.write import write_simulation
         from graphcal.simulation.session import simulate
+        from graphcal.solvers.covariance import extrinsic_errors
 
         t0 = time.perf_counter()
         res = simulate(_config(scenario, seed))
@@ -159,11 +159,11 @@ def _one_run(job: tuple[int, tuple[str, ...], str, str]) -> dict:
                 rec["calibrate_s"] = time.perf_counter() - t1
                 est = result.sensors[sensor]
                 T = np.asarray(est.T_body_sensor, float)
-                e = extrinsic_errors(T, est.covariance, T_true)  # graphcal study's per-run comparison
+                e = extrinsic_errors(T, T_true, est.covariance)  # graphcal study's per-run comparison
                 rec["nees"] = e["nees"]
-                rec["z2_body"] = e["z2"]
-                rec["error_body"] = e["error"]  # deg, mm along the body axes
-                rec["sigma_body"] = e["sigma"]  # deg, mm
+                rec["z2_body"] = e["z2"].tolist()
+                rec["error_body"] = e["error"].tolist()  # deg, mm along the body axes
+                rec["sigma_body"] = e["sigma"].tolist()  # deg, mm
                 rec["error_deg"] = float(np.degrees(rotation_angle_between(T[:3, :3], T_true[:3, :3])))
                 rec["error_mm"] = float(1e3 * np.linalg.norm(T[:3, 3] - T_true[:3, 3]))
                 if v in ("learned", "ground-exact"):

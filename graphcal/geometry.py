@@ -57,6 +57,10 @@ __all__ = [
     "so3_exp",
     "so3_exp_batch",
     "so3_log",
+    "so3_log_batch",
+    "so3_exp_axis_batch",
+    "so3_right_jacobian_inverse_batch",
+    "nearest_rotation",
     "se3_exp",
     "pose_adjoint",
     "pose_log_between",
@@ -232,14 +236,70 @@ def so3_exp_batch(phi: np.ndarray) -> np.ndarray:
 
 
 def so3_log(R) -> np.ndarray:
-    """Rotation vector (3,) rad of a rotation matrix, Log(R) (inverse of :func:`so3_exp`); the
-    angle must be below pi (near pi the axis is lost to rounding)."""
+    """Rotation vector (3,) rad of a rotation matrix, Log(R) (inverse of :func:`so3_exp`), angle in
+    [0, pi], accurate up to pi (at pi exactly either sign of the axis is right)."""
+    R = np.asarray(R, dtype=float)
     c = max(-1.0, min(1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
     th = math.acos(c)
     v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     if th < 1e-7:
         return 0.5 * v
+    if th > 0.5 * math.pi:
+        # towards pi, v / (2 sin th) loses digits (error ~1e-16 / (pi - th)^2): the axis from the symmetric
+        # part (R + R^T) / 2 - cos I = (1 - cos) a a^T, its sign from v, the angle by atan2
+        c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+        S = 0.5 * (R + R.T) - c * np.eye(3)
+        col = S[:, int(np.argmax(np.diag(S)))]
+        axis = col / np.linalg.norm(col)
+        th = math.atan2(0.5 * math.sqrt(v @ v), c)
+        return axis * (th if axis @ v >= 0.0 else -th)
     return v * (th / (2.0 * math.sin(th)))
+
+
+def so3_log_batch(R) -> np.ndarray:
+    """(N, 3) rotation vectors (rad) of rotations (N, 3, 3): the batch form of :func:`so3_log`
+    (scipy's ``Rotation.as_rotvec``, also valid near pi)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
+
+
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
+
+
+def so3_exp_axis_batch(axis, angles) -> np.ndarray:
+    """(N, 3, 3) rotations about one unit ``axis`` (3,) by ``angles`` (N,) rad: ``so3_exp_batch(axis *
+    angles)`` without the norms (Rodrigues with the unit axis; the joint rotations of a leg chain)."""
+    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    s = np.sin(angles)[:, None, None]
+    c = np.cos(angles)[:, None, None]
+    out = s * K
+    out += _EYE3
+    out += (1.0 - c) * (K @ K)
+    return out
+
+
+def so3_right_jacobian_inverse_batch(x) -> np.ndarray:
+    """(N, 3, 3) inverse right Jacobians of SO(3) at rotation vectors ``x`` (N, 3) rad:
+    ``Jr^-1(x) = I + K/2 + (1/t^2 - (1 + cos t) / (2 t sin t)) K^2`` with ``K = [x]x``, ``t = |x|``
+    (``Log(Exp(x) Exp(d)) = x + Jr^-1(x) d`` to first order)."""
+    x = np.asarray(x, dtype=float)
+    t = np.linalg.norm(x, axis=-1)
+    small = t < 1e-6
+    ts = np.where(small, 1.0, t)
+    c = np.where(small, 1.0 / 12.0, 1.0 / ts**2 - (1.0 + np.cos(ts)) / (2.0 * ts * np.sin(ts)))
+    K = skew_batch(x)
+    return np.eye(3) + 0.5 * K + c[..., None, None] * (K @ K)
+
+
+def nearest_rotation(M) -> np.ndarray:
+    """The rotation (det +1) closest to a 3x3 matrix ``M`` in the Frobenius norm: ``U D V^T`` from the
+    SVD ``M = U S V^T``, ``D = diag(1, 1, sign det(U V^T))`` (polar decomposition; re-orthonormalises a
+    drifted rotation, averages rotations, solves orthogonal Procrustes)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
 
 
 def matrix_from_axis_angle(axis, angle_rad: float) -> np.ndarray:
@@ -468,7 +528,5 @@ def fit_rigid_transform(points_b, points_a, weights=None) -> np.ndarray:
     cb = w @ Pb
     ca = w @ Pa
     H = (Pb - cb).T @ ((Pa - ca) * w[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
+    R = nearest_rotation(H).T  # Kabsch: the rotation nearest H^T, maximising trace(R H)
     return pose_matrix(R, ca - R @ cb)

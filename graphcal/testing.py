@@ -6,7 +6,7 @@
 - random rotations, poses and unit vectors, the rotations where conversions tend to break, and a
   ``gtsam.Values`` builder;
 - a simulated calibration: a dataset folder and its hidden truth (:func:`simulated_dataset`), the
-  true extrinsic (:func:`true_extrinsic`), an estimate's errors against it (:func:`extrinsic_errors`)
+  true extrinsic (:func:`true_extrinsic`), an estimate's errors against it (:func:`extrinsic_error_scores`)
   and the simulator's noise model as calibration options (:data:`SIMULATOR_NOISE`);
 - a hexapod graphcal does not ship (:func:`custom_hexapod`), written by hand as an outside user would:
   rectangular body, legs pointing sideways, an IMU mounted turned by 90 degrees, and a depth camera
@@ -27,10 +27,11 @@ import numpy as np
 from gtsam.utils.numerical_derivative import numericalDerivative11
 
 from graphcal.calibration.graph import CalibrationOptions
-from graphcal.geometry import pose_from_xyz_quat_wxyz, pose_matrix, rot_y, rot_z, rotation_angle_between
+from graphcal.geometry import pose_from_xyz_quat_wxyz, pose_matrix, rot_y, rot_z
 from graphcal.models.builtin import R_BODY_OPTICAL, BuiltinInfo, SensorCAD
 from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import CustomRobot, SimulationConfig, simulate
+from graphcal.solvers.covariance import extrinsic_errors
 
 H_STEP = 1e-6
 
@@ -161,18 +162,14 @@ def true_extrinsic(truth: dict, sensor: str) -> np.ndarray:
     return pose_from_xyz_quat_wxyz(t["xyz"], t["quaternion_wxyz"])
 
 
-def extrinsic_errors(est, T_true: np.ndarray) -> tuple[float, float, np.ndarray]:
+def extrinsic_error_scores(est, T_true: np.ndarray) -> tuple[float, float, np.ndarray]:
     """Errors of an estimated extrinsic (``T_body_sensor``, ``sigma_rot_deg``, ``sigma_xyz_mm``)
-    against ``T_true`` (T_body_sensor, m): (angle deg, translation mm, per-axis error / sigma in body
-    axes [rx, ry, rz, x, y, z])."""
-    T = est.T_body_sensor
-    ang = np.degrees(rotation_angle_between(T[:3, :3], T_true[:3, :3]))
-    dt = 1e3 * (T[:3, 3] - T_true[:3, 3])
-    # rotation error about the body axes: R_est = Exp(dphi) R_true  ->  dphi ~ vee(R_est R_true^T)
-    D = T[:3, :3] @ T_true[:3, :3].T
-    dphi = np.degrees(0.5 * np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]))
-    z = np.r_[dphi / est.sigma_rot_deg, dt / est.sigma_xyz_mm]
-    return ang, float(np.linalg.norm(dt)), z
+    against ``T_true`` (T_body_sensor, m) (:func:`graphcal.solvers.covariance.extrinsic_errors`):
+    (angle deg, translation mm, per-axis error / sigma in body axes [rx, ry, rz, x, y, z], the
+    estimate's rotation error ``R_est = Exp(dphi) R_true`` and ``t_est - t_true``)."""
+    e = extrinsic_errors(est.T_body_sensor, T_true)
+    z = np.r_[e["dphi_deg"] / est.sigma_rot_deg, e["dt_mm"] / est.sigma_xyz_mm]
+    return e["angle_deg"], e["distance_mm"], z
 
 
 # ----------------------------------------------------------------------------- a hexapod graphcal does not ship

@@ -15,7 +15,7 @@ from graphcal.calibration.measurements import calibration_data
 from graphcal.geometry import rotation_angle_between, se3_exp
 from graphcal.io.dataset import load_dataset_robot, read_dataset
 from graphcal.simulation.effects import Effects
-from graphcal.testing import custom_hexapod, extrinsic_errors, simulated_dataset, true_extrinsic
+from graphcal.testing import custom_hexapod, extrinsic_error_scores, simulated_dataset, true_extrinsic
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +27,7 @@ def octopus(tmp_path_factory):
 def test_octopus_chai_program_recovers_the_extrinsic(octopus):
     path, truth, result = octopus
     est = result.sensors["depth"]
-    ang, dist, z = extrinsic_errors(est, true_extrinsic(truth, "depth"))
+    ang, dist, z = extrinsic_error_scores(est, true_extrinsic(truth, "depth"))
     # CAD is off by ~1 deg / 10 mm (simulator default); the calibration gets within hundredths
     assert ang < 0.02 and dist < 1.0
     assert np.all(np.abs(z) < 4.0), z  # the reported sigma covers the error on every body axis
@@ -107,7 +107,7 @@ def test_outlier_stations_are_found_and_do_not_hurt(tmp_path):
     # planes.csv given: a cap on the cloud points cannot apply, and the result says so
     assert any("--plane-points 5000 (plane_max_points) had no effect" in w
                for w in calibrate(path, plane_max_points=5000).warnings)
-    ang, dist, _ = extrinsic_errors(result.sensors["depth"], true_extrinsic(truth, "depth"))
+    ang, dist, _ = extrinsic_error_scores(result.sensors["depth"], true_extrinsic(truth, "depth"))
     assert ang < 0.03 and dist < 1.5
 
 
@@ -123,7 +123,7 @@ def test_outliers_are_left_out_before_the_noise_is_learned(tmp_path):
     assert {4, 29} <= replaced and set(result.outliers) == replaced
     noise = {g.group: g for g in result.noise_groups}
     assert dict(noise["stance_foot/contact"].fields)["sigma_contact_m"] < 0.5e-3
-    ang, dist, z = extrinsic_errors(result.sensors["depth"], true_extrinsic(truth, "depth"))
+    ang, dist, z = extrinsic_error_scores(result.sensors["depth"], true_extrinsic(truth, "depth"))
     assert ang < 0.03 and dist < 1.0 and np.all(np.abs(z) < 4.0)
 
     # the re-test of what the screen left out: a good station left out with the two outliers is
@@ -146,13 +146,13 @@ def test_unseen_hexapod_three_sessions_from_clouds(tmp_path):
         custom_robot=custom_hexapod())
     assert not (path / "planes.csv").exists()
     result = calibrate(path)
-    ang, dist, z = extrinsic_errors(result.sensors["front_cam"], true_extrinsic(truth, "front_cam"))
+    ang, dist, z = extrinsic_error_scores(result.sensors["front_cam"], true_extrinsic(truth, "front_cam"))
     assert ang < 0.1 and dist < 2.0
     assert np.all(np.abs(z) < 4.0), z
     # the clouds thinned to every k-th point: the planes are fitted on fewer points (the sigma
     # grows), the extrinsic still within the goal and covered
     thin = calibrate(path, plane_max_points=1000)  # its clouds have 1.7k-3.3k points
-    ang, dist, z = extrinsic_errors(thin.sensors["front_cam"], true_extrinsic(truth, "front_cam"))
+    ang, dist, z = extrinsic_error_scores(thin.sensors["front_cam"], true_extrinsic(truth, "front_cam"))
     assert ang < 0.1 and dist < 2.0
     assert np.all(np.abs(z) < 4.0), z
     assert not thin.warnings
@@ -164,8 +164,8 @@ def test_laser_scanner_and_stereo_camera_in_one_graph(tmp_path):
     """Łabęcki's Messor: a 2D laser scanner (dense point-to-plane) and a stereo camera (planes)."""
     path, truth = simulated_dataset(tmp_path, "messor", output="both", robot="messor", program="labecki2012", seed=24)
     result = calibrate(path)
-    ang_l, dist_l, z_l = extrinsic_errors(result.sensors["laser"], true_extrinsic(truth, "laser"))
-    ang_s, dist_s, z_s = extrinsic_errors(result.sensors["stereo"], true_extrinsic(truth, "stereo"))
+    ang_l, dist_l, z_l = extrinsic_error_scores(result.sensors["laser"], true_extrinsic(truth, "laser"))
+    ang_s, dist_s, z_s = extrinsic_error_scores(result.sensors["stereo"], true_extrinsic(truth, "stereo"))
     # the Messor tilts only +-5 deg: yaw about the ground normal is known to ~0.03 deg (1 sigma)
     assert ang_l < 0.1 and dist_l < 2.0
     assert ang_s < 0.1 and dist_s < 1.0
@@ -220,18 +220,18 @@ def test_bumpy_ground_roughness_puts_the_bumps_into_sigma(tmp_path):
 
     s = flat.sensors["depth"]
     rot_m, xyz_m, _, _ = body_axis_sigmas(s.T_body_sensor, s.model_covariance)
-    _, _, z_flat = extrinsic_errors(dataclasses.replace(s, sigma_rot_deg=rot_m, sigma_xyz_mm=xyz_m), T_true)
+    _, _, z_flat = extrinsic_error_scores(dataclasses.replace(s, sigma_rot_deg=rot_m, sigma_xyz_mm=xyz_m), T_true)
     assert np.max(np.abs(z_flat)) > 6.0, z_flat  # the model's sigma: overconfident without the roughness
     # ... which the adequacy verdict sees (issue 27): the robust sigma governs and covers the error
     assert flat.adequacy.verdict == "does not fit"
-    _, _, z_gov = extrinsic_errors(s, T_true)
+    _, _, z_gov = extrinsic_error_scores(s, T_true)
     assert np.max(np.abs(z_gov)) < 3.0, z_gov  # measured 1.85
     # ... and calibrate says so: the planes scatter more than their point noise predicts
     assert [w for w in flat.warnings if "the planes scatter" in w and "--ground-roughness-mm" in w], flat.warnings
     rough = calibrate(path, options=options_for_ground_roughness(CalibrationOptions(), 0.003))
     assert not [w for w in rough.warnings if "the planes scatter" in w], rough.warnings
     est = rough.sensors["depth"]
-    ang, dist, z = extrinsic_errors(est, T_true)
+    ang, dist, z = extrinsic_error_scores(est, T_true)
     # measured: largest |error| / sigma 1.2 (NEES 1.8); with the roughness terms at a third of the
     # bump height (until the eighteenth stop) 3.57 (NEES 15.8; mean NEES 82 over 12 seeds)
     assert np.all(np.abs(z) < 2.5), z

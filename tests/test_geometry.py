@@ -186,3 +186,119 @@ def test_batch_quaternions_and_body_rates_from_rpy_rates(rng):
     W = np.swapaxes(R, 1, 2) @ dR
     w_num = np.c_[W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]]
     assert np.allclose(g.body_rates_from_rpy_rates(rpy, rpy_dot), w_num, atol=1e-8)
+
+
+def _random_rotvecs(rng, n: int, max_angle: float) -> np.ndarray:
+    axes = rng.normal(size=(n, 3))
+    return axes / np.linalg.norm(axes, axis=1, keepdims=True) * rng.uniform(0.0, max_angle, (n, 1))
+
+
+def test_so3_log_batch_agrees_with_gtsam_and_the_single_form(rng):
+    from scipy.spatial.transform import Rotation
+
+    phis = np.vstack([_random_rotvecs(rng, 30, 3.1), rng.normal(0, 1e-8, (3, 3)), np.zeros((1, 3))])
+    R = np.stack([gtsam.Rot3.Expmap(p).matrix() for p in phis])
+    logs = g.so3_log_batch(R)
+    assert logs.shape == phis.shape
+    np.testing.assert_allclose(logs, [gtsam.Rot3.Logmap(gtsam.Rot3(r)) for r in R], atol=1e-12)
+    np.testing.assert_allclose(logs, [g.so3_log(r) for r in R], atol=1e-12)
+    np.testing.assert_allclose(logs, phis, atol=1e-12)
+    # near pi: the batch form (scipy) keeps the axis; exp(log) is the rotation again
+    near = np.array([[0.0, 0.0, np.pi - 1e-9], [np.pi / np.sqrt(2), -np.pi / np.sqrt(2), 0.0]])
+    Rn = Rotation.from_rotvec(near).as_matrix()
+    np.testing.assert_allclose(g.so3_exp_batch(g.so3_log_batch(Rn)), Rn, atol=1e-12)
+
+
+def test_so3_log_near_pi_keeps_the_angle_the_axis_and_its_sign(rng):
+    """Near pi ``v = vee(R - R^T)`` vanishes: the axis is read from the symmetric part, its sign from ``v``
+    (``v / (2 sin th)`` was off by 2e-4 rad at 2e-6 rad from pi)."""
+    for gap in (0.0, 1e-12, 1e-9, 3e-7, 2e-6, 1e-4, 1e-2, 1.0, 1.5, 1.6):
+        for _ in range(20):
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            phi = axis * (np.pi - gap)
+            R = gtsam.Rot3.Expmap(phi).matrix()
+            log = g.so3_log(R)
+            if gap > 0.0:  # the sign is defined (rotation by pi - gap about +axis, not -axis)
+                np.testing.assert_allclose(log, phi, atol=1e-12)
+                np.testing.assert_allclose(log, gtsam.Rot3.Logmap(gtsam.Rot3(R)), atol=1e-12)
+            else:
+                assert abs(abs(log @ axis) - np.pi) < 1e-12
+                np.testing.assert_allclose(g.so3_exp(log), R, atol=1e-12)
+
+
+def test_so3_exp_axis_batch_is_exp_of_axis_times_angle(rng):
+    from scipy.spatial.transform import Rotation
+
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angles = np.r_[rng.uniform(-np.pi, np.pi, 40), 0.0, 1e-9, np.pi]
+    R = g.so3_exp_axis_batch(axis, angles)
+    assert R.shape == (len(angles), 3, 3)
+    np.testing.assert_allclose(R, Rotation.from_rotvec(axis[None] * angles[:, None]).as_matrix(), atol=1e-14)
+    np.testing.assert_allclose(R, g.so3_exp_batch(axis[None] * angles[:, None]), atol=1e-14)
+
+
+def test_so3_right_jacobian_inverse_batch_inverts_gtsams_right_jacobian(rng):
+    x = np.vstack([_random_rotvecs(rng, 20, 3.0), rng.normal(0, 1e-8, (2, 3)), np.zeros((1, 3))])
+    Jri = g.so3_right_jacobian_inverse_batch(x)
+    for xi, J in zip(x, Jri):
+        np.testing.assert_allclose(J @ gtsam.Rot3.ExpmapDerivative(xi), np.eye(3), atol=1e-9)
+        np.testing.assert_allclose(J, gtsam.Rot3.LogmapDerivative(xi), atol=1e-9)
+    # first order: Log(Exp(x) Exp(d)) = x + Jr^-1(x) d
+    d = 1e-7 * rng.normal(size=3)
+    y = gtsam.Rot3.Logmap(gtsam.Rot3.Expmap(x[0]) * gtsam.Rot3.Expmap(d))
+    np.testing.assert_allclose(y - x[0], Jri[0] @ d, atol=1e-12)
+
+
+def test_nearest_rotation_is_the_polar_factor_with_det_plus_one(rng):
+    import scipy.linalg
+
+    for _ in range(20):
+        R = g.so3_exp(_random_rotvecs(rng, 1, 3.0)[0])
+        M = R + 0.2 * rng.normal(size=(3, 3))
+        Q = g.nearest_rotation(M)
+        assert g.is_rotation(Q, tol=1e-12)
+        U, _ = scipy.linalg.polar(M)  # the orthogonal factor: the nearest orthogonal matrix
+        if np.linalg.det(U) > 0:
+            np.testing.assert_allclose(Q, U, atol=1e-12)
+        # no rotation nearby is closer in the Frobenius norm
+        others = Q @ g.so3_exp_batch(1e-3 * rng.normal(size=(50, 3)))
+        assert np.linalg.norm(M - Q) < np.linalg.norm(M - others, axis=(1, 2)).min()
+    # a reflection gets the det fix; a rotation is returned as it is (to rounding)
+    assert g.is_rotation(g.nearest_rotation(np.diag([1.0, 1.0, -1.0])))
+    assert g.is_rotation(g.nearest_rotation(-np.eye(3)))
+    R = g.so3_exp([0.3, -1.2, 2.0])
+    np.testing.assert_allclose(g.nearest_rotation(R), R, atol=1e-15)
+    # a drifted rotation (the EKF's renormalisation): U V^T without a reflection
+    drift = R + 1e-9 * rng.normal(size=(3, 3))
+    U, _, Vt = np.linalg.svd(drift)
+    assert np.array_equal(g.nearest_rotation(drift), U @ Vt)
+
+
+def test_extrinsic_errors_signs_axes_and_nees(rng):
+    from graphcal.solvers.covariance import extrinsic_errors, nees
+
+    T_true = g.se3_exp(np.r_[_random_rotvecs(rng, 1, 2.0)[0], rng.normal(0, 0.3, 3)])
+    dphi = np.radians([0.05, -0.02, 0.1])  # R_est = Exp(dphi) R_true (body axes)
+    dt = np.array([1e-3, -2e-3, 0.5e-3])
+    T_est = g.pose_matrix(g.so3_exp(dphi) @ T_true[:3, :3], T_true[:3, 3] + dt)
+    cov6 = np.diag(np.r_[np.radians([0.1, 0.2, 0.3]) ** 2, [1e-6, 4e-6, 9e-6]])
+    e = extrinsic_errors(T_est, T_true, cov6)
+    np.testing.assert_allclose(e["dphi_deg"], np.degrees(dphi), rtol=1e-9)
+    np.testing.assert_allclose(e["dt_mm"], 1e3 * dt, rtol=1e-12)
+    assert e["angle_deg"] == pytest.approx(np.degrees(np.linalg.norm(dphi)), rel=1e-9)
+    assert e["distance_mm"] == pytest.approx(1e3 * np.linalg.norm(dt), rel=1e-12)
+    # error: the truth relative to the estimate, xi = Log(T_est^-1 T_true), rotated to the body axes
+    xi = gtsam.Pose3.Logmap(gtsam.Pose3(T_est).between(gtsam.Pose3(T_true)))
+    R = T_est[:3, :3]
+    np.testing.assert_allclose(e["error"], np.r_[np.degrees(R @ xi[:3]), 1e3 * R @ xi[3:]], atol=1e-12)
+    np.testing.assert_allclose(e["error"][:3], -np.degrees(dphi), rtol=1e-9)
+    # sigma, z2 along the body axes: cov_body = blockdiag(R, R) cov6 blockdiag(R, R)^T
+    B = np.kron(np.eye(2), R)
+    var = np.diag(B @ cov6 @ B.T)
+    np.testing.assert_allclose(e["sigma"], np.r_[np.degrees(np.sqrt(var[:3])), 1e3 * np.sqrt(var[3:])], rtol=1e-12)
+    np.testing.assert_allclose(e["z2"], (B @ xi) ** 2 / var, rtol=1e-9)
+    assert e["nees"] == pytest.approx(float(xi @ np.linalg.solve(cov6, xi)), rel=1e-12)
+    assert e["nees"] == nees(T_true, T_est, cov6)
+    assert "nees" not in extrinsic_errors(T_est, T_true)

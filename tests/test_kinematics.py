@@ -7,7 +7,7 @@ import pytest
 
 from graphcal.errors import ModelError
 from graphcal.models.builtin import BUILTIN_MODELS
-from graphcal.models.kinematics import fk_leg, foot_positions, ik_leg, leg_jacobian
+from graphcal.models.kinematics import fk_leg, foot_positions, ik_leg, leg_jacobian, newton_ik, smoothstep
 from graphcal.models.robot import load_robot
 from graphcal.testing import numerical_jacobian
 
@@ -213,3 +213,59 @@ def test_ik_single_target(robots):
     q, ok = ik_leg(leg, foot_positions(leg, q_true), q_true + 0.1)
     assert q.shape == (3,) and bool(ok)
     np.testing.assert_allclose(foot_positions(leg, q), foot_positions(leg, q_true), atol=1e-9)
+
+
+def test_newton_ik_modes_converge_and_report_the_kinematics_at_q(robots):
+    """Newton (square solve), damped Gauss-Newton with a step limit, and Levenberg-Marquardt (ik_leg's)."""
+    rng = np.random.default_rng(RNG_SEED + 4)
+    for name, robot, leg in _all_legs(robots):
+        if leg.n_joints != 3 or name == "custom":
+            continue
+        q_true = _random_q(rng, leg, 60)
+        q_true = q_true[np.linalg.svd(leg_jacobian(leg, q_true), compute_uv=False)[:, -1] > 0.02]  # not stretched
+        p = foot_positions(leg, q_true)
+        q0 = q_true + rng.normal(0.0, 0.02, size=q_true.shape)
+        for kw in ({}, {"damping": 1e-6, "max_step": 0.3}, {"damping": 1e-4, "adaptive": True}):
+            sol = newton_ik(leg, p, q0, iterations=20, stop_tol=1e-12, **kw)
+            assert sol.err.max() < 1e-10, (name, leg.foot, kw)
+            np.testing.assert_allclose(sol.p_base_foot, foot_positions(leg, sol.q), atol=1e-15)
+            np.testing.assert_allclose(sol.err, np.linalg.norm(p - sol.p_base_foot, axis=1), atol=1e-15)
+            np.testing.assert_allclose(sol.J, leg_jacobian(leg, sol.q), atol=1e-15)
+    # ik_leg is the adaptive mode
+    leg = robots["octopus"].leg("lf_foot")
+    q_true = _random_q(rng, leg, 20)
+    p = foot_positions(leg, q_true)
+    p[0] = [5.0, 5.0, -5.0]  # unreachable: every step rejected towards the end
+    q, ok = ik_leg(leg, p, np.zeros(3))
+    sol = newton_ik(leg, p, np.zeros(3), iterations=50, stop_tol=1e-10, damping=1e-4, adaptive=True)
+    assert np.array_equal(q, sol.q) and np.array_equal(ok, sol.err < 1e-6) and not ok[0]
+
+
+def test_newton_ik_step_limit_and_iteration_count(robots):
+    leg = robots["qingzhui"].leg(robots["qingzhui"].feet[0])
+    q_true = np.array([[0.3, 0.6, -0.9]])
+    p = foot_positions(leg, q_true)
+    q0 = q_true + [[0.2, -0.3, 0.25]]
+    one = newton_ik(leg, p, q0, iterations=1, stop_tol=0.0, damping=1e-6, max_step=0.05)
+    assert np.max(np.abs(one.q - q0)) == pytest.approx(0.05)  # the step is scaled to the limit
+    free = newton_ik(leg, p, q0, iterations=1, stop_tol=0.0, damping=1e-6)
+    assert np.max(np.abs(free.q - q0)) > 0.05
+    none = newton_ik(leg, p, q0, iterations=0, stop_tol=0.0)
+    assert np.array_equal(none.q, q0) and none.err[0] == pytest.approx(np.linalg.norm(p - foot_positions(leg, q0)))
+    # stop_tol: a start at the solution takes no step
+    done = newton_ik(leg, p, q_true, iterations=5, stop_tol=1e-9)
+    assert np.array_equal(done.q, q_true)
+
+
+def test_smoothstep_polynomials():
+    x = np.linspace(-0.5, 1.5, 81)
+    u = np.clip(x, 0.0, 1.0)
+    np.testing.assert_allclose(smoothstep(x, degree=3), np.polynomial.Polynomial([0, 0, 3, -2])(u), atol=1e-15)
+    np.testing.assert_allclose(smoothstep(x, degree=5), np.polynomial.Polynomial([0, 0, 0, 10, -15, 6])(u), atol=1e-15)
+    h = 1e-4  # slopes at the ends: O(h) for the cubic, O(h^2) for the quintic (zero curvature too)
+    assert smoothstep(h, degree=3) / h == pytest.approx(3 * h, rel=1e-3) and 1 - smoothstep(1 - h, degree=3) < 4 * h**2
+    assert smoothstep(h, degree=5) / h == pytest.approx(10 * h**2, rel=1e-3)
+    assert 1 - smoothstep(1 - h, degree=5) < 11 * h**3
+    assert smoothstep(0.5, degree=3) == smoothstep(0.5, degree=5) == 0.5
+    with pytest.raises(ValueError):
+        smoothstep(x, degree=4)

@@ -7,8 +7,8 @@ import gtsam
 import numpy as np
 import pytest
 
-from graphcal.factors.mocap_pose import mocap_pose_error, so3_log, so3_right_jacobian_inverse
-from graphcal.geometry import pose_from_xyz_rpy
+from graphcal.factors.mocap_pose import mocap_pose_error
+from graphcal.geometry import pose_from_xyz_rpy, so3_log_batch, so3_right_jacobian_inverse_batch
 from graphcal.models.legs import leg_model
 from graphcal.models.robot import load_robot
 
@@ -31,11 +31,11 @@ def _setup(seed=3, n=4):
 def test_so3_helpers():
     x = np.array([[0.3, -0.2, 0.5], [1e-9, 0, 0]])
     R = np.array([gtsam.Rot3.Expmap(v).matrix() for v in x])
-    assert np.allclose(so3_log(R), x, atol=1e-12)
+    assert np.allclose(so3_log_batch(R), x, atol=1e-12)
     # Jr^-1 inverts the right Jacobian: Log(Exp(x) Exp(d)) ~ x + Jr^-1 d
     d = 1e-6 * np.array([0.2, 0.7, -0.4])
     y = gtsam.Rot3.Logmap(gtsam.Rot3.Expmap(x[0]) * gtsam.Rot3.Expmap(d))
-    assert np.allclose((y - x[0]) / 1e-6, so3_right_jacobian_inverse(x[:1])[0] @ d / 1e-6, atol=1e-5)
+    assert np.allclose((y - x[0]) / 1e-6, so3_right_jacobian_inverse_batch(x[:1])[0] @ d / 1e-6, atol=1e-5)
 
 
 def test_pose_error_jacobians_match_central_differences():

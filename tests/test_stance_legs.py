@@ -15,7 +15,7 @@ import yaml
 from graphcal.calibration.calibrate import calibrate
 from graphcal.calibration.graph import CalibrationOptions
 from graphcal.commands.simulate import run as simulate_to_folder
-from graphcal.testing import extrinsic_errors, true_extrinsic
+from graphcal.testing import extrinsic_error_scores, true_extrinsic
 
 TIBIA_JOINT = "lf_foot_joint"  # its origin is the lf tibia: lf_foot_joint.delta_m is the tibia length
 TIBIA_DELTA_M = 0.015
@@ -78,7 +78,7 @@ def test_every_other_leg_parameter_is_within_3_sigma_of_zero(stance_run):
 def test_extrinsic_keeps_its_accuracy_and_what_the_leg_variables_buy(stance_run):
     truth, with_legs, without_legs = stance_run
     T_true = true_extrinsic(truth, "depth")
-    ang, dist, z = extrinsic_errors(with_legs.sensors["depth"], T_true)
+    ang, dist, z = extrinsic_error_scores(with_legs.sensors["depth"], T_true)
     assert ang < 0.1 and dist < 2.0, (ang, dist)
     assert np.all(np.abs(z) < 3.0), z  # the reported sigma covers the error on every body axis
     assert with_legs.sensors["depth"].unobservable == ()
@@ -91,9 +91,9 @@ def test_extrinsic_keeps_its_accuracy_and_what_the_leg_variables_buy(stance_run)
 
     s0 = without_legs.sensors["depth"]
     rot_m, xyz_m, _, _ = body_axis_sigmas(s0.T_body_sensor, s0.model_covariance)
-    ang0, dist0, z0 = extrinsic_errors(dataclasses.replace(s0, sigma_rot_deg=rot_m, sigma_xyz_mm=xyz_m), T_true)
+    ang0, dist0, z0 = extrinsic_error_scores(dataclasses.replace(s0, sigma_rot_deg=rot_m, sigma_xyz_mm=xyz_m), T_true)
     assert ang0 > 0.15 and dist0 > 4.0, (ang0, dist0)
     assert np.max(np.abs(z0)) > 10.0, z0
     assert without_legs.adequacy.verdict == "does not fit"
-    _, _, z_gov = extrinsic_errors(s0, T_true)
+    _, _, z_gov = extrinsic_error_scores(s0, T_true)
     assert np.max(np.abs(z_gov)) < 3.0, z_gov  # the governing (robust) sigma covers the error

@@ -51,7 +51,7 @@ if str(HERE) not in sys.path:
 import make_dataset as md  # noqa: E402  (this folder)
 
 from graphcal.calibration.graph import predicted_plane_errors  # noqa: E402
-from graphcal.geometry import invert_pose  # noqa: E402
+from graphcal.geometry import invert_pose, nearest_rotation  # noqa: E402
 
 #: the datasets run by main(): name -> build_dataset keyword arguments
 VARIANTS = {
@@ -349,8 +349,8 @@ def association_margins() -> dict:
     out = {}
     for i, r in enumerate(rows):
         others = [j for j in range(len(rows)) if j != i]
-        U, _, Vt = np.linalg.svd(up_b[[pose[rows[j]["label"]] - 1 for j in others]].T @ n_s[others])
-        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt  # R n_sensor ~ up in the body
+        # Wahba: R n_sensor ~ up in the body
+        R = nearest_rotation(up_b[[pose[rows[j]["label"]] - 1 for j in others]].T @ n_s[others])
         ang = np.degrees(np.arccos(np.clip(up_b @ (R @ n_s[i]), -1.0, 1.0)))
         o = np.argsort(ang)
         out[r["label"]] = (int(o[0]) + 1, float(ang[o[0]]), int(o[1]) + 1, float(ang[o[1]]))

@@ -36,42 +36,17 @@ from collections.abc import Sequence
 
 import gtsam
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from graphcal.factors.checked import checked_custom_factor
+from graphcal.geometry import skew_batch, so3_log_batch, so3_right_jacobian_inverse_batch
 from graphcal.models.legs import LegModel, point_kinematics
 from graphcal.models.robot import Leg
 
 __all__ = ["DEFAULT_SIGMA_POSE", "frame_kinematics", "mocap_pose_error", "mocap_pose_factor", "pose_covariance",
-           "sqrt_information6", "so3_log", "so3_right_jacobian_inverse"]
+           "sqrt_information6"]
 
 #: default per-axis sigma of a measured pose [rx, ry, rz (rad), x, y, z (m)]: 0.1 deg and 1 mm
 DEFAULT_SIGMA_POSE = (np.radians(0.1),) * 3 + (0.001,) * 3
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(N, 3) -> (N, 3, 3) cross-product matrices."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
-
-
-def so3_log(R) -> np.ndarray:
-    """(N, 3, 3) rotations -> (N, 3) rotation vectors (rad)."""
-    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
-
-
-def so3_right_jacobian_inverse(x) -> np.ndarray:
-    """(N, 3) rotation vectors -> (N, 3, 3) ``Jr^-1(x) = I + K/2 + (1/t^2 - (1 + cos t) / (2 t sin t)) K^2``."""
-    x = np.asarray(x, dtype=float)
-    t = np.linalg.norm(x, axis=-1)
-    small = t < 1e-6
-    ts = np.where(small, 1.0, t)
-    c = np.where(small, 1.0 / 12.0, 1.0 / ts**2 - (1.0 + np.cos(ts)) / (2.0 * ts * np.sin(ts)))
-    K = _skew(x)
-    return np.eye(3) + 0.5 * K + c[..., None, None] * (K @ K)
 
 
 def _angular(J0: np.ndarray, Jk: list[np.ndarray], R: np.ndarray) -> np.ndarray:
@@ -108,16 +83,16 @@ def mocap_pose_error(T_body_mocap, theta, q, T_mocap_meas, leg: Leg, model: LegM
     R_pred = np.einsum("ji,njk->nik", R_bm, R)
     p_pred = (p - t_bm) @ R_bm
     RmT = np.swapaxes(Rm, 1, 2)
-    e_r = so3_log(RmT @ R_pred)
+    e_r = so3_log_batch(RmT @ R_pred)
     e_t = np.einsum("nij,nj->ni", RmT, p_pred - pm)
     e = np.concatenate([e_r, e_t], axis=1)
     if not want_jacobians:
         return e, None
     N = e.shape[0]
-    Jri = so3_right_jacobian_inverse(e_r)
+    Jri = so3_right_jacobian_inverse_batch(e_r)
     H_V = np.zeros((N, 6, 6))
     H_V[:, :3, :3] = -Jri @ np.swapaxes(R_pred, 1, 2)
-    H_V[:, 3:, :3] = RmT @ _skew(p_pred)
+    H_V[:, 3:, :3] = RmT @ skew_batch(p_pred)
     H_V[:, 3:, 3:] = -RmT
     H_L = np.concatenate([Jri @ np.swapaxes(R, 1, 2) @ Jw_th, RmT @ np.einsum("ji,njk->nik", R_bm, Jp_th)], axis=1)
     return e, [H_V, H_L]

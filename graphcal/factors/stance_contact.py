@@ -37,6 +37,7 @@ import numpy as np
 
 from graphcal.factors.checked import checked_custom_factor
 from graphcal.factors.stance_foot import stance_foot_error
+from graphcal.geometry import skew
 from graphcal.models.kinematics import foot_positions, joint_frames, leg_jacobian
 from graphcal.models.legs import fk_with_params
 from graphcal.models.robot import Leg
@@ -78,11 +79,6 @@ def compliance_lever(leg: Leg, q, joint_index: int, R_world_body: np.ndarray) ->
     J = leg_jacobian(leg, np.asarray(q, dtype=float))
     n_b = np.asarray(R_world_body, dtype=float).T @ np.array([0.0, 0.0, 1.0])
     return float(J[:, int(joint_index)] @ n_b)
-
-
-def _skew(v) -> np.ndarray:
-    x, y, z = float(v[0]), float(v[1]), float(v[2])
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 def complied_angles(leg: Leg, q, joint_index: int, k: float, R_lever, x0: float | None = None) -> tuple[np.ndarray, float]:
@@ -134,7 +130,7 @@ def _fixed_leg_error(T_world_body, p_world_foot, p_fk, want_jacobians: bool):
     if not want_jacobians:
         return e, None
     H_X = np.zeros((3, 6))
-    H_X[:, :3] = -_skew(p_b)
+    H_X[:, :3] = -skew(p_b)
     H_X[:, 3:] = np.eye(3)
     return e, [H_X, np.ascontiguousarray(-R_x.T)]
 
@@ -180,7 +176,7 @@ def stance_contact_error(T_world_body, p_world_foot, q, leg: Leg, *, radius=None
     Hs = list(Hs)
     if radius is not None:
         H_X = Hs[0].copy()
-        H_X[:, :3] += -float(radius) * _skew(n_b)
+        H_X[:, :3] += -float(radius) * skew(n_b)
         Hs[0] = H_X
         Hs.append((np.asarray(a_b, dtype=float) - n_b).reshape(3, 1))
     if compliance is not None:

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.geometry import skew, so3_exp, so3_log
+from graphcal.geometry import nearest_rotation, skew, so3_exp, so3_log
 
 __all__ = ["GRAVITY_WORLD", "EkfNoise", "NominalState", "LeggedEKF", "state_dim", "check_covariance",
            "tangent_pose_covariance"]
@@ -505,5 +505,4 @@ class LeggedEKF:
 
     def renormalize(self) -> None:
         """Re-orthonormalise R (call now and then: rounding accumulates over many steps)."""
-        U, _, Vt = np.linalg.svd(self.R)
-        self.R = U @ Vt
+        self.R = nearest_rotation(self.R)

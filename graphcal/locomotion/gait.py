@@ -261,26 +261,23 @@ def segment_distances(p0, p1, q0, q1) -> np.ndarray:
     return np.sqrt(np.einsum("...i,...i->...", diff, diff))
 
 
-def _smoothstep(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
-
-
 def swing_trajectory(p_world_lift, p_world_land, step_height_m, tau, *, lift_fraction: float = 0.3) -> np.ndarray:
     """Swing-foot positions (m, world) at swing phases ``tau`` (array in [0, 1]).
 
     ``step_height_m`` may be an array (broadcast against ``tau``: e.g. (H, 1) with (T,) gives
     (H, T, 3)). Path shape: module docstring.
     """
+    from graphcal.models.kinematics import smoothstep
+
     p0 = np.asarray(p_world_lift, dtype=float)
     p1 = np.asarray(p_world_land, dtype=float)
     tau = np.asarray(tau, dtype=float)
     H = np.asarray(step_height_m, dtype=float)
     a = float(lift_fraction)
-    u = _smoothstep((tau - a / 2) / (1.0 - a))  # horizontal progress
+    u = smoothstep((tau - a / 2) / (1.0 - a), degree=3)  # horizontal progress
     z_top = max(p0[2], p1[2]) + H
-    rise = _smoothstep(tau / a)
-    fall = _smoothstep((tau - (1.0 - a)) / a)
+    rise = smoothstep(tau / a, degree=3)
+    fall = smoothstep((tau - (1.0 - a)) / a, degree=3)
     z = np.where(tau < 1.0 - a, p0[2] + (z_top - p0[2]) * rise, z_top + (p1[2] - z_top) * fall)
     u, z = np.broadcast_arrays(u, z)
     xy = p0[:2] + u[..., None] * (p1[:2] - p0[:2])
@@ -435,38 +432,25 @@ def _leg_ctx(robot, foot: str, p_body_foot: np.ndarray, cfg: GaitConfig) -> _Leg
     mid = np.where(np.isfinite(leg.lower) & np.isfinite(leg.upper), (leg.lower + leg.upper) / 2, 0.0)
     # the branch of the zero configuration first (the simulator's nominal stance), else mid-range
     for q0 in (np.zeros(leg.n_joints), mid):
-        q, ok, _, _, _ = _ik_newton(leg, np.asarray(p_body_foot, dtype=float)[None], q0, iterations=40)
+        q, ok, _, _, _ = _leg_ik(leg, np.asarray(p_body_foot, dtype=float)[None], q0, iterations=40)
         if bool(ok[0]):
             return _LegCtx(leg, q[0], lo, hi)
     raise GaitError(f"gait: foot {foot} cannot reach its current position {np.round(p_body_foot, 3).tolist()} (body frame)")
 
 
-def _ik_newton(leg, p_body: np.ndarray, q0: np.ndarray, *, iterations: int = 8, ok_tol: float = 1e-4):
-    """Batch position IK by damped Gauss-Newton from ``q0`` for every target (m, body frame), one
-    forward-kinematics pass per iteration (:func:`graphcal.models.kinematics.joint_frames` gives the
-    foot and the Jacobian together); steps are limited to 0.3 rad (m). ``ik_leg`` with its line
-    search costs ~3x more here, and a planner needs only ``ok_tol`` (0.1 mm).
+def _leg_ik(leg, p_body: np.ndarray, q0: np.ndarray, *, iterations: int = 8, ok_tol: float = 1e-4):
+    """Batch position IK from ``q0`` for every target (m, body frame):
+    :func:`graphcal.models.kinematics.newton_ik`, damped Gauss-Newton (1e-6) with steps limited to
+    0.3 rad (m), until every residual is below ``ok_tol / 10``. ``ik_leg`` with its line search costs
+    ~3x more here, and a planner needs only ``ok_tol`` (0.1 mm).
 
     Returns q (N, n), ok (N,) (residual < ok_tol), joint origins (N, n, 3), feet (N, 3) and the
     smallest singular value of the position Jacobian (N,) (m/rad; 0 for a stretched leg) at q."""
-    from graphcal.models.kinematics import joint_frames, position_jacobian
+    from graphcal.models.kinematics import newton_ik
 
-    N, n = len(p_body), leg.n_joints
-    q = np.array(np.broadcast_to(q0, (N, n)), dtype=float)
-    eye = 1e-6 * np.eye(n)
-    for it in range(iterations + 1):
-        axes, origins, _, p = joint_frames(leg, q)
-        r = p_body - p
-        err = np.linalg.norm(r, axis=1)
-        J = position_jacobian(leg.joint_types, axes, origins, p)
-        if it == iterations or np.all(err < 0.1 * ok_tol):
-            break
-        JT = J.transpose(0, 2, 1)
-        dq = np.linalg.solve(JT @ J + eye, (JT @ r[:, :, None]))[:, :, 0]
-        big = np.max(np.abs(dq), axis=1, keepdims=True)
-        q += dq * np.minimum(1.0, 0.3 / np.maximum(big, 1e-12))
-    sigma_min = np.linalg.svd(J, compute_uv=False)[:, -1]
-    return q, err < ok_tol, origins, p, sigma_min
+    sol = newton_ik(leg, p_body, q0, iterations=iterations, stop_tol=0.1 * ok_tol, damping=1e-6, max_step=0.3)
+    sigma_min = np.linalg.svd(sol.J, compute_uv=False)[:, -1]
+    return sol.q, sol.err < ok_tol, sol.origins_base, sol.p_base_foot, sigma_min
 
 
 _CONTACT_TOL_M = 1e-3  # a capsule may touch the solid by this much (the foot standing on a tread)
@@ -485,7 +469,7 @@ def _shin_check(ctx: _LegCtx, st: _Stairs, R_world_body: np.ndarray, p_world_bod
     """
     R = np.broadcast_to(R_world_body, (len(p_world_body), 3, 3))
     p_body = np.einsum("nji,nj->ni", R, p_world_foot - p_world_body)  # R^T (p - o)
-    q, ok, origins, p_foot_b, sigma_min = _ik_newton(ctx.leg, p_body, ctx.q_ref)
+    q, ok, origins, p_foot_b, sigma_min = _leg_ik(ctx.leg, p_body, ctx.q_ref)
     inside = np.all((q >= ctx.lo) & (q <= ctx.hi), axis=1) & (sigma_min >= cfg.min_leg_singular_value)
     knee_b = origins[:, -1]
     # to the stairs frame

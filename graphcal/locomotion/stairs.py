@@ -85,7 +85,7 @@ from typing import Sequence
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.geometry import canonical_plane, pose_matrix, se3_exp, transform_points
+from graphcal.geometry import canonical_plane, nearest_rotation, pose_matrix, se3_exp, transform_points
 from graphcal.models.sensors import KINECT_NOISE_COEFF_PER_M
 from graphcal.solvers.point_to_plane import constrained_step, point_to_plane_jacobian
 
@@ -475,8 +475,7 @@ def _stitch(
     ks = [k for k in range(K) if accepted[k]]
     if len(ks) > 1:
         M = sum(poses[k][:3, :3] @ corrected[k][:3, :3].T for k in ks)
-        U, _, Vt = np.linalg.svd(M)
-        R_A = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        R_A = nearest_rotation(M)
         t_A = np.mean([poses[k][:3, 3] - R_A @ corrected[k][:3, 3] for k in ks], axis=0)
         A = pose_matrix(R_A, t_A)
         corrected = [A @ T if ok else T for T, ok in zip(corrected, accepted)]

@@ -1,4 +1,6 @@
-"""Vectorised leg kinematics: forward kinematics, position Jacobian and batch IK for N configurations.
+"""Vectorised leg kinematics: forward kinematics, position Jacobian, the one batch IK for N
+configurations (:func:`newton_ik`; :func:`ik_leg` its robust default) and the swing profiles'
+:func:`smoothstep`.
 
 A leg (:class:`graphcal.models.robot.Leg`) is a chain of 1-DOF joints; everything here works on a
 batch of N configurations at once (numpy, one loop over the chain's joints, none over
@@ -10,10 +12,12 @@ Agreement with Pinocchio (:meth:`graphcal.models.robot.RobotModel.fk_pinocchio`)
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from graphcal.errors import ModelError
-from graphcal.geometry import cross_batch
+from graphcal.geometry import cross_batch, so3_exp_axis_batch
 from graphcal.models.robot import Leg
 
 __all__ = [
@@ -21,11 +25,13 @@ __all__ = [
     "foot_positions",
     "leg_jacobian",
     "ik_leg",
+    "newton_ik",
+    "LegIK",
     "joint_frames",
     "chain_frames",
     "position_jacobian",
     "as_batch",
-    "rodrigues_batch",
+    "smoothstep",
 ]
 
 
@@ -41,18 +47,6 @@ def as_batch(leg: Leg, q) -> tuple[np.ndarray, bool]:
             f"q must have shape (N, {leg.n_joints}), got {np.shape(q)}"
         )
     return q, single
-
-
-_EYE3 = np.eye(3)
-_EYE3.setflags(write=False)
-
-
-def rodrigues_batch(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotations about the unit ``axis`` (3,) by ``angles`` (N,) rad."""
-    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    s = np.sin(angles)[:, None, None]
-    c = np.cos(angles)[:, None, None]
-    return _EYE3 + s * K + (1.0 - c) * (K @ K)
 
 
 def chain_frames(leg: Leg, q: np.ndarray, dt: np.ndarray | None = None):
@@ -90,7 +84,7 @@ def chain_frames(leg: Leg, q: np.ndarray, dt: np.ndarray | None = None):
         axes_base[:, j] = R @ a
         origins_base[:, j] = p
         if leg.joint_types[j] == "revolute":
-            R = R @ rodrigues_batch(a, q[:, j])
+            R = R @ so3_exp_axis_batch(a, q[:, j])
         else:  # prismatic
             p = p + q[:, j, None] * axes_base[:, j]
     Tf = leg.T_lastjoint_foot
@@ -179,6 +173,89 @@ def leg_jacobian(leg: Leg, q) -> np.ndarray:
     return J[0] if single else J
 
 
+class LegIK(NamedTuple):
+    """A batch IK solution of :func:`newton_ik`; everything at the returned ``q`` (base frame)."""
+
+    q: np.ndarray  #: (N, n) joint values, rad / m
+    err: np.ndarray  #: (N,) residual |target - foot|, m
+    p_base_foot: np.ndarray  #: (N, 3) foot positions, m
+    J: np.ndarray  #: (N, 3, n) position Jacobian d p_base_foot / d q (m/rad, m/m)
+    origins_base: np.ndarray  #: (N, n, 3) joint origins, m (:func:`chain_frames`)
+
+
+def newton_ik(
+    leg: Leg,
+    p_base_foot,
+    q0,
+    *,
+    iterations: int,
+    stop_tol: float,
+    damping: float | None = None,
+    adaptive: bool = False,
+    max_step: float | None = None,
+) -> LegIK:
+    """Batch position IK of a leg by Newton / Gauss-Newton steps from ``q0``, one forward-kinematics
+    pass per step (:func:`joint_frames` gives the foot and its Jacobian together). Joint limits are
+    not enforced.
+
+    Args:
+        leg: the leg.
+        p_base_foot: (N, 3) target foot positions in the base frame, m.
+        q0: (N, n) initial joint values (or (n,), broadcast over the targets).
+        iterations: at most this many steps.
+        stop_tol: residual (m): stop once every configuration is below it (``adaptive``: each
+            configuration stops there).
+        damping: None: Newton's square solve ``J dq = r`` (3 joints); else the damped Gauss-Newton step
+            ``(J^T J + lam I) dq = J^T r`` with ``lam = damping``.
+        adaptive: Levenberg-Marquardt: a step is kept only where it lowers the residual, then ``lam``
+            is multiplied by 0.3 (down to 1e-12), else by 10 (``damping`` is the first ``lam``).
+        max_step: each step is scaled down to at most this largest joint change (rad / m), or None.
+    """
+    P = np.asarray(p_base_foot, dtype=float)
+    N, n = P.shape[0], leg.n_joints
+    q = np.array(np.broadcast_to(np.asarray(q0, dtype=float), (N, n)), dtype=float)
+    axes, origins, _, p = joint_frames(leg, q)
+    J = position_jacobian(leg.joint_types, axes, origins, p)
+    r = P - p
+    err = np.linalg.norm(r, axis=1)
+    lam = np.full(N, 0.0 if damping is None else float(damping))
+    eye = np.eye(n)
+    for _ in range(iterations):
+        if adaptive:
+            rows = err >= stop_tol
+            if not rows.any():
+                break
+        elif np.all(err < stop_tol):
+            break
+        else:
+            rows = slice(None)
+        Jr, rr = J[rows], r[rows]
+        if damping is None:
+            dq = np.linalg.solve(Jr, rr[:, :, None])[:, :, 0]
+        else:
+            JT = np.swapaxes(Jr, 1, 2)
+            A = JT @ Jr + (lam[rows, None, None] * eye if adaptive else damping * eye)
+            dq = np.linalg.solve(A, JT @ rr[:, :, None])[:, :, 0]
+        if max_step is not None:
+            dq = dq * np.minimum(1.0, max_step / np.maximum(np.max(np.abs(dq), axis=1, keepdims=True), 1e-12))
+        q_new = q[rows] + dq
+        axes_n, origins_n, _, p_n = joint_frames(leg, q_new)
+        J_n = position_jacobian(leg.joint_types, axes_n, origins_n, p_n)
+        r_n = P[rows] - p_n
+        err_n = np.linalg.norm(r_n, axis=1)
+        if not adaptive:
+            q, p, origins, J, r, err = q_new, p_n, origins_n, J_n, r_n, err_n
+            continue
+        better = err_n < err[rows]
+        idx = np.flatnonzero(rows)
+        acc = idx[better]
+        q[acc], p[acc], origins[acc], J[acc] = q_new[better], p_n[better], origins_n[better], J_n[better]
+        r[acc], err[acc] = r_n[better], err_n[better]
+        lam[acc] = np.maximum(lam[acc] * 0.3, 1e-12)
+        lam[idx[~better]] *= 10.0
+    return LegIK(q, err, p, J, origins)
+
+
 def ik_leg(
     leg: Leg,
     p_base_foot,
@@ -188,7 +265,7 @@ def ik_leg(
     max_iter: int = 50,
     ok_tol: float = 1e-6,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Batch position IK of a leg: damped Gauss-Newton / Levenberg-Marquardt.
+    """Batch position IK of a leg: Levenberg-Marquardt (:func:`newton_ik`, ``adaptive``, first damping 1e-4).
 
     Joint limits are NOT enforced (check ``leg.lower``/``leg.upper`` on the result if needed).
 
@@ -209,35 +286,20 @@ def ik_leg(
     P = np.atleast_2d(P)
     if P.shape[1] != 3:
         raise ModelError(f"p_base_foot must have shape (N, 3), got {np.shape(p_base_foot)}")
-    N, n = P.shape[0], leg.n_joints
-    q = np.array(np.broadcast_to(np.asarray(q0, dtype=float), (N, n)), dtype=float)
-    lam = np.full(N, 1e-4)
-
-    r = P - foot_positions(leg, q)
-    err = np.linalg.norm(r, axis=1)
-    eye = np.eye(n)
-    for _ in range(max_iter):
-        active = err >= tol
-        if not np.any(active):
-            break
-        qa, ra = q[active], r[active]
-        J = leg_jacobian(leg, qa)
-        JT = np.swapaxes(J, 1, 2)
-        A = JT @ J + lam[active, None, None] * eye
-        g = (JT @ ra[:, :, None])[:, :, 0]
-        dq = np.linalg.solve(A, g[:, :, None])[:, :, 0]
-        q_new = qa + dq
-        r_new = P[active] - foot_positions(leg, q_new)
-        err_new = np.linalg.norm(r_new, axis=1)
-        better = err_new < err[active]
-        idx = np.flatnonzero(active)
-        acc = idx[better]
-        q[acc] = q_new[better]
-        r[acc] = r_new[better]
-        err[acc] = err_new[better]
-        lam[acc] = np.maximum(lam[acc] * 0.3, 1e-12)
-        lam[idx[~better]] *= 10.0
-    ok = err < ok_tol
+    sol = newton_ik(leg, P, q0, iterations=max_iter, stop_tol=tol, damping=1e-4, adaptive=True)
+    ok = sol.err < ok_tol
     if single:
-        return q[0], np.asarray(ok[0])
-    return q, ok
+        return sol.q[0], np.asarray(ok[0])
+    return sol.q, ok
+
+
+def smoothstep(x, *, degree: int) -> np.ndarray:
+    """Smoothstep of ``x`` clipped to [0, 1] (swing-foot paths, speed and load ramps): ``degree`` 3,
+    ``3x^2 - 2x^3`` (zero slope at both ends), or 5, ``10x^3 - 15x^4 + 6x^5`` (zero slope and
+    curvature)."""
+    x = np.clip(x, 0.0, 1.0)
+    if degree == 3:
+        return x * x * (3.0 - 2.0 * x)
+    if degree == 5:
+        return x * x * x * (10.0 + x * (-15.0 + 6.0 * x))
+    raise ValueError(f"smoothstep: degree must be 3 or 5, got {degree!r}")

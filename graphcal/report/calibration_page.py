@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from graphcal.geometry import axis_angle_from_matrix, rotation_angle_between, rpy_from_matrix
+from graphcal.geometry import rotation_angle_between, rpy_from_matrix, so3_log
 from graphcal.report.calibration_yaml import residual_summary
 from graphcal.report.page import Markup, Section, esc, figure, num, render_page, row
 from graphcal.report.plots import report_figures
@@ -16,12 +16,6 @@ __all__ = ["report_html"]
 _e = esc
 _n = num
 _row = row
-
-
-def _log_so3(R) -> np.ndarray:
-    """Rotation vector (rad) of R."""
-    axis, angle = axis_angle_from_matrix(R)
-    return axis * angle
 
 
 def _row(cells, header: bool = False, first_left: bool = True) -> str:
@@ -48,7 +42,7 @@ def _sensor_section(name: str, s, base_frame: str) -> str:
         rows.append(_row([lab] + [_n(v, ".2f") for v in t] + [_n(v, ".3f") for v in r]))
     parts.append("<table>" + "".join(rows) + "</table>")
     # change and uncertainty along / about the body axes (left perturbation, same axes as sigma)
-    d_rot = np.rad2deg(_log_so3(T[:3, :3] @ P[:3, :3].T))
+    d_rot = np.rad2deg(so3_log(T[:3, :3] @ P[:3, :3].T))
     head = _row(["body axes", "along x [mm]", "along y [mm]", "along z [mm]", "about x [deg]", "about y [deg]",
                  "about z [deg]"], header=True)  # fmt: skip
     rows = [

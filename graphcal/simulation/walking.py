@@ -323,12 +323,6 @@ class WalkingResult:
 
 
 # ----------------------------------------------------------------------------- small helpers
-def _smoothstep(u: np.ndarray) -> np.ndarray:
-    """Quintic smoothstep on [0, 1] (zero first and second derivatives at both ends), clipped."""
-    u = np.clip(u, 0.0, 1.0)
-    return u * u * u * (10.0 + u * (-15.0 + 6.0 * u))
-
-
 def _cumtrapz(y: np.ndarray, x: np.ndarray) -> np.ndarray:
     out = np.zeros_like(y, dtype=float)
     out[1:] = np.cumsum(0.5 * (y[1:] + y[:-1]) * np.diff(x))
@@ -388,24 +382,6 @@ def _nominal_q(leg, p_body_foot) -> np.ndarray:
     return q[int(np.argmax(inside))]
 
 
-def _newton_ik(leg, P: np.ndarray, q: np.ndarray, *, iters: int = 4):
-    """Newton refinement of a leg's IK at every sample from a close start (square 3x3 Jacobian):
-    one :func:`~graphcal.models.kinematics.joint_frames` pass per iteration gives both the foot
-    position and the Jacobian. Returns q (N, n), the Jacobian at q (N, 3, n) and the residual (N,) m."""
-    from graphcal.models.kinematics import joint_frames, position_jacobian
-
-    q = np.array(q, dtype=float)
-    for it in range(iters + 1):
-        axes, origins, _, p = joint_frames(leg, q)
-        J = position_jacobian(leg.joint_types, axes, origins, p)
-        r = P - p
-        err = np.linalg.norm(r, axis=1)
-        if it == iters or err.max() < 1e-12:
-            break
-        q = q + np.linalg.solve(J, r[:, :, None])[:, :, 0]
-    return q, J, err
-
-
 # ----------------------------------------------------------------------------- the walk, stage by stage
 @dataclass(frozen=True, eq=False)
 class _Timeline:
@@ -426,6 +402,8 @@ class _Timeline:
 
 
 def _timeline(c: WalkingConfig, info) -> _Timeline:
+    from graphcal.models.kinematics import smoothstep
+
     h0 = c.body_height_m if c.body_height_m is not None else info.default_body_height_m - (0.03 if c.stairs else 0.0)
     v_max, Tc, beta = c.speed_m_s, c.cycle_s, c.duty_factor
     dt = 1.0 / c.rate_hz
@@ -437,7 +415,8 @@ def _timeline(c: WalkingConfig, info) -> _Timeline:
     t_end = t_g1 + c.still_s
     N = int(round(t_end * c.rate_hz)) + 1
     t = np.arange(N) * dt
-    v = v_max * (_smoothstep((t - t_g0) / c.ramp_s) - _smoothstep((t - t_stop + c.ramp_s) / c.ramp_s))
+    v = v_max * (smoothstep((t - t_g0) / c.ramp_s, degree=5)
+                 - smoothstep((t - t_stop + c.ramp_s) / c.ramp_s, degree=5))
     s = _cumtrapz(v, t)
     gain = v / v_max
     phase = (t - t_g0) / Tc
@@ -560,13 +539,15 @@ def _swing_path(c: WalkingConfig, body: _BodyPath, t: np.ndarray, lo: int, td: i
     """(td - lo - 1, 3) world positions (m) of a foot swinging from hold A (lift-off after sample
     ``lo``) to hold B (touchdown at sample ``td``): lift, transfer, lower (quintic smoothsteps)
     ``swing_clearance_m`` above the holds and the ground between them."""
+    from graphcal.models.kinematics import smoothstep
+
     ks = np.arange(lo + 1, td)
     u = (t[ks] - t[lo]) / (t[td] - t[lo])
     xs = np.linspace(0.0, 1.0, 25)[:, None] * (B[:2] - A[:2]) + A[:2]
     z_top = max(A[2], B[2], float(np.max(_ground_height(body.ground_stairs, xs)))) + c.swing_clearance_m
-    up = _smoothstep(u / _LIFT)
-    across = _smoothstep((u - _ACROSS0) / (1 - 2 * _ACROSS0))
-    down = _smoothstep((u - 1 + _LIFT) / _LIFT)
+    up = smoothstep(u / _LIFT, degree=5)
+    across = smoothstep((u - _ACROSS0) / (1 - 2 * _ACROSS0), degree=5)
+    down = smoothstep((u - 1 + _LIFT) / _LIFT, degree=5)
     out = np.empty((len(ks), 3))
     out[:, :2] = A[:2] + across[:, None] * (B[:2] - A[:2])
     out[:, 2] = A[2] + up * (z_top - A[2]) + down * (B[2] - z_top)
@@ -576,6 +557,8 @@ def _swing_path(c: WalkingConfig, body: _BodyPath, t: np.ndarray, lo: int, td: i
 def _foot_plan(c: WalkingConfig, info, feet: tuple, groups: tuple, tl: _Timeline, body: _BodyPath) -> _FootPlan:
     """Contacts (alternating tripods, duty factor ``c.duty_factor``), footholds (under the nominal
     stance at mid-stance; on stairs away from the edges) and swing paths between them."""
+    from graphcal.models.kinematics import smoothstep
+
     t, h0 = tl.t, tl.h0
     N = len(t)
     Tc, beta = c.cycle_s, c.duty_factor
@@ -615,9 +598,9 @@ def _foot_plan(c: WalkingConfig, info, feet: tuple, groups: tuple, tl: _Timeline
             w = np.ones(b - a)
             idx = np.arange(b - a)
             if a > 0:
-                w *= _smoothstep(idx / ramp_n)
+                w *= smoothstep(idx / ramp_n, degree=5)
             if b < N:
-                w *= _smoothstep((b - 1 - idx) / ramp_n)
+                w *= smoothstep((b - 1 - idx) / ramp_n, degree=5)
             weight[i, a:b] = w
         for j in range(len(runs) - 1):
             lo, td = runs[j][1] - 1, runs[j + 1][0]
@@ -640,7 +623,7 @@ def _joint_angles(robot, info, feet: tuple, t: np.ndarray, p_body_foot: np.ndarr
     foot cannot reach or a joint leaves its limits."""
     from scipy.interpolate import CubicSpline
 
-    from graphcal.models.kinematics import ik_leg
+    from graphcal.models.kinematics import ik_leg, newton_ik
 
     N = len(t)
     q_true: dict[str, np.ndarray] = {}
@@ -654,7 +637,9 @@ def _joint_angles(robot, info, feet: tuple, t: np.ndarray, p_body_foot: np.ndarr
         if not ok.all():
             k = coarse[int(np.argmin(ok))]
             raise GraphcalError(f"walking simulation: foot {f} cannot reach its planned position at t = {t[k]:.3f} s")
-        q, J, err = _newton_ik(leg, p_body_foot[i], CubicSpline(t[coarse], qc, axis=0)(t))
+        # Newton refinement at every sample from the spline (square 3x3 Jacobian), 4 steps at most
+        sol = newton_ik(leg, p_body_foot[i], CubicSpline(t[coarse], qc, axis=0)(t), iterations=4, stop_tol=1e-12)
+        q, J, err = sol.q, sol.J, sol.err
         if err.max() > 1e-9:
             k = int(np.argmax(err))
             raise GraphcalError(f"walking simulation: foot {f} cannot reach its planned position at t = {t[k]:.3f} s")

@@ -27,7 +27,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.geometry import pose_matrix, skew, so3_exp
+from graphcal.geometry import nearest_rotation, pose_matrix, skew, so3_exp
 
 __all__ = [
     "rotation_from_normals",
@@ -68,11 +68,8 @@ def _weights(weights, n: int, name: str = "weights") -> np.ndarray:
     return w
 
 
-def project_to_so3(M) -> np.ndarray:
-    """The rotation closest to a 3x3 matrix in the Frobenius norm (polar decomposition via SVD, det +1)."""
-    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    return U @ D @ Vt
+#: the rotation closest to a 3x3 matrix (Frobenius norm, det +1): :func:`graphcal.geometry.nearest_rotation`
+project_to_so3 = nearest_rotation
 
 
 def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -154,7 +151,7 @@ def rotation_from_normals(
     if len(U) != len(N):
         raise GraphcalError(f"u_body has {len(U)} rows but n_sensor has {len(N)}")
     w = _weights(weights, len(U))
-    Rp = None if R_prior is None else project_to_so3(R_prior)
+    Rp = None if R_prior is None else nearest_rotation(R_prior)
     W = float(w.sum())
     if len(U) == 0 or W <= 0:
         return (np.eye(3) if Rp is None else Rp.copy()), 0
@@ -164,7 +161,7 @@ def rotation_from_normals(
         return (np.eye(3) if Rp is None else Rp.copy()), 0
     tol = np.sin(np.radians(min_spread_deg)) ** 2
     if S[1] >= tol * S[0]:
-        return project_to_so3(B), 3
+        return nearest_rotation(B), 3
     # one DOF undetermined: rotation about the mean up direction
     u_bar, n_bar = Us[:, 0], Vt[0]
     R0 = _min_rotation(n_bar, u_bar)
@@ -418,7 +415,7 @@ def extrinsic_from_scan_points(
     Tp = np.eye(4) if T_prior is None else np.asarray(T_prior, dtype=float)
     if Tp.shape != (4, 4) or not np.all(np.isfinite(Tp)):
         raise GraphcalError(f"T_prior: expected a finite 4x4 pose, got shape {Tp.shape}")
-    Rp = project_to_so3(Tp[:3, :3])
+    Rp = nearest_rotation(Tp[:3, :3])
     tp = Tp[:3, 3].copy()
     if len(P) == 0:
         return pose_matrix(Rp, tp), 0
@@ -463,7 +460,7 @@ def extrinsic_from_scan_points(
     for M in candidates:
         if not np.all(np.isfinite(M)) or np.linalg.norm(M) < 1e-12:
             M = Rp
-        R = project_to_so3(M)
+        R = nearest_rotation(M)
         # t given R: u . t = -z - u . R p  (translation_from_distances with d = -u . R p)
         d_eff = -np.einsum("ij,ij->i", U, P @ R.T)
         t, _ = translation_from_distances(U, d_eff, z, t_prior=tp, min_spread_deg=min_spread_deg)

@@ -24,7 +24,7 @@ import gtsam
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.geometry import pose_log_between
+from graphcal.geometry import pose_log_between, rotation_angle_between, so3_log
 from graphcal.solvers.batch import diag_information, indeterminate_key, key_name
 
 __all__ = [
@@ -33,6 +33,7 @@ __all__ = [
     "body_axis_sigmas",
     "unobservable_directions",
     "nees",
+    "extrinsic_errors",
 ]
 
 #: Relative eigenvalue (of the Jacobi-scaled information) below which a direction is free.
@@ -512,3 +513,37 @@ def nees(T_true, T_est, cov6) -> float:
     if C.shape != (6, 6):
         raise GraphcalError(f"expected a 6x6 covariance, got shape {C.shape}")
     return float(xi @ np.linalg.solve(C, xi))
+
+
+def extrinsic_errors(T_est, T_true, cov6=None) -> dict:
+    """An estimated extrinsic's errors against the truth, about and along the BODY axes.
+
+    Args:
+        T_est, T_true: 4x4 T_body_sensor, estimated and true (m).
+        cov6: optional 6x6 covariance of the estimate's right perturbation [omega, v] (rad, m; sensor axes).
+
+    Returns:
+        ``angle_deg``: angle of ``R_est^T R_true`` (deg); ``distance_mm``: ``|t_est - t_true|`` (mm);
+        ``dphi_deg`` (3,): ``Log(R_est R_true^T)`` (deg), the estimate's rotation error
+        (``R_est = Exp(dphi) R_true``); ``dt_mm`` (3,): ``t_est - t_true`` (mm);
+        ``error`` (6,): the truth relative to the estimate, ``xi = Log(T_est^-1 T_true)`` rotated to the
+        body axes, ``[R omega (deg), R v (mm)]``. With ``cov6`` also ``sigma`` (6,) the 1-sigma in the
+        same axes and units (:func:`body_axis_sigmas`), ``z2`` (6,) (error/sigma)^2 per axis and
+        ``nees`` (:func:`nees`, 6 dof).
+    """
+    T, T_t = np.asarray(T_est, dtype=float), np.asarray(T_true, dtype=float)
+    R = T[:3, :3]
+    dt_mm = 1e3 * (T[:3, 3] - T_t[:3, 3])
+    xi = pose_log_between(T, T_t)
+    e_body = np.concatenate([R @ xi[:3], R @ xi[3:]])
+    out = {"angle_deg": float(np.degrees(rotation_angle_between(R, T_t[:3, :3]))),
+           "distance_mm": float(np.linalg.norm(dt_mm)),
+           "dphi_deg": np.degrees(so3_log(R @ T_t[:3, :3].T)),
+           "dt_mm": dt_mm,
+           "error": np.concatenate([np.degrees(e_body[:3]), 1e3 * e_body[3:]])}
+    if cov6 is not None:
+        C = np.asarray(cov6, dtype=float)
+        s_rot_deg, s_xyz_mm, _, cov_body = body_axis_sigmas(T, C)
+        out.update(sigma=np.concatenate([s_rot_deg, s_xyz_mm]), z2=e_body**2 / np.diag(cov_body),
+                   nees=float(nees(T_t, T, C)))
+    return out
