@@ -1,4 +1,4 @@
-"""Benchmark: gait parameters per step (graphcal.locomotion.gait.gait_parameters) on the simulated stairs.
+"""Benchmark: gait parameters per step (graphcal.planning.gait.gait_parameters) on the simulated stairs.
 
 Setup (as tests/test_gait.py): the qingzhui hexapod walks from the floor onto the three 130 x 300 mm
 steps with the alternating tripod gait, 12 steps, planned on the stairs model estimated from ten
@@ -36,7 +36,7 @@ TARGET_MS = 100.0
 
 def record_states(robot, info, model, steps, n_steps: int = 12):
     """Planning states of the walk (as tests/test_gait.py): (T_world_body, stance, feet)."""
-    from graphcal.locomotion.gait import gait_parameters
+    from graphcal.planning.gait import gait_parameters
     from graphcal.geometry import pose_matrix
     from graphcal.simulation.stairs_clouds import stairs_height
 
@@ -55,8 +55,8 @@ def record_states(robot, info, model, steps, n_steps: int = 12):
 
 def configurations_of(robot, model, state):
     """The (leg, R_world_body, p_world_body, p_world_foot) configurations graphcal checks for a
-    state, captured by instrumenting graphcal.locomotion.gait._shin_check."""
-    import graphcal.locomotion.gait as G
+    state, captured by instrumenting graphcal.planning.gait._shin_check."""
+    import graphcal.planning.gait as G
 
     captured = []
     orig = G._shin_check
@@ -78,7 +78,7 @@ def configurations_of(robot, model, state):
 def baseline_step(captured, cfg) -> int:
     """Evaluate every captured configuration one at a time (ik_leg on one target, one shin's
     distances); returns the number of configurations."""
-    from graphcal.locomotion.gait import _solid_distance, segment_distances
+    from graphcal.planning.gait import _solid_distance, segment_distances
     from graphcal.models.kinematics import ik_leg, joint_frames
 
     n = 0
@@ -107,7 +107,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
     args = ap.parse_args(argv)
 
-    from graphcal.locomotion.gait import GaitConfig, gait_parameters
+    from graphcal.planning.gait import GaitConfig, gait_parameters
     from graphcal.models.builtin import builtin_info
     from graphcal.models.robot import load_robot
     from graphcal.locomotion.stairs import model_stairs

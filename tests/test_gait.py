@@ -1,4 +1,4 @@
-"""Tests of graphcal.locomotion.gait: tread zones, Zhao's shin / stair-edge cylinder test, and a tripod walk
+"""Tests of graphcal.planning.gait: tread zones, Zhao's shin / stair-edge cylinder test, and a tripod walk
 onto the simulated stairs planned on the stairs model *estimated from depth clouds*
 (graphcal.simulation.stairs_clouds + graphcal.locomotion.stairs), checked against the true stairs by an independent test
 (the shin capsule against the true step boxes, legs by graphcal.models.kinematics.ik_leg).
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from graphcal.errors import GraphcalError
-from graphcal.locomotion.gait import (
+from graphcal.planning.gait import (
     GaitConfig,
     GaitError,
     body_path,
@@ -232,7 +232,7 @@ def test_walk_on_the_estimated_model_is_collision_free(robot, info, seq, estimat
 
 def test_naive_fixed_parameters_collide(robot, info, seq, truth):
     """The same walk with a fixed step (0.15 m long, 3 cm high) hits the stairs."""
-    from graphcal.locomotion.gait import _body_after
+    from graphcal.planning.gait import _body_after
 
     steps = seq.terrain.stairs
     hd = np.array([1.0, 0.0, 0.0])

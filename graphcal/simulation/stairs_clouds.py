@@ -1,6 +1,6 @@
 """Simulated depth clouds of the stairs seen from a robot walking towards and up them, with pose
 errors of the size a state estimate has: the test data of :mod:`graphcal.locomotion.stairs` and
-:mod:`graphcal.locomotion.gait` (and a quick way to try them by hand).
+:mod:`graphcal.planning.gait` (and a quick way to try them by hand).
 
 The body follows the terrain: its height is ``body_height_m`` above the mean terrain height under
 its front and back hips (``hip_offset_m`` ahead of and behind the body origin along world x), its
