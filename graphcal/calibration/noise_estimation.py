@@ -438,8 +438,8 @@ def converged_scales(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, gr
     components = components or {}
     bounds = bounds or {}
     if not _is_dense(graph, values):  # large graphs: one update (factor-wise marginals)
-        first = group_variances(graph, values, groups, components)
-        return ConvergedScales(first, {g: _clip(v.scale, bounds.get(g)) for g, v in first.items() if eligible(v)},
+        once = group_variances(graph, values, groups, components)
+        return ConvergedScales(once, {g: _clip(v.scale, bounds.get(g)) for g, v in once.items() if eligible(v)},
                                None)
     lin = graph.linearize(values)
     blocks, where, columns, factor_keys = _factor_blocks(lin, values, graph.keyVector(), int(graph.size()))

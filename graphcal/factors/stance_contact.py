@@ -209,11 +209,17 @@ def stance_contact_factor(x_key: int, f_key: int, q, leg: Leg, cov_m2, *, r_key:
     noise = gtsam.noiseModel.Gaussian.Covariance((cov + cov.T) / 2)
     keys, dims, kinds = [x_key, f_key], [6, 3], ["Pose3", "Point3"]
     if l_key is not None:
-        keys.append(l_key), dims.append(param.dim), kinds.append("Vector")
+        keys.append(l_key)
+        dims.append(param.dim)
+        kinds.append("Vector")
     if r_key is not None:
-        keys.append(r_key), dims.append(1), kinds.append("Vector")
+        keys.append(r_key)
+        dims.append(1)
+        kinds.append("Vector")
     if k_key is not None:
-        keys.append(k_key), dims.append(1), kinds.append("Vector")
+        keys.append(k_key)
+        dims.append(1)
+        kinds.append("Vector")
     a = None if a_b is None else np.array(a_b, dtype=float)
     p_fk = foot_positions(leg, q) if (l_key is None and k_key is None) else None
     last = {}  # k -> complied_angles(k): the solver evaluates each k several times

@@ -7,7 +7,7 @@ import numpy as np
 
 from graphcal.geometry import rotation_angle_between, rpy_from_matrix, so3_log
 from graphcal.report.calibration_yaml import residual_summary
-from graphcal.report.page import Markup, Section, esc, figure, num, render_page, row
+from graphcal.report.page import Markup, Section, esc, figure, num, render_page
 from graphcal.report.plots import report_figures
 from graphcal.report.ros import static_transform_publisher_command
 
@@ -15,7 +15,6 @@ __all__ = ["report_html"]
 
 _e = esc
 _n = num
-_row = row
 
 
 def _row(cells, header: bool = False, first_left: bool = True) -> str:
