@@ -110,7 +110,7 @@ def main(argv=None) -> dict:
     from graphcal.planning.gait import GaitConfig, gait_parameters
     from graphcal.models.builtin import builtin_info
     from graphcal.models.robot import load_robot
-    from graphcal.locomotion.stairs import model_stairs
+    from graphcal.locomotion.stairs import StairsModelConfig, model_stairs
     from graphcal.simulation.stairs_clouds import simulate_stairs_clouds
 
     robot, info = load_robot(model="qingzhui"), builtin_info("qingzhui")
@@ -121,7 +121,7 @@ def main(argv=None) -> dict:
         model = model_stairs(seq.clouds_sensor, seq.T_world_sensor_est)
         t_model.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
-        model_stairs(seq.clouds_sensor, seq.T_world_sensor_est, icp=False)
+        model_stairs(seq.clouds_sensor, seq.T_world_sensor_est, config=StairsModelConfig(icp=False))
         t_model_noicp.append(time.perf_counter() - t0)
     states = record_states(robot, info, model, seq.terrain.stairs)
     cfg = GaitConfig()

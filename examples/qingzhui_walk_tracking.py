@@ -28,7 +28,7 @@ def main(out_dir: str | Path | None = None, *, seeds=(0,), distance_m: float = 2
         drift in %), plus "whiteness_fraction_inside" per run.
     """
     from graphcal.commands.track import run as run_track
-    from graphcal.simulation.walking import simulate_walking_to_folder
+    from graphcal.simulation.write import simulate_walking_to_folder
 
     root = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="graphcal-walk-"))
     out: dict = {"level": {}, "stairs": {}}
@@ -37,7 +37,7 @@ def main(out_dir: str | Path | None = None, *, seeds=(0,), distance_m: float = 2
             ds = root / f"{name}-{seed}"
             print(simulate_walking_to_folder(program=program, out_dir=ds, seed=seed, distance_m=dist,
                                              cloud_rate_hz=cloud_rate_hz, overwrite=True, progress=progress))
-            print(run_track(ds, root / f"{name}-{seed}-track", progress=progress))
+            print(run_track(ds, root / f"{name}-{seed}-track", progress=progress).summary_text())
             m = json.loads((root / f"{name}-{seed}-track" / "metrics.json").read_text())
             row = {k: m.get(k) for k in KEYS}
             row["whiteness_fraction_inside"] = m["innovation_whiteness"]["fraction_inside"]

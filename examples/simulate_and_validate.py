@@ -27,7 +27,7 @@ def main(out_dir: str | Path | None = None, *, seed: int = 0, progress: bool = F
     """
     out = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="graphcal-")) / "octopus-chai2015"
     print(simulate_to_folder(robot="octopus", program="chai2015", ground="level", out_dir=out, seed=seed,
-                             overwrite=True, progress=progress))
+                             overwrite=True, progress=progress).summary_text())
     print(validate_dataset(out).summary())
     ds = read_dataset(out)
     truth = yaml.safe_load((out / "truth.yaml").read_text())

@@ -1,5 +1,6 @@
 """graphcal command line. Only argument parsing and wiring live here; every command calls its
-``graphcal.commands.<name>.run`` and prints the summary it returns (stdout). Messages go through
+``graphcal.commands.<name>.run`` and prints the ``summary_text()`` of the result it returns
+(stdout; :mod:`graphcal.commands.result`). Messages go through
 ``logging`` to stderr (``--quiet``: warnings only; ``--verbose``: debug), progress bars through tqdm.
 graphcal's own errors (bad input) print one line and exit with code 2; anything else is a
 bug and keeps its traceback."""
@@ -236,7 +237,7 @@ def _add_executor_args(parser) -> None:
                              "tasks in flight")
 
 
-def _cmd_batch(args) -> str:
+def _cmd_batch(args):
     from graphcal.commands import batch
     from graphcal.errors import GraphcalError
 
@@ -248,7 +249,7 @@ def _cmd_batch(args) -> str:
                      redo=args.redo, options=options.get(args.batch_command), progress=not args.quiet)
 
 
-def _cmd_study(args) -> str:
+def _cmd_study(args):
     from graphcal.commands import study
 
     return study.run(robot=args.robot, program=args.program, runs=args.runs, out_dir=args.out,
@@ -256,7 +257,7 @@ def _cmd_study(args) -> str:
                      scheduler=args.scheduler, workers=args.workers, progress=not args.quiet)
 
 
-def _cmd_simulate(args) -> str:
+def _cmd_simulate(args):
     from graphcal.commands import simulate
 
     return simulate.run(
@@ -280,7 +281,7 @@ def _cmd_simulate(args) -> str:
     )
 
 
-def _cmd_calibrate(args) -> str:
+def _cmd_calibrate(args):
     from graphcal.clouds.plane_table import check_max_points
     from graphcal.commands import calibrate
     from graphcal.errors import GraphcalError
@@ -293,7 +294,7 @@ def _cmd_calibrate(args) -> str:
                          noise_from=args.noise_from)
 
 
-def _cmd_suggest_poses(args) -> str:
+def _cmd_suggest_poses(args):
     from graphcal.commands import suggest_poses
 
     return suggest_poses.run(args.dataset, args.k, out=args.out, after_existing=args.after_existing,
@@ -301,26 +302,26 @@ def _cmd_suggest_poses(args) -> str:
                              sigma_target_mm=args.sigma_target_mm)
 
 
-def _cmd_validate(args) -> str:
+def _cmd_validate(args):
     from graphcal.commands import validate
 
     return validate.run(args.dataset)
 
 
-def _cmd_extract_planes(args) -> str:
+def _cmd_extract_planes(args):
     from graphcal.commands import extract_planes
 
     return extract_planes.run(args.dataset, args.out, max_planes=args.max_planes, progress=not args.quiet,
                               max_points=args.plane_points, overwrite=args.overwrite)
 
 
-def _cmd_diagnose(args) -> str:
+def _cmd_diagnose(args):
     from graphcal.commands import diagnose
 
     return diagnose.run(args.dataset, args.out, progress=not args.quiet)
 
 
-def _cmd_identify_legs(args) -> str:
+def _cmd_identify_legs(args):
     from graphcal.commands import identify_legs
 
     return identify_legs.run(args.dataset, args.out, progress=not args.quiet, mocap_free=args.mocap_free,
@@ -328,7 +329,7 @@ def _cmd_identify_legs(args) -> str:
                              sigma_joint_deg=args.sigma_joint_deg, robust=args.robust)
 
 
-def _cmd_track(args) -> str:
+def _cmd_track(args):
     from graphcal.commands import track
     from graphcal.locomotion.estimator import TrackerConfig
 
@@ -336,7 +337,7 @@ def _cmd_track(args) -> str:
                      config=TrackerConfig(icp=not args.no_icp))
 
 
-def _cmd_import(args) -> str:
+def _cmd_import(args):
     from graphcal.commands import import_log
 
     return import_log.run(args.log, args.out, map_path=args.map, urdf=args.urdf, receive_time=args.receive_time,
@@ -415,7 +416,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     try:
         with _output_guard(args):
-            print(handlers[args.command](args))
+            result = handlers[args.command](args)
+            print(result.summary_text())
         return 0
     except GraphcalError as exc:
         print(f"graphcal {args.command}: error: {exc}", file=sys.stderr)

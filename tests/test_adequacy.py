@@ -94,10 +94,12 @@ def test_joint_offset_warns_and_its_governing_sigma_covers_the_error(joint_offse
     from graphcal.geometry import pose_from_xyz_quat_wxyz, pose_log_between
     from graphcal.solvers.covariance import nees
 
-    text = run(joint_offset_run, tmp_path / "cal", progress=False)
-    lines = text.splitlines()
+    result = run(joint_offset_run, tmp_path / "cal", progress=False)
+    assert result.verdict == "does not fit" and result.calibration.adequacy.worst_group == "stance_foot"
+    assert result.warnings[0].startswith("the model does not fit") and "calibrate --legs" in result.warnings[0]
+    lines = result.summary_text().splitlines()  # the verdict and its warning first on the console
     assert lines[0].startswith("model DOES NOT FIT: worst group stance_foot,")
-    assert lines[1].startswith("warning: the model does not fit") and "calibrate --legs" in lines[1]
+    assert lines[1] == f"warning: {result.warnings[0]}"
     doc = yaml.safe_load((tmp_path / "cal" / "calibration.yaml").read_text())
     a = doc["adequacy"]
     assert a["verdict"] == "does not fit" and a["sigma_from"] == "robust" and a["p_value"] < 1e-10

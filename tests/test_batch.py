@@ -68,18 +68,28 @@ def _cal_bytes(out: Path) -> dict:
 @pytest.fixture(scope="module")
 def local_run(datasets, tmp_path_factory):
     out = tmp_path_factory.mktemp("local") / "out"
-    text = batch.run("calibrate", [str(datasets / "robot_*"), str(datasets / "bad")], out, workers=2, progress=False)
-    return out, text
+    result = batch.run("calibrate", [str(datasets / "robot_*"), str(datasets / "bad")], out, workers=2, progress=False)
+    return out, result
 
 
 def test_local_pool_batch_reports_failure_and_writes_summary_and_fleet(local_run, datasets):
-    out, text = local_run
+    out, result = local_run
     doc = yaml.safe_load((out / "batch.yaml").read_text())
     status = {Path(t["dataset"]).name: t["status"] for t in doc["tasks"]}
     assert status == {"robot_a": "done", "robot_b": "done", "bad": "failed"}
+    assert {Path(d).name: st for d, st in result.statuses.items()} == status
     bad = next(t for t in doc["tasks"] if t["status"] == "failed")
     assert "dataset.yaml" in bad["error"] and "not-a-dataset" in bad["error"]
-    assert "failed: " in text and str(datasets / "bad") in text
+    assert result.warnings[0] == f"failed: {datasets / 'bad'}: {bad['error']}"
+    assert "failed: " in result.summary_text() and str(datasets / "bad") in result.summary_text()  # the console
+    # the workers' results, back across the process boundary: verdict, files, warnings (no prose)
+    done = {Path(r.dataset).name: r for r in result.results if r is not None}
+    assert sorted(done) == ["robot_a", "robot_b"] and result.results[-1] is None  # bad: failed
+    for name, r in done.items():
+        assert r.command == "calibrate" and r.verdict in ("fits", "does not fit")
+        assert Path(r.out) / "calibration.yaml" in {Path(f) for f in r.files}
+        assert any("not determined" in w for w in r.warnings)
+    assert result.files == (out / "batch.yaml", out / "fleet.html", out / "fleet.csv")
     assert sorted(_cal_bytes(out)) == ["robot_a", "robot_b"]
     assert not (out / "bad").exists()  # nothing half-written
     page = (out / "fleet.html").read_text()
@@ -119,9 +129,11 @@ def test_dask_localcluster_equals_local_pool_and_survives_a_killed_worker(datase
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}), \
             LocalCluster(processes=True, n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster:
         out = tmp_path / "dask"
-        text = batch.run("calibrate", [str(datasets / "robot_*"), str(datasets / "bad")], out,
-                         scheduler=cluster.scheduler_address, progress=False)
-        assert "on dask" in text
+        result = batch.run("calibrate", [str(datasets / "robot_*"), str(datasets / "bad")], out,
+                           scheduler=cluster.scheduler_address, progress=False)
+        assert result.doc["executor"]["kind"] == "dask" and result.statuses == {
+            str((datasets / n).absolute()): st for n, st in (("robot_a", "done"), ("robot_b", "done"), ("bad", "failed"))}
+        assert [r.verdict for r in result.results[:2]] == [r.verdict for r in local_run[1].results[:2]]
         assert _cal_bytes(out) == _cal_bytes(local_run[0])  # byte for byte
         doc = yaml.safe_load((out / "batch.yaml").read_text())
         assert doc["executor"]["kind"] == "dask" and doc["executor"]["threads_per_worker"] == 1
@@ -261,8 +273,9 @@ def test_study_two_seeds_on_the_local_pool(tmp_path):
     from graphcal.commands import study
 
     out = tmp_path / "study"
-    text = study.run(robot="octopus", program="random", runs=2, n_stations=12, out_dir=out, workers=2, progress=False)
-    assert "2 of 2 runs" in text
+    result = study.run(robot="octopus", program="random", runs=2, n_stations=12, out_dir=out, workers=2, progress=False)
+    assert result.doc["runs_done"] == 2 and [r["seed"] for r in result.runs] == [0, 1] and result.warnings == ()
+    assert set(result.nees_verdicts) == {"depth"} and "2 of 2 runs" in result.summary_text()
     doc = yaml.safe_load((out / "study.yaml").read_text())
     assert doc["format"] == "graphcal-study/1" and doc["setup"]["seeds"] == [0, 1] and doc["runs_failed"] == []
     rows = list(csv.DictReader(line for line in (out / "runs.csv").read_text().splitlines() if not line.startswith("#")))

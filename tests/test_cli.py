@@ -449,8 +449,7 @@ def test_simulate_mocap_refuses_the_station_program_options(tmp_path):
 def test_simulate_overwrite_replaces_a_simulation_never_a_users_folder(tmp_path):
     """--overwrite (which scripts/demo passes) replaces a previous simulation; a measured dataset (no
     graphcal truth.yaml) or a simulation the user put notes in is refused and left as it was."""
-    from graphcal.simulation.write import SIMULATION_FILES
-    from graphcal.simulation.walking import TRUTH_TRAJECTORY_FILE
+    from graphcal.simulation.write import SIMULATION_FILES, TRUTH_TRAJECTORY_FILE
 
     assert TRUTH_TRAJECTORY_FILE in SIMULATION_FILES
     sim = tmp_path / "sim"

@@ -36,9 +36,13 @@ def test_extract_planes_writes_beside_the_datasets_planes_and_keeps_them(small, 
     ds = tmp_path / "ds"
     shutil.copytree(small, ds)
     theirs = (ds / "planes.csv").read_bytes()
-    text = extract_planes.run(ds)
+    result = extract_planes.run(ds)
     assert (ds / "planes.csv").read_bytes() == theirs
     assert (ds / "planes-extracted.csv").is_file()
+    assert result.out == ds / "planes-extracted.csv" and result.files == (result.out,) and result.beside
+    assert result.n_planes == 8 and set(result.rows["sensor"]) == {"depth"}
+    assert result.warnings == () and result.backup is None
+    text = result.summary_text()  # the console's words
     assert "depth: 8 plane(s) from 8 of 8 clouds; inliers per plane" in text
     assert "0 cloud(s) without a plane" in text and "kept" in text and "--overwrite" in text
     # a second run: refused with the way out, nothing touched
@@ -46,9 +50,10 @@ def test_extract_planes_writes_beside_the_datasets_planes_and_keeps_them(small, 
         extract_planes.run(ds)
     assert (ds / "planes.csv").read_bytes() == theirs
     # --overwrite: planes.csv replaced, the user's kept as planes.csv.bak (then .bak-2)
-    text = extract_planes.run(ds, overwrite=True)
+    result = extract_planes.run(ds, overwrite=True)
     assert (ds / "planes.csv.bak").read_bytes() == theirs
-    assert "previous file kept as planes.csv.bak" in text
+    assert result.backup == ds / "planes.csv.bak" and result.files == (ds / "planes.csv", result.backup)
+    assert not result.beside and "previous file kept as planes.csv.bak" in result.summary_text()
     extract_planes.run(ds, overwrite=True)
     assert (ds / "planes.csv.bak").read_bytes() == theirs and (ds / "planes.csv.bak-2").is_file()
     assert (ds / "planes.csv").read_text().startswith("station,sensor,nx")
@@ -57,15 +62,17 @@ def test_extract_planes_writes_beside_the_datasets_planes_and_keeps_them(small, 
 # ----------------------------------------------------------------------------- 5, 9: calibrate
 def test_a_collapsed_plane_noise_scale_is_explained(small, tmp_path):
     """--ground-roughness-mm 3 on a flat floor: the learned plane scale ran to ~1e-11 without a word."""
+    from graphcal.calibration.session import COLLAPSED_PLANE_SCALE
     from graphcal.commands import calibrate
 
-    text = calibrate.run(small, tmp_path / "cal", progress=False, ground_roughness_m=0.003)
+    result = calibrate.run(small, tmp_path / "cal", progress=False, ground_roughness_m=0.003)
     doc = yaml.safe_load((tmp_path / "cal" / "calibration.yaml").read_text())
     scale = doc["noise_model"]["plane_scale:depth"]
-    assert scale < calibrate.COLLAPSED_PLANE_SCALE
+    assert scale < COLLAPSED_PLANE_SCALE
     said = [w for w in doc["warnings"] if "learned plane noise scale" in w]
     assert len(said) == 1 and "--ground-roughness-mm 3" in said[0] and "near zero" in said[0]
-    assert "warning: depth: learned plane noise scale" in text
+    assert said[0].startswith("depth: learned plane noise scale") and said[0] in result.warnings
+    assert said[0] in result.calibration.warnings and tmp_path / "cal" / "calibration.yaml" in result.files
     assert "learned plane noise scale" in (tmp_path / "cal" / "report.html").read_text()
 
 
@@ -99,9 +106,12 @@ def test_validate_warns_of_a_dataset_without_sensors(small, tmp_path):
     doc = yaml.safe_load((ds / "dataset.yaml").read_text())
     doc.pop("sensors")
     (ds / "dataset.yaml").write_text(yaml.safe_dump(doc))
-    text = validate.run(ds)
+    result = validate.run(ds)
+    assert result.verdict == "valid" and result.report.n_sensors == 0
+    assert [w for w in result.warnings if w.startswith("stations but no sensor") and "calibrate" in w]
+    text = result.summary_text()  # the console's words
     assert "valid" in text and "warning: stations but no sensor" in text and "calibrate" in text
-    assert "warning: stations but no sensor" not in validate.run(small)
+    assert not [w for w in validate.run(small).warnings if w.startswith("stations but no sensor")]
 
 
 # ----------------------------------------------------------------------------- 9: units under their names
@@ -116,7 +126,9 @@ def test_identify_legs_prints_units_under_matching_names():
 def test_suggest_poses_states_its_frame_and_two_digits(small):
     from graphcal.commands import suggest_poses
 
-    text = suggest_poses.run(small, 2)
+    result = suggest_poses.run(small, 2)
+    assert len(result.poses) == 2 and result.sensor == "depth" and result.files == ()
+    text = result.summary_text()
     assert suggest_poses.POSE_FRAME_TEXT in text and "world frame" in text and "Rz(yaw) Ry(pitch) Rx(roll)" in text
     rows = [ln.split() for ln in text.splitlines() if ln.strip()[:1].isdigit()]
     assert len(rows) == 2
@@ -131,14 +143,18 @@ def diagnosis(small, tmp_path_factory):
     from graphcal.commands import diagnose
 
     out = tmp_path_factory.mktemp("diag") / "d"
-    text = diagnose.run(small, out, progress=False)
-    return text, json.loads((out / "diagnosis.json").read_text()), (out / "report.html").read_text()
+    result = diagnose.run(small, out, progress=False)
+    assert result.files == (out / "diagnosis.json", out / "report.html")
+    assert result.doc == json.loads((out / "diagnosis.json").read_text())
+    return result, json.loads((out / "diagnosis.json").read_text()), (out / "report.html").read_text()
 
 
 def test_diagnosis_says_why_its_sensor_pose_differs_from_calibrates(diagnosis):
-    text, doc, page = diagnosis
+    result, doc, page = diagnosis
     note = doc["extended_calibration"]["note"]
     assert "not calibrate's" in note and "3 mm" in note and "calibration.yaml" in note
+    assert "depth" in result.doc["extended_calibration"]["sensors"]
+    text = result.summary_text()  # the console's words
     assert "sensor pose of the diagnosis model: depth" in text and "calibration.yaml" in text
     assert "Sensor poses of the diagnosis model (not calibrate&#39;s)" in page or \
         "Sensor poses of the diagnosis model (not calibrate's)" in page
@@ -146,8 +162,9 @@ def test_diagnosis_says_why_its_sensor_pose_differs_from_calibrates(diagnosis):
 
 
 def test_diagnosis_report_reads_as_words_with_units(diagnosis):
-    text, doc, page = diagnosis
-    assert [f["cause"] for f in doc["findings"]] == ["joint_offset"]
+    result, doc, page = diagnosis
+    text = result.summary_text()
+    assert [f["cause"] for f in doc["findings"]] == ["joint_offset"] and result.causes == ("joint_offset",)
     assert "{&#39;" not in page and "{'" not in page  # no raw Python dict in "where"
     assert "joint rm_femur_joint, leg rm_foot" in page
     assert "offset_deg = 2.8" in page and " deg (0.04" in page  # degrees beside the radians

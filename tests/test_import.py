@@ -79,17 +79,17 @@ def test_bag_import_validate_calibrate(fmt, sim, reference_error, tmp_path):
     if fmt == "mcap":
         log = next(log.glob("*.mcap"))
     ds = tmp_path / "ds"
-    summary = import_log.run(log, ds, progress=False)
+    result = import_log.run(log, ds, progress=False)
     if fmt == "sqlite3":
         # raw counts read as newtons (offset 0, scale 1): every foot always "loaded", so the decoy
         # with a foot in the air would be a station: the user edits the map and imports again
-        assert f"{N_STATIONS + 1} station(s)" in summary
+        assert result.n_stations == N_STATIONS + 1
         m = yaml.safe_load((ds / "import_map.yaml").read_text())
         for f in m["feet"].values():
             f.update(offset=plan.raw_offset, scale=plan.raw_scale)
         (tmp_path / "map.yaml").write_text(yaml.safe_dump(m))
-        summary = import_log.run(log, ds, map_path=tmp_path / "map.yaml", progress=False, overwrite=True)
-    assert f"{N_STATIONS} station(s), 2 window(s) rejected" in summary
+        result = import_log.run(log, ds, map_path=tmp_path / "map.yaml", progress=False, overwrite=True)
+    assert (result.n_stations, result.n_rejected) == (N_STATIONS, 2) and result.out == ds
     assert "valid" in validate_dataset(ds).summary()
     _check_stations(ds, sim, windows)
     cal = tmp_path / "cal"
@@ -125,8 +125,9 @@ def test_csv_import_with_raw_foot_counts(tmp_path):
     cmap["feet"]["fl_foot"] = {"column": "foot_force_0", "threshold_raw": 250}
     (tmp_path / "map.yaml").write_text(yaml.safe_dump(cmap))
     ds = tmp_path / "ds"
-    summary = import_log.run(tmp_path / "log.csv", ds, map_path=tmp_path / "map.yaml", timeseries=True, progress=False)
-    assert "4 station(s), 2 window(s) rejected" in summary
+    result = import_log.run(tmp_path / "log.csv", ds, map_path=tmp_path / "map.yaml", timeseries=True, progress=False)
+    assert (result.n_stations, result.n_rejected) == (4, 2)
+    assert {ds / "dataset.yaml", ds / "import_report.yaml", ds / "timeseries.csv"} <= set(result.files)
     _check_stations(ds, sim_a1, windows)
     ts = read_dataset(ds).timeseries
     assert ts is not None and {"contact_fl_foot", "imu_az", "q_fr_calf_joint"} <= set(ts.columns)
@@ -284,9 +285,9 @@ def test_unknown_message_type_needs_its_definition(urdf_file, tmp_path, capsys):
     msg = tmp_path / "msgs" / "my_msgs" / "msg"
     msg.mkdir(parents=True)
     (msg / "FootForce.msg").write_text("std_msgs/Header header\nfloat32[4] force\n")
-    summary = import_log.run(log, tmp_path / "ok", map_path=m, urdf=urdf_file, msg_dir=tmp_path / "msgs",
-                             progress=False)
-    assert "1 station(s)" in summary
+    result = import_log.run(log, tmp_path / "ok", map_path=m, urdf=urdf_file, msg_dir=tmp_path / "msgs",
+                            progress=False)
+    assert result.n_stations == 1
 
 
 @pytest.fixture(scope="module")
@@ -336,20 +337,22 @@ def test_receive_time_and_clock_jumps(sim, small_logs, urdf_file, tmp_path):
     here); a 5 s gap in the stamps is reported as a clock jump, not refused."""
     by_header = import_log.run(small_logs / "log.bag", tmp_path / "a", progress=False)
     by_receive = import_log.run(small_logs / "log.bag", tmp_path / "b", receive_time=True, progress=False)
-    assert f"{N_STATIONS} station(s)" in by_header and f"{N_STATIONS} station(s)" in by_receive
+    assert by_header.n_stations == N_STATIONS and by_receive.n_stations == N_STATIONS
     assert "stamps: receive" in (tmp_path / "b" / "import_map.yaml").read_text()
     # a recorder whose clock is 100 s ahead of the robot's: the stations by header stamps still find
     # their clouds (looked for at the receive times the offset predicts)
     plan = LogPlan(fmt="ros1", rate_hz=50.0, cloud_rate_hz=2.0, still_s=1.5, move_s=0.5, decoys=False,
                    receive_offset_s=100.0)
     write_station_log(sim, tmp_path / "late.bag", plan)
-    assert f"{N_STATIONS} station(s)" in import_log.run(tmp_path / "late.bag", tmp_path / "d", progress=False)
+    assert import_log.run(tmp_path / "late.bag", tmp_path / "d", progress=False).n_stations == N_STATIONS
     stamps = [100 + 0.01 * i for i in range(50)] + [106 + 0.01 * i for i in range(50)]
     log = _tiny_bag(tmp_path / "gap.bag", stamps)
-    summary = import_log.run(log, tmp_path / "c", urdf=urdf_file, timeseries=True, progress=False)
+    result = import_log.run(log, tmp_path / "c", urdf=urdf_file, timeseries=True, progress=False)
     report = yaml.safe_load((tmp_path / "c" / "import_report.yaml").read_text())
     assert len(report["clock"]) == 1 and "clock jump of 5.510 s at t = 100.490000 s" in report["clock"][0]
-    assert "warning: /joint_states: clock jump" in summary
+    assert result.report == report and result.warnings == tuple(report["clock"])
+    assert result.warnings[0].startswith("/joint_states: clock jump")
+    assert "warning: /joint_states: clock jump" in result.summary_text()  # said on the console
 
 
 def test_points_from_messages():

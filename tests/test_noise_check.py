@@ -113,10 +113,12 @@ def test_noise_from_an_understating_file_is_written_and_said(dataset, tmp_path):
                                      "unobservable": []}},
                "residuals": {"normal_rms_deg": 0.01, "distance_rms_mm": 0.3}, "noise_model": noise}
     src.write_text(yaml.safe_dump(earlier), encoding="utf-8")
-    summary = run_calibrate(dataset.root, tmp_path / "out", progress=False, noise_from=src)
+    result = run_calibrate(dataset.root, tmp_path / "out", progress=False, noise_from=src)
     doc = read_calibration_yaml(tmp_path / "out" / "calibration.yaml")
     f = doc["sensors"]["depth"]["covariance_scale"]
     plane = doc["noise_estimation"]["plane:depth"]
     assert plane["status"] == "given" and plane["data_scale"] > 1.3 and f > 2
-    assert f"depth: covariance x{f:.3g}" in summary
+    assert result.calibration.sensors["depth"].covariance_scale == pytest.approx(f, rel=1e-12)
+    assert result.noise_from == str(src) and result.calibration.noise_source == str(src)
+    assert f"depth: covariance x{f:.3g}" in result.summary_text()  # the console's words
     assert "includes a factor of" in (tmp_path / "out" / "report.html").read_text(encoding="utf-8")

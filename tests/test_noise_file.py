@@ -116,9 +116,12 @@ def test_incremental_with_the_noise_a_batch_run_learned_reports_the_batch_sigma(
     session_b, sim_b = _session(tmp_path, 103)
     run_calibrate(session_a, tmp_path / "a", progress=False)  # batch: learns the noise
     run_calibrate(session_b, tmp_path / "b_batch", progress=False)
-    summary = run_calibrate(session_b, tmp_path / "b_online", incremental=True, progress=False,
-                            noise_from=tmp_path / "a" / "calibration.yaml")
+    result = run_calibrate(session_b, tmp_path / "b_online", incremental=True, progress=False,
+                           noise_from=tmp_path / "a" / "calibration.yaml")
     run_calibrate(session_b, tmp_path / "b_default", incremental=True, progress=False)
+    assert result.noise_from == str(tmp_path / "a" / "calibration.yaml") and result.incremental
+    assert result.calibration.noise_source == result.noise_from and result.calibration.solver == "incremental"
+    summary = result.summary_text()  # the console's words
     assert "noise from" in summary and "(not learned)" in summary
     assert read_calibration_yaml(tmp_path / "a" / "calibration.yaml")["robot"] == "octopus"
 

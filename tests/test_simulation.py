@@ -302,9 +302,11 @@ def test_output_planes_keeps_the_laser_scans(tmp_path):
     from graphcal.commands.simulate import run as simulate_to_folder
 
     out = tmp_path / "ds"
-    msg = simulate_to_folder(robot="messor", program="labecki2012", ground="level", out_dir=out, output="planes",
-                             cloud_stride=8, progress=False)
-    assert "44 clouds, 44 planes" in msg
+    result = simulate_to_folder(robot="messor", program="labecki2012", ground="level", out_dir=out, output="planes",
+                                cloud_stride=8, progress=False)
+    assert (result.n_clouds, result.n_planes) == (44, 44) and set(result.sensors) == {"stereo", "laser"}
+    assert result.out == out and out / "truth.yaml" in result.files and out / "planes.csv" in result.files
+    assert "44 clouds, 44 planes" in result.summary_text()  # the console's words
     assert len(list((out / "clouds" / "laser").glob("*.ply"))) == 44
     assert not (out / "clouds" / "stereo").exists()
     assert set(np.unique(np.loadtxt(out / "planes.csv", delimiter=",", skiprows=1, usecols=1, dtype=str))) == {"stereo"}

@@ -18,11 +18,12 @@ from graphcal.geometry import fit_rigid_transform, transform_points
 from graphcal.locomotion.stairs import (
     StairsError,
     StairsModel,
+    StairsModelConfig,
     model_stairs,
     stairs_model_from_steps,
-    stairs_to_json,
     tread_errors,
 )
+from graphcal.report.stairs_json import stairs_to_json
 from graphcal.simulation.stairs_clouds import simulate_stairs_clouds
 
 GOAL_M = 0.005
@@ -94,7 +95,7 @@ def test_icp_stitching_removes_the_pose_errors(seq, model):
 
 
 def test_without_icp_the_goal_is_missed(seq):
-    m = model_stairs(seq.clouds_sensor, seq.T_world_sensor_est, icp=False)
+    m = model_stairs(seq.clouds_sensor, seq.T_world_sensor_est, config=StairsModelConfig(icp=False))
     errs = tread_errors(m, seq.terrain.stairs)
     worst = max([abs(e.height_error_m) for e in errs if np.isfinite(e.height_error_m)] + [0.0])
     missing = {0, 1, 2} - {e.true_index for e in errs}
@@ -127,7 +128,7 @@ def test_bad_input_raises(seq):
     with pytest.raises(StairsError, match="not a rigid transform"):
         model_stairs([c[0]], [bad])
     with pytest.raises(StairsError, match="edge_drop_fraction"):
-        model_stairs([c[0]], [T[0]], edge_drop_fraction=0.6)
+        model_stairs([c[0]], [T[0]], config=StairsModelConfig(edge_drop_fraction=0.6))
     assert issubclass(StairsError, GraphcalError)
     # no points near enough
     with pytest.raises(StairsError, match="only 0 points"):

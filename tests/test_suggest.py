@@ -68,9 +68,14 @@ def test_the_command_reaches_chai_sigmas_with_half_the_stations(chai):
     sigmas as targets and a budget of all 52 stations: it stops once every axis is reached, with at
     most 26 stations (the issue's claim, on the command itself)."""
     ds, (rot, xyz) = chai
-    text = suggest_poses_command(ds.root, 52, sigma_target_deg=list(rot), sigma_target_mm=list(xyz))
-    n = int(text.split("targets reached with ")[1].split()[0])
+    result = suggest_poses_command(ds.root, 52, sigma_target_deg=list(rot), sigma_target_mm=list(xyz))
+    text = result.summary_text()
+    assert result.verdict == "targets reached" and result.k == 52
+    n = len(result.poses)
     assert n <= 26, text
+    assert result.poses[-1].rank == n and f"targets reached with {n} station(s)" in text
+    assert np.all(result.poses[-1].sigma_rot_deg <= rot * (1 + 1e-9))
+    assert np.all(result.poses[-1].sigma_xyz_mm <= xyz * (1 + 1e-9))
     last = text.splitlines()[-1].split()
     assert int(last[0]) == n
     sig = np.array([float(v) for v in last[7:13]])
@@ -167,7 +172,9 @@ def test_stance_noise_matches_the_factor(chai):
 def test_command_table_and_csv(chai, tmp_path):
     ds, _ = chai
     out = tmp_path / "suggested_stations.csv"
-    text = suggest_poses_command(ds, 4, out=out)
+    result = suggest_poses_command(ds, 4, out=out)
+    assert result.out == out and result.files == (out,) and len(result.poses) == 4
+    text = result.summary_text()  # the console's table
     assert "rank" in text and str(out) in text
     assert len([ln for ln in text.splitlines() if ln.strip()[:1].isdigit()]) == 4
     rows = list(csv.DictReader(out.open()))
@@ -217,10 +224,12 @@ def test_after_existing_plans_the_stations_to_add_to_the_dataset(chai):
 
 def test_command_after_existing_says_what_it_counted(chai):
     ds, _ = chai
-    text = suggest_poses_command(ds, 2, after_existing=True)
+    result = suggest_poses_command(ds, 2, after_existing=True)
+    assert result.after_existing and result.n_existing == 52 and result.sensor == "depth" and len(result.poses) == 2
+    text = result.summary_text()  # the console's words
     assert "the dataset's first session: 52 station(s) with a plane of depth" in text
     assert "suggested stations to add: 2" in text
-    assert "--after-existing counts them" in suggest_poses_command(ds, 1)
+    assert "--after-existing counts them" in suggest_poses_command(ds, 1).summary_text()
 
 
 def test_after_existing_counts_only_stations_that_saw_the_ground(chai, tmp_path):
@@ -260,14 +269,17 @@ def test_noise_from_predicts_the_sigma_a_calibration_with_that_noise_reports(cha
     default = PoseInformationModel(ds, None, CalibrationOptions())
     rot_d, _ = default.sigmas(default.prior_information() + default.existing_information()[0])
     assert np.all(rot_d > 2 * rot)  # the defaults' prediction is the wrong one here (measured 3.0-28x)
-    text = suggest_poses_command(ds, 1, after_existing=True, noise_from=path)
-    assert f"noise model: learned by the calibration {path}" in text
-    assert "warning" not in text  # the same robot and sensor
-    assert "--noise-from" in suggest_poses_command(ds, 1)
+    said = suggest_poses_command(ds, 1, after_existing=True, noise_from=path)
+    assert said.noise_from == str(path)
+    assert f"noise model: learned by the calibration {path}" in said.summary_text()
+    assert said.warnings == () and "warning" not in said.summary_text()  # the same robot and sensor
+    assert suggest_poses_command(ds, 1).noise_from is None
+    assert "--noise-from" in suggest_poses_command(ds, 1).summary_text()
     other = tmp_path / "other.yaml"  # another robot's calibration: said, still used
     other.write_text(calibration_yaml_text(dataclasses.replace(result, robot_name="messor")), encoding="utf-8")
-    lines = suggest_poses_command(ds, 1, after_existing=True, noise_from=other).splitlines()
-    assert lines[1].startswith(f"warning: {other} is a calibration of the robot 'messor'")
+    said = suggest_poses_command(ds, 1, after_existing=True, noise_from=other)
+    assert said.warnings[0].startswith(f"{other} is a calibration of the robot 'messor'")
+    assert said.summary_text().splitlines()[1] == f"warning: {said.warnings[0]}"
 
 
 def test_planes_without_covariance_and_stations_outside_the_visibility_model(chai, tmp_path, monkeypatch):
@@ -286,14 +298,18 @@ def test_planes_without_covariance_and_stations_outside_the_visibility_model(cha
     assert len(keep) < len(rows[0])
     with (bare / "planes.csv").open("w", newline="") as f:
         csv.writer(f).writerows([[r[i] for i in keep] for r in rows])
-    text = suggest_poses_command(bare, 1, after_existing=True)
-    assert "station(s) with a plane of depth" in text and "outside the visibility model" not in text
+    result = suggest_poses_command(bare, 1, after_existing=True)
+    assert result.n_existing > 0 and result.n_unseen == 0
+    assert "station(s) with a plane of depth" in result.summary_text()
+    assert "outside the visibility model" not in result.summary_text()
 
     real = sensors.sensor_for_type
     monkeypatch.setattr(sensors, "sensor_for_type",
                         lambda t: dataclasses.replace(real(t), min_range_m=0.8, max_range_m=0.95))
-    text = suggest_poses_command(bare, 1, after_existing=True)
-    assert "lie outside the visibility model, a 57.5 x 43.5 deg camera seeing 0.8-0.95 m: not counted" in text
+    result = suggest_poses_command(bare, 1, after_existing=True)
+    assert result.n_unseen > 0 and result.visibility == "a 57.5 x 43.5 deg camera seeing 0.8-0.95 m"
+    assert ("lie outside the visibility model, a 57.5 x 43.5 deg camera seeing 0.8-0.95 m: not counted"
+            in result.summary_text())
 
 
 def test_the_d_criterion_is_the_extrinsics_marginal_information():
@@ -311,6 +327,8 @@ def test_the_command_says_which_sensor_it_plans_for(tmp_path_factory, chai):
     """The Messor's laser scanner is not in the information model: the command says it plans for the
     stereo camera alone (it said nothing); a one-camera dataset gets no such line."""
     sim = simulate(SimulationConfig(robot="messor", program="random", n_stations=8, seed=1, cloud_stride=16))
-    text = suggest_poses_command(_write(tmp_path_factory, "messor", sim), 1)
-    assert "planned for stereo (stereo_camera) alone; not for laser (laser_scanner)" in text
-    assert "planned for" not in suggest_poses_command(chai[0], 1)
+    result = suggest_poses_command(_write(tmp_path_factory, "messor", sim), 1)
+    assert result.sensor == "stereo" and result.others == (("laser", "laser_scanner"),)
+    assert "planned for stereo (stereo_camera) alone; not for laser (laser_scanner)" in result.summary_text()
+    alone = suggest_poses_command(chai[0], 1)
+    assert alone.others == () and "planned for" not in alone.summary_text()

@@ -263,6 +263,30 @@ def test_track_output_folder_safety(short_walk, tmp_path, capsys):
     assert third["ape_rmse_m"] is not None and third["ape_rmse_m"] == second["ape_rmse_m"]
 
 
+def test_track_returns_its_result_and_prints_its_summary(short_walk, tmp_path, capsys):
+    """``commands.track.run`` returns the filter's result, metrics.json's document, the files and the
+    consistency verdict; the command line prints its summary_text()."""
+    import json
+
+    from graphcal.commands.track import OUTPUT_FILES
+    from graphcal.commands.track import run as run_track
+    from graphcal.locomotion.estimator import TrackerConfig
+
+    out = tmp_path / "out"
+    result = run_track(short_walk, out, progress=False, config=TrackerConfig(icp=False))
+    m = json.loads((out / "metrics.json").read_text())
+    assert result.metrics == m and result.out == out and result.stairs is None
+    assert {p.name for p in result.files} == set(m["output_files"]) <= set(OUTPUT_FILES)
+    assert all(p.is_file() for p in result.files)
+    assert result.verdict == m["consistency"]["verdict"] and len(result.estimate.times) == m["n_samples"]
+    assert (result.warnings != ()) == (result.verdict == "inconsistent")  # the warning of an inconsistent filter
+    assert main(["track", str(short_walk), "--out", str(tmp_path / "cli"), "--quiet", "--no-icp"]) == 0
+    lines = capsys.readouterr().out.splitlines()  # the console's words
+    assert lines[0].startswith(f"tracked {short_walk}: {m['n_samples']} samples") and f"wrote {tmp_path / 'cli'}" in lines[0]
+    assert lines[1].startswith(f"  consistency: {result.verdict}")
+    assert lines[2].startswith("  against the truth: APE ") and f"of {m['distance_m']:.2f} m" in lines[2]
+
+
 def test_track_refuses_a_negative_tum_rate_before_any_work(tmp_path):
     from graphcal.errors import GraphcalError
     from graphcal.commands.track import run as run_track

@@ -12,7 +12,8 @@ import pytest
 
 from graphcal.errors import GraphcalError
 from graphcal.models.kinematics import foot_positions
-from graphcal.simulation.walking import GRAVITY_M_S2, WalkingConfig, simulate_walking, stair_profile
+from graphcal.simulation.terrain import stair_profile
+from graphcal.simulation.walking import GRAVITY_M_S2, WalkingConfig, simulate_walking
 
 QINGZHUI_GROUP_A = ("mf_foot", "rb_foot", "lb_foot")  # Zhao Fig. 4
 QINGZHUI_GROUP_B = ("mb_foot", "rf_foot", "lf_foot")

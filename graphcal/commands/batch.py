@@ -30,8 +30,8 @@ from graphcal.batch.run import TaskOutcome, run_tasks
 from graphcal.errors import GraphcalError
 from graphcal.io.atomic import InterruptedAfterWrite, atomic_write_text, previous_output_files
 
-__all__ = ["COMMANDS", "OPTIONS", "BATCH_FORMAT", "BatchTask", "expand_datasets", "folder_names", "is_finished", "run_task",
-           "plan_tasks", "run_batch", "write_fleet", "run"]
+__all__ = ["COMMANDS", "OPTIONS", "BATCH_FORMAT", "BatchTask", "TaskResult", "BatchResult", "expand_datasets",
+           "folder_names", "is_finished", "run_task", "plan_tasks", "run_batch", "run_batch_results", "write_fleet", "run"]
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +101,8 @@ def is_finished(command: str, out: str | Path) -> bool:
     return previous_output_files(Path(out), manifest, (), prefix) is not None
 
 
-def _call(command: str, dataset: str, out: str, opts: dict) -> str:
+def _call(command: str, dataset: str, out: str, opts: dict):
+    """The command's ``run`` on one dataset; returns its result (:mod:`graphcal.commands.result`)."""
     if command == "calibrate":
         from graphcal.commands import calibrate
 
@@ -121,14 +122,33 @@ def _call(command: str, dataset: str, out: str, opts: dict) -> str:
     return track.run(dataset, out, progress=False, config=TrackerConfig(icp=icp), **opts)
 
 
-def run_task(task: BatchTask) -> dict:
+@dataclass(frozen=True)
+class TaskResult:
+    """One finished task, as it comes back from its worker (plain values: it crosses process and
+    Dask boundaries): the command's ``verdict``, ``files`` written and ``warnings``
+    (:mod:`graphcal.commands.result`), and where and how long it ran (``compute_s``: wall s of the
+    command's run; ``cpu_s``: CPU s of the worker process; ``host``, ``pid``)."""
+
+    command: str
+    dataset: str
+    out: str
+    verdict: str | None
+    files: tuple[str, ...]
+    warnings: tuple[str, ...]
+    compute_s: float
+    cpu_s: float
+    host: str
+    pid: int
+
+
+def run_task(task: BatchTask) -> TaskResult:
     """Run one task (in a worker process): the command's ``run`` writes ``task.out`` atomically.
-    Returns ``{"summary": text, "compute_s": wall s, "cpu_s": CPU s of the worker process, "host": name,
-    "pid": id}``; exceptions propagate."""
+    Returns its :class:`TaskResult`; exceptions propagate."""
     t0, c0 = time.perf_counter(), time.process_time()
-    summary = _call(task.command, task.dataset, task.out, dict(task.options))
-    return {"summary": summary, "compute_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
-            "host": socket.gethostname(), "pid": os.getpid()}
+    result = _call(task.command, task.dataset, task.out, dict(task.options))
+    return TaskResult(task.command, task.dataset, task.out, result.verdict, tuple(str(p) for p in result.files),
+                      tuple(result.warnings), time.perf_counter() - t0, time.process_time() - c0,
+                      socket.gethostname(), os.getpid())
 
 
 def plan_tasks(command: str, patterns: list[str], out: Path, *, options: dict | None = None) -> list[BatchTask]:
@@ -154,6 +174,7 @@ class _Summary:
 
     def __init__(self, out: Path, tasks: list[BatchTask], executor: dict, statuses: list[str]):
         self.path = out / "batch.yaml"
+        self.results: list[TaskResult | None] = [None] * len(tasks)
         self.doc = {
             "format": BATCH_FORMAT,
             "units": {"wall_s": "s, from submission to result, seen by the caller (includes queueing)",
@@ -177,9 +198,10 @@ class _Summary:
         e["error"] = outcome.error
         e["wall_s"] = round(float(outcome.wall_s), 3) if outcome.wall_s == outcome.wall_s else None
         if outcome.value:
-            e["compute_s"] = round(float(outcome.value["compute_s"]), 3)
-            e["cpu_s"] = round(float(outcome.value["cpu_s"]), 3)
-            e["worker"] = f"{outcome.value['host']}:{outcome.value['pid']}"
+            self.results[index] = outcome.value
+            e["compute_s"] = round(float(outcome.value.compute_s), 3)
+            e["cpu_s"] = round(float(outcome.value.cpu_s), 3)
+            e["worker"] = f"{outcome.value.host}:{outcome.value.pid}"
         if outcome.detail:
             e["traceback"] = outcome.detail
         self.write()
@@ -195,11 +217,18 @@ class _Summary:
         atomic_write_text(self.path, head + yaml.safe_dump(self.doc, sort_keys=False, width=120))
 
 
-def run_batch(tasks: list[BatchTask], out: Path, *, scheduler: str | None = None, workers: int | None = None,
-              redo: bool = False, progress: bool = True, task=run_task) -> dict:
+def run_batch(tasks: list[BatchTask], out: Path, **kwargs) -> dict:
+    """:func:`run_batch_results` without the results: batch.yaml's document."""
+    return run_batch_results(tasks, out, **kwargs)[0]
+
+
+def run_batch_results(tasks: list[BatchTask], out: Path, *, scheduler: str | None = None, workers: int | None = None,
+                      redo: bool = False, progress: bool = True,
+                      task=run_task) -> tuple[dict, tuple[TaskResult | None, ...]]:
     """Run ``tasks`` (skipping finished ones unless ``redo``) and write ``out/batch.yaml``; returns
-    its document. ``scheduler``/``workers``: see :func:`graphcal.batch.executor.open_executor`;
-    ``task`` the function run per task (a module-level function; tests wrap :func:`run_task`)."""
+    its document and, per task, its :class:`TaskResult` (None: skipped, failed or not run).
+    ``scheduler``/``workers``: see :func:`graphcal.batch.executor.open_executor`; ``task`` the
+    function run per task (a module-level function; tests wrap :func:`run_task`)."""
     out.mkdir(parents=True, exist_ok=True)
     statuses = ["skipped" if not redo and is_finished(t.command, t.out) else "pending" for t in tasks]
     todo = [i for i, s in enumerate(statuses) if s == "pending"]
@@ -222,7 +251,7 @@ def run_batch(tasks: list[BatchTask], out: Path, *, scheduler: str | None = None
             summary.write(final=True)
             raise InterruptedAfterWrite(summary.path) from None
     summary.write(final=True)
-    return summary.doc
+    return summary.doc, tuple(summary.results)
 
 
 def write_fleet(tasks: list[BatchTask], out: Path, command: str, doc: dict | None = None) -> tuple[Path, Path, list]:
@@ -242,10 +271,60 @@ def write_fleet(tasks: list[BatchTask], out: Path, command: str, doc: dict | Non
     return html_path, csv_path, flags
 
 
+@dataclass(frozen=True)
+class BatchResult:
+    """What ``graphcal batch`` did.
+
+    Attributes:
+        command: the command run over the datasets.
+        out: the batch folder.
+        doc: batch.yaml's document (every task's status, error, durations, worker).
+        results: per task (batch.yaml's order), its :class:`TaskResult` when it ran and finished
+            in this run, else None (skipped: finished before; failed; worker died).
+        flags: the fleet's flagged values (:func:`graphcal.batch.fleet.fleet_flags`).
+        files: batch.yaml, fleet.html, fleet.csv.
+        warnings: one per task that did not finish (``status: dataset: error``), one per flag.
+        verdict: none (None).
+    """
+
+    command: str
+    out: Path
+    doc: dict
+    results: tuple[TaskResult | None, ...]
+    flags: tuple
+    files: tuple[Path, ...]
+    warnings: tuple[str, ...]
+    verdict: str | None = None
+
+    @property
+    def statuses(self) -> dict[str, str]:
+        """Dataset (as in batch.yaml) -> its status (done, skipped, failed, worker died, pending)."""
+        return {e["dataset"]: e["status"] for e in self.doc["tasks"]}
+
+    def summary_text(self) -> str:
+        """Counts, the tasks that did not finish, the flagged robots, the files."""
+        counts = ", ".join(f"{n} {s}" for s, n in self.doc["counts"].items())
+        lines = [f"batch {self.command}: {len(self.doc['tasks'])} dataset(s) on {self.doc['executor']['kind']} "
+                 f"({counts}); wrote {self.out}"]
+        lines += [f"  {w}" for w in _unfinished(self.doc)]
+        lines += [f"  flagged {f.text()}" for f in self.flags]
+        _, html, csv = self.files
+        lines.append(f"  summary {self.out / 'batch.yaml'}; fleet {html}, {csv}")
+        return "\n".join(lines)
+
+
+def _unfinished(doc: dict) -> list[str]:
+    """``status: dataset: error`` of each task of batch.yaml's ``doc`` that did not finish."""
+    return [f"{e['status']}: {e['dataset']}: {e['error']}" for e in doc["tasks"]
+            if e["status"] not in ("done", "skipped")]
+
+
 def run(command: str, datasets: list[str], out_dir: str | Path, *, scheduler: str | None = None,
-        workers: int | None = None, redo: bool = False, options: dict | None = None, progress: bool = True) -> str:
+        workers: int | None = None, redo: bool = False, options: dict | None = None,
+        progress: bool = True) -> BatchResult:
     """``graphcal batch``: run ``command`` over ``datasets`` (folders or globs) into ``out_dir``;
-    returns the summary (counts, failures, flagged robots). See the module docstring.
+    returns a :class:`BatchResult` (its summary: counts, failures, flagged robots). See the module
+    docstring.
 
     Args:
         command: calibrate, diagnose, identify-legs or track.
@@ -261,14 +340,8 @@ def run(command: str, datasets: list[str], out_dir: str | Path, *, scheduler: st
     if out.exists() and not out.is_dir():
         raise GraphcalError(f"--out {out}: exists and is not a folder")
     tasks = plan_tasks(command, list(datasets), out, options=options)
-    doc = run_batch(tasks, out, scheduler=scheduler, workers=workers, redo=redo, progress=progress)
+    doc, results = run_batch_results(tasks, out, scheduler=scheduler, workers=workers, redo=redo, progress=progress)
     html, csv, flags = write_fleet(tasks, out, command, doc)
-    counts = ", ".join(f"{n} {s}" for s, n in doc["counts"].items())
-    lines = [f"batch {command}: {len(tasks)} dataset(s) on {doc['executor']['kind']} ({counts}); wrote {out}"]
-    for e in doc["tasks"]:
-        if e["status"] not in ("done", "skipped"):
-            lines.append(f"  {e['status']}: {e['dataset']}: {e['error']}")
-    lines += [f"  flagged {f.text()}" for f in flags]
-    lines.append(f"  summary {out / 'batch.yaml'}; fleet {html}, {csv}")
-    return "\n".join(lines)
-
+    return BatchResult(command=command, out=out, doc=doc, results=results, flags=tuple(flags),
+                       files=(out / "batch.yaml", html, csv),
+                       warnings=tuple(_unfinished(doc)) + tuple(f"flagged {f.text()}" for f in flags))

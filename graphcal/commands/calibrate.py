@@ -1,30 +1,27 @@
 """``graphcal calibrate DATASET --out DIR``: calibrate the sensors (and with ``legs`` the legs) of a
-dataset, batch or incremental, and write calibration.yaml, the calibrated URDF, the ROS 2 static
-transforms and report.html (:func:`graphcal.report.write.write_calibration_outputs`)."""
+dataset, batch or incremental (:func:`graphcal.calibration.session.calibrate_session`), and write
+calibration.yaml, the calibrated URDF, the ROS 2 static transforms and report.html
+(:func:`graphcal.report.write.write_calibration_outputs`). :func:`run` returns a
+:class:`CalibrateResult`; its ``summary_text()`` is what the command line prints."""
 
 from __future__ import annotations
 
-import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from graphcal.calibration.calibrate import calibrate
-from graphcal.calibration.graph import CalibrationOptions, options_for_ground_roughness
+from graphcal.calibration.result import CalibrationResult
+from graphcal.calibration.session import calibrate_session
 from graphcal.errors import GraphcalError
 from graphcal.report.write import check_output_folder, write_calibration_outputs
 
-__all__ = ["run", "GROUP_WORDS", "covariance_scale_text", "collapsed_plane_scale_warnings", "COLLAPSED_PLANE_SCALE",
-           "verdict_lines", "verdict_warning", "range_scale_warnings"]
+__all__ = ["run", "CalibrateResult", "GROUP_WORDS", "covariance_scale_text", "noise_lines", "verdict_lines",
+           "verdict_warning", "range_scale_warnings"]
 
 #: noise groups (noise_estimation.py) in the words of calibrate's summary line
 GROUP_WORDS = {"stance_foot/joint": "joints", "stance_foot/contact": "contact", "imu": "IMU",
                "commanded": "commanded pose"}
-
-#: a learned plane noise scale below this has collapsed: the planes' residuals are explained without
-#: their fits' point noise (measured on the Octopus chai2015 demo: learned x0.64 on a flat floor;
-#: x2.6e-14 with --ground-roughness-mm 3, whose floor alone is 40x the residuals)
-COLLAPSED_PLANE_SCALE = 0.05
 
 
 def covariance_scale_text(scale: float) -> str:
@@ -35,32 +32,6 @@ def covariance_scale_text(scale: float) -> str:
     return (f"covariance x{scale:{digits}} (sigma x{np.sqrt(scale):{digits}}): at their fixed point the plane "
             f"residuals are {np.sqrt(scale):{digits}} times the given noise, so every sigma was scaled up"
             + ("; negligible" if scale < 1.01 else ""))
-
-
-def collapsed_plane_scale_warnings(noise_groups, ground_roughness_m: float) -> tuple[str, ...]:
-    """A warning per sensor whose learned plane noise scale collapsed below
-    :data:`COLLAPSED_PLANE_SCALE` (``noise_groups``: :class:`~graphcal.calibration.result.NoiseGroupEstimate`;
-    ``ground_roughness_m``: calibrate's --ground-roughness-mm, in m). The scale multiplies the fit's
-    own point noise; with a roughness floor added to every plane the floor alone can exceed the
-    residuals, and the scale runs to ~0 ("plane:depth x5.49e-09" without a word)."""
-    out = []
-    for g in noise_groups:
-        if not g.group.startswith("plane:") or g.status == "given" or not g.fields:
-            continue
-        scale = g.fields[0][1]
-        if not scale < COLLAPSED_PLANE_SCALE:
-            continue
-        sensor = g.group.split(":", 1)[1]
-        if ground_roughness_m > 0:
-            why = (f"the planes scatter less than --ground-roughness-mm {1e3 * ground_roughness_m:.3g} alone allows "
-                   f"for (their residuals are {g.data_scale:.2g} of their sigma), so the share of the fits' point noise "
-                   "went to zero and the plane noise is the roughness floor, which then sets the extrinsic's sigma. "
-                   "The ground looks smoother than that: try a smaller --ground-roughness-mm, or 0")
-        else:
-            why = (f"the planes scatter far less than the point noise of their fits predicts (their residuals are "
-                   f"{g.data_scale:.2g} of their sigma); check the planes.csv covariances (too large?)")
-        out.append(f"{sensor}: learned plane noise scale x{scale:.2g} (near zero): {why}")
-    return tuple(out)
 
 
 def verdict_warning(result) -> str:
@@ -98,63 +69,63 @@ def range_scale_warnings(result) -> list[str]:
     return [w for w in (range_scale_warning(c) for c in checks if c is not None) if w]
 
 
-def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,
-        progress: bool = True, ground_roughness_m: float = 0.0,
-        plane_max_points: int | None = None, noise_from: str | Path | None = None) -> str:
-    """The ``graphcal calibrate`` command: calibrate and write the outputs; returns a summary.
 
-    Args:
-        dataset: dataset folder.
-        out_dir: output folder (created; a previous graphcal calibration there is replaced only at the end).
-        legs: also estimate the leg joint offsets and link lengths.
-        incremental: iSAM2, one station at a time, with change detection.
-        progress: progress bars (tqdm) and one log line per solve.
-        ground_roughness_m: RMS bump height of the ground (m), see
-            :func:`graphcal.calibration.graph.options_for_ground_roughness`.
-        plane_max_points: see :func:`graphcal.calibration.calibrate.calibrate`.
-        noise_from: an earlier ``calibration.yaml`` whose noise model is used as given, not learned
-            (:func:`graphcal.calibration.noise_file.options_with_noise_from`).
+@dataclass(frozen=True)
+class CalibrateResult:
+    """What ``graphcal calibrate`` did.
+
+    Attributes:
+        calibration: the library's result (warnings, ``noise_source`` and all), as written.
+        dataset: the dataset folder, as given.
+        out: the output folder.
+        files: the files written (calibration.yaml, robot_calibrated.urdf, static_transforms.sh, report.html).
+        warnings: every warning of the summary: the misfit warning, the range-scale warnings, then
+            the rest of ``calibration.warnings``.
+        verdict: the model's adequacy (``fits`` / ``does not fit``), or None when not judged.
+        incremental: the incremental mode (iSAM2) was used.
+        noise_from: the ``calibration.yaml`` whose noise model was given (``--noise-from``), or None.
     """
-    check_output_folder(out_dir)  # refuse early, before the work (checked again when writing)
-    if noise_from is not None and Path(out_dir).resolve() in Path(noise_from).resolve().parents:
-        raise GraphcalError(f"--noise-from {noise_from} is inside --out {out_dir}, whose contents calibrate "
-                            "replaces: the file would be lost; copy it elsewhere or choose another --out")
-    options = options_for_ground_roughness(CalibrationOptions(legs=legs), ground_roughness_m)
-    scaled: tuple[str, ...] = ()
-    if noise_from is not None:
-        from graphcal.calibration.noise_file import options_with_noise_from
 
-        options, scaled = options_with_noise_from(noise_from, options)
-    if incremental:
-        from graphcal.calibration.incremental import calibrate_incremental
+    calibration: CalibrationResult
+    dataset: str
+    out: Path
+    files: tuple[Path, ...]
+    warnings: tuple[str, ...]
+    verdict: str | None
+    incremental: bool = False
+    noise_from: str | None = None
 
-        result = calibrate_incremental(dataset, options=options, progress=progress,
-                                       plane_max_points=plane_max_points)
-    else:
-        result = calibrate(dataset, options=options, progress=progress, plane_max_points=plane_max_points)
-    if noise_from is not None:
-        from graphcal.calibration.noise_file import noise_from_mismatch
+    def summary_text(self) -> str:
+        """The console summary: the verdict, the sensors' poses and sigma, the residuals, the noise
+        model, the warnings not said with the verdict, the files."""
+        result = self.calibration
+        lines = verdict_lines(result)
+        lines.append(f"calibrated {len(result.sensors)} sensor(s) from {self.dataset} ({result.solver}); "
+                     f"wrote {self.out}:")
+        for name, s in result.sensors.items():
+            lines.append(
+                f"  {name}: xyz {np.round(s.T_body_sensor[:3, 3], 4).tolist()} m, "
+                f"sigma rot {np.round(s.sigma_rot_deg, 3).tolist()} deg, xyz {np.round(s.sigma_xyz_mm, 2).tolist()} mm"
+            )
+        if np.isfinite(result.normal_rms_deg):
+            lines.append(f"  residuals after: normal {result.normal_rms_deg:.3g} deg RMS, distance "
+                         f"{result.distance_rms_mm:.3g} mm RMS")
+        else:  # laser scanners only: their residuals are point distances, not planes
+            lines.append("  residuals after: no plane residuals (laser scan points only)")
+        lines += noise_lines(result, self.noise_from, self.incremental)
+        if result.outliers:
+            lines.append(f"  outlier stations: {', '.join(map(str, result.outliers))}")
+        # the misfit warning is printed first (verdict_lines), not again here
+        said = {verdict_warning(result), *range_scale_warnings(result)}
+        lines += [f"  warning: {w}" for w in result.warnings if w not in said]
+        lines.append("  files: " + ", ".join(sorted(p.name for p in self.files)))
+        return "\n".join(lines)
 
-        unscaled = [name for name in result.sensors if name not in scaled]
-        notes = noise_from_mismatch(noise_from, result.robot_name, result.sensors) + tuple(
-            f"{noise_from} has no plane_scale:{name}: the plane noise of {name} is its own noise "
-            "model, unscaled" for name in unscaled)
-        result = dataclasses.replace(result, noise_source=str(noise_from), warnings=result.warnings + notes)
-    result = dataclasses.replace(result, warnings=result.warnings + collapsed_plane_scale_warnings(
-        result.noise_groups, ground_roughness_m))
-    written = write_calibration_outputs(result, out_dir)
-    lines = verdict_lines(result)
-    lines.append(f"calibrated {len(result.sensors)} sensor(s) from {dataset} ({result.solver}); wrote {out_dir}:")
-    for name, s in result.sensors.items():
-        lines.append(
-            f"  {name}: xyz {np.round(s.T_body_sensor[:3, 3], 4).tolist()} m, "
-            f"sigma rot {np.round(s.sigma_rot_deg, 3).tolist()} deg, xyz {np.round(s.sigma_xyz_mm, 2).tolist()} mm"
-        )
-    if np.isfinite(result.normal_rms_deg):
-        lines.append(f"  residuals after: normal {result.normal_rms_deg:.3g} deg RMS, distance "
-                     f"{result.distance_rms_mm:.3g} mm RMS")
-    else:  # laser scanners only: their residuals are point distances, not planes
-        lines.append("  residuals after: no plane residuals (laser scan points only)")
+
+def noise_lines(result, noise_from, incremental: bool) -> list[str]:
+    """The summary's lines on the noise model: learned, given (``noise_from``) or the defaults
+    (``incremental``), what the residuals point to, the covariance scales, the groups not learned."""
+    lines = []
     if result.noise:
         n = result.noise
         how = (f"noise from {noise_from} (not learned)" if noise_from is not None
@@ -185,10 +156,39 @@ def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, increme
         lines.append("  noise not learned: " + "; ".join(
             f"{g.group} {g.values_text()} ({g.status}, {g.dof:.1f} dof; "
             f"the residuals point to {g.data_scale:.2g}x)" for g in held))
-    if result.outliers:
-        lines.append(f"  outlier stations: {', '.join(map(str, result.outliers))}")
-    # the misfit warning is printed first (verdict_lines), not again here
-    said = {verdict_warning(result), *range_scale_warnings(result)}
-    lines += [f"  warning: {w}" for w in result.warnings if w not in said]
-    lines.append("  files: " + ", ".join(sorted(p.name for p in written.values())))
-    return "\n".join(lines)
+    return lines
+
+
+def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,
+        progress: bool = True, ground_roughness_m: float = 0.0,
+        plane_max_points: int | None = None, noise_from: str | Path | None = None) -> CalibrateResult:
+    """The ``graphcal calibrate`` command: calibrate and write the outputs.
+
+    Args:
+        dataset: dataset folder.
+        out_dir: output folder (created; a previous graphcal calibration there is replaced only at the end).
+        legs: also estimate the leg joint offsets and link lengths.
+        incremental: iSAM2, one station at a time, with change detection.
+        progress: progress bars (tqdm) and one log line per solve.
+        ground_roughness_m: RMS bump height of the ground (m), see
+            :func:`graphcal.calibration.graph.options_for_ground_roughness`.
+        plane_max_points: see :func:`graphcal.calibration.calibrate.calibrate`.
+        noise_from: an earlier ``calibration.yaml`` whose noise model is used as given, not learned
+            (:func:`graphcal.calibration.noise_file.options_with_noise_from`).
+
+    Returns:
+        a :class:`CalibrateResult` (the calibration, the files written, warnings, verdict).
+    """
+    check_output_folder(out_dir)  # refuse early, before the work (checked again when writing)
+    if noise_from is not None and Path(out_dir).resolve() in Path(noise_from).resolve().parents:
+        raise GraphcalError(f"--noise-from {noise_from} is inside --out {out_dir}, whose contents calibrate "
+                            "replaces: the file would be lost; copy it elsewhere or choose another --out")
+    result = calibrate_session(dataset, legs=legs, incremental=incremental, ground_roughness_m=ground_roughness_m,
+                               plane_max_points=plane_max_points, noise_from=noise_from, progress=progress)
+    written = write_calibration_outputs(result, out_dir)
+    first = [w for w in (verdict_warning(result), *range_scale_warnings(result)) if w]
+    a = getattr(result, "adequacy", None)
+    return CalibrateResult(calibration=result, dataset=str(dataset), out=Path(out_dir), files=tuple(written.values()),
+                           warnings=tuple(dict.fromkeys([*first, *result.warnings])),
+                           verdict=a.verdict if a is not None else None, incremental=incremental,
+                           noise_from=None if noise_from is None else str(noise_from))

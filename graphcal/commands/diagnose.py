@@ -9,6 +9,7 @@ once the new one is complete); anything else is refused, so nothing the user mad
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 from graphcal.io.atomic import atomic_directory, atomic_write_text, check_command_output
@@ -16,7 +17,7 @@ from graphcal.diagnosis.diagnose import Diagnosis, diagnose
 from graphcal.report.diagnosis_json import diagnosis_to_dict
 from graphcal.report.diagnosis_page import diagnosis_html, parameter_text, where_text
 
-__all__ = ["run", "write_diagnosis", "summary_text", "DIAGNOSIS_FILES"]
+__all__ = ["run", "DiagnoseResult", "write_diagnosis", "summary_text", "DIAGNOSIS_FILES"]
 
 DIAGNOSIS_FILES = ("diagnosis.json", "report.html")
 
@@ -27,6 +28,7 @@ def _check_out(out: Path) -> None:
 
 
 def summary_text(doc: dict, out: Path | None = None) -> str:
+    """The console summary of diagnosis.json's document ``doc`` (and the files in ``out``)."""
     n = doc["nominal"]
     lines = [f"warning: {w}" for w in doc.get("warnings", [])]
     lines.append(f"nominal model: theta RMS {n['normal_rms_deg']:.4f} deg, e_d RMS {n['distance_rms_mm']:.3f} mm, "
@@ -82,12 +84,45 @@ def write_diagnosis(diag: Diagnosis, out_dir, *, title: str | None = None) -> di
     return doc
 
 
-def run(dataset, out_dir, *, progress: bool = True) -> str:
+@dataclass(frozen=True)
+class DiagnoseResult:
+    """What ``graphcal diagnose`` did.
+
+    Attributes:
+        diagnosis: the library's :class:`~graphcal.diagnosis.diagnose.Diagnosis`.
+        doc: diagnosis.json's document (:func:`graphcal.report.diagnosis_json.diagnosis_to_dict`).
+        out: the output folder.
+        files: diagnosis.json and report.html.
+        warnings: the diagnosis's warnings (diagnosis.json ``warnings``).
+        verdict: whose extrinsic is the answer (diagnosis.json ``answer``: extended, nominal,
+            neither, corrected).
+    """
+
+    diagnosis: Diagnosis
+    doc: dict
+    out: Path
+    files: tuple[Path, ...]
+    warnings: tuple[str, ...]
+    verdict: str | None
+
+    @property
+    def causes(self) -> tuple[str, ...]:
+        """The causes found (supported or tentative), in the order found."""
+        return tuple(f["cause"] for f in self.doc["findings"])
+
+    def summary_text(self) -> str:
+        """The console summary (:func:`summary_text`)."""
+        return summary_text(self.doc, self.out)
+
+
+def run(dataset, out_dir, *, progress: bool = True) -> DiagnoseResult:
     """``graphcal diagnose``: diagnose ``dataset`` (a dataset folder) and write diagnosis.json and
     report.html into ``out_dir`` (new, empty, or a previous diagnosis); ``progress``: tqdm bars and one
-    log line (INFO) per step. Returns the summary (RMS in deg and mm, one line per finding)."""
+    log line (INFO) per step. Returns a :class:`DiagnoseResult` (its summary: RMS in deg and mm, one
+    line per finding)."""
     out = Path(out_dir)
     _check_out(out)  # refuse early, before the work
     diag = diagnose(dataset, progress=progress)
     doc = write_diagnosis(diag, out)
-    return summary_text(doc, out)
+    return DiagnoseResult(diagnosis=diag, doc=doc, out=out, files=tuple(out / name for name in DIAGNOSIS_FILES),
+                          warnings=tuple(doc.get("warnings", [])), verdict=doc.get("answer"))

@@ -16,6 +16,7 @@ import functools
 import os
 import shutil
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +25,9 @@ from graphcal.clouds.plane_table import (camera_clouds_without_planes, check_max
                                          planes_rows)
 from graphcal.errors import DatasetError, GraphcalError
 from graphcal.io.atomic import atomic_write_text, check_output_location, make_parent_folder
-from graphcal.io.dataset import Table, cloud_paths, load_cloud, read_dataset, table_csv_text
+from graphcal.io.dataset import Dataset, Table, cloud_paths, load_cloud, read_dataset, table_csv_text
 
-__all__ = ["run", "EXTRACTED_NAME", "output_path", "summary_lines"]
+__all__ = ["run", "ExtractPlanesResult", "EXTRACTED_NAME", "output_path", "summary_lines"]
 
 #: the file written beside a dataset's own planes.csv when no --out is given
 EXTRACTED_NAME = "planes-extracted.csv"
@@ -90,11 +91,56 @@ def summary_lines(rows: dict, ds, max_planes: int) -> list[str]:
     return lines
 
 
+@dataclass(frozen=True)
+class ExtractPlanesResult:
+    """What ``graphcal extract-planes`` wrote.
+
+    Attributes:
+        dataset: the dataset folder, as given.
+        ds: the dataset read.
+        rows: the planes table's columns (:func:`graphcal.clouds.plane_table.planes_rows`).
+        out: the planes file written.
+        backup: the previous file kept (``NAME.bak``), or None.
+        beside: no ``out`` was given and the dataset has its own planes.csv (kept): written beside
+            it as :data:`EXTRACTED_NAME`.
+        max_planes: planes per cloud at most.
+        files: the planes file (and the backup, when one was kept).
+        warnings: one per camera with clouds in which no plane was found.
+        verdict: none (None).
+    """
+
+    dataset: str
+    ds: Dataset
+    rows: dict
+    out: Path
+    backup: Path | None
+    beside: bool
+    max_planes: int
+    files: tuple[Path, ...]
+    warnings: tuple[str, ...]
+    verdict: str | None = None
+
+    @property
+    def n_planes(self) -> int:
+        """Rows of the planes file written."""
+        return len(self.rows["sensor"])
+
+    def summary_text(self) -> str:
+        """Per sensor the planes and inliers (:func:`summary_lines`), the warnings, the file written."""
+        lines = [f"extracted planes from {self.dataset}:", *summary_lines(self.rows, self.ds, self.max_planes)]
+        lines += [f"warning: {w}" for w in self.warnings]
+        lines.append(f"wrote {self.out}" + (f" (the previous file kept as {self.backup.name})" if self.backup else ""))
+        if self.beside:
+            lines.append(f"  {Path(self.dataset) / 'planes.csv'} exists and was kept; calibrate reads planes.csv: to "
+                         f"use these, move {EXTRACTED_NAME} over it, or run extract-planes --overwrite")
+        return "\n".join(lines)
+
+
 def run(dataset: str | Path, out: str | Path | None = None, *, max_planes: int = 1,
-        progress: bool = False, max_points: int | None = None, overwrite: bool = False) -> str:
-    """Read a dataset's clouds, fit planes, and write a planes table atomically; returns the summary
-    (per sensor: planes found, inlier counts, clouds without a plane; a ``warning:`` line per camera
-    with clouds in which no plane was found; then ``wrote OUT``).
+        progress: bool = False, max_points: int | None = None, overwrite: bool = False) -> ExtractPlanesResult:
+    """Read a dataset's clouds, fit planes, and write a planes table atomically; returns an
+    :class:`ExtractPlanesResult` (its summary: per sensor planes found, inlier counts, clouds without
+    a plane; a ``warning:`` line per camera with clouds in which no plane was found; then ``wrote OUT``).
 
     ``out``: the file to write; None: ``DATASET/planes.csv``, or ``DATASET/planes-extracted.csv`` when
     the dataset already has a planes.csv (see the module docstring). ``overwrite``: replace ``out``
@@ -116,14 +162,11 @@ def run(dataset: str | Path, out: str | Path | None = None, *, max_planes: int =
     pairs = [(key, functools.partial(load_cloud, ds, *key)) for key in sorted(paths)]  # read by the workers
     rows = planes_rows(pairs, types, max_planes=max_planes, progress=progress, max_points=max_points)
     have = zip(rows["sensor"], rows["station"])
-    lines = [f"extracted planes from {dataset}:", *summary_lines(rows, ds, max_planes)]
-    lines += [f"warning: {no_plane_found_warning(sensor, missing, total, 'the planes file has no row for them')}"
-              for sensor, (missing, total) in camera_clouds_without_planes(ds, have).items()]
+    warnings = tuple(no_plane_found_warning(sensor, missing, total, "the planes file has no row for them")
+                     for sensor, (missing, total) in camera_clouds_without_planes(ds, have).items())
     make_parent_folder(out_path)
     backup = _keep_backup(out_path) if overwrite else None
     atomic_write_text(out_path, table_csv_text(Table.from_columns(rows)), overwrite=overwrite)
-    lines.append(f"wrote {out_path}" + (f" (the previous file kept as {backup.name})" if backup else ""))
-    if out is None and out_path.name == EXTRACTED_NAME:
-        lines.append(f"  {Path(dataset) / 'planes.csv'} exists and was kept; calibrate reads planes.csv: to use "
-                     f"these, move {EXTRACTED_NAME} over it, or run extract-planes --overwrite")
-    return "\n".join(lines)
+    return ExtractPlanesResult(dataset=str(dataset), ds=ds, rows=rows, out=out_path, backup=backup,
+                               beside=out is None and out_path.name == EXTRACTED_NAME, max_planes=int(max_planes), files=(out_path,) + ((backup,) if backup else ()),
+                               warnings=warnings)

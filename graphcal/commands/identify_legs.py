@@ -10,14 +10,15 @@ and writes ``legs.yaml``, ``robot_calibrated.urdf``, ``report.html`` and one PNG
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.legs.identify import MOCAP_COMPONENTS, IdentifyOptions, identify_legs_dataset
+from graphcal.legs.identify import MOCAP_COMPONENTS, IdentifyOptions, LegIdentificationResult, identify_legs_dataset
 
-__all__ = ["run", "parse_mocap_free", "summary_lines", "parameter_text"]
+__all__ = ["run", "IdentifyLegsResult", "parse_mocap_free", "summary_lines", "parameter_text"]
 
 _STAGES = 7  # read, start, before, identifiability, after, covariance, write
 
@@ -33,11 +34,36 @@ def parse_mocap_free(text: str | None) -> tuple[str, ...]:
     return comps
 
 
+@dataclass(frozen=True)
+class IdentifyLegsResult:
+    """What ``graphcal identify-legs`` did.
+
+    Attributes:
+        identification: the library's :class:`~graphcal.legs.identify.LegIdentificationResult`.
+        dataset: the dataset folder, as given.
+        out: the output folder.
+        files: legs.yaml, robot_calibrated.urdf, report.html and a PNG per foot.
+        warnings: the identification's warnings (the adequacy message first when it does not fit).
+        verdict: the model's adequacy (``fits`` / ``does not fit``), or None when not judged.
+    """
+
+    identification: LegIdentificationResult
+    dataset: str
+    out: Path
+    files: tuple[Path, ...]
+    warnings: tuple[str, ...]
+    verdict: str | None
+
+    def summary_text(self) -> str:
+        """The console summary (:func:`summary_lines`)."""
+        return summary_lines(self.identification, self.dataset, self.out, {p.name: p for p in self.files})
+
+
 def run(dataset: str | Path, out: str | Path, *, progress: bool = True, mocap_free: str | None = None,
         origins: str = "first", sigma_marker_mm: float | None = None, sigma_joint_deg: float | None = None,
-        robust: str = "none") -> str:
-    """Run the identification on ``dataset`` and write the outputs into ``out``; returns a summary
-    whose first line is the model-adequacy verdict.
+        robust: str = "none") -> IdentifyLegsResult:
+    """Run the identification on ``dataset`` and write the outputs into ``out``; returns an
+    :class:`IdentifyLegsResult` (its summary's first line is the model-adequacy verdict).
 
     Args:
         dataset: dataset folder.
@@ -84,7 +110,10 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, mocap_fr
     finally:
         if bar is not None:
             bar.close()
-    return summary_lines(result, dataset, out, written)
+    a = result.adequacy
+    return IdentifyLegsResult(identification=result, dataset=str(dataset), out=Path(out),
+                              files=tuple(written.values()), warnings=tuple(result.warnings),
+                              verdict=a.verdict if a is not None else None)
 
 
 def summary_lines(result, dataset, out, written) -> str:

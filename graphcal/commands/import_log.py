@@ -4,19 +4,65 @@ map (``import_map.yaml``) and the import report (``import_report.yaml``) beside 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
+from graphcal.commands.result import folder_files
 from graphcal.errors import DatasetError
 from graphcal.io.atomic import check_output_location
 from graphcal.logs.reader import log_kind
 
-__all__ = ["run"]
+__all__ = ["run", "ImportResult"]
+
+
+@dataclass(frozen=True)
+class ImportResult:
+    """What ``graphcal import`` wrote.
+
+    Attributes:
+        out: the dataset folder written.
+        report: import_report.yaml's document (the stations found, the windows rejected and why,
+            the clock jumps, the notes).
+        files: the dataset folder's entries (dataset.yaml, stations.csv, clouds, import_map.yaml,
+            import_report.yaml, ...).
+        warnings: the clock jumps found in the log.
+        summary: the import's own summary (:func:`graphcal.logs.assemble.write_imported`).
+        verdict: none (None).
+    """
+
+    out: Path
+    report: dict
+    files: tuple[Path, ...]
+    warnings: tuple[str, ...]
+    summary: str
+    verdict: str | None = None
+
+    @property
+    def n_stations(self) -> int:
+        """Stations written (still windows with every foot loaded and a cloud of every sensor)."""
+        return len(self.report.get("stations", []))
+
+    @property
+    def n_rejected(self) -> int:
+        """Still windows rejected (each with its reason in ``report["rejected"]``)."""
+        return len(self.report.get("rejected", []))
+
+    def summary_text(self) -> str:
+        return self.summary
+
+
+def _result(out: Path, summary: str) -> ImportResult:
+    import yaml
+
+    report = yaml.safe_load((out / "import_report.yaml").read_text(encoding="utf-8"))
+    return ImportResult(out=out, report=report, files=folder_files(out), warnings=tuple(report.get("clock", [])),
+                        summary=summary)
 
 
 def run(log: str | Path, out_dir: str | Path, *, map_path: str | Path | None = None, urdf: str | Path | None = None,
         receive_time: bool = False, msg_dir: str | Path | None = None, timeseries: bool = False,
-        progress: bool = True, overwrite: bool = False) -> str:
-    """The ``graphcal import`` command; returns its summary.
+        progress: bool = True, overwrite: bool = False) -> ImportResult:
+    """The ``graphcal import`` command; returns an :class:`ImportResult`.
 
     Args:
         log: the log: a ``.bag`` file, a ROS 2 bag folder, a ``.mcap`` file or a ``.csv`` file.
@@ -37,13 +83,13 @@ def run(log: str | Path, out_dir: str | Path, *, map_path: str | Path | None = N
 
         if map_path is None:
             raise DatasetError(log, "--map", "a column map YAML for a CSV log (docs/import.md)", None)
-        _, summary = import_csv(log, out_dir, map_path=Path(map_path), urdf_file=Path(urdf) if urdf else None,
-                                timeseries=timeseries, progress=progress, overwrite=overwrite)
-        return summary
+        out, summary = import_csv(log, out_dir, map_path=Path(map_path), urdf_file=Path(urdf) if urdf else None,
+                                  timeseries=timeseries, progress=progress, overwrite=overwrite)
+        return _result(Path(out), summary)
     from graphcal.logs.bag import import_bag
 
-    _, summary = import_bag(log, out_dir, map_path=Path(map_path) if map_path else None,
-                            urdf_file=Path(urdf) if urdf else None, receive_time=receive_time,
-                            msg_dir=Path(msg_dir) if msg_dir else None, timeseries=timeseries,
-                            progress=progress, overwrite=overwrite)
-    return summary
+    out, summary = import_bag(log, out_dir, map_path=Path(map_path) if map_path else None,
+                              urdf_file=Path(urdf) if urdf else None, receive_time=receive_time,
+                              msg_dir=Path(msg_dir) if msg_dir else None, timeseries=timeseries,
+                              progress=progress, overwrite=overwrite)
+    return _result(Path(out), summary)

@@ -3,18 +3,20 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from graphcal.commands.result import folder_files
 from graphcal.errors import GraphcalError
 from graphcal.models.effects import CAUSES
 from graphcal.simulation.effects import Effects, ExtrinsicChange, draw_effect, merge
 from graphcal.simulation.session import SimulationConfig, leg_link_joints, simulate
 from graphcal.simulation.write import SIMULATION_FILES, clouds_written, write_simulation
 
-__all__ = ["run", "effect_from_words", "check_simulation_overwrite", "MOCAP_PROGRAM"]
+__all__ = ["run", "SimulateResult", "effect_from_words", "check_simulation_overwrite", "MOCAP_PROGRAM"]
 
 _PARAMS = {
     "sensor_range_scale": {"sensor", "scale"},
@@ -105,6 +107,63 @@ def effect_from_words(cause: str, params: dict, *, seed: int, config: Simulation
     return Effects(outlier_stations=stations)
 
 
+@dataclass(frozen=True)
+class SimulateResult:
+    """What ``graphcal simulate`` wrote.
+
+    Attributes:
+        out: the dataset folder (with ``truth.yaml``, the hidden truth).
+        robot, program: as given (``program``: a station program, ``mocap`` or a walk).
+        simulation: the simulator's result (:class:`~graphcal.simulation.session.SimulationResult`,
+            :class:`~graphcal.simulation.mocap.MocapSimulation`; None for a walk, written by
+            :func:`graphcal.simulation.write.simulate_walking_to_folder`).
+        files: the dataset folder's entries.
+        warnings, verdict: none (empty, None).
+        ground: the ground (station programs).
+        n_stations: stations (station programs) or motion-capture samples (mocap).
+        n_sessions, sensors, n_clouds, n_planes, hidden_effects: station programs: sessions,
+            simulated sensors, clouds and planes written, the causes hidden.
+        foot, leg_errors: mocap: the leg's foot, and where its true errors come from.
+        walk_summary: a walk: the walking simulator's own summary.
+    """
+
+    out: Path
+    robot: str
+    program: str
+    simulation: object
+    files: tuple[Path, ...]
+    warnings: tuple[str, ...] = ()
+    verdict: str | None = None
+    ground: str = "level"
+    n_stations: int = 0
+    n_sessions: int = 0
+    sensors: tuple[str, ...] = ()
+    n_clouds: int = 0
+    n_planes: int = 0
+    hidden_effects: tuple[str, ...] = ()
+    foot: str = ""
+    leg_errors: str = ""
+    walk_summary: str = ""
+
+    @property
+    def truth(self) -> Path:
+        """The hidden truth (``truth.yaml`` beside ``dataset.yaml``)."""
+        return self.out / "truth.yaml"
+
+    def summary_text(self) -> str:
+        if self.walk_summary:
+            return self.walk_summary
+        if self.program == MOCAP_PROGRAM:
+            return (f"wrote {self.out}: {self.n_stations} motion-capture samples of the {self.robot}'s {self.foot} leg "
+                    f"in the air ({MOCAP_PROGRAM} program, Yuan et al.'s set-up: +-1 deg encoder and +-1 mm marker "
+                    f"noise, body markers); leg errors: {self.leg_errors}; truth in {self.truth}; identify with: "
+                    f"graphcal identify-legs {self.out} --out DIR")
+        return (f"wrote {self.out}: {self.n_stations} stations in {self.n_sessions} session(s) of the {self.robot} "
+                f"({self.program} program, {self.ground} ground); sensors: {', '.join(self.sensors) or 'none'}; "
+                f"{self.n_clouds} clouds, {self.n_planes} planes; hidden effects: "
+                f"{', '.join(self.hidden_effects) or 'none'}; truth in {self.truth}")
+
+
 def run(
     *,
     robot: str,
@@ -125,7 +184,7 @@ def run(
     distance_m: float | None = None,
     duration_s: float | None = None,
     cloud_rate_hz: float | None = None,
-) -> str:
+) -> SimulateResult:
     """Simulate and write the dataset folder ``out_dir`` (contract files and ``truth.yaml``).
 
     Args:
@@ -138,7 +197,7 @@ def run(
             ``tripod-stairs`` of the qingzhui, ``trot``, ``walk`` of the a1:
             :mod:`graphcal.simulation.walking`) only.
     Returns:
-        A one-paragraph summary of what was written.
+        A :class:`SimulateResult` (its summary: one paragraph on what was written).
     """
     from graphcal.simulation.walking import WALKING_PROGRAMS
 
@@ -199,15 +258,12 @@ def run(
     config = replace(config, effects=combined)
     result = simulate(config, progress=progress)
     ds = write_simulation(result, out_dir, output=output, overwrite=overwrite, progress=progress)
-    clouds = clouds_written(result, output)
-    n_planes = len(ds.planes) if ds.planes is not None else 0
-    sessions = len(set(r.session for r in result.stations))
-    hidden = ", ".join(combined.active()) or "none"
-    return (
-        f"wrote {out_dir}: {len(result.stations)} stations in {sessions} session(s) of the {robot} "
-        f"({program} program, {ground} ground); sensors: {', '.join(result.sensor_cad) or 'none'}; "
-        f"{len(clouds)} clouds, {n_planes} planes; hidden effects: {hidden}; truth in {out_dir / 'truth.yaml'}"
-    )
+    return SimulateResult(out=out_dir, robot=robot, program=program, simulation=result, files=folder_files(out_dir),
+                          ground=ground, n_stations=len(result.stations),
+                          n_sessions=len(set(r.session for r in result.stations)), sensors=tuple(result.sensor_cad),
+                          n_clouds=len(clouds_written(result, output)),
+                          n_planes=len(ds.planes) if ds.planes is not None else 0,
+                          hidden_effects=tuple(combined.active()))
 
 
 def _refuse_without_sensors(config: SimulationConfig) -> None:
@@ -250,7 +306,7 @@ MOCAP_PROGRAM = "mocap"
 MOCAP_DEFAULT_SAMPLES = 1000
 
 
-def _mocap_to_folder(*, robot, out_dir, seed, n_stations, leg_errors, overwrite, unsupported) -> str:
+def _mocap_to_folder(*, robot, out_dir, seed, n_stations, leg_errors, overwrite, unsupported) -> SimulateResult:
     """The motion-capture program: Yuan et al.'s Table I session (:func:`.mocap.simulate_yuan_session`)
     on the A1; on another robot the same session of its first leg. The leg's true errors: Table I's
     (A1), none (other robots), or with ``leg_errors`` drawn from the seed (0.5 deg, 3 mm)."""
@@ -281,16 +337,15 @@ def _mocap_to_folder(*, robot, out_dir, seed, n_stations, leg_errors, overwrite,
         sim = simulate_mocap(robot, feet=(foot,), base_frame=model.base_frame, n_samples=n,
                              perturbation=perturbation, joint_noise_rad=float(np.radians(1.0)), marker_noise_m=0.001,
                              noise="uniform", body_markers=True, body_marker_noise_m=0.0, seed=seed)
-    out = write_mocap_simulation(sim, out_dir, overwrite=overwrite)
-    return (f"wrote {out}: {n} motion-capture samples of the {robot}'s {foot} leg in the air ({MOCAP_PROGRAM} "
-            f"program, Yuan et al.'s set-up: +-1 deg encoder and +-1 mm marker noise, body markers); leg errors: "
-            f"{errors}; truth in {Path(out) / 'truth.yaml'}; identify with: graphcal identify-legs {out} --out DIR")
+    out = Path(write_mocap_simulation(sim, out_dir, overwrite=overwrite))
+    return SimulateResult(out=out, robot=robot, program=MOCAP_PROGRAM, simulation=sim, files=folder_files(out),
+                          n_stations=n, foot=foot, leg_errors=errors)
 
 
 def _walk_to_folder(*, program, robot, out_dir, seed, output, cloud_stride, leg_errors, effects, n_stations,
-                    n_sessions, sensors, overwrite, progress, distance_m, duration_s, cloud_rate_hz) -> str:
+                    n_sessions, sensors, overwrite, progress, distance_m, duration_s, cloud_rate_hz) -> SimulateResult:
     """The walking programs: refuse the station-program options, then simulate the walk."""
-    from graphcal.simulation.walking import simulate_walking_to_folder
+    from graphcal.simulation.write import simulate_walking_to_folder
 
     unsupported = [name for name, given in (
         ("--effect", bool(effects)), ("--leg-errors", leg_errors), ("--stations", n_stations is not None),
@@ -304,6 +359,8 @@ def _walk_to_folder(*, program, robot, out_dir, seed, output, cloud_stride, leg_
         what = "Zhao 2020's tripod gait" if GAITS[program].phase_offsets is None else f"a quadruped {program}"
         raise GraphcalError(f"program {program} walks the {GAITS[program].robot} ({what}), not {robot!r}: "
                             f"pass --robot {GAITS[program].robot}")
-    return simulate_walking_to_folder(program=program, out_dir=out_dir, robot=robot, seed=seed,
+    text = simulate_walking_to_folder(program=program, out_dir=out_dir, robot=robot, seed=seed,
                                       distance_m=distance_m, duration_s=duration_s, cloud_rate_hz=cloud_rate_hz,
                                       cloud_stride=cloud_stride, overwrite=overwrite, progress=progress)
+    return SimulateResult(out=Path(out_dir), robot=robot, program=program, simulation=None,
+                          files=folder_files(out_dir), walk_summary=text)

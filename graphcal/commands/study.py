@@ -31,7 +31,7 @@ from graphcal.batch.run import run_tasks
 from graphcal.errors import GraphcalError
 from graphcal.io.atomic import atomic_directory, atomic_write_bytes, check_command_output
 
-__all__ = ["STUDY_FORMAT", "AXES", "StudyJob", "extrinsic_errors", "study_task", "summarise", "run"]
+__all__ = ["STUDY_FORMAT", "AXES", "StudyJob", "StudyResult", "study_task", "summarise", "run"]
 
 STUDY_FORMAT = "graphcal-study/1"
 AXES = ("rx", "ry", "rz", "x", "y", "z")
@@ -54,38 +54,14 @@ class StudyJob:
         return f"seed {self.seed}"
 
 
-def extrinsic_errors(T_est, cov6, T_true) -> dict:
-    """One sensor's errors against the truth, along the BODY axes.
-
-    Args:
-        T_est, T_true: 4x4 T_body_sensor, estimated and true (m).
-        cov6: the estimate's 6x6 covariance of the right perturbation [omega, v] (rad, m; sensor axes).
-
-    Returns:
-        ``error`` [rx, ry, rz (deg), x, y, z (mm)] of the truth relative to the estimate, rotated to
-        the body axes; ``sigma`` the reported 1-sigma in the same axes and units; ``z2`` (error/sigma)^2
-        per axis; ``nees`` xi^T inv(cov6) xi (6 dof).
-    """
-    from graphcal.geometry import pose_log_between
-    from graphcal.solvers.covariance import body_axis_sigmas, nees
-
-    T, C = np.asarray(T_est, float), np.asarray(cov6, float)
-    xi = pose_log_between(T, np.asarray(T_true, float))
-    R = T[:3, :3]
-    e_body = np.concatenate([R @ xi[:3], R @ xi[3:]])
-    s_rot_deg, s_xyz_mm, _, cov_body = body_axis_sigmas(T, C)
-    return {"error": np.concatenate([np.degrees(e_body[:3]), 1e3 * e_body[3:]]).tolist(),
-            "sigma": np.concatenate([s_rot_deg, s_xyz_mm]).tolist(),
-            "z2": (e_body**2 / np.diag(cov_body)).tolist(),
-            "nees": float(nees(T_true, T, C))}
-
-
 def study_task(job: StudyJob) -> dict:
     """One run (in a worker): simulate, write the dataset to a scratch folder, calibrate, compare.
-    Returns ``{"seed", "simulate_s", "calibrate_s", "sensors": {name: extrinsic_errors(...)}}``."""
+    Returns ``{"seed", "simulate_s", "calibrate_s", "sensors": {name: {"error", "sigma", "z2", "nees"}}}``
+    (:func:`graphcal.solvers.covariance.extrinsic_errors`: deg and mm along the body axes)."""
     from graphcal.calibration.calibrate import calibrate
     from graphcal.commands import simulate
     from graphcal.geometry import pose_from_xyz_quat_wxyz
+    from graphcal.solvers.covariance import extrinsic_errors
 
     tmp = Path(tempfile.mkdtemp(prefix=f"graphcal-study-{job.seed}-"))
     try:
@@ -101,7 +77,9 @@ def study_task(job: StudyJob) -> dict:
         for name, est in result.sensors.items():
             t = truth["sensors"][name]["T_body_sensor"]
             T_true = pose_from_xyz_quat_wxyz(t["xyz"], t["quaternion_wxyz"])
-            sensors[name] = extrinsic_errors(est.T_body_sensor, est.covariance, T_true)
+            e = extrinsic_errors(est.T_body_sensor, T_true, est.covariance)
+            sensors[name] = {"error": e["error"].tolist(), "sigma": e["sigma"].tolist(), "z2": e["z2"].tolist(),
+                             "nees": e["nees"]}
         return {"seed": job.seed, "simulate_s": t1 - t0, "calibrate_s": t2 - t1, "sensors": sensors}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -190,10 +168,53 @@ def _check_out(out: Path) -> None:
                          what="graphcal study")
 
 
+@dataclass(frozen=True)
+class StudyResult:
+    """What ``graphcal study`` found.
+
+    Attributes:
+        doc: study.yaml's document (setup, executor, per sensor NEES and per-axis errors, failed runs).
+        runs: the finished runs (:func:`study_task`'s dicts: seed, times, per sensor errors).
+        out: the study folder.
+        files: the files written (study.yaml, runs.csv, plots, report.html).
+        warnings: one per run that did not finish (``status: seed N: error``).
+        executor: where the runs ran, in words.
+        verdict: none (None); per sensor, ``nees_verdicts``.
+    """
+
+    doc: dict
+    runs: tuple[dict, ...]
+    out: Path
+    files: tuple[Path, ...]
+    warnings: tuple[str, ...]
+    executor: str
+    verdict: str | None = None
+
+    @property
+    def nees_verdicts(self) -> dict[str, str]:
+        """Sensor -> honest, conservative (sigma too large) or overconfident (sigma too small)."""
+        return {name: s["nees_verdict"] for name, s in self.doc["sensors"].items()}
+
+    def summary_text(self) -> str:
+        """Runs and time, then per sensor the mean NEES, its interval and verdict, the RMS error per axis."""
+        d = self.doc
+        n_jobs = d["runs_done"] + len(d["runs_failed"])
+        lines = [f"study {d['setup']['robot']} / {d['setup']['program']}: {d['runs_done']} of {n_jobs} runs in "
+                 f"{d['wall_s']:.0f} s on {self.executor}; wrote {self.out}"]
+        for name, s in d["sensors"].items():
+            pa = s["per_axis"]
+            lines.append(f"  {name}: NEES mean {s['nees_mean']:.2f} (95 % [{s['nees_interval_95'][0]:.2f}, "
+                         f"{s['nees_interval_95'][1]:.2f}]: {s['nees_verdict']}); RMS error "
+                         + " ".join(f"{a} {pa[a]['rms_error']:.3g}" for a in AXES) + " (deg, mm)")
+        lines += [f"  {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
 def run(*, robot: str, program: str, runs: int, out_dir: str | Path, first_seed: int = 0,
         n_stations: int | None = None, effects=(), cloud_stride: int = 8, scheduler: str | None = None,
-        workers: int | None = None, progress: bool = True) -> str:
-    """``graphcal study`` (module docstring). Returns a summary (NEES and RMS error per sensor).
+        workers: int | None = None, progress: bool = True) -> StudyResult:
+    """``graphcal study`` (module docstring). Returns a :class:`StudyResult` (its summary: NEES and
+    RMS error per sensor).
 
     Args:
         robot, program: built-in robot model and station program (as ``graphcal simulate``).
@@ -256,11 +277,6 @@ def run(*, robot: str, program: str, runs: int, out_dir: str | Path, first_seed:
         for name, data in files.items():
             atomic_write_bytes(tmp / name, data)
         _check_out(out)
-    lines = [f"study {robot} / {program}: {len(done)} of {len(jobs)} runs in {wall:.0f} s on {info.describe()}; wrote {out}"]
-    for name, s in summary.items():
-        pa = s["per_axis"]
-        lines.append(f"  {name}: NEES mean {s['nees_mean']:.2f} (95 % [{s['nees_interval_95'][0]:.2f}, "
-                     f"{s['nees_interval_95'][1]:.2f}]: {s['nees_verdict']}); RMS error "
-                     + " ".join(f"{a} {pa[a]['rms_error']:.3g}" for a in AXES) + " (deg, mm)")
-    lines += [f"  {f['status']}: seed {f['seed']}: {f['error']}" for f in failed]
-    return "\n".join(lines)
+    return StudyResult(doc=doc, runs=tuple(done), out=out, files=tuple(out / name for name in doc["output_files"]),
+                       warnings=tuple(f"{f['status']}: seed {f['seed']}: {f['error']}" for f in failed),
+                       executor=info.describe())

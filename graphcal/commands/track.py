@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +33,8 @@ from graphcal.io.atomic import atomic_directory, atomic_write_bytes, check_comma
 from graphcal.locomotion.track import ascending_flight, stairs_keyframes, track, tum_text
 from graphcal.report.track_page import track_figures, track_html
 
-__all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run", "consistency_section", "consistency_warning"]
+__all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run", "TrackResult", "summary_lines", "consistency_section",
+           "consistency_warning"]
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +56,7 @@ def _stairs_model(ds, inp, result, truth, *, max_clouds: int = 20):
     placed with the estimate, compared with the truth's ascending flight when there is a truth.
     Errors of the model become {"error": ...}."""
     from graphcal.locomotion import stairs as stairs_mod
+    from graphcal.report.stairs_json import stairs_to_json
 
     if inp.T_body_sensor is None or not inp.clouds:
         return None
@@ -101,7 +104,7 @@ def _stairs_model(ds, inp, result, truth, *, max_clouds: int = 20):
                             "views of the approach), so its depth is its visible extent; the flight down is "
                             "not modelled (its risers face away; the keyframes are views of the flight up)",
                 }
-        doc = dict(stairs_mod.stairs_to_json(model, errors))
+        doc = dict(stairs_to_json(model, errors))
         if compared is not None:
             found = {e.true_index for e in errors if e.true_index >= 0}
             compared["all_true_treads_found"] = found == set(range(len(compared["true_treads"])))
@@ -152,9 +155,40 @@ def _clean(x):
     return x
 
 
+@dataclass(frozen=True)
+class TrackResult:
+    """What ``graphcal track`` did (the filter's own result,
+    :class:`graphcal.locomotion.estimator.TrackResult`, is ``estimate``).
+
+    Attributes:
+        estimate: the filter's result (poses, NIS, innovations, timings).
+        metrics: metrics.json's document (accuracy against the truth, NIS, consistency, ...).
+        consistency: the consistency verdict's section (:func:`consistency_section`).
+        stairs: stairs.json's document on a stairs dataset, else None.
+        dataset: the dataset folder, as given.
+        out: the output folder.
+        files: the files written (trajectory.tum, metrics.json, plots, report.html, stairs.json).
+        warnings: the inconsistency warning (:func:`consistency_warning`), if any.
+        verdict: the filter's consistency (``consistent``, ``inconsistent``, ...).
+    """
+
+    estimate: object
+    metrics: dict
+    consistency: dict
+    stairs: dict | None
+    dataset: str
+    out: Path
+    files: tuple[Path, ...]
+    warnings: tuple[str, ...]
+    verdict: str | None
+
+    def summary_text(self) -> str:
+        return "\n".join(summary_lines(self.metrics, self.consistency, self.stairs, self.dataset, self.out))
+
+
 def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=None,
-        tum_rate_hz: float = 100.0, overwrite: bool = True, stairs: bool = True) -> str:
-    """The ``graphcal track`` command (see the module docstring). Returns a short summary.
+        tum_rate_hz: float = 100.0, overwrite: bool = True, stairs: bool = True) -> TrackResult:
+    """The ``graphcal track`` command (see the module docstring). Returns a :class:`TrackResult`.
 
     Args:
         dataset: dataset folder with a timeseries (``truth.yaml`` beside it is read for the evaluation only).
@@ -262,6 +296,14 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
     warning = consistency_warning(consistency)
     if warning is not None:
         log.warning("WARNING: %s", warning)
+    return TrackResult(estimate=res, metrics=m, consistency=consistency, stairs=stairs_doc, dataset=str(dataset),
+                       out=out, files=tuple(out / name for name in sorted(files)),
+                       warnings=() if warning is None else (warning,), verdict=consistency["verdict"])
+
+
+def summary_lines(m: dict, consistency: dict, stairs_doc: dict | None, dataset, out) -> list[str]:
+    """The console summary of a track run: samples and speed, the consistency verdict, the accuracy
+    against the truth (``m``: metrics.json's document), the stairs model."""
     lines = [f"tracked {dataset}: {m['n_samples']} samples, {m['duration_s']:.1f} s in {m['processing_s']:.1f} s "
              f"({m['real_time_factor']:.1f}x real time); wrote {out}"]
     lines.append(f"  consistency: {consistency['verdict']}" + "".join(
@@ -269,7 +311,7 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
         for k, r in consistency["kinds"].items() if r["verdict"] != "not tested"))
     if m["truth"]:
         lines.append(f"  against the truth: APE {1e3 * m['ape_rmse_m']:.1f} mm RMS, drift {m['drift_percent']:.3f} % "
-                     f"of {m['distance_m']:.2f} m, NEES mean {m['nees_mean']:.2f} (dof {nees_dof})")
+                     f"of {m['distance_m']:.2f} m, NEES mean {m['nees_mean']:.2f} (dof {m['nees_dof']})")
     else:
         lines.append("  no truth.yaml beside the dataset: accuracy metrics are null")
     if stairs_doc is not None:
@@ -282,4 +324,4 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
                 line += (f"; max |error| height {1e3 * stairs_doc['max_abs_height_error_m']:.1f} mm, depth "
                          f"{'n/a' if dep is None else format(1e3 * dep, '.1f') + ' mm'}")
             lines.append(line)
-    return "\n".join(lines)
+    return lines

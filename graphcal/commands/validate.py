@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 
 from graphcal.io.dataset import validate_dataset
+from graphcal.io.dataset.validate import ValidationReport
 
-__all__ = ["run", "command_warnings"]
+__all__ = ["run", "ValidateResult", "command_warnings"]
 
 
 def command_warnings(report) -> tuple[str, ...]:
@@ -21,12 +23,37 @@ def command_warnings(report) -> tuple[str, ...]:
     return ()
 
 
-def run(dataset: str | Path) -> str:
-    """Validate the dataset folder ``dataset``; returns the report's summary (with a warning for what
-    the commands would refuse, :func:`command_warnings`). Bad input raises
+@dataclass(frozen=True)
+class ValidateResult:
+    """What ``graphcal validate`` found (bad input raises instead: a valid dataset only).
+
+    Attributes:
+        report: the library's :class:`~graphcal.io.dataset.validate.ValidationReport`, with the
+            warnings of :func:`command_warnings` added.
+        files: nothing is written (empty).
+        warnings: the report's warnings.
+        verdict: ``valid``.
+    """
+
+    report: ValidationReport
+    files: tuple[Path, ...] = ()
+    verdict: str | None = "valid"
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        return tuple(self.report.warnings)
+
+    def summary_text(self) -> str:
+        """The report's summary (:meth:`~graphcal.io.dataset.validate.ValidationReport.summary`)."""
+        return self.report.summary()
+
+
+def run(dataset: str | Path) -> ValidateResult:
+    """Validate the dataset folder ``dataset``; returns a :class:`ValidateResult` (its report with a
+    warning for what the commands would refuse, :func:`command_warnings`). Bad input raises
     :class:`~graphcal.errors.DatasetError` naming the file and field."""
     report = validate_dataset(dataset)
     extra = command_warnings(report)
     if extra:
         report = dataclasses.replace(report, warnings=tuple(report.warnings) + extra)
-    return report.summary()
+    return ValidateResult(report=report)

@@ -9,43 +9,30 @@ and in a *stairs frame* ``T_world_stairs``: x = the walking direction up the sta
 z = up (the normal of the floor), y = z x x, origin on the floor plane below the midpoint of the
 lowest nosing. Along-stairs coordinates are called ``s`` (stairs x), lateral ``t`` (stairs y),
 height ``h`` (stairs z). Planes are ``(n, d)`` with ``n . x + d = 0``, canonical ``d >= 0``
-(:func:`graphcal.geometry.canonical_plane`). SI units throughout.
+(:func:`graphcal.geometry.canonical_plane`). SI units throughout; the tuning is
+:class:`StairsModelConfig` (its field names carry their units).
 
 Method (:func:`model_stairs`)
 -----------------------------
 1. **To world** (Zhao Eq. 10): ``p_world = T_world_sensor @ p_sensor``; points beyond
    ``max_depth_m`` along the optical axis are dropped (Kinect noise grows with z^2: 9 mm at 2.5 m).
-   Each cloud is voxel-downsampled (``icp_voxel_m``) and gets PCA normals at two scales from one
-   neighbour search (``icp_normal_radius_m`` for the ICP, ``class_normal_radius_m`` to tell
-   horizontal from vertical surfaces up to their edges), each with its predicted tilt std
-   ``sqrt(lambda_min / (m lambda_mid))``; normals above ``icp_max_normal_tilt_rad`` /
-   ``class_max_normal_tilt_rad`` are unreliable (sparse far points, points on an edge).
-2. **ICP stitching.** Each cloud is registered to the map of the clouds before it (pass 1), then
-   each to all the others (pass 2, ``icp_passes``): Gauss-Newton point-to-plane ICP on the sensor
-   pose, ``T_world_sensor Exp(delta)``, against the reliable map points and their normals, with
-   Huber weights (per-point Kinect std), a weak prior on ``delta`` (``icp_prior_sigma_m``,
-   ``icp_prior_sigma_rad``) and no update along degenerate directions (eigenvalues of the
-   information below ``icp_degeneracy_ratio`` of the largest, rotations scaled by 1 m): stairs leave
-   the direction along the nosings unconstrained, a view of one tread three directions, and
-   point-to-plane ICP slides along them on the noise of the normals. (Open3D's unregularised
-   ``registration_icp`` moved clouds 1-5 cm along the nosings and diverged on one-tread views in our
-   runs.) Source points are those with a reliable normal (``icp_reliable_source``); each is
-   matched to its nearest map point by a k-d tree, gated at 10, 5, 2.5 and 1.5 cm in turn, and
-   kept only if the two normals agree within ``icp_max_normal_angle_deg``. (Without these two, the
+   Each cloud is voxel-downsampled and gets PCA normals at two scales
+   (:func:`graphcal.clouds.stitch.cloud_normals`: the ICP's, and ``class_normal_radius_m`` to tell
+   horizontal from vertical surfaces up to their edges); normals above ``class_max_normal_tilt_rad``
+   are unreliable (sparse far points, points on an edge).
+2. **ICP stitching** (:func:`graphcal.clouds.stitch.stitch_clouds`, tuned by ``config.stitch``):
+   each cloud registered to the map of the clouds before it, then to its nearest others, by
+   regularised, degeneracy-aware point-to-plane ICP with normal-compatible correspondences; the
+   map then moved as a whole back onto the estimated poses' frame. (Without the normal test, the
    points of a tread seen at a grazing angle -- the landing, ~15 cm below the camera -- matched the
-   top of the riser in front of it, where the map ends, and pulled the cloud back and down: clouds
-   started at their true poses ended up to 1.2 deg of pitch and 1.8 cm off, and the landing's
-   height was +3 to +7 mm off in the ``tripod-stairs`` walk.) A cloud whose final inlier fraction
-   is below ``icp_min_fitness`` keeps its estimated pose and stays out of the map and the model.
-   The stitched map is then moved as a whole by the rigid transform that moves
-   the stitched sensor poses least onto the estimated ones (rotation: chordal mean; translation:
-   mean): the map keeps the estimate's world frame with the *average* of the clouds' independent
-   errors (a joint fit over the points instead turned 1 cm translation errors into 0.5-0.9 deg of
-   tilt, because the clouds see different parts of the stairs).
+   top of the riser in front of it and pulled the cloud back and down: clouds started at their true
+   poses ended up to 1.2 deg of pitch and 1.8 cm off, and the landing's height was +3 to +7 mm off
+   in the ``tripod-stairs`` walk.) A cloud whose final inlier fraction is below
+   ``stitch.min_fitness`` keeps its estimated pose and stays out of the map and the model.
 3. **Planes.** :func:`graphcal.clouds.planes.extract_planes` (Open3D RANSAC on a subsample, then Chai's
    2-sigma PCA loop) separately on the points with a reliable horizontal normal and on those with a
-   reliable vertical normal (within ``2 max_tilt_deg``): a slanted plane through the nosings cannot
-   form from either set. Horizontal planes (normal within ``max_tilt_deg`` of world z) are the
+   reliable vertical normal (within ``2 max_tilt_rad``): a slanted plane through the nosings cannot
+   form from either set. Horizontal planes (normal within ``max_tilt_rad`` of world z) are the
    floor (the lowest) and the treads; vertical planes facing along the walking direction are the
    risers.
 4. **Edges dropped** (Zhao: "ignoring 5 % points near the edge"): of each plane's inliers the
@@ -69,12 +56,12 @@ Deviations from Zhao 2020: risers are fitted too (Zhao fits horizontal planes on
 lines and depths from tread points alone are biased by the point spacing (~1 cm at 2 m with a
 quarter-resolution Kinect); clouds are registered to the growing map and then to each other, not
 pairwise (earlier = source, later = target) -- pairwise errors add up along the sequence; the ICP
-is regularised and degeneracy-aware (above).
+is regularised and degeneracy-aware (:mod:`graphcal.clouds.stitch`).
 
 Measured (docs/stairs_gait.md): ten simulated approaches, pose errors ~1.7 cm / ~0.5 deg: tread
 heights within 0.5 mm, depths within 0.2 mm of the truth; ~2 s for ten clouds on 2 busy cores.
 Through ``graphcal track`` (its keyframes and EKF poses, docs/state_estimation.md): within 1.3 mm
-and 0.3 mm on the ``tripod-stairs`` walk.
+and 0.3 mm on the ``tripod-stairs`` walk. Its JSON form: :mod:`graphcal.report.stairs_json`.
 """
 
 from __future__ import annotations
@@ -84,14 +71,14 @@ from typing import Sequence
 
 import numpy as np
 
+from graphcal.clouds.stitch import CloudNormals, StitchConfig, StitchResult, cloud_normals, stitch_clouds
 from graphcal.errors import GraphcalError
-from graphcal.geometry import canonical_plane, nearest_rotation, pose_matrix, se3_exp, transform_points
+from graphcal.geometry import canonical_plane, pose_matrix, transform_points
 from graphcal.models.sensors import KINECT_NOISE_COEFF_PER_M
-from graphcal.solvers.point_to_plane import constrained_step, point_to_plane_jacobian
 
 __all__ = [
     "StairsError",
-    "StairStep",
+    "StairsModelConfig",
     "Tread",
     "Riser",
     "StairsModel",
@@ -99,36 +86,56 @@ __all__ = [
     "model_stairs",
     "stairs_model_from_steps",
     "tread_errors",
-    "stairs_to_json",
     "KINECT_NOISE_COEFF_PER_M",
 ]
-
 
 
 class StairsError(GraphcalError):
     """Bad input to the stairs model, or no stairs in the clouds."""
 
 
-# ----------------------------------------------------------------------------- results
 @dataclass(frozen=True)
-class StairStep:
-    """One true step of an untilted staircase rising along world +x (the records that
-    :func:`stairs_model_from_steps` and :func:`tread_errors` read; the ``stairs`` list of a
-    ``truth.yaml`` ``ground`` section has these keys).
+class StairsModelConfig:
+    """The tuning of :func:`model_stairs` (module docstring for each step; SI units).
 
     Attributes:
-        x_start_m: world x of the step's nosing (front edge), m.
-        depth_m: tread depth along world +x, m.
-        height_m: height of the tread's top above the floor, m.
-        width_m: tread width along world y, m.
+        icp: stitch the clouds (False: trust the poses).
+        stitch: the stitching and its normals (:class:`graphcal.clouds.stitch.StitchConfig`). In its
+            pass 2 each cloud is registered to the ``stitch.neighbours`` clouds with the nearest
+            sensor positions; cost grows linearly with the number of clouds (~0.2 s per cloud
+            here): pass keyframes.
+        max_depth_m: points farther along the optical axis are not used (m).
+        noise_coeff_per_m: depth noise model sigma_z = coeff z^2 (m), for weights.
+        class_normal_radius_m, class_max_normal_tilt_rad: the normals that tell horizontal from
+            vertical surfaces (m, rad; step 1).
+        max_points_per_cloud: larger clouds are randomly thinned to this many points first
+            (a full 640 x 480 Kinect frame has ~300k).
+        ransac_distance_m, max_planes, min_plane_points: plane extraction
+            (:func:`graphcal.clouds.planes.extract_planes`).
+        max_tilt_rad: a plane is horizontal (vertical) when its normal is within this angle of
+            (perpendicular to) world z (rad).
+        edge_drop_fraction: fraction of each plane's points dropped near each edge (Zhao: 5 %).
+        min_step_height_m: horizontal planes less than this above the floor are part of the floor.
+        max_points: the stitched map is randomly thinned to this many points for the planes.
     """
 
-    x_start_m: float
-    depth_m: float
-    height_m: float
-    width_m: float
+    icp: bool = True
+    stitch: StitchConfig = StitchConfig()
+    max_depth_m: float = 2.5
+    noise_coeff_per_m: float = KINECT_NOISE_COEFF_PER_M
+    class_normal_radius_m: float = 0.025
+    class_max_normal_tilt_rad: float = 0.1
+    max_points_per_cloud: int = 40_000
+    ransac_distance_m: float = 0.02
+    max_planes: int = 12
+    min_plane_points: int = 150
+    max_tilt_rad: float = float(np.radians(10.0))
+    edge_drop_fraction: float = 0.05
+    min_step_height_m: float = 0.03
+    max_points: int = 400_000
 
 
+# ----------------------------------------------------------------------------- results
 @dataclass(frozen=True, eq=False)
 class Tread:
     """One tread (the top of a step, or the landing).
@@ -269,219 +276,6 @@ def _check_inputs(clouds_sensor, T_world_sensor) -> tuple[list[np.ndarray], list
     return out_c, out_T
 
 
-# ----------------------------------------------------------------------------- ICP stitching
-def _voxel_down(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    import open3d as o3d
-
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    return np.asarray(pcd.voxel_down_sample(voxel_m).points)
-
-
-def _pca_normals(points: np.ndarray, idx: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """PCA normals from the neighbours ``idx`` (M, k) where ``ok``, and the predicted variance of
-    each normal's tilt (rad^2), ``lambda_min / (m lambda_mid)`` (m neighbours; inf below 8)."""
-    m = ok.sum(axis=1)
-    Q = points[np.where(ok, idx, 0)]  # (M, k, 3)
-    w = ok.astype(float)[:, :, None]
-    mm = np.maximum(m, 1)
-    mean = (Q * w).sum(axis=1) / mm[:, None]
-    X = (Q - mean[:, None, :]) * w
-    C = np.empty((len(points), 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            C[:, i, j] = C[:, j, i] = (X[:, :, i] * X[:, :, j]).sum(axis=1)
-    C /= mm[:, None, None]
-    lam, V = np.linalg.eigh(C)
-    tilt_var = np.where(m >= 8, lam[:, 0] / (mm * np.maximum(lam[:, 1], 1e-12)), np.inf)
-    return V[:, :, 0], tilt_var
-
-
-def _map_normals(points: np.ndarray, radius_m: float, small_radius_m: float, k: int = 30):
-    """Normals of points at two scales from one neighbour search: from the neighbours within
-    ``radius_m`` (at most ``k``; for the ICP: smooth) and within ``small_radius_m`` (to classify
-    surfaces as horizontal or vertical up to their edges), each with its predicted tilt variance
-    (:func:`_pca_normals`). Sparse far points and points on an edge (two planes in the
-    neighbourhood) have a large one: their noisy normals would give point-to-plane ICP spurious
-    constraints along the planes, and they say nothing about a surface's orientation."""
-    from scipy.spatial import cKDTree
-
-    dist, idx = cKDTree(points).query(points, k=k, distance_upper_bound=radius_m)
-    ok = np.isfinite(dist)
-    n_large, v_large = _pca_normals(points, idx, ok)
-    n_small, v_small = _pca_normals(points, idx, ok & (dist <= small_radius_m))
-    return n_large, v_large, n_small, v_small
-
-
-def _icp_to_map(
-    src_sensor: np.ndarray,
-    sigma_src: np.ndarray,
-    T_init: np.ndarray,
-    tree,
-    map_points: np.ndarray,
-    map_normals: np.ndarray,
-    *,
-    gates_m: Sequence[float],
-    prior_sigma_m: float,
-    prior_sigma_rad: float,
-    max_iterations: int,
-    degeneracy_ratio: float,
-    src_normals: np.ndarray | None = None,
-    normal_cos_min: float = 0.0,
-) -> tuple[np.ndarray, float, int]:
-    """Regularised point-to-plane ICP of one cloud against the map (module docstring, step 2).
-
-    Minimises ``sum_i rho((n_i . (T Exp(delta) p_i - q_i)) / sigma_i) + delta^T Lambda delta`` over
-    ``delta = [omega, v]`` (sensor frame, GTSAM order) by Gauss-Newton. Returns the corrected
-    ``T_world_sensor``, the inlier fraction of the last round and the number of degenerate
-    directions of its last iteration.
-    """
-    prior = np.r_[np.full(3, 1.0 / prior_sigma_rad**2), np.full(3, 1.0 / prior_sigma_m**2)]
-    scale = np.r_[np.full(3, 1.0), np.full(3, 1.0)]  # rotation (rad) as metres at 1 m
-    delta_total = np.zeros(6)
-    T = T_init.copy()
-    fitness = 0.0
-    n_degenerate = 6
-    for gate in gates_m:
-        for _ in range(max_iterations):
-            R = T[:3, :3]
-            p_world = src_sensor @ R.T + T[:3, 3]
-            dist, idx = tree.query(p_world, k=1, distance_upper_bound=gate)
-            ok = np.isfinite(dist)
-            if ok.sum() < 6:
-                fitness = float(ok.mean())
-                break
-            ps = src_sensor[ok]
-            n = map_normals[idx[ok]]
-            r = np.einsum("ij,ij->i", n, p_world[ok] - map_points[idx[ok]])
-            sig = sigma_src[ok]
-            keep = np.abs(r) < gate
-            if src_normals is not None and normal_cos_min > 0:
-                # a source point on one surface matched to a map point on another (the map's
-                # edge: a tread point to the top of the riser below it) pulls the cloud sideways
-                keep &= np.abs(np.einsum("ij,ij->i", src_normals[ok] @ R.T, n)) >= normal_cos_min
-            ps, n, r, sig = ps[keep], n[keep], r[keep], sig[keep]
-            fitness = float(keep.sum()) / len(src_sensor)
-            J = point_to_plane_jacobian(ps, n, R)  # d r / d [omega, v]
-            z = np.abs(r) / sig
-            w = np.where(z <= 2.0, 1.0, 2.0 / np.maximum(z, 1e-12)) / sig**2  # Huber at 2 sigma
-            H_data = (J * w[:, None]).T @ J
-            g = (J * w[:, None]).T @ r + prior * delta_total
-            # degenerate directions (along a plane, along the nosings): no update there; the
-            # noise of the map normals alone would let the cloud slide (module docstring)
-            cs = constrained_step(H_data, g, scale=scale, degeneracy_ratio=degeneracy_ratio, prior_information=prior)
-            step, n_degenerate = cs.step, cs.n_degenerate
-            T = T @ se3_exp(step)
-            delta_total += step
-            if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-5:
-                break
-    return T, fitness, n_degenerate
-
-
-def _thin_by_voxel(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Indices of one point per ``voxel_m`` cube (the first one)."""
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    keys -= keys.min(axis=0)
-    key = (keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2]  # 21 bits per axis: 20 km at 1 cm
-    _, first = np.unique(key, return_index=True)
-    return np.sort(first)
-
-
-def _stitch(
-    clouds_sensor: list[np.ndarray],
-    poses: list[np.ndarray],
-    down: list[np.ndarray],
-    nrm: list[np.ndarray],
-    rel: list[np.ndarray],
-    noise_coeff: float,
-    *,
-    voxel_m: float,
-    gates_m: Sequence[float],
-    prior_sigma_m: float,
-    prior_sigma_rad: float,
-    min_fitness: float,
-    max_iterations: int,
-    degeneracy_ratio: float,
-    max_source_points: int,
-    passes: int,
-    neighbours: int,
-    rng: np.random.Generator,
-    normal_cos_min: float = 0.0,
-    reliable_source: bool = False,
-) -> tuple[list[np.ndarray], list[float], list[bool]]:
-    """Corrected T_world_sensor per cloud: ICP of each cloud to the map of the accepted clouds
-    before it (pass 1), then (passes > 1) of each cloud to all the other accepted clouds, then the
-    anchoring transform (module docstring, step 2). ``down``, ``nrm``, ``rel``: per cloud its
-    voxel-downsampled points, their normals (sensor frame) and reliability (:func:`_map_normals`)."""
-    from scipy.spatial import cKDTree
-
-    K = len(poses)
-    # source points: those with a reliable normal (reliable_source), else all
-    pools = [np.flatnonzero(r) if reliable_source else np.arange(len(r)) for r in rel]
-    src_idx = [
-        np.sort(rng.choice(pool, size=max_source_points, replace=False)) if len(pool) > max_source_points else pool
-        for pool in pools
-    ]
-
-    def world_part(j: int, T: np.ndarray):
-        return transform_points(T, down[j][rel[j]]), nrm[j][rel[j]] @ T[:3, :3].T
-
-    def target_of(parts: list):
-        if not parts:
-            return None
-        P, N = np.vstack([q for q, _ in parts]), np.vstack([n for _, n in parts])
-        keep = _thin_by_voxel(P, voxel_m)
-        if len(keep) < 50:
-            return None
-        return cKDTree(P[keep]), P[keep], N[keep]
-
-    corrected = [T.copy() for T in poses]
-    fitness = [1.0] + [0.0] * (K - 1)
-    accepted = [len(down[0]) > 0] + [False] * (K - 1)
-    for p in range(max(1, passes)):
-        if p == 0:
-            parts = {0: world_part(0, corrected[0])} if accepted[0] else {}
-        else:  # every cloud against the others, at their poses of the previous pass
-            parts = {j: world_part(j, corrected[j]) for j in range(K) if accepted[j]}
-            centres = np.array([T[:3, 3] for T in corrected])
-        for k in range(1, K) if p == 0 else range(K):
-            members = [j for j in parts if j != k]
-            if p > 0 and len(members) > neighbours:  # the nearest sensor positions only
-                dist = np.linalg.norm(centres[members] - centres[k], axis=1)
-                members = [members[i] for i in np.argsort(dist)[:neighbours]]
-            tgt = target_of([parts[j] for j in members]) if len(src_idx[k]) >= 20 else None
-            if tgt is None:
-                continue
-            tree, target, normals = tgt
-            src = down[k][src_idx[k]]
-            sigma = np.hypot(noise_coeff * src[:, 2] ** 2, 0.002)
-            T_start = corrected[k] if p > 0 else poses[k]
-            T_new, fit, _ = _icp_to_map(
-                src, sigma, T_start, tree, target, normals,
-                gates_m=gates_m if p == 0 else gates_m[-2:], prior_sigma_m=prior_sigma_m,
-                prior_sigma_rad=prior_sigma_rad, max_iterations=max_iterations, degeneracy_ratio=degeneracy_ratio,
-                src_normals=nrm[k][src_idx[k]], normal_cos_min=normal_cos_min,
-            )
-            if fit >= min_fitness:
-                corrected[k] = T_new
-                fitness[k] = fit
-                accepted[k] = True
-                if p == 0:
-                    parts[k] = world_part(k, T_new)
-            elif p == 0:
-                fitness[k] = fit
-    # anchor: the rigid transform A that moves the stitched poses least onto the estimated ones,
-    # rotation and translation averaged separately (a joint least-squares fit over the points turns
-    # the clouds' translation errors into a tilt: the clouds see different parts of the stairs)
-    ks = [k for k in range(K) if accepted[k]]
-    if len(ks) > 1:
-        M = sum(poses[k][:3, :3] @ corrected[k][:3, :3].T for k in ks)
-        R_A = nearest_rotation(M)
-        t_A = np.mean([poses[k][:3, 3] - R_A @ corrected[k][:3, 3] for k in ks], axis=0)
-        A = pose_matrix(R_A, t_A)
-        corrected = [A @ T if ok else T for T, ok in zip(corrected, accepted)]
-    return corrected, fitness, accepted
-
-
 # ----------------------------------------------------------------------------- plane fitting
 def _weighted_plane(P: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     """Weighted PCA plane: unit n (smallest eigenvector), d, and the weighted centroid."""
@@ -538,18 +332,6 @@ def _edge_line(tread: _Patch, riser: _Patch) -> tuple[np.ndarray, np.ndarray]:
 
 # ----------------------------------------------------------------------------- model_stairs, stage by stage
 @dataclass(frozen=True, eq=False)
-class _CloudNormals:
-    """Per cloud (sensor frame): voxel-downsampled points (M_k, 3) m, their ICP-scale normals and
-    reliability, and the classification-scale normals and reliability (module docstring, step 1)."""
-
-    down: list
-    normals: list
-    reliable: list
-    normals_class: list
-    reliable_class: list
-
-
-@dataclass(frozen=True, eq=False)
 class _PointMap:
     """The stitched map (world frame): points P (N, 3) m, their noise std sig (N,) m, normals N
     (N, 3) and whether each normal is reliable for classification (N,)."""
@@ -595,32 +377,7 @@ def _prepare_clouds(clouds: list[np.ndarray], max_depth_m: float, max_points_per
     return clouds
 
 
-def _cloud_normals(clouds: list[np.ndarray], voxel_m: float, normal_radius_m: float, class_radius_m: float,
-                   max_normal_tilt_rad: float, class_max_normal_tilt_rad: float) -> _CloudNormals:
-    """Per cloud: voxel-downsampled points with normals (sensor frame) and their reliability."""
-    down, nrm, rel, nrm_c, rel_c = [], [], [], [], []
-    for c in clouds:
-        d = _voxel_down(c, voxel_m) if len(c) else np.zeros((0, 3))
-        if len(d) >= 10:
-            n, v, n_c, v_c = _map_normals(d, normal_radius_m, class_radius_m)
-            r = v < max_normal_tilt_rad**2  # strict: for the ICP
-            # loose: horizontal / vertical pools; the small scale where it has the neighbours
-            # (up to the edges), else the large one (sparse far points)
-            small_ok = v_c < class_max_normal_tilt_rad**2
-            n_c = np.where(small_ok[:, None], n_c, n)
-            r_c = small_ok | (v < class_max_normal_tilt_rad**2)
-        else:
-            n, r = np.zeros((len(d), 3)), np.zeros(len(d), dtype=bool)
-            n_c, r_c = n, r
-        down.append(d)
-        nrm.append(n)
-        rel.append(r)
-        nrm_c.append(n_c)
-        rel_c.append(r_c)
-    return _CloudNormals(down, nrm, rel, nrm_c, rel_c)
-
-
-def _point_map(clouds: list[np.ndarray], used: list[int], corrected: list[np.ndarray], normals: _CloudNormals,
+def _point_map(clouds: list[np.ndarray], used: list[int], corrected: list[np.ndarray], normals: CloudNormals,
                noise_coeff_per_m: float, max_points: int, gen: np.random.Generator) -> _PointMap:
     """World points of the ``used`` clouds at their ``corrected`` sensor poses (4x4), their noise std
     and normals (from the nearest downsampled point), randomly thinned to ``max_points``."""
@@ -848,133 +605,48 @@ def _risers(patches_r: list[_Patch], floor: _Patch, T_world_stairs: np.ndarray) 
     return risers
 
 
-# ----------------------------------------------------------------------------- public API
-def model_stairs(
-    clouds_sensor: Sequence[np.ndarray],
-    T_world_sensor: Sequence[np.ndarray],
-    *,
-    walking_direction_world: np.ndarray | None = None,
-    icp: bool = True,
-    max_depth_m: float = 2.5,
-    noise_coeff_per_m: float = KINECT_NOISE_COEFF_PER_M,
-    icp_voxel_m: float = 0.01,
-    icp_normal_radius_m: float = 0.05,
-    class_normal_radius_m: float = 0.025,
-    icp_max_normal_tilt_rad: float = 0.02,
-    class_max_normal_tilt_rad: float = 0.1,
-    icp_gates_m: Sequence[float] = (0.10, 0.05, 0.025, 0.015),
-    icp_prior_sigma_m: float = 0.02,
-    icp_prior_sigma_rad: float = float(np.radians(1.0)),
-    icp_min_fitness: float = 0.15,
-    icp_max_iterations: int = 10,
-    icp_degeneracy_ratio: float = 0.001,
-    icp_max_source_points: int = 3000,
-    icp_passes: int = 2,
-    icp_neighbours: int = 8,
-    icp_max_normal_angle_deg: float = 30.0,
-    icp_reliable_source: bool = True,
-    max_points_per_cloud: int = 40_000,
-    ransac_distance_m: float = 0.02,
-    max_planes: int = 12,
-    min_plane_points: int = 150,
-    max_tilt_deg: float = 10.0,
-    edge_drop_fraction: float = 0.05,
-    min_step_height_m: float = 0.03,
-    max_points: int = 400_000,
-    rng: np.random.Generator | int | None = 0,
-) -> StairsModel:
-    """Model the stairs seen in a sequence of depth clouds (module docstring for the method).
+# ----------------------------------------------------------------------------- model_stairs's steps
+def _stitched(normals: CloudNormals, poses: list[np.ndarray], config: StairsModelConfig,
+              gen: np.random.Generator) -> tuple[StitchResult, list[int]]:
+    """Step 2: the stitched sensor poses and the clouds the map is made of (every cloud without
+    stitching: ``icp`` off or a single cloud)."""
+    if config.icp and len(poses) > 1:
+        st = stitch_clouds(normals, poses, config.noise_coeff_per_m, config.stitch, gen)
+        return st, [k for k in range(len(poses)) if st.accepted[k]]
+    accepted = [False] * len(poses)
+    accepted[0] = True
+    return StitchResult([T.copy() for T in poses], [1.0] * len(poses), accepted), list(range(len(poses)))
 
-    Args:
-        clouds_sensor: per cloud, (N_k, 3) points in the sensor (optical) frame, m; rows with NaN
-            are ignored.
-        T_world_sensor: per cloud, the (estimated) sensor pose, 4x4, m. Errors of a few cm and
-            ~1 deg are corrected by the ICP stitching.
-        walking_direction_world: (3,) direction up the stairs; default: the risers' normals, else
-            the mean horizontal viewing direction of the clouds.
-        icp: stitch the clouds (False: trust the poses).
-        max_depth_m: points farther along the optical axis are not used (m).
-        noise_coeff_per_m: depth noise model sigma_z = coeff z^2 (m), for weights.
-        icp_voxel_m, icp_normal_radius_m, class_normal_radius_m, icp_max_normal_tilt_rad,
-            class_max_normal_tilt_rad: downsampling and normals (module docstring, step 1).
-        icp_gates_m, icp_prior_sigma_m, icp_prior_sigma_rad, icp_min_fitness,
-            icp_max_iterations, icp_degeneracy_ratio, icp_max_source_points, icp_passes,
-            icp_neighbours: the stitching (module docstring, step 2); in pass 2 each cloud is
-            registered to the ``icp_neighbours`` clouds with the nearest sensor positions. Cost
-            grows linearly with the number of clouds (~0.2 s per cloud here): pass keyframes.
-        icp_max_normal_angle_deg: a correspondence is used only if the source point's normal and
-            the map point's agree within this angle (90: no test).
-        icp_reliable_source: register only the source points with a reliable normal (step 1).
-        max_points_per_cloud: larger clouds are randomly thinned to this many points first
-            (a full 640 x 480 Kinect frame has ~300k).
-        ransac_distance_m, max_planes, min_plane_points: plane extraction
-            (:func:`graphcal.clouds.planes.extract_planes`).
-        max_tilt_deg: a plane is horizontal (vertical) when its normal is within this angle of
-            (perpendicular to) world z.
-        edge_drop_fraction: fraction of each plane's points dropped near each edge (Zhao: 5 %).
-        min_step_height_m: horizontal planes less than this above the floor are part of the floor.
-        max_points: the stitched map is randomly thinned to this many points for the planes.
-        rng: seed or generator (subsamples, RANSAC).
 
-    Returns:
-        :class:`StairsModel`. Heights are above the *lowest* horizontal plane, which must be the
-        floor (keep a cloud that sees the floor in front of the stairs in the sequence).
-
-    Raises:
-        StairsError: bad input (shapes, non-rigid poses, mismatched lengths), no horizontal plane.
-    """
-    clouds, poses = _check_inputs(clouds_sensor, T_world_sensor)
-    if not 0.0 <= edge_drop_fraction < 0.5:
-        raise StairsError(f"model_stairs: edge_drop_fraction must be in [0, 0.5), got {edge_drop_fraction}")
-    if not max_depth_m > 0:
-        raise StairsError(f"model_stairs: max_depth_m must be > 0, got {max_depth_m}")
-    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-    clouds = _prepare_clouds(clouds, max_depth_m, max_points_per_cloud, min_plane_points, gen)
-    normals = _cloud_normals(clouds, icp_voxel_m, icp_normal_radius_m, class_normal_radius_m,
-                             icp_max_normal_tilt_rad, class_max_normal_tilt_rad)
-
-    # 2. stitching
-    if icp and len(clouds) > 1:
-        corrected, fitness, accepted = _stitch(
-            clouds, poses, normals.down, normals.normals, normals.reliable, noise_coeff_per_m,
-            voxel_m=icp_voxel_m, gates_m=tuple(icp_gates_m),
-            prior_sigma_m=icp_prior_sigma_m, prior_sigma_rad=icp_prior_sigma_rad,
-            min_fitness=icp_min_fitness, max_iterations=icp_max_iterations,
-            degeneracy_ratio=icp_degeneracy_ratio, max_source_points=icp_max_source_points,
-            passes=icp_passes, neighbours=icp_neighbours, rng=gen,
-            normal_cos_min=float(np.cos(np.radians(icp_max_normal_angle_deg))) if icp_max_normal_angle_deg < 90 else 0.0,
-            reliable_source=icp_reliable_source,
-        )
-        used = [k for k in range(len(clouds)) if accepted[k]]
-    else:
-        corrected, fitness, accepted = [T.copy() for T in poses], [1.0] * len(poses), [False] * len(poses)
-        accepted[0] = True
-        used = list(range(len(clouds)))
-
-    # 1. + map: world points, their noise std and normals
-    pm = _point_map(clouds, used, corrected, normals, noise_coeff_per_m, max_points, gen)
-
-    # 3. planes: RANSAC + Chai's loop on the points with a reliable horizontal (vertical) normal;
-    # a slanted plane through the nosings cannot form from them
+def _level_and_upright_planes(pm: _PointMap, config: StairsModelConfig, gen: np.random.Generator) -> tuple[list, list]:
+    """Step 3: (horizontal, vertical) planes as (fit, mask over the map) pairs, from RANSAC + Chai's
+    loop on the points with a reliable horizontal (vertical) normal: a slanted plane through the
+    nosings cannot form from them. StairsError without a horizontal plane."""
     z = np.array([0.0, 0.0, 1.0])
     nz = np.abs(pm.N @ z)
-    pool_h = np.flatnonzero(pm.reliable & (nz >= np.cos(np.radians(2 * max_tilt_deg))))
-    pool_v = np.flatnonzero(pm.reliable & (nz <= np.sin(np.radians(2 * max_tilt_deg))))
-    plane_kw = dict(max_planes=max_planes, ransac_distance_m=ransac_distance_m, min_plane_points=min_plane_points,
-                    gen=gen)
+    pool_h = np.flatnonzero(pm.reliable & (nz >= np.cos(2 * config.max_tilt_rad)))
+    pool_v = np.flatnonzero(pm.reliable & (nz <= np.sin(2 * config.max_tilt_rad)))
+    plane_kw = dict(max_planes=config.max_planes, ransac_distance_m=config.ransac_distance_m,
+                    min_plane_points=config.min_plane_points, gen=gen)
     fits_h, fits_v = _planes_of(pm.P, pool_h, **plane_kw), _planes_of(pm.P, pool_v, **plane_kw)
-    cos_t = np.cos(np.radians(max_tilt_deg))
+    cos_t = np.cos(config.max_tilt_rad)
     horiz = [(f, m) for f, m in fits_h if abs(f.n @ z) >= cos_t]
-    vert = [(f, m) for f, m in fits_v if abs(f.n @ z) <= np.sin(np.radians(max_tilt_deg))]
+    vert = [(f, m) for f, m in fits_v if abs(f.n @ z) <= np.sin(config.max_tilt_rad)]
     if not horiz:
         raise StairsError("model_stairs: no horizontal plane found in the clouds")
+    return horiz, vert
 
+
+def _stairs_geometry(horiz: list, vert: list, pm: _PointMap, corrected: list[np.ndarray], walking_direction_world,
+                     config: StairsModelConfig) -> tuple[list[Tread], list[Riser], _Patch, np.ndarray]:
+    """Steps 4 and 5: (treads, risers, floor patch, T_world_stairs) from the planes of the map."""
+    z = np.array([0.0, 0.0, 1.0])
     w0 = _initial_walking_direction(walking_direction_world, corrected, z)
-    patches_h = _horizontal_patches(horiz, pm, w0, z, min_step_height_m, edge_drop_fraction)
+    patches_h = _horizontal_patches(horiz, pm, w0, z, config.min_step_height_m, config.edge_drop_fraction)
     floor = patches_h[0]
     up = floor.n
-    steps_h = [p for p in patches_h[1:] if floor.n @ p.centroid + floor.d >= min_step_height_m]
-    w, lat, patches_r = _riser_patches(vert, pm, w0, up, walking_direction_world is None, edge_drop_fraction)
+    steps_h = [p for p in patches_h[1:] if floor.n @ p.centroid + floor.d >= config.min_step_height_m]
+    w, lat, patches_r = _riser_patches(vert, pm, w0, up, walking_direction_world is None, config.edge_drop_fraction)
 
     steps_h.sort(key=lambda p: _height(floor, p.centroid))
     s_all, t_all = pm.P @ w, pm.P @ lat  # along-stairs and lateral coordinates (world origin for now)
@@ -986,15 +658,66 @@ def model_stairs(
     T_world_stairs = pose_matrix(np.column_stack([w, lat, up]), origin)
     s_all = s_all - origin @ w
     t_all = t_all - origin @ lat
+    treads = _treads(tread_info, fronts, floor, T_world_stairs, s_all, t_all)
+    return treads, _risers(patches_r, floor, T_world_stairs), floor, T_world_stairs
+
+
+# ----------------------------------------------------------------------------- public API
+def model_stairs(
+    clouds_sensor: Sequence[np.ndarray],
+    T_world_sensor: Sequence[np.ndarray],
+    *,
+    config: StairsModelConfig = StairsModelConfig(),
+    walking_direction_world: np.ndarray | None = None,
+    rng: np.random.Generator | int | None = 0,
+) -> StairsModel:
+    """Model the stairs seen in a sequence of depth clouds (module docstring for the method).
+
+    Args:
+        clouds_sensor: per cloud, (N_k, 3) points in the sensor (optical) frame, m; rows with NaN
+            are ignored.
+        T_world_sensor: per cloud, the (estimated) sensor pose, 4x4, m. Errors of a few cm and
+            ~1 deg are corrected by the ICP stitching.
+        config: the tuning (:class:`StairsModelConfig`; e.g. ``StairsModelConfig(icp=False)`` to
+            trust the poses).
+        walking_direction_world: (3,) direction up the stairs; default: the risers' normals, else
+            the mean horizontal viewing direction of the clouds.
+        rng: seed or generator (subsamples, RANSAC).
+
+    Returns:
+        :class:`StairsModel`. Heights are above the *lowest* horizontal plane, which must be the
+        floor (keep a cloud that sees the floor in front of the stairs in the sequence).
+
+    Raises:
+        StairsError: bad input (shapes, non-rigid poses, mismatched lengths, a bad config), no
+        horizontal plane.
+    """
+    cfg = config
+    clouds, poses = _check_inputs(clouds_sensor, T_world_sensor)
+    if not 0.0 <= cfg.edge_drop_fraction < 0.5:
+        raise StairsError(f"model_stairs: edge_drop_fraction must be in [0, 0.5), got {cfg.edge_drop_fraction}")
+    if not cfg.max_depth_m > 0:
+        raise StairsError(f"model_stairs: max_depth_m must be > 0, got {cfg.max_depth_m}")
+    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    # 1. clouds cut and thinned, their normals; 2. stitching
+    clouds = _prepare_clouds(clouds, cfg.max_depth_m, cfg.max_points_per_cloud, cfg.min_plane_points, gen)
+    normals = cloud_normals(clouds, cfg.stitch, class_radius_m=cfg.class_normal_radius_m,
+                            class_max_normal_tilt_rad=cfg.class_max_normal_tilt_rad)
+    stitched, used = _stitched(normals, poses, cfg, gen)
+    corrected = stitched.T_world_sensor
+    # 1. + map: world points, their noise std and normals; 3. planes; 4.-5. treads and risers
+    pm = _point_map(clouds, used, corrected, normals, cfg.noise_coeff_per_m, cfg.max_points, gen)
+    horiz, vert = _level_and_upright_planes(pm, cfg, gen)
+    treads, risers, floor, T_world_stairs = _stairs_geometry(horiz, vert, pm, corrected, walking_direction_world, cfg)
     return StairsModel(
-        treads=tuple(_treads(tread_info, fronts, floor, T_world_stairs, s_all, t_all)),
-        risers=tuple(_risers(patches_r, floor, T_world_stairs)),
+        treads=tuple(treads),
+        risers=tuple(risers),
         floor_plane_world=canonical_plane(floor.n, floor.d),
         floor_n_inliers=floor.n_inliers,
         T_world_stairs=T_world_stairs,
         T_world_sensor_corrected=tuple(corrected),
-        icp_fitness=tuple(float(f) for f in fitness),
-        icp_accepted=tuple(bool(a) for a in accepted),
+        icp_fitness=tuple(float(f) for f in stitched.fitness),
+        icp_accepted=tuple(bool(a) for a in stitched.accepted),
         n_points=int(len(pm.P)),
     )
 
@@ -1005,10 +728,11 @@ def stairs_model_from_steps(
     floor_z_m: float = 0.0,
     y_center_m: float = 0.0,
 ) -> StairsModel:
-    """The exact model of an untilted staircase rising along world +x: :class:`StairStep` records
-    (or any with their fields, e.g. the simulator's terrain steps) with ``x_start_m`` (nosing x),
-    ``depth_m``, ``height_m`` (top above the floor), ``width_m`` (centred on ``y_center_m``), lowest
-    first; the floor is ``z = floor_z_m``. Every depth is complete (the last one too)."""
+    """The exact model of an untilted staircase rising along world +x: step records (e.g. the
+    simulator's terrain steps, or the ``stairs`` list of a ``truth.yaml`` ``ground`` section) with
+    ``x_start_m`` (nosing x), ``depth_m``, ``height_m`` (top above the floor), ``width_m`` (centred
+    on ``y_center_m``), lowest first; the floor is ``z = floor_z_m``. Every depth is complete (the
+    last one too)."""
     steps = sorted(steps, key=lambda s: s.height_m)
     if not steps:
         raise StairsError("stairs_model_from_steps: no steps")
@@ -1056,60 +780,3 @@ def tread_errors(model: StairsModel, steps: Sequence, *, floor_z_m: float = 0.0)
             )
         )
     return tuple(out)
-
-
-def _f(x) -> float | None:
-    x = float(x)
-    return x if np.isfinite(x) else None
-
-
-def stairs_to_json(model: StairsModel, errors: Sequence[TreadError] | None = None) -> dict:
-    """A JSON-ready dict of the model (metres, keys ending ``_m``); with ``errors`` (from
-    :func:`tread_errors`) each tread also carries its errors and the dict the maxima."""
-    treads = []
-    by_index = {e.index: e for e in (errors or ())}
-    for t in model.treads:
-        d = {
-            "index": t.index,
-            "height_m": t.height_m,
-            "depth_m": t.depth_m,
-            "depth_complete": t.depth_complete,
-            "width_m": t.width_m,
-            "p_world_edge_m": [float(v) for v in t.p_world_edge],
-            "edge_direction_world": [float(v) for v in t.edge_direction_world],
-            "edge_from_riser": t.edge_from_riser,
-            "plane_world": {"n": [float(v) for v in t.plane_world[0]], "d_m": float(t.plane_world[1])},
-            "n_inliers": t.n_inliers,
-        }
-        if t.index in by_index:
-            e = by_index[t.index]
-            d["errors"] = {
-                "true_index": e.true_index,
-                "height_error_m": _f(e.height_error_m),
-                "depth_error_m": _f(e.depth_error_m),
-                "width_error_m": _f(e.width_error_m),
-                "edge_along_m": _f(e.edge_along_m),
-                "edge_height_m": _f(e.edge_height_m),
-            }
-        treads.append(d)
-    out = {
-        "treads": treads,
-        "risers": [
-            {"s_m": r.s_m, "h_low_m": r.h_low_m, "h_high_m": r.h_high_m, "n_inliers": r.n_inliers,
-             "plane_world": {"n": [float(v) for v in r.plane_world[0]], "d_m": float(r.plane_world[1])}}
-            for r in model.risers
-        ],
-        "floor_plane_world": {"n": [float(v) for v in model.floor_plane_world[0]], "d_m": float(model.floor_plane_world[1])},
-        "T_world_stairs": [[float(v) for v in row] for row in model.T_world_stairs],
-        "icp_fitness": list(model.icp_fitness),
-        "icp_accepted": list(model.icp_accepted),
-        "n_points": model.n_points,
-    }
-    if errors:
-        def worst(attr):
-            vals = [abs(getattr(e, attr)) for e in errors if np.isfinite(getattr(e, attr))]
-            return max(vals) if vals else None
-
-        out["max_abs_height_error_m"] = worst("height_error_m")
-        out["max_abs_depth_error_m"] = worst("depth_error_m")
-    return out

@@ -1,8 +1,10 @@
-"""Ground models for the simulator: level floor, bumpy floor, stairs, box obstacles.
+"""Ground models for the simulator: level floor, bumpy floor, stairs (up, or up and down for the
+walks: :func:`up_and_down_stairs`), box obstacles.
 
 A terrain is a list of triangle meshes in the world frame (z up, nominal ground z = 0), each with a
 label saying what it is (:data:`LABEL_GROUND`, ...). Ray casting and height queries go through
-Open3D's ``RaycastingScene`` (Embree), so any mix of meshes is handled the same way.
+Open3D's ``RaycastingScene`` (Embree), so any mix of meshes is handled the same way; an untilted
+staircase's height profile along x without it (:func:`stair_profile`).
 
 Units: metres, radians.
 """
@@ -23,6 +25,10 @@ LABEL_STAIRS = 3
 LABEL_NAMES = {LABEL_GROUND: "ground", LABEL_ROBOT: "robot", LABEL_OBSTACLE: "obstacle", LABEL_STAIRS: "stairs"}
 
 GROUND_KINDS = ("level", "bumpy-little", "bumpy-big", "stairs", "boxes")
+#: the steps of the ``stairs`` terrain (Zhao 2020): rise and run (tread depth) of each step, width (m)
+STAIR_RISE_M = 0.13
+STAIR_RUN_M = 0.30
+STAIR_WIDTH_M = 1.6
 
 
 @dataclass(frozen=True)
@@ -200,7 +206,7 @@ def make_terrain(
     else:
         meshes.append(_quad_plane(extent_m))
     if kind == "stairs":
-        rise, run, width = 0.13, 0.30, 1.6
+        rise, run, width = STAIR_RISE_M, STAIR_RUN_M, STAIR_WIDTH_M
         steps = []
         for k in range(3):
             x0 = stairs_start_x_m + k * run
@@ -221,6 +227,41 @@ def make_terrain(
     if tilt_rad != 0.0:
         meshes = [m.transformed(R) for m in meshes]
     return Terrain(kind, tuple(meshes), float(tilt_rad), float(tilt_axis_rad), stairs, rms)
+
+
+def up_and_down_stairs(stairs_start_x_m: float, extent_m: float) -> Terrain:
+    """Three 130 x 300 mm steps up from ``stairs_start_x_m`` (make_terrain's stairs, 1.5 m landing)
+    and three the same down after the landing (two more boxes, 260 and 130 mm high): the
+    ``tripod-stairs`` walk's terrain; floor half size ``extent_m`` (m)."""
+    base = make_terrain("stairs", stairs_start_x_m=stairs_start_x_m, extent_m=extent_m)
+    rise, run = STAIR_RISE_M, STAIR_RUN_M
+    up = base.stairs
+    width = up[0].width_m
+    x_down = up[-1].x_start_m + up[-1].depth_m
+    meshes = list(base.meshes)
+    down = []
+    for k, top in enumerate((2 * rise, rise)):
+        x0 = x_down + k * run
+        down.append(Stair(x0, run, top, width))
+        meshes.append(box_mesh([x0 + run / 2, 0.0, top / 2], [run, width, top], LABEL_STAIRS))
+    return Terrain("stairs", tuple(meshes), 0.0, 0.0, tuple(up) + tuple(down), 0.0)
+
+
+def stair_profile(stairs, x: np.ndarray) -> np.ndarray:
+    """Ground height (m) under world x (N,) for points within the stairs' width (0 off the treads):
+    an untilted staircase of :class:`Stair` records rising along +x, floor at z = 0."""
+    x = np.asarray(x, dtype=float)
+    h = np.zeros_like(x)
+    for s in stairs:
+        inside = (x >= s.x_start_m) & (x < s.x_start_m + s.depth_m)
+        h = np.where(inside, np.maximum(h, s.height_m), h)
+    return h
+
+
+def stair_edges(stairs) -> np.ndarray:
+    """The sorted world x (m) of every stair edge (each tread's front and back)."""
+    xs = sorted({s.x_start_m for s in stairs} | {s.x_start_m + s.depth_m for s in stairs})
+    return np.asarray(xs)
 
 
 def build_scene(meshes):

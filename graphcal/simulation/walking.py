@@ -40,10 +40,9 @@ What is simulated, all vectorised over the samples (numpy, one loop over the leg
   into the terrain (not the robot's own legs) from ``T_world_body @ T_body_sensor`` (the CAD
   extrinsic is the true one here). Default stride 16 on level ground, 8 on the stairs.
 
-The dataset holds ``timeseries.csv`` (time, q_*, tau_*, imu_*, cloud_depth, contact_*, force_* with
-force sensors) and the clouds;
-the truth goes to ``truth.yaml`` and ``truth_trajectory.csv`` (time, body pose, velocity, biases at
-``truth_rate_hz``), which only evaluations read.
+The stairs are :func:`graphcal.simulation.terrain.up_and_down_stairs`. The walk as a dataset
+(``timeseries.csv``, the clouds, ``truth.yaml`` and ``truth_trajectory.csv``, which only evaluations
+read): :func:`graphcal.simulation.write.write_walking`.
 
 Units: SI (m, rad, s, N, N m, m/s^2, rad/s).
 """
@@ -52,13 +51,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.geometry import body_rates_from_rpy_rates, matrix_from_rpy, quat_wxyz_from_matrix_batch, skew_batch
-from graphcal.simulation.terrain import LABEL_STAIRS, Stair, Terrain, box_mesh, make_terrain
+from graphcal.geometry import body_rates_from_rpy_rates, matrix_from_rpy, skew_batch
+from graphcal.simulation.terrain import Terrain, make_terrain, stair_edges, stair_profile, up_and_down_stairs
 
 __all__ = [
     "WALKING_PROGRAMS",
@@ -66,10 +64,6 @@ __all__ = [
     "WalkingConfig",
     "WalkingResult",
     "simulate_walking",
-    "walking_dataset",
-    "write_walking",
-    "simulate_walking_to_folder",
-    "stair_profile",
 ]
 
 WALKING_PROGRAMS = ("tripod-walk", "tripod-stairs", "trot", "walk")
@@ -117,7 +111,6 @@ GAITS = {
 }
 GRAVITY_M_S2 = 9.80665
 _G_WORLD = np.array([0.0, 0.0, -GRAVITY_M_S2])
-TRUTH_TRAJECTORY_FILE = "truth_trajectory.csv"
 #: On stairs the body is lowered by this fraction of the depth of the lowest foot's ground below
 #: the ground line (chosen: the legs of the model keep >= 1.5 cm reach and 0.05 rad abduction margin).
 _K_BELOW = 0.3
@@ -336,38 +329,6 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
 
 
-def _stairs_terrain(c: WalkingConfig, extent_m: float) -> Terrain:
-    """Three 130 x 300 mm steps up from ``stairs_start_x_m`` (make_terrain's stairs, 1.5 m landing)
-    and three the same down after the landing."""
-    base = make_terrain("stairs", stairs_start_x_m=c.stairs_start_x_m, extent_m=extent_m)
-    rise, run = 0.13, 0.30
-    up = base.stairs
-    width = up[0].width_m
-    x_down = up[-1].x_start_m + up[-1].depth_m
-    meshes = list(base.meshes)
-    down = []
-    for k, top in enumerate((2 * rise, rise)):
-        x0 = x_down + k * run
-        down.append(Stair(x0, run, top, width))
-        meshes.append(box_mesh([x0 + run / 2, 0.0, top / 2], [run, width, top], LABEL_STAIRS))
-    return Terrain("stairs", tuple(meshes), 0.0, 0.0, tuple(up) + tuple(down), 0.0)
-
-
-def stair_profile(stairs, x: np.ndarray) -> np.ndarray:
-    """Ground height (m) under world x (N,) for points within the stairs' width (0 off the treads)."""
-    x = np.asarray(x, dtype=float)
-    h = np.zeros_like(x)
-    for s in stairs:
-        inside = (x >= s.x_start_m) & (x < s.x_start_m + s.depth_m)
-        h = np.where(inside, np.maximum(h, s.height_m), h)
-    return h
-
-
-def _stair_edges(stairs) -> np.ndarray:
-    xs = sorted({s.x_start_m for s in stairs} | {s.x_start_m + s.depth_m for s in stairs})
-    return np.asarray(xs)
-
-
 def _nominal_q(leg, p_body_foot) -> np.ndarray:
     from graphcal.models.kinematics import ik_leg
 
@@ -488,7 +449,7 @@ def _body_path(c: WalkingConfig, info, feet: tuple, tl: _Timeline) -> _BodyPath:
     nod = c.nod_rad * tl.gain * np.sin(4 * np.pi * tl.phase + 0.3)
     bob = c.bob_m * tl.gain * np.sin(4 * np.pi * tl.phase)
     if c.stairs:
-        terrain = _stairs_terrain(c, extent_m=max(12.0, c.distance_m + 8.0))
+        terrain = up_and_down_stairs(c.stairs_start_x_m, extent_m=max(12.0, c.distance_m + 8.0))
         x = tl.s.copy()
         y = np.zeros(N)
         yaw = np.zeros(N)
@@ -572,7 +533,7 @@ def _foot_plan(c: WalkingConfig, info, feet: tuple, groups: tuple, tl: _Timeline
         swings = {f: swing_group[group_of[f]] for f in feet}
     else:
         swings = {f: in_gait & (np.mod(tl.phase + offsets[f], 1.0) < 1.0 - beta) for f in feet}
-    edges = _stair_edges(body.terrain.stairs) if c.stairs else np.zeros(0)
+    edges = stair_edges(body.terrain.stairs) if c.stairs else np.zeros(0)
     nf = len(feet)
     contact = np.zeros((N, nf), dtype=bool)
     weight = np.zeros((nf, N))
@@ -712,7 +673,6 @@ def _quasi_static_forces(c: WalkingConfig, body: _BodyPath, p_body_foot: np.ndar
     with zero moment about the body origin (weighted least norm)."""
     R = body.R
     N = len(R)
-    nf = len(p_body_foot)
     a_body = _second_difference(body.p, dt)
     F_body = c.body_mass_kg * np.einsum("nji,nj->ni", R, a_body - _G_WORLD)  # ground reaction sum, body frame
     P = np.swapaxes(p_body_foot, 0, 1)  # (N, nf, 3)
@@ -829,181 +789,4 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
         imu_accel=imu.accel, imu_gyro=imu.gyro, accel_bias=imu.accel_bias, gyro_bias=imu.gyro_bias,
         T_body_imu=imu.T_body_imu, T_body_sensor=T_body_sensor if T_body_sensor is not None else np.eye(4),
         cloud_indices=cloud_idx, clouds=clouds, terrain=body.terrain, foot_force=foot_force,
-    )
-
-
-# ----------------------------------------------------------------------------- dataset
-def _pose_yaml(T: np.ndarray) -> dict:
-    from graphcal.geometry import xyz_quat_wxyz_from_pose, xyz_rpy_from_pose
-
-    xyz, q = xyz_quat_wxyz_from_pose(T)
-    _, rpy = xyz_rpy_from_pose(T)
-    return {"xyz": [float(v) for v in xyz], "quaternion_wxyz": [float(v) for v in q],
-            "rpy_deg": [float(v) for v in np.degrees(rpy)]}
-
-
-def truth_table(result: WalkingResult):
-    """The truth trajectory at ``truth_rate_hz``: a :class:`~graphcal.io.dataset.Table`-like dict of
-    columns time, x, y, z, qw, qx, qy, qz (T_world_body), vx, vy, vz (world), gyro/accel biases."""
-    c = result.config
-    step = max(1, int(round(c.rate_hz / c.truth_rate_hz)))
-    idx = np.arange(0, len(result.times), step)
-    T = result.T_world_body[idx]
-    q = quat_wxyz_from_matrix_batch(T[:, :3, :3])
-    cols = {"time": result.times[idx]}
-    for k, n in enumerate("xyz"):
-        cols[n] = T[:, k, 3]
-    for k, n in enumerate(("qw", "qx", "qy", "qz")):
-        cols[n] = q[:, k]
-    for k, n in enumerate(("vx", "vy", "vz")):
-        cols[n] = result.v_world_body[idx, k]
-    for k, n in enumerate(("bgx", "bgy", "bgz")):
-        cols[n] = result.gyro_bias[idx, k]
-    for k, n in enumerate(("bax", "bay", "baz")):
-        cols[n] = result.accel_bias[idx, k]
-    return cols
-
-
-def _truth_csv_text(cols: dict) -> str:
-    names = list(cols)
-    A = np.column_stack([cols[n] for n in names])
-    import io
-
-    buf = io.StringIO()
-    buf.write(",".join(names) + "\n")
-    np.savetxt(buf, A, delimiter=",", fmt="%.10g")
-    return buf.getvalue()
-
-
-def walking_dataset(result: WalkingResult, cloud_names: list[str] | None = None):
-    """The walk as a contract :class:`~graphcal.io.dataset.Dataset` (timeseries only).
-    ``cloud_names``: relative PLY path per cloud (default ``clouds/depth/<frame>.ply``)."""
-    from graphcal.io.dataset import Dataset, ImuSpec, PosePrior, RobotSpec, SensorSpec, Table
-
-    info = result.info
-    N = len(result.times)
-    cols: dict[str, object] = {"time": np.round(result.times, 9)}
-    for f in result.feet:
-        for name in result.robot.leg(f).joint_names:
-            cols[f"q_{name}"] = result.q_measured[name]
-    for f in result.feet:
-        for name in result.robot.leg(f).joint_names:
-            cols[f"tau_{name}"] = result.tau_measured[name]
-    for k, n in enumerate("xyz"):
-        cols[f"imu_a{n}"] = result.imu_accel[:, k]
-    for k, n in enumerate("xyz"):
-        cols[f"imu_g{n}"] = result.imu_gyro[:, k]
-    sensors = {}
-    if len(result.cloud_indices):
-        names = cloud_names or [f"clouds/depth/{j:05d}.ply" for j in range(len(result.cloud_indices))]
-        col = np.full(N, "", dtype=object)
-        col[result.cloud_indices] = names
-        cols["cloud_depth"] = col.astype(str)
-        cad = info.sensors["depth"]
-        sensors["depth"] = SensorSpec("depth", cad.type,
-                                      PosePrior.from_matrix(cad.T_body_sensor, cad.sigma_m, cad.sigma_rad))
-    for i, f in enumerate(result.feet):
-        cols[f"contact_{f}"] = result.contact[:, i].astype(float)
-    if result.foot_force is not None:
-        for i, f in enumerate(result.feet):
-            cols[f"force_{f}"] = result.foot_force[:, i]
-    ground = {"type": "stairs"} if result.config.stairs else {"type": "level"}
-    return Dataset(
-        robot=RobotSpec(urdf=None, model=result.config.robot, base_frame=info.base_frame, feet=tuple(result.feet)),
-        sensors=sensors,
-        imu=ImuSpec(PosePrior.from_matrix(info.T_body_imu, 0.0, float(np.radians(1.0)))),
-        ground=ground,
-        stance={"feet_fixed_within": "step"},
-        timeseries=Table.from_columns(cols),
-    )
-
-
-def truth_dict(result: WalkingResult) -> dict:
-    """Plain dict for ``truth.yaml`` (what the walk hides)."""
-    c = result.config
-    stairs = [
-        {"x_start_m": s.x_start_m, "depth_m": s.depth_m, "height_m": s.height_m, "width_m": s.width_m}
-        for s in (result.terrain.stairs if result.terrain is not None else ())
-    ]
-    cfg = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in c.__dict__.items()}
-    return {
-        "format": "graphcal-truth/1",
-        "note": "hidden simulation truth; only evaluations read this file",
-        "robot": c.robot,
-        "program": c.program,
-        "seed": int(c.seed),
-        "ground": {"type": "stairs" if c.stairs else "level", "stairs": stairs},
-        "trajectory": {"file": TRUTH_TRAJECTORY_FILE, "frame": "T_world_body",
-                       "columns": "time, x, y, z, qw, qx, qy, qz (T_world_body), vx, vy, vz (world, m/s), "
-                                  "bgx..bgz (gyro bias, rad/s), bax..baz (accel bias, m/s^2)"},
-        "distance_m": result.distance_m,
-        "gait": {"groups": [list(g) for g in result.groups], "cycle_s": c.cycle_s, "duty_factor": c.duty_factor,
-                 **({"phase_offsets": dict(c.gait.phase_offsets)} if c.gait.phase_offsets else {})},
-        "sensors": {"depth": {"type": "depth_camera", "T_body_sensor": _pose_yaml(result.T_body_sensor)}},
-        "imu": {"T_body_imu": _pose_yaml(result.T_body_imu),
-                "accel_bias_start_m_s2": [float(v) for v in result.accel_bias[0]],
-                "gyro_bias_start_rad_s": [float(v) for v in result.gyro_bias[0]]},
-        "body_mass_kg": c.body_mass_kg,
-        "noise": {
-            "encoder_sigma_rad": c.encoder_sigma_rad, "torque_sigma_nm": c.torque_sigma_nm,
-            "gyro_noise_density": c.gyro_noise_density, "accel_noise_density": c.accel_noise_density,
-            "gyro_bias_rw": c.gyro_bias_rw, "accel_bias_rw": c.accel_bias_rw,
-        },
-        "config": cfg,
-    }
-
-
-def write_walking(result: WalkingResult, out_dir: str | Path, *, overwrite: bool = False) -> Path:
-    """Write the walk as a dataset folder (contract files, clouds) with ``truth.yaml`` and
-    ``truth_trajectory.csv`` beside it, atomically (:func:`graphcal.io.dataset.write_dataset`)."""
-    import yaml
-
-    from graphcal.io.dataset import write_dataset
-
-    out = Path(out_dir)
-    names = [f"clouds/depth/{j:05d}.ply" if len(cl) else "" for j, cl in enumerate(result.clouds)]
-    ds = walking_dataset(result, names)  # a frame that saw nothing has no file
-    extra = {
-        "truth.yaml": yaml.safe_dump(truth_dict(result), sort_keys=False),
-        TRUTH_TRAJECTORY_FILE: _truth_csv_text(truth_table(result)),
-    }
-    clouds = {n: cl for n, cl in zip(names, result.clouds) if n}
-    write_dataset(ds, out, overwrite=overwrite, extra_files=extra, timeseries_clouds=clouds)
-    return out
-
-
-def simulate_walking_to_folder(
-    *,
-    program: str,
-    out_dir: str | Path,
-    robot: str | None = None,
-    seed: int = 0,
-    distance_m: float | None = None,
-    duration_s: float | None = None,
-    cloud_rate_hz: float | None = None,
-    cloud_stride: int | None = None,
-    overwrite: bool = False,
-    progress: bool = True,
-) -> str:
-    """``graphcal simulate --program tripod-walk|tripod-stairs|trot|walk``: simulate and write the folder.
-    Returns a one-paragraph summary."""
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise GraphcalError(f"{out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise GraphcalError(f"{out}: folder exists and is not empty; choose another --out or pass --overwrite")
-    kw = {}
-    if cloud_rate_hz is not None:
-        kw["cloud_rate_hz"] = float(cloud_rate_hz)
-    if cloud_stride is not None:
-        kw["cloud_stride"] = int(cloud_stride)
-    cfg = WalkingConfig(program=program, robot=robot, seed=seed, distance_m=distance_m, duration_s=duration_s, **kw)
-    result = simulate_walking(cfg, progress=progress)
-    write_walking(result, out, overwrite=overwrite)
-    c = result.config
-    return (
-        f"wrote {out}: {c.program} of the {c.robot}, {result.distance_m:.2f} m in {result.times[-1]:.1f} s; "
-        f"{len(result.times)} samples at {c.rate_hz:g} Hz (joints, torques, IMU), {len(result.cloud_indices)} depth "
-        f"clouds at {c.cloud_rate_hz:g} Hz (stride {c.cloud_stride}); truth in {out / 'truth.yaml'} and "
-        f"{out / TRUTH_TRAJECTORY_FILE}"
     )

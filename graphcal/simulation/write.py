@@ -1,5 +1,9 @@
-"""The simulator's dataset writer: a :class:`~graphcal.simulation.session.SimulationResult` as a
-dataset folder (the contract's files and ``truth.yaml``), written atomically."""
+"""The simulator's dataset writers, each folder written atomically: a station session
+(:class:`~graphcal.simulation.session.SimulationResult`: the contract's files and ``truth.yaml``) and a
+walk (:class:`~graphcal.simulation.walking.WalkingResult`: ``timeseries.csv`` with time, q_*, tau_*,
+imu_*, cloud_depth, contact_* and force_* with force sensors, the clouds, ``truth.yaml`` and
+``truth_trajectory.csv`` -- time, T_world_body, world velocity, IMU biases at ``truth_rate_hz`` --
+which only evaluations read). SI units (m, rad, s, N, N m, m/s^2, rad/s)."""
 
 from __future__ import annotations
 
@@ -9,13 +13,16 @@ import numpy as np
 
 from graphcal.errors import GraphcalError
 from graphcal.simulation.session import SimulationResult
+from graphcal.simulation.walking import WalkingConfig, WalkingResult, simulate_walking
 
-__all__ = ["SIMULATION_FILES", "result_to_dataset", "clouds_written", "write_simulation"]
+__all__ = ["SIMULATION_FILES", "TRUTH_TRAJECTORY_FILE", "result_to_dataset", "clouds_written", "write_simulation",
+           "truth_table", "walking_dataset", "truth_dict", "write_walking", "simulate_walking_to_folder"]
 
+#: a walk's true trajectory, beside its dataset.yaml
+TRUTH_TRAJECTORY_FILE = "truth_trajectory.csv"
 #: what a simulation writes at the top of its folder (the contract's files and truth.yaml)
 SIMULATION_FILES = frozenset({"dataset.yaml", "stations.csv", "timeseries.csv", "planes.csv", "mocap.csv",
-                              "robot.urdf", "clouds", "truth.yaml", "truth_trajectory.csv"})
-
+                              "robot.urdf", "clouds", "truth.yaml", TRUTH_TRAJECTORY_FILE})
 
 
 def result_to_dataset(result: SimulationResult, *, with_planes: bool, progress: bool = False):
@@ -130,3 +137,184 @@ def write_simulation(result: SimulationResult, out_dir: str | Path, *, output: s
     write_dataset(ds, out_dir, clouds=clouds, robot_urdf_xml=urdf, overwrite=overwrite,
                   extra_files={"truth.yaml": yaml.safe_dump(truth, sort_keys=False)})
     return ds
+
+
+# ----------------------------------------------------------------------------- walks
+def _pose_yaml(T: np.ndarray) -> dict:
+    """``{xyz: [m], quaternion_wxyz, rpy_deg}`` of a 4x4 pose (truth.yaml)."""
+    from graphcal.geometry import xyz_quat_wxyz_from_pose, xyz_rpy_from_pose
+
+    xyz, q = xyz_quat_wxyz_from_pose(T)
+    _, rpy = xyz_rpy_from_pose(T)
+    return {"xyz": [float(v) for v in xyz], "quaternion_wxyz": [float(v) for v in q],
+            "rpy_deg": [float(v) for v in np.degrees(rpy)]}
+
+
+def truth_table(result: WalkingResult):
+    """The truth trajectory at ``truth_rate_hz``: a :class:`~graphcal.io.dataset.Table`-like dict of
+    columns time, x, y, z, qw, qx, qy, qz (T_world_body), vx, vy, vz (world), gyro/accel biases."""
+    c = result.config
+    step = max(1, int(round(c.rate_hz / c.truth_rate_hz)))
+    idx = np.arange(0, len(result.times), step)
+    T = result.T_world_body[idx]
+    from graphcal.geometry import quat_wxyz_from_matrix_batch
+
+    q = quat_wxyz_from_matrix_batch(T[:, :3, :3])
+    cols = {"time": result.times[idx]}
+    for k, n in enumerate("xyz"):
+        cols[n] = T[:, k, 3]
+    for k, n in enumerate(("qw", "qx", "qy", "qz")):
+        cols[n] = q[:, k]
+    for k, n in enumerate(("vx", "vy", "vz")):
+        cols[n] = result.v_world_body[idx, k]
+    for k, n in enumerate(("bgx", "bgy", "bgz")):
+        cols[n] = result.gyro_bias[idx, k]
+    for k, n in enumerate(("bax", "bay", "baz")):
+        cols[n] = result.accel_bias[idx, k]
+    return cols
+
+
+def _truth_csv_text(cols: dict) -> str:
+    """``truth_trajectory.csv``: a header line and the columns at 10 significant digits."""
+    names = list(cols)
+    A = np.column_stack([cols[n] for n in names])
+    import io
+
+    buf = io.StringIO()
+    buf.write(",".join(names) + "\n")
+    np.savetxt(buf, A, delimiter=",", fmt="%.10g")
+    return buf.getvalue()
+
+
+def walking_dataset(result: WalkingResult, cloud_names: list[str] | None = None):
+    """The walk as a contract :class:`~graphcal.io.dataset.Dataset` (timeseries only).
+    ``cloud_names``: relative PLY path per cloud (default ``clouds/depth/<frame>.ply``)."""
+    from graphcal.io.dataset import Dataset, ImuSpec, PosePrior, RobotSpec, SensorSpec, Table
+
+    info = result.info
+    N = len(result.times)
+    cols: dict[str, object] = {"time": np.round(result.times, 9)}
+    for f in result.feet:
+        for name in result.robot.leg(f).joint_names:
+            cols[f"q_{name}"] = result.q_measured[name]
+    for f in result.feet:
+        for name in result.robot.leg(f).joint_names:
+            cols[f"tau_{name}"] = result.tau_measured[name]
+    for k, n in enumerate("xyz"):
+        cols[f"imu_a{n}"] = result.imu_accel[:, k]
+    for k, n in enumerate("xyz"):
+        cols[f"imu_g{n}"] = result.imu_gyro[:, k]
+    sensors = {}
+    if len(result.cloud_indices):
+        names = cloud_names or [f"clouds/depth/{j:05d}.ply" for j in range(len(result.cloud_indices))]
+        col = np.full(N, "", dtype=object)
+        col[result.cloud_indices] = names
+        cols["cloud_depth"] = col.astype(str)
+        cad = info.sensors["depth"]
+        sensors["depth"] = SensorSpec("depth", cad.type,
+                                      PosePrior.from_matrix(cad.T_body_sensor, cad.sigma_m, cad.sigma_rad))
+    for i, f in enumerate(result.feet):
+        cols[f"contact_{f}"] = result.contact[:, i].astype(float)
+    if result.foot_force is not None:
+        for i, f in enumerate(result.feet):
+            cols[f"force_{f}"] = result.foot_force[:, i]
+    ground = {"type": "stairs"} if result.config.stairs else {"type": "level"}
+    return Dataset(
+        robot=RobotSpec(urdf=None, model=result.config.robot, base_frame=info.base_frame, feet=tuple(result.feet)),
+        sensors=sensors,
+        imu=ImuSpec(PosePrior.from_matrix(info.T_body_imu, 0.0, float(np.radians(1.0)))),
+        ground=ground,
+        stance={"feet_fixed_within": "step"},
+        timeseries=Table.from_columns(cols),
+    )
+
+
+def truth_dict(result: WalkingResult) -> dict:
+    """Plain dict for ``truth.yaml`` (what the walk hides)."""
+    c = result.config
+    stairs = [
+        {"x_start_m": s.x_start_m, "depth_m": s.depth_m, "height_m": s.height_m, "width_m": s.width_m}
+        for s in (result.terrain.stairs if result.terrain is not None else ())
+    ]
+    cfg = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in c.__dict__.items()}
+    return {
+        "format": "graphcal-truth/1",
+        "note": "hidden simulation truth; only evaluations read this file",
+        "robot": c.robot,
+        "program": c.program,
+        "seed": int(c.seed),
+        "ground": {"type": "stairs" if c.stairs else "level", "stairs": stairs},
+        "trajectory": {"file": TRUTH_TRAJECTORY_FILE, "frame": "T_world_body",
+                       "columns": "time, x, y, z, qw, qx, qy, qz (T_world_body), vx, vy, vz (world, m/s), "
+                                  "bgx..bgz (gyro bias, rad/s), bax..baz (accel bias, m/s^2)"},
+        "distance_m": result.distance_m,
+        "gait": {"groups": [list(g) for g in result.groups], "cycle_s": c.cycle_s, "duty_factor": c.duty_factor,
+                 **({"phase_offsets": dict(c.gait.phase_offsets)} if c.gait.phase_offsets else {})},
+        "sensors": {"depth": {"type": "depth_camera", "T_body_sensor": _pose_yaml(result.T_body_sensor)}},
+        "imu": {"T_body_imu": _pose_yaml(result.T_body_imu),
+                "accel_bias_start_m_s2": [float(v) for v in result.accel_bias[0]],
+                "gyro_bias_start_rad_s": [float(v) for v in result.gyro_bias[0]]},
+        "body_mass_kg": c.body_mass_kg,
+        "noise": {
+            "encoder_sigma_rad": c.encoder_sigma_rad, "torque_sigma_nm": c.torque_sigma_nm,
+            "gyro_noise_density": c.gyro_noise_density, "accel_noise_density": c.accel_noise_density,
+            "gyro_bias_rw": c.gyro_bias_rw, "accel_bias_rw": c.accel_bias_rw,
+        },
+        "config": cfg,
+    }
+
+
+def write_walking(result: WalkingResult, out_dir: str | Path, *, overwrite: bool = False) -> Path:
+    """Write the walk as a dataset folder (contract files, clouds) with ``truth.yaml`` and
+    ``truth_trajectory.csv`` beside it, atomically (:func:`graphcal.io.dataset.write_dataset`)."""
+    import yaml
+
+    from graphcal.io.dataset import write_dataset
+
+    out = Path(out_dir)
+    names = [f"clouds/depth/{j:05d}.ply" if len(cl) else "" for j, cl in enumerate(result.clouds)]
+    ds = walking_dataset(result, names)  # a frame that saw nothing has no file
+    extra = {
+        "truth.yaml": yaml.safe_dump(truth_dict(result), sort_keys=False),
+        TRUTH_TRAJECTORY_FILE: _truth_csv_text(truth_table(result)),
+    }
+    clouds = {n: cl for n, cl in zip(names, result.clouds) if n}
+    write_dataset(ds, out, overwrite=overwrite, extra_files=extra, timeseries_clouds=clouds)
+    return out
+
+
+def simulate_walking_to_folder(
+    *,
+    program: str,
+    out_dir: str | Path,
+    robot: str | None = None,
+    seed: int = 0,
+    distance_m: float | None = None,
+    duration_s: float | None = None,
+    cloud_rate_hz: float | None = None,
+    cloud_stride: int | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> str:
+    """``graphcal simulate --program tripod-walk|tripod-stairs|trot|walk``: simulate and write the folder.
+    Returns a one-paragraph summary."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise GraphcalError(f"{out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise GraphcalError(f"{out}: folder exists and is not empty; choose another --out or pass --overwrite")
+    kw = {}
+    if cloud_rate_hz is not None:
+        kw["cloud_rate_hz"] = float(cloud_rate_hz)
+    if cloud_stride is not None:
+        kw["cloud_stride"] = int(cloud_stride)
+    cfg = WalkingConfig(program=program, robot=robot, seed=seed, distance_m=distance_m, duration_s=duration_s, **kw)
+    result = simulate_walking(cfg, progress=progress)
+    write_walking(result, out, overwrite=overwrite)
+    c = result.config
+    return (
+        f"wrote {out}: {c.program} of the {c.robot}, {result.distance_m:.2f} m in {result.times[-1]:.1f} s; "
+        f"{len(result.times)} samples at {c.rate_hz:g} Hz (joints, torques, IMU), {len(result.cloud_indices)} depth "
+        f"clouds at {c.cloud_rate_hz:g} Hz (stride {c.cloud_stride}); truth in {out / 'truth.yaml'} and "
+        f"{out / TRUTH_TRAJECTORY_FILE}"
+    )

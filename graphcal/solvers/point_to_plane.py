@@ -1,7 +1,7 @@
 """The Gauss-Newton step of point-to-plane ICP, taken only along the directions the data constrains.
 
 Both of graphcal's registrations use it: :mod:`graphcal.clouds.icp` (a new frame onto a keyframe,
-for the EKF) and the stitching of :mod:`graphcal.locomotion.stairs` (a cloud onto the map of the others). They
+for the EKF) and :mod:`graphcal.clouds.stitch` (a cloud onto the map of the others; the stairs model). They
 differ in how correspondences are found and weighted; the linear algebra is this module's.
 
 Coordinates: the right perturbation ``T = T_hat Exp(xi)``, ``xi = [omega, v]`` (rad, m;
