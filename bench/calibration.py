@@ -61,8 +61,8 @@ def bench_chai(repeats: int = 6) -> dict:
     from graphcal.calibration.measurements import calibration_data, station_measurements
     from graphcal.geometry import plane_from_points_pca, se3_exp, transform_points
     from graphcal.io.dataset import cloud_paths, load_cloud, load_dataset_robot, read_dataset
-    from graphcal.simulation.write import write_simulation
     from graphcal.simulation.session import SimulationConfig, simulate
+    from graphcal.simulation.write import write_simulation
     from graphcal.testing import true_extrinsic
 
     folder = Path(tempfile.mkdtemp(prefix="graphcal-bench-")) / "chai"
@@ -129,8 +129,8 @@ def bench_isam(n_stations: int = 500, checkpoints=(50, 100, 250, 500)) -> dict:
     from graphcal.calibration.incremental import calibrator_for_problem, dataset_station_steps, station_updates
     from graphcal.calibration.measurements import calibration_data
     from graphcal.io.dataset import load_dataset_robot, read_dataset
-    from graphcal.simulation.write import write_simulation
     from graphcal.simulation.session import SimulationConfig, simulate
+    from graphcal.simulation.write import write_simulation
     from graphcal.solvers.batch import solve_lm
 
     folder = Path(tempfile.mkdtemp(prefix="graphcal-bench-")) / "isam"
@@ -202,8 +202,8 @@ def bench_large(n_stations: int = 1000) -> dict:
 
     import graphcal.calibration.noise_estimation as ne
     from graphcal.calibration.calibrate import calibrate
-    from graphcal.simulation.write import write_simulation
     from graphcal.simulation.session import SimulationConfig, simulate
+    from graphcal.simulation.write import write_simulation
 
     folder = Path(tempfile.mkdtemp(prefix="graphcal-bench-")) / "large"
     write_simulation(simulate(SimulationConfig(robot="octopus", program="random", n_stations=n_stations,

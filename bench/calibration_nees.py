@@ -139,8 +139,8 @@ def _one_run(job: tuple[int, tuple[str, ...], str, str]) -> dict:
         from graphcal.calibration.calibrate import calibrate
         from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between
         from graphcal.io.dataset import read_dataset
-        from graphcal.simulation.write import write_simulation
         from graphcal.simulation.session import simulate
+        from graphcal.simulation.write import write_simulation
         from graphcal.solvers.covariance import extrinsic_errors
 
         t0 = time.perf_counter()

@@ -37,8 +37,8 @@ import numpy as np  # noqa: E402
 from graphcal.calibration.calibrate import calibrate  # noqa: E402
 from graphcal.commands.simulate import run as simulate_to_folder  # noqa: E402
 from graphcal.diagnosis import diagnose  # noqa: E402
-from graphcal.report.diagnosis_json import diagnosis_to_dict  # noqa: E402
 from graphcal.report.calibration_yaml import calibration_to_dict  # noqa: E402
+from graphcal.report.diagnosis_json import diagnosis_to_dict  # noqa: E402
 
 
 def calibrate_to_dict(folder: Path) -> dict:

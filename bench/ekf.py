@@ -65,8 +65,8 @@ def main(argv=None) -> dict:
     import filterpy
 
     from graphcal.locomotion.estimator import TrackerConfig, run_filter
-    from graphcal.locomotion.track_inputs import inputs_from_walking
     from graphcal.locomotion.metrics import pose_errors
+    from graphcal.locomotion.track_inputs import inputs_from_walking
     from graphcal.simulation.walking import WalkingConfig, simulate_walking
 
     walks = {

@@ -36,8 +36,8 @@ TARGET_MS = 100.0
 
 def record_states(robot, info, model, steps, n_steps: int = 12):
     """Planning states of the walk (as tests/test_gait.py): (T_world_body, stance, feet)."""
-    from graphcal.planning.gait import gait_parameters
     from graphcal.geometry import pose_matrix
+    from graphcal.planning.gait import gait_parameters
     from graphcal.simulation.stairs_clouds import stairs_height
 
     T = pose_matrix(np.eye(3), [0.1, 0.0, info.default_body_height_m])
@@ -78,8 +78,8 @@ def configurations_of(robot, model, state):
 def baseline_step(captured, cfg) -> int:
     """Evaluate every captured configuration one at a time (ik_leg on one target, one shin's
     distances); returns the number of configurations."""
-    from graphcal.planning.gait import _solid_distance, segment_distances
     from graphcal.models.kinematics import ik_leg, joint_frames
+    from graphcal.planning.gait import _solid_distance, segment_distances
 
     n = 0
     for ctx, st, R, o, p in captured:
@@ -107,10 +107,10 @@ def main(argv=None) -> dict:
     ap.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
     args = ap.parse_args(argv)
 
-    from graphcal.planning.gait import GaitConfig, gait_parameters
+    from graphcal.locomotion.stairs import StairsModelConfig, model_stairs
     from graphcal.models.builtin import builtin_info
     from graphcal.models.robot import load_robot
-    from graphcal.locomotion.stairs import StairsModelConfig, model_stairs
+    from graphcal.planning.gait import GaitConfig, gait_parameters
     from graphcal.simulation.stairs_clouds import simulate_stairs_clouds
 
     robot, info = load_robot(model="qingzhui"), builtin_info("qingzhui")

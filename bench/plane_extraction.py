@@ -84,8 +84,8 @@ def main(argv=None) -> dict:
 
     import open3d as o3d
 
-    from graphcal.geometry import canonical_plane, invert_pose, plane_from_points_pca, transform_plane
     from graphcal.clouds.planes import extract_planes, kinect_distance_sigma
+    from graphcal.geometry import canonical_plane, invert_pose, plane_from_points_pca, transform_plane
 
     true_pts, labels, T, cam = build_scene_hits()
     n_true, d_true = canonical_plane(*transform_plane(invert_pose(T), [0.0, 0.0, 1.0], 0.0))

@@ -25,8 +25,8 @@ import numpy as np
 
 from graphcal.calibration.calibrate import calibrate
 from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between, xyz_rpy_from_pose
-from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
+from graphcal.simulation.write import write_simulation
 
 PAPER = {"theta_mean_deg": 0.2104, "theta_max_deg": 0.5219, "e_d_mean_mm": 1.1, "e_d_max_mm": 3.236,
          "table4_max_std_deg": 0.0517, "table4_max_std_mm": 0.7932, "table5_max_std_deg": 0.0461,

@@ -133,11 +133,10 @@ def _compare(cause: str, truth: dict, finding: dict, sim_truth: dict) -> tuple[b
 
 
 def run_case(seed: int, robot: str, hidden: str, workdir: Path) -> CaseResult:
-    from graphcal.diagnosis import diagnose
-    from graphcal.report.diagnosis_json import diagnosis_to_dict
     from graphcal.commands.simulate import run as simulate_to_folder
-
+    from graphcal.diagnosis import diagnose
     from graphcal.errors import GraphcalError
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
 
     t0 = time.perf_counter()
     out = workdir / f"case_{seed}_{robot}_{hidden}"

@@ -167,8 +167,8 @@ def _custom_robot(robot: str):
 
 def run_case(seed: int, robot: str, kind: str, cache: Path, workdir: Path) -> BookCase:
     from graphcal.diagnosis import diagnose
-    from graphcal.report.diagnosis_json import diagnosis_to_dict
     from graphcal.errors import DatasetError
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
     from graphcal.simulation.bookkeeping import make_case
 
     out = Path(workdir) / f"book_{seed}_{robot}_{kind}"

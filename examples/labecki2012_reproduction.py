@@ -26,8 +26,8 @@ import numpy as np
 from graphcal.calibration.calibrate import calibrate
 from graphcal.geometry import pose_from_xyz_quat_wxyz, rotation_angle_between, se3_exp, transform_points
 from graphcal.io.dataset import load_cloud, read_dataset
-from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
+from graphcal.simulation.write import write_simulation
 
 PAPER = {"epsilon_laser_mm": (8.566, 7.441), "epsilon_stereo_mm": (4.145, 2.085), "elevation_m": (0.041, 0.014)}
 START_LEVELS = ((0.01, 5.0), (0.1, 10.0), (0.2, 50.0))  # (sigma_d m, sigma_a deg), the paper's Tables 3-4
@@ -81,10 +81,11 @@ def main(starts: int = 50, seed: int = 2012, stride: int = 2) -> dict:
         cad = ds.sensors[s].T_body_sensor_prior.matrix
         est = result.sensors[s].T_body_sensor
         out["epsilon_mm"][s] = (_epsilon_mm(ds, s, cad, T_wb), _epsilon_mm(ds, s, est, T_wb))
-        out["error"][s] = {
-            "cad": (float(np.degrees(rotation_angle_between(cad[:3, :3], truth[s][:3, :3]))), float(1e3 * np.linalg.norm(cad[:3, 3] - truth[s][:3, 3]))),
-            "calibrated": (float(np.degrees(rotation_angle_between(est[:3, :3], truth[s][:3, :3]))), float(1e3 * np.linalg.norm(est[:3, 3] - truth[s][:3, 3]))),
-        }
+        def deg_mm(T, s=s):  # (rotation error deg, translation error mm) against the truth
+            return (float(np.degrees(rotation_angle_between(T[:3, :3], truth[s][:3, :3]))),
+                    float(1e3 * np.linalg.norm(T[:3, 3] - truth[s][:3, 3])))
+
+        out["error"][s] = {"cad": deg_mm(cad), "calibrated": deg_mm(est)}
     for label, Ts in (("cad", {s: ds.sensors[s].T_body_sensor_prior.matrix for s in ("laser", "stereo")}),
                       ("calibrated", {s: result.sensors[s].T_body_sensor for s in ("laser", "stereo")})):
         m_l = _elevation_map(ds, "laser", Ts["laser"], T_wb)

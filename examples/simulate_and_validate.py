@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from graphcal.commands.simulate import run as simulate_to_folder
 from graphcal.geometry import invert_pose, pose_from_xyz_quat_wxyz, transform_plane
 from graphcal.io.dataset import read_dataset, validate_dataset
-from graphcal.commands.simulate import run as simulate_to_folder
 
 
 def main(out_dir: str | Path | None = None, *, seed: int = 0, progress: bool = False) -> dict:

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from graphcal.factors.mocap_marker import mocap_marker_error
 from graphcal.errors import GraphcalError
+from graphcal.factors.mocap_marker import mocap_marker_error
 from graphcal.legs.identify import IdentifyOptions, identify_legs
 from graphcal.legs.mocap_data import MarkerTrack
 from graphcal.models.robot import load_robot

@@ -40,8 +40,8 @@ import numpy as np
 from graphcal.geometry import invert_pose
 from graphcal.legs.identify import IdentifyOptions, identify_legs
 from graphcal.legs.mocap_data import mocap_data_from_dataset
-from graphcal.models.legs import point_kinematics, theta_from_perturbation
 from graphcal.models.kinematics import fk_leg
+from graphcal.models.legs import point_kinematics, theta_from_perturbation
 from graphcal.models.robot import load_robot
 from graphcal.simulation.mocap import YUAN_FOOT, YUAN_PERTURBATION, simulate_yuan_session
 

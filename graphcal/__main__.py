@@ -1,4 +1,5 @@
 import sys
+
 from graphcal.cli import main
 
 sys.exit(main())

@@ -423,9 +423,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"graphcal {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        from graphcal.io.atomic import InterruptedAfterWrite
-
-        from graphcal.io.atomic import Terminated
+        from graphcal.io.atomic import InterruptedAfterWrite, Terminated
 
         said = f"interrupted {exc}" if isinstance(exc, InterruptedAfterWrite) else "interrupted; nothing was written"
         print(f"graphcal {args.command}: {said}", file=sys.stderr)

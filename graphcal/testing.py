@@ -29,8 +29,8 @@ from gtsam.utils.numerical_derivative import numericalDerivative11
 from graphcal.calibration.graph import CalibrationOptions
 from graphcal.geometry import pose_from_xyz_quat_wxyz, pose_matrix, rot_y, rot_z
 from graphcal.models.builtin import R_BODY_OPTICAL, BuiltinInfo, SensorCAD
-from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import CustomRobot, SimulationConfig, simulate
+from graphcal.simulation.write import write_simulation
 from graphcal.solvers.covariance import extrinsic_errors
 
 H_STEP = 1e-6

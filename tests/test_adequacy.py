@@ -12,8 +12,7 @@ import pytest
 import yaml
 
 from graphcal import stats
-from graphcal.calibration.adequacy import (ALPHA, RATIO_LIMIT, adequacy_verdict, group_check, gross_stations,
-                                           physical_noise)
+from graphcal.calibration.adequacy import ALPHA, RATIO_LIMIT, adequacy_verdict, gross_stations, group_check, physical_noise
 from graphcal.errors import DatasetError
 
 REPO = Path(__file__).resolve().parents[1]

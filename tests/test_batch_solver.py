@@ -8,7 +8,6 @@ optimum is checked.
 
 from __future__ import annotations
 
-
 import gtsam
 import numpy as np
 import pytest

@@ -178,8 +178,8 @@ def test_calibrate_legs_writes_them_and_shows_progress(small_dataset, tmp_path):
     (no --quiet: one line per solve)."""
     import xml.etree.ElementTree as ET
 
-    from graphcal.models.builtin import builtin_urdf
     from graphcal.io.calibration_yaml import read_calibration_yaml
+    from graphcal.models.builtin import builtin_urdf
 
     out = tmp_path / "cal_legs"
     proc = run("calibrate", small_dataset, "--out", out, "--legs", check_rc=0)

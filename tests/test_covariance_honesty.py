@@ -12,8 +12,8 @@ import pytest
 from scipy.stats import chi2
 
 from graphcal.calibration.calibrate import calibrate
-from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
+from graphcal.simulation.write import write_simulation
 from graphcal.solvers.covariance import nees
 from graphcal.testing import SIMULATOR_NOISE, custom_hexapod, true_extrinsic
 

@@ -1,8 +1,9 @@
 """Corrupted datasets: read_dataset / validate_dataset either succeed or raise DatasetError, nothing else.
 
 Random byte flips, truncations and insertions, and cell/token replacements with 'nan', 'inf', '',
-'1e400', extreme finite numbers ('1e300', '1.7e308', '5e-324'), YAML aliases, text..., in dataset.yaml, the CSV files and the PLY clouds (one ASCII, one binary) of the
-hand-made fixture tests/data/octopus_small.
+'1e400', extreme finite numbers ('1e300', '1.7e308', '5e-324'), YAML aliases, text..., in
+dataset.yaml, the CSV files and the PLY clouds (one ASCII, one binary) of the hand-made fixture
+tests/data/octopus_small.
 """
 
 from __future__ import annotations

@@ -87,8 +87,8 @@ def test_a_plate_under_two_feet_is_structure_not_a_session_offset(tmp_path):
     no note. Now the foot-height group fails at physical noise, the offset is at most tentative, the
     answer is neither model, and calibrate-style warnings name the group."""
     from graphcal.diagnosis import diagnose
-    from graphcal.report.diagnosis_json import diagnosis_to_dict
     from graphcal.models.robot import load_robot
+    from graphcal.report.diagnosis_json import diagnosis_to_dict
     from graphcal.simulation.effects import OpenWorld
 
     feet = load_robot(model="octopus").feet

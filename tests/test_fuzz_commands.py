@@ -28,7 +28,6 @@ import signal
 import warnings
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 from hypothesis import HealthCheck, event, given, seed, settings

@@ -13,6 +13,11 @@ import numpy as np
 import pytest
 
 from graphcal.errors import GraphcalError
+from graphcal.geometry import pose_matrix
+from graphcal.locomotion.stairs import model_stairs, stairs_model_from_steps
+from graphcal.models.builtin import builtin_info
+from graphcal.models.kinematics import foot_positions, ik_leg, joint_frames
+from graphcal.models.robot import load_robot
 from graphcal.planning.gait import (
     GaitConfig,
     GaitError,
@@ -23,11 +28,6 @@ from graphcal.planning.gait import (
     swing_collides,
     swing_trajectory,
 )
-from graphcal.geometry import pose_matrix
-from graphcal.models.builtin import builtin_info
-from graphcal.models.kinematics import foot_positions, ik_leg, joint_frames
-from graphcal.models.robot import load_robot
-from graphcal.locomotion.stairs import model_stairs, stairs_model_from_steps
 from graphcal.simulation.stairs_clouds import simulate_stairs_clouds, stairs_height
 
 CFG = GaitConfig()

@@ -9,8 +9,8 @@ import pytest
 from graphcal.calibration.ground_selection import GATE_D_M, choose_ground_planes, predicted_plane
 from graphcal.calibration.measurements import PlaneMeasurement
 from graphcal.geometry import pose_from_xyz_rpy
-from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
+from graphcal.simulation.write import write_simulation
 
 T_TRUE = pose_from_xyz_rpy([0.30, 0.02, 0.40], np.radians([-110.0, 0.0, -90.0]))
 RISER_M = 0.13

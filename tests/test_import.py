@@ -108,7 +108,8 @@ def test_bag_import_validate_calibrate(fmt, sim, reference_error, tmp_path):
 def _sensorless_stations(out, *, seed, n_stations):
     """Stations of the a1 (no camera or laser: `graphcal simulate` refuses that combination, since
     there is nothing to calibrate; a CSV log of joints, IMU and foot forces only needs the poses)."""
-    from graphcal.simulation.session import SimulationConfig, simulate as simulate_session
+    from graphcal.simulation.session import SimulationConfig
+    from graphcal.simulation.session import simulate as simulate_session
     from graphcal.simulation.write import write_simulation
 
     res = simulate_session(SimulationConfig(robot="a1", program="random", ground="level", seed=seed,

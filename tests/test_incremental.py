@@ -17,21 +17,21 @@ import gtsam
 import numpy as np
 import pytest
 
-from graphcal.factors.foot_on_ground import foot_on_ground_factor
-from graphcal.factors.imu_attitude import imu_attitude_factor
-from graphcal.factors.keys import F, S, X
-from graphcal.factors.priors import commanded_pose_prior, extrinsic_prior
-from graphcal.factors.stance_foot import joint_noise_covariance
 from graphcal.calibration.calibrate import calibrate
 from graphcal.calibration.change_detection import ChangeDetector
 from graphcal.calibration.graph import CalibrationOptions, build_problem
 from graphcal.calibration.incremental import IncrementalCalibrator, calibrate_incremental, station_updates
 from graphcal.calibration.measurements import PlaneMeasurement, calibration_data
+from graphcal.factors.foot_on_ground import foot_on_ground_factor
+from graphcal.factors.imu_attitude import imu_attitude_factor
+from graphcal.factors.keys import F, S, X
+from graphcal.factors.priors import commanded_pose_prior, extrinsic_prior
+from graphcal.factors.stance_foot import joint_noise_covariance
 from graphcal.geometry import invert_pose, pose_from_xyz_quat_wxyz, se3_exp, skew, so3_exp, to_gtsam_pose
 from graphcal.io.dataset import load_dataset_robot, read_dataset
 from graphcal.simulation.effects import Effects, ExtrinsicChange
-from graphcal.simulation.write import result_to_dataset, write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
+from graphcal.simulation.write import result_to_dataset, write_simulation
 
 #: no robust loss and no variance-component estimation: the incremental solver must then
 #: reproduce the batch exactly (the batch re-estimates the noise from all residuals, which an

@@ -16,13 +16,13 @@ from graphcal.geometry import pose_from_xyz_rpy, rot_z
 from graphcal.legs.identifiability import identifiability
 from graphcal.legs.identify import IdentifyOptions, identify_legs, identify_legs_dataset
 from graphcal.legs.mocap_data import mocap_data_from_dataset
-from graphcal.models.legs import point_kinematics, theta_from_perturbation
 from graphcal.legs.virtual_base import (
     point_covariance_in_vbase,
     vbase_points,
     virtual_base,
     virtual_base_covariance,
 )
+from graphcal.models.legs import point_kinematics, theta_from_perturbation
 from graphcal.models.perturb import LegPerturbation
 from graphcal.models.robot import load_robot
 from graphcal.simulation.mocap import a1_body_marker_layout, simulate_mocap, write_mocap_simulation

@@ -14,8 +14,8 @@ import pytest
 from graphcal.legs.adequacy import adequacy, jackknife_covariance, significance
 from graphcal.legs.identify import IdentifyOptions, identify_legs, identify_legs_dataset
 from graphcal.legs.mocap_data import MarkerTrack
-from graphcal.report.legs_output import legs_yaml_dict
 from graphcal.models.perturb import LegPerturbation
+from graphcal.report.legs_output import legs_yaml_dict
 from graphcal.simulation.mocap import simulate_mocap
 
 ROOT = Path(__file__).resolve().parents[1]

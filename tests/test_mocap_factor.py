@@ -9,9 +9,9 @@ import gtsam
 import numpy as np
 import pytest
 
+from graphcal.errors import ModelError
 from graphcal.factors.keys import K, L, V
 from graphcal.factors.mocap_marker import marker_covariance, mocap_marker_error, mocap_marker_factor, sqrt_information
-from graphcal.errors import ModelError
 from graphcal.geometry import pose_from_xyz_rpy, se3_exp
 from graphcal.models.legs import (
     ORIGIN_CHOICES,

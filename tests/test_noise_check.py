@@ -13,13 +13,13 @@ import pytest
 import yaml
 
 from graphcal.calibration.calibrate import calibrate
-from graphcal.commands.calibrate import run as run_calibrate
 from graphcal.calibration.graph import CalibrationOptions
 from graphcal.calibration.incremental import calibrate_incremental
-from graphcal.io.dataset import read_dataset
+from graphcal.commands.calibrate import run as run_calibrate
 from graphcal.io.calibration_yaml import read_calibration_yaml
-from graphcal.simulation.write import write_simulation
+from graphcal.io.dataset import read_dataset
 from graphcal.simulation.session import SimulationConfig, simulate
+from graphcal.simulation.write import write_simulation
 
 
 @pytest.fixture(scope="module")

@@ -12,8 +12,8 @@ from graphcal.calibration.calibrate import solve_problem
 from graphcal.calibration.graph import CalibrationOptions, build_problem
 from graphcal.calibration.measurements import calibration_data
 from graphcal.io.dataset import load_dataset_robot, read_dataset
-from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
+from graphcal.simulation.write import write_simulation
 
 
 @pytest.fixture(scope="module")

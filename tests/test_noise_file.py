@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 import yaml
 
-from graphcal.commands.calibrate import run as run_calibrate
 from graphcal.calibration.graph import CalibrationOptions
 from graphcal.calibration.noise_file import NOISE_KEYS, options_with_noise_from
+from graphcal.commands.calibrate import run as run_calibrate
 from graphcal.errors import DatasetError
 from graphcal.geometry import invert_pose, pose_from_xyz_quat_wxyz, to_gtsam_pose
 from graphcal.io.calibration_yaml import read_calibration_yaml
-from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
+from graphcal.simulation.write import write_simulation
 
 NOISE = {"sigma_joint_rad": 0.005, "sigma_contact_m": 0.0011, "sigma_ground_m": 0.0003, "sigma_imu_rad": 0.0006,
          "sigma_commanded_rad": 0.0009, "sigma_commanded_m": 0.0005, "plane_scale:depth": 0.8}

@@ -11,15 +11,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from graphcal.errors import GraphcalError
-from graphcal.geometry import (
-    canonical_plane,
-    invert_pose,
-    matrix_from_rpy,
-    plane_from_points_pca,
-    pose_matrix,
-    transform_plane,
-)
 from graphcal.clouds.planes import (
     PlaneFit,
     _chai_refine,
@@ -30,6 +21,15 @@ from graphcal.clouds.planes import (
     kinect_sigma_z,
     plane_tangent_basis,
     truncation_variance_ratio,
+)
+from graphcal.errors import GraphcalError
+from graphcal.geometry import (
+    canonical_plane,
+    invert_pose,
+    matrix_from_rpy,
+    plane_from_points_pca,
+    pose_matrix,
+    transform_plane,
 )
 from graphcal.models.sensors import DepthCamera
 from graphcal.simulation.sensors import capture
@@ -487,8 +487,8 @@ def test_planes_rows_reads_clouds_on_its_threads_and_passes_on_read_errors(floor
     reader's DatasetError reaches the caller instead of being taken for "no plane here"."""
     import threading
 
-    from graphcal.errors import DatasetError
     from graphcal.clouds.plane_table import planes_rows
+    from graphcal.errors import DatasetError
 
     P = floor_frame[0]
     types = {"depth": "depth_camera"}
@@ -529,8 +529,8 @@ def test_planes_rows_on_worker_processes_same_rows_and_errors_reach_the_caller(f
     GraphcalError naming the cloud, both with the worker's traceback as the cause."""
     import os
 
-    from graphcal.errors import DatasetError, GraphcalError
     from graphcal.clouds.plane_table import _can_fork_workers, planes_rows
+    from graphcal.errors import DatasetError, GraphcalError
 
     if not _can_fork_workers():
         pytest.skip("fork is not available or other threads are running")
@@ -600,8 +600,8 @@ def test_planes_rows_falls_back_to_threads_where_fork_is_unsafe(floor_frame, mon
     import sys
     import threading
 
-    from graphcal.errors import GraphcalError
     from graphcal.clouds.plane_table import _can_fork_workers, planes_rows
+    from graphcal.errors import GraphcalError
 
     if not sys.platform.startswith("linux"):
         pytest.skip("Linux only")
@@ -634,8 +634,8 @@ def test_planes_rows_falls_back_to_threads_where_fork_is_unsafe(floor_frame, mon
 
 
 def test_thin_cloud_keeps_every_kth_point_up_to_the_cap():
-    from graphcal.errors import GraphcalError
     from graphcal.clouds.plane_table import check_max_points, thin_cloud
+    from graphcal.errors import GraphcalError
 
     P = np.arange(3 * 1000, dtype=float).reshape(1000, 3)
     assert thin_cloud(P, None) is P and thin_cloud(P, 1000) is P

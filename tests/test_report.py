@@ -3,11 +3,11 @@ and the atomic writing of the set (graphcal.report)."""
 
 from __future__ import annotations
 
+import base64
 import html.parser
 import os
 import stat
 import subprocess
-import base64
 from pathlib import Path
 
 import numpy as np
@@ -35,11 +35,11 @@ from graphcal.geometry import (
     rot_z,
     se3_exp,
 )
+from graphcal.io.calibration_yaml import FORMAT, pose_from_dict, read_calibration_yaml
 from graphcal.models.builtin import builtin_info, builtin_urdf
 from graphcal.models.perturb import LegPerturbation, apply_perturbation, link_length_delta
 from graphcal.models.robot import load_robot
 from graphcal.report import write as write_mod
-from graphcal.io.calibration_yaml import FORMAT, pose_from_dict, read_calibration_yaml
 from graphcal.report.calibration_yaml import calibration_to_dict, calibration_yaml_text
 from graphcal.report.ros import static_transform_publisher_command, static_transforms_script
 from graphcal.report.urdf import calibrated_urdf

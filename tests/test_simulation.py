@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from graphcal.clouds.planes import fit_ground_plane
 from graphcal.errors import GraphcalError
 from graphcal.geometry import (
     invert_pose,
@@ -13,11 +14,10 @@ from graphcal.geometry import (
     rotation_angle_between,
     transform_points,
 )
-from graphcal.clouds.planes import fit_ground_plane
 from graphcal.models.effects import CAUSES
+from graphcal.models.sensors import DepthCamera, LaserScanner, StereoCamera
 from graphcal.simulation.effects import Effects, ExtrinsicChange, draw_effect
 from graphcal.simulation.programs import CHAI2015_TABLE_A1, station_program
-from graphcal.models.sensors import DepthCamera, LaserScanner, StereoCamera
 from graphcal.simulation.session import GRAVITY_M_S2, SimulationConfig, leg_link_joints, simulate
 from graphcal.simulation.terrain import LABEL_GROUND
 
@@ -189,7 +189,10 @@ def test_effect_extrinsic_change_from_its_station_on():
         pts = res.clouds[("depth", r.station)]
         T_right = before if r.station < 20 else after
         T_wrong = after if r.station < 20 else before
-        rms = lambda T: np.sqrt(np.mean(transform_points(r.T_world_body_real @ T, pts)[:, 2] ** 2))
+
+        def rms(T):
+            return np.sqrt(np.mean(transform_points(r.T_world_body_real @ T, pts)[:, 2] ** 2))
+
         assert rms(T_right) < rms(T_wrong)
 
 

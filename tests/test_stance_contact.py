@@ -11,9 +11,9 @@ from graphcal.factors.keys import F, L, Q, R, X
 from graphcal.factors.stance_contact import lower_leg_direction, lower_leg_directions, stance_contact_factor
 from graphcal.factors.stance_foot import stance_foot_factor
 from graphcal.models.builtin import builtin_info
-from graphcal.models.robot import load_robot
 from graphcal.models.kinematics import foot_positions
 from graphcal.models.legs import leg_model
+from graphcal.models.robot import load_robot
 from graphcal.testing import assert_jacobians, gtsam_values, random_pose
 
 

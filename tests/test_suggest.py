@@ -12,16 +12,16 @@ import pytest
 
 from graphcal.calibration.calibrate import calibrate
 from graphcal.calibration.graph import CalibrationOptions
-from graphcal.errors import GraphcalError
 from graphcal.calibration.suggest import PoseInformationModel, predict_sigmas, suggest_poses
 from graphcal.commands.suggest_poses import run as suggest_poses_command
+from graphcal.errors import GraphcalError
 from graphcal.io.dataset import read_dataset
 from graphcal.models.builtin import builtin_info
 from graphcal.models.kinematics import ik_leg
 from graphcal.simulation import session as sim_session
 from graphcal.simulation.programs import StationCommand, station_program
-from graphcal.simulation.write import write_simulation
 from graphcal.simulation.session import SimulationConfig, simulate
+from graphcal.simulation.write import write_simulation
 
 PLAIN = CalibrationOptions(robust=False, estimate_noise=False)
 

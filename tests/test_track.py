@@ -288,8 +288,8 @@ def test_track_returns_its_result_and_prints_its_summary(short_walk, tmp_path, c
 
 
 def test_track_refuses_a_negative_tum_rate_before_any_work(tmp_path):
-    from graphcal.errors import GraphcalError
     from graphcal.commands.track import run as run_track
+    from graphcal.errors import GraphcalError
 
     with pytest.raises(GraphcalError, match="--tum-rate must be a finite number >= 0"):
         run_track(tmp_path / "no-such-dataset", tmp_path / "out", tum_rate_hz=-5.0)

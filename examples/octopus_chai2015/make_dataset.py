@@ -61,9 +61,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from graphcal.geometry import pose_matrix, xyz_quat_wxyz_from_pose
+from graphcal.geometry import pose_matrix, rot_y, xyz_quat_wxyz_from_pose
 from graphcal.io.dataset import Dataset, PosePrior, RobotSpec, SensorSpec, Table, write_dataset
-from graphcal.geometry import rot_y
 from graphcal.models.builtin import R_BODY_OPTICAL, builtin_info, builtin_urdf
 from graphcal.simulation.programs import CHAI2015_TABLE_A1, chai2015_pose
 

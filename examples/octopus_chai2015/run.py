@@ -583,7 +583,8 @@ if __name__ == "__main__":
                     _e, _d = _v["diagnose_extrinsic"]["vs_eq32"], _v["discovered"]
                     print(f"{_p} prior sigma {_s:g} deg: mapping {_d['mapping']}, flips {_d['sign_flips']}, answer "
                           f"{_v['answer']}, rotation vs Eq. 32 {_e['rotation_deg']:.2f} deg ({_v['seconds']:.1f} s); unresolved: "
-                          + "; ".join(f"{k} -> {[c[0] for c in x['candidates']]}" + (f" all {x['every_variant']}" if x["every_variant"] else "")
+                          + "; ".join(f"{k} -> {[c[0] for c in x['candidates']]}"
+                                      + (f" all {x['every_variant']}" if x["every_variant"] else "")
                                       for k, x in _d["suspected"].items()))
         if "--hand-corrected" in sys.argv:
             for _k, _v in hand_corrected(_out).items():

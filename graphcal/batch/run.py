@@ -127,8 +127,9 @@ def run_tasks(fn: Callable[[Any], Any], items: Sequence[Any], executor: Executor
     bar = None
     redirect = contextlib.nullcontext()
     if progress:
-        from graphcal.progress import ProgressBar
         from tqdm.contrib.logging import logging_redirect_tqdm
+
+        from graphcal.progress import ProgressBar
 
         bar = ProgressBar(total=len(items), desc=desc, unit="task", file=sys.stderr, leave=True)
         redirect = logging_redirect_tqdm([logging.getLogger("graphcal")])  # messages above the bar

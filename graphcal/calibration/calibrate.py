@@ -18,14 +18,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from graphcal.errors import GraphcalError
-from graphcal.io.dataset import off_plane_scan_warning
 from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem, build_problem
 from graphcal.calibration.ground_selection import ground_choice_warnings
-from graphcal.calibration.measurements import (CalibrationData, calibration_data, plane_source_warnings,
-                                               require_sensors)
+from graphcal.calibration.measurements import CalibrationData, calibration_data, plane_source_warnings, require_sensors
 from graphcal.calibration.noise_estimation import VCE_ROUNDS, noise_groups_report, noise_update
 from graphcal.calibration.result import CalibrationResult, calibration_result
+from graphcal.errors import GraphcalError
+from graphcal.io.dataset import off_plane_scan_warning
 
 log = logging.getLogger(__name__)
 
@@ -299,7 +298,7 @@ def judge_result(inputs: BatchInputs, state: BatchState, options: CalibrationOpt
     against the physical noise, and when the model does not fit the robust covariance governing
     (robust.py) and the warning first. ``base_options``: the caller's options (before the noise was
     learned), from which the ``--legs`` and range-scale solves of the robust covariance start."""
-    from graphcal.calibration.adequacy import adequacy_verdict, group_checks, gross_stations, misfit_warning
+    from graphcal.calibration.adequacy import adequacy_verdict, gross_stations, group_checks, misfit_warning
     from graphcal.calibration.range_observability import range_scale_checks, with_range_scale_checks
     from graphcal.calibration.robust import robust_parts, station_chi2, with_robust_covariance
 

@@ -30,11 +30,11 @@ from typing import Protocol
 import gtsam
 import numpy as np
 
-from graphcal.factors.keys import C, F, G, L, M, S, X
-from graphcal.errors import GraphcalError
-from graphcal.geometry import to_gtsam_pose
 from graphcal.calibration.kinematic_pose import kinematic_bodies, leg_kinematics, leg_parameter_kinematics
 from graphcal.calibration.measurements import CalibrationData
+from graphcal.errors import GraphcalError
+from graphcal.factors.keys import C, F, G, L, M, S, X
+from graphcal.geometry import to_gtsam_pose
 
 
 @dataclass(frozen=True)

@@ -22,15 +22,20 @@ from typing import Callable, Mapping
 import gtsam
 import numpy as np
 
-from graphcal.factors.keys import F, S, X
-from graphcal.errors import GraphcalError
-from graphcal.geometry import from_gtsam_pose, to_gtsam_pose
 from graphcal.calibration.change_detection import ChangeDetector, Decision, innovation_nis, joint_covariance
-from graphcal.calibration.graph import (GAUGE_PRIOR_SIGMAS, CalibrationOptions, CalibrationProblem, build_problem,
-                    extrinsic_prior_for_observability, floored_extrinsic_prior)
-from graphcal.calibration.measurements import (CalibrationData, PlaneMeasurement, StationMeasurements, calibration_data,
-                           require_sensors)
+from graphcal.calibration.graph import (
+    GAUGE_PRIOR_SIGMAS,
+    CalibrationOptions,
+    CalibrationProblem,
+    build_problem,
+    extrinsic_prior_for_observability,
+    floored_extrinsic_prior,
+)
+from graphcal.calibration.measurements import CalibrationData, PlaneMeasurement, StationMeasurements, calibration_data, require_sensors
 from graphcal.calibration.result import CalibrationResult, ExtrinsicSegment, IncrementalStep, SensorEstimate
+from graphcal.errors import GraphcalError
+from graphcal.factors.keys import F, S, X
+from graphcal.geometry import from_gtsam_pose, to_gtsam_pose
 
 __all__ = ["IncrementalCalibrator", "calibrate_incremental", "station_updates"]
 
@@ -169,10 +174,10 @@ class IncrementalCalibrator:
         """Update A of the online path, built as graph.py builds the batch graph: the station's
         body pose, new feet / legs / IMU mounting / extrinsics with their priors, and its
         stance-foot, IMU and commanded-pose factors (a fresh graph and values)."""
-        from graphcal.factors.foot_on_ground import foot_on_ground_factor
-        from graphcal.factors.keys import M
         from graphcal.calibration.graph import imu_mounting_prior, leg_parameter_priors, station_factors
         from graphcal.calibration.kinematic_pose import feet_in_body
+        from graphcal.factors.foot_on_ground import foot_on_ground_factor
+        from graphcal.factors.keys import M
 
         o = self.options
         known = self._in_isam
@@ -678,13 +683,13 @@ def calibrate_incremental(
         added, ``history`` = one :class:`IncrementalStep` per station and sensor, and per sensor
         its extrinsic segments and change stations.
     """
-    from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
-    from graphcal.solvers.covariance import marginal_covariances
+    from graphcal.calibration.ground_selection import ground_choice_warnings
     from graphcal.calibration.measurements import plane_source_warnings
+    from graphcal.calibration.noise_check import given_noise_check
     from graphcal.calibration.residuals import plane_residuals
     from graphcal.calibration.result import calibration_result
-    from graphcal.calibration.ground_selection import ground_choice_warnings
-    from graphcal.calibration.noise_check import given_noise_check
+    from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
+    from graphcal.solvers.covariance import marginal_covariances
 
     ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
     require_sensors(ds, "calibrate --incremental")
@@ -802,7 +807,7 @@ def judge_incremental(ds, options: CalibrationOptions, problem, values, result, 
     stations; no ``--legs`` solve) and the warning first. Segments other than the last keep the
     model covariance. ``batch_groups``: the full batch graph's noise groups at this solution (judged instead of the planes-only
     groups of ``result`` when given)."""
-    from graphcal.calibration.adequacy import adequacy_verdict, group_checks, gross_stations, misfit_warning
+    from graphcal.calibration.adequacy import adequacy_verdict, gross_stations, group_checks, misfit_warning
     from graphcal.calibration.calibrate import dataset_physical_noise, model_sigmas
     from graphcal.calibration.robust import robust_parts, station_chi2, with_robust_covariance
 

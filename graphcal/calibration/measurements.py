@@ -252,8 +252,8 @@ def calibration_data(ds, robot, *, progress: bool = False, plane_max_points: int
     )
     if data.planes:
         # the floor among each station's planes: the one the stance feet and the extrinsic predict
-        from graphcal.calibration.kinematic_pose import kinematic_bodies
         from graphcal.calibration.ground_selection import choose_ground_planes
+        from graphcal.calibration.kinematic_pose import kinematic_bodies
 
         u_body, height, _ = kinematic_bodies(data, robot)  # cached on data: the graph reuses it
         priors = {name: (spec.T_body_sensor_prior.matrix, spec.T_body_sensor_prior.sigma_m,

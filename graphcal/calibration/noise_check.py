@@ -20,10 +20,15 @@ import dataclasses
 import numpy as np
 
 from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem
-from graphcal.calibration.noise_estimation import (NOISE_TOO_SMALL_P, VCE_INNER_ITERATIONS, VCE_INNER_TOLERANCE,
-                                                   VCE_MIN_REDUNDANCY, converged_scales, noise_groups_report)
+from graphcal.calibration.noise_estimation import (
+    NOISE_TOO_SMALL_P,
+    VCE_INNER_ITERATIONS,
+    VCE_INNER_TOLERANCE,
+    VCE_MIN_REDUNDANCY,
+    converged_scales,
+    noise_groups_report,
+)
 from graphcal.calibration.result import NoiseGroupEstimate, SensorEstimate
-
 
 #: a covariance multiplied by more than this is warned about even when the chi-square test is not
 #: significant (few dof)

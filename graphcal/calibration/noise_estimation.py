@@ -19,9 +19,9 @@ from typing import Callable, NamedTuple
 import gtsam
 import numpy as np
 
-from graphcal.errors import GraphcalError
 from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem
 from graphcal.calibration.result import NoiseGroupEstimate
+from graphcal.errors import GraphcalError
 
 
 def whitening_matrix(factor) -> np.ndarray:

@@ -19,8 +19,8 @@ import dataclasses
 import math
 from pathlib import Path
 
-from graphcal.errors import DatasetError
 from graphcal.calibration.graph import CalibrationOptions
+from graphcal.errors import DatasetError
 
 __all__ = ["NOISE_KEYS", "PLANE_SCALE_PREFIX", "noise_from_mismatch", "noise_summary", "options_with_noise_from"]
 

@@ -18,9 +18,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from graphcal.calibration.graph import DEFAULT_PLANE_COV, CalibrationOptions
 from graphcal.errors import GraphcalError
 from graphcal.geometry import invert_pose, pose_from_xyz_rpy, xyz_rpy_from_pose
-from graphcal.calibration.graph import DEFAULT_PLANE_COV, CalibrationOptions
 from graphcal.models.sensors import sensor_type
 
 __all__ = ["SuggestedPose", "suggest_poses", "predict_sigmas", "PoseInformationModel", "suggest_with_model", "MIN_GROUND_RAYS"]
@@ -65,10 +65,10 @@ class PoseInformationModel:
     """The information model of one dataset and camera (module docstring)."""
 
     def __init__(self, dataset, sensor: str | None, options: CalibrationOptions):
-        from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
-        from graphcal.models.sensors import sensor_for_type
         from graphcal.calibration.graph import build_problem
         from graphcal.calibration.measurements import calibration_data
+        from graphcal.io.dataset import Dataset, load_dataset_robot, read_dataset
+        from graphcal.models.sensors import sensor_for_type
 
         ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
         self.ds, self.options = ds, options
@@ -210,9 +210,9 @@ class PoseInformationModel:
 
     def station_informations(self, T: np.ndarray, q_by_foot: dict) -> list:
         """:meth:`station_information` for a batch: T (N, 4, 4), q_by_foot foot -> (N, n)."""
-        from graphcal.geometry import skew
         from graphcal.factors.imu_attitude import imu_attitude_error, imu_attitude_misaligned_error
         from graphcal.factors.plane_observation import plane_observation_error
+        from graphcal.geometry import skew
         from graphcal.models.kinematics import leg_jacobian
 
         o = self.options
@@ -377,9 +377,10 @@ def suggest_poses(
     Raises:
         GraphcalError: k < 1, no camera, no reachable candidate.
     """
-    return suggest_with_model(PoseInformationModel(dataset, sensor, options), k, candidates=candidates, n_candidates=n_candidates, seed=seed,
-                    min_separation_deg=min_separation_deg, sigma_target_deg=sigma_target_deg,
-                    sigma_target_mm=sigma_target_mm, after_existing=after_existing)
+    return suggest_with_model(PoseInformationModel(dataset, sensor, options), k, candidates=candidates,
+                              n_candidates=n_candidates, seed=seed, min_separation_deg=min_separation_deg,
+                              sigma_target_deg=sigma_target_deg, sigma_target_mm=sigma_target_mm,
+                              after_existing=after_existing)
 
 
 def suggest_with_model(model: PoseInformationModel, k: int, *, candidates, n_candidates: int, seed: int, min_separation_deg: float,

@@ -12,8 +12,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from graphcal.io.atomic import atomic_directory, atomic_write_text, check_command_output
 from graphcal.diagnosis.diagnose import Diagnosis, diagnose
+from graphcal.io.atomic import atomic_directory, atomic_write_text, check_command_output
 from graphcal.report.diagnosis_json import diagnosis_to_dict
 from graphcal.report.diagnosis_page import diagnosis_html, parameter_text, where_text
 

@@ -21,8 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graphcal.clouds.plane_table import (camera_clouds_without_planes, check_max_points, no_plane_found_warning,
-                                         planes_rows)
+from graphcal.clouds.plane_table import camera_clouds_without_planes, check_max_points, no_plane_found_warning, planes_rows
 from graphcal.errors import DatasetError, GraphcalError
 from graphcal.io.atomic import atomic_write_text, check_output_location, make_parent_folder
 from graphcal.io.dataset import Dataset, Table, cloud_paths, load_cloud, read_dataset, table_csv_text
@@ -168,5 +167,6 @@ def run(dataset: str | Path, out: str | Path | None = None, *, max_planes: int =
     backup = _keep_backup(out_path) if overwrite else None
     atomic_write_text(out_path, table_csv_text(Table.from_columns(rows)), overwrite=overwrite)
     return ExtractPlanesResult(dataset=str(dataset), ds=ds, rows=rows, out=out_path, backup=backup,
-                               beside=out is None and out_path.name == EXTRACTED_NAME, max_planes=int(max_planes), files=(out_path,) + ((backup,) if backup else ()),
+                               beside=out is None and out_path.name == EXTRACTED_NAME, max_planes=int(max_planes),
+                               files=(out_path,) + ((backup,) if backup else ()),
                                warnings=warnings)

@@ -76,9 +76,9 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, mocap_fr
             ``mocap.sigma_joint_deg``, else 1 mm / 0 deg. The covariance is scaled by sigma0^2.
         robust: robust loss per sample (``none``, ``huber``, ``cauchy``).
     """
-    from graphcal.report.legs_output import check_output_folder, write_identification_outputs
-
     import math
+
+    from graphcal.report.legs_output import check_output_folder, write_identification_outputs
 
     if sigma_marker_mm is not None and not (math.isfinite(sigma_marker_mm) and sigma_marker_mm > 0):
         raise GraphcalError(f"--sigma-marker-mm must be a finite number > 0 (mm), got {sigma_marker_mm}")

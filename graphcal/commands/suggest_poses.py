@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from graphcal.calibration.graph import CalibrationOptions
-from graphcal.calibration.suggest import (MIN_SEPARATION_DEG, N_CANDIDATES, PoseInformationModel, SuggestedPose,
-                                         suggest_with_model)
+from graphcal.calibration.suggest import MIN_SEPARATION_DEG, N_CANDIDATES, PoseInformationModel, SuggestedPose, suggest_with_model
 from graphcal.errors import GraphcalError
 from graphcal.geometry import xyz_quat_wxyz_from_pose
 

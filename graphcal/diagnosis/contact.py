@@ -53,8 +53,8 @@ def contact_candidates(model, problem, system, values) -> list[CandidateColumns]
     """The ``foot_radius`` candidate and one ``joint_compliance`` candidate per joint index (every
     leg's joint at that index shares one constant), as dense columns of the screening ``system``
     (problem solved at ``values``); none once either is in the model."""
-    from graphcal.geometry import from_gtsam_pose
     from graphcal.calibration.kinematic_pose import leg_kinematics
+    from graphcal.geometry import from_gtsam_pose
 
     if model.found("foot_radius") or model.found("joint_compliance"):
         return []

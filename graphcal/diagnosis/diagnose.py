@@ -24,13 +24,12 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
+from graphcal.diagnosis.catalogue import Candidate, Finding, relevant
+from graphcal.diagnosis.model import VCE_ROUNDS, DiagnosisModel, chi2_of, model_options
+from graphcal.diagnosis.scores import CandidateColumns, current_columns, evidence, freed_rows_test, score_candidates, screening_system
 from graphcal.errors import GraphcalError
 from graphcal.geometry import from_gtsam_pose
-from graphcal.diagnosis.catalogue import Candidate, Finding, relevant
 from graphcal.models.effects import cause_record
-from graphcal.diagnosis.model import VCE_ROUNDS, DiagnosisModel, chi2_of, model_options
-from graphcal.diagnosis.scores import (CandidateColumns, current_columns, evidence, freed_rows_test, score_candidates,
-                                       screening_system)
 
 __all__ = ["Diagnosis", "diagnose", "extended_calibration_note", "final_adequacy", "extension_values",
            "ALPHA", "MAX_FINDINGS"]
@@ -141,8 +140,8 @@ COMMANDED_NOISE = ("sigma_commanded_rad", "sigma_commanded_m")
 def final_adequacy(diag: "Diagnosis") -> dict:
     """The verdict on the final (extended) model, judged against the dataset's physical noise as
     calibrate's (calibration.yaml ``adequacy:``, docs/calibration.md); a note when it cannot be read."""
-    from graphcal.calibration.calibrate import adequacy_at
     from graphcal.calibration.adequacy import adequacy_dict
+    from graphcal.calibration.calibrate import adequacy_at
 
     try:
         a = adequacy_at(diag.model.ds, diag.model.options, diag.problem, diag.values)

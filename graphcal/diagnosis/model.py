@@ -22,10 +22,10 @@ import gtsam
 import numpy as np
 
 from graphcal.calibration.graph import CalibrationOptions, CalibrationProblem, build_problem
-from graphcal.solvers.batch import solve_lm, whitened_errors
 from graphcal.diagnosis.catalogue import Candidate
-from graphcal.models.effects import cause_record
 from graphcal.diagnosis.extensions import ModelExtensions
+from graphcal.models.effects import cause_record
+from graphcal.solvers.batch import solve_lm, whitened_errors
 
 log = logging.getLogger(__name__)
 

@@ -58,7 +58,6 @@ def residual_records(model, problem, values) -> tuple[ResidualRecord, ...]:
     station's session sees) against the measured one -- the fitted body poses would absorb most of a
     discrepancy. Scans: the fitted range residual's RMS."""
     from graphcal.factors.plane_observation import plane_angle_distance_error
-
     from graphcal.solvers.batch import whitened_errors
 
     order = {st.station: (j, st.session) for j, st in enumerate(model.data.stations)}

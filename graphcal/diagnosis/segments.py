@@ -21,8 +21,8 @@ import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.stats import chi2 as chi2_dist
 
-from graphcal.diagnosis.correction import Correction
 from graphcal.diagnosis.catalogue import Candidate
+from graphcal.diagnosis.correction import Correction
 from graphcal.diagnosis.scores import linear_system, screening_system
 
 __all__ = ["find_segments", "ALPHA", "MAX_BOUNDARIES", "MAX_OUTLIERS", "MIN_CONFIDENCE", "RANK_RTOL", "REFIT_KNOCKS",

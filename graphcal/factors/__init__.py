@@ -36,6 +36,7 @@ from graphcal.factors.imu_attitude import (
     imu_attitude_misaligned_factor,
     imu_up_direction,
 )
+from graphcal.factors.mocap_marker import mocap_marker_error, mocap_marker_factor
 from graphcal.factors.plane_observation import (
     plane_angle_distance_error,
     plane_cov3,
@@ -47,7 +48,6 @@ from graphcal.factors.point_to_plane import point_to_plane_error, point_to_plane
 from graphcal.factors.priors import commanded_pose_prior, extrinsic_prior, leg_offset_prior, pose_prior_sigmas
 from graphcal.factors.stance_foot import stance_foot_error, stance_foot_factor
 from graphcal.factors.stance_foot_builtin import stance_foot_builtin_factor, stance_foot_builtin_factors, stance_foot_error_map
-from graphcal.factors.mocap_marker import mocap_marker_error, mocap_marker_factor
 
 __all__ = [
     "FactorShapeError",

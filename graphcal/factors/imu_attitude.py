@@ -179,5 +179,6 @@ def imu_attitude_misaligned_factor(
         return _misaligned_error(X, M, BT, want)
 
     return checked_custom_factor(
-        attitude_noise_model(sigma_rad, robust), [x_key, m_key], error_fn, [6, 3], 2, kinds=["Pose3", "Rot3"], name="imu_attitude_misaligned"
+        attitude_noise_model(sigma_rad, robust), [x_key, m_key], error_fn, [6, 3], 2, kinds=["Pose3", "Rot3"],
+        name="imu_attitude_misaligned",
     )

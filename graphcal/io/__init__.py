@@ -3,7 +3,6 @@
 from graphcal.io.atomic import OutputExistsError, atomic_directory, atomic_write_bytes, atomic_write_text
 from graphcal.io.dataset import (
     FORMAT,
-    SENSOR_TYPES,
     Dataset,
     ImuSpec,
     MarkerSpec,
@@ -27,7 +26,6 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_text",
     "FORMAT",
-    "SENSOR_TYPES",
     "Dataset",
     "ImuSpec",
     "MarkerSpec",

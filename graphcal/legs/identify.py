@@ -22,11 +22,16 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from graphcal.errors import GraphcalError
 from graphcal.factors.keys import K, L, V
 from graphcal.factors.mocap_marker import marker_covariance, mocap_marker_error, mocap_marker_factor, sqrt_information
-from graphcal.factors.mocap_pose import (DEFAULT_SIGMA_POSE, frame_kinematics, mocap_pose_error, mocap_pose_factor,
-                                         pose_covariance, sqrt_information6)
-from graphcal.errors import GraphcalError
+from graphcal.factors.mocap_pose import (
+    frame_kinematics,
+    mocap_pose_error,
+    mocap_pose_factor,
+    pose_covariance,
+    sqrt_information6,
+)
 from graphcal.geometry import fit_rigid_transform, invert_pose, pose_log_between
 from graphcal.legs.adequacy import Adequacy, adequacy, jackknife_covariance, significance
 from graphcal.legs.identifiability import IdentifiabilityReport, identifiability

@@ -11,15 +11,15 @@ from array import array
 from pathlib import Path
 
 import numpy as np
-from graphcal.progress import ProgressBar
 
 from graphcal.errors import DatasetError
 from graphcal.io.dataset.model import ImuSpec, PosePrior, RobotSpec, SensorSpec
 from graphcal.logs import messages as M
 from graphcal.logs.assemble import DatasetParts, SampleSink, StampCheck, write_imported
-from graphcal.logs.mapping import (IMAGE, SCAN, check_map, detect_map, map_yaml_text, read_map, thresholds_of)
+from graphcal.logs.mapping import IMAGE, SCAN, check_map, detect_map, map_yaml_text, read_map, thresholds_of
 from graphcal.logs.reader import LogReader, types_from_msg_dir
 from graphcal.logs.stations import StationFinder
+from graphcal.progress import ProgressBar
 
 __all__ = ["import_bag", "urdf_feet_and_root", "staged_ply"]
 

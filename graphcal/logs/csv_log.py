@@ -11,13 +11,13 @@ import logging
 from pathlib import Path
 
 import numpy as np
-from graphcal.progress import ProgressBar
 
 from graphcal.errors import DatasetError
 from graphcal.io.dataset.model import ImuSpec, PosePrior, RobotSpec
 from graphcal.logs.assemble import DatasetParts, SampleSink, StampCheck, write_imported
 from graphcal.logs.mapping import load_yaml, thresholds_of
 from graphcal.logs.stations import StationFinder
+from graphcal.progress import ProgressBar
 
 __all__ = ["CSV_MAP_FORMAT", "import_csv", "read_csv_map"]
 

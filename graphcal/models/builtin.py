@@ -393,7 +393,8 @@ def _a1() -> tuple[str, BuiltinInfo]:
         u.link(f"{leg}_hip")
         u.joint(f"{leg}_hip_joint", "revolute", "body", f"{leg}_hip", hip, None, (1, 0, 0), (-0.802851, 0.802851))
         u.link(f"{leg}_thigh")
-        u.joint(f"{leg}_thigh_joint", "revolute", f"{leg}_hip", f"{leg}_thigh", (0, sy * d["omega"], 0), None, (0, 1, 0), (-1.0472, 4.18879))
+        u.joint(f"{leg}_thigh_joint", "revolute", f"{leg}_hip", f"{leg}_thigh", (0, sy * d["omega"], 0), None, (0, 1, 0),
+                (-1.0472, 4.18879))
         u.link(f"{leg}_calf")
         u.joint(f"{leg}_calf_joint", "revolute", f"{leg}_thigh", f"{leg}_calf", (0, 0, -d["l1"]), None, (0, 1, 0), (-2.69653, -0.916298))
         u.fixed(f"{leg}_foot_joint", f"{leg}_calf", f"{leg}_foot", (0, 0, -d["l2"]))

@@ -23,9 +23,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from graphcal.io.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
+from graphcal.io.atomic import atomic_directory, atomic_write_bytes, atomic_write_text, previous_output_files
 from graphcal.io.atomic import check_output_folder as check_folder
-from graphcal.io.atomic import previous_output_files
 from graphcal.io.calibration_yaml import pose_to_dict
 
 __all__ = ["LEGS_FILES", "legs_yaml_dict", "legs_yaml_text", "write_identification_outputs"]

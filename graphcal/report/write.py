@@ -19,13 +19,11 @@ did not write), so pointing ``--out`` at a dataset or home folder by mistake can
 from __future__ import annotations
 
 import dataclasses
-
 import os
 from pathlib import Path
 
-from graphcal.io.atomic import atomic_directory, atomic_write_text
+from graphcal.io.atomic import atomic_directory, atomic_write_text, previous_output_files
 from graphcal.io.atomic import check_output_folder as check_output_folder_of
-from graphcal.io.atomic import previous_output_files
 from graphcal.report.calibration_yaml import calibration_yaml_text
 from graphcal.report.ros import static_transforms_script
 from graphcal.report.urdf import calibrated_urdf

@@ -38,9 +38,9 @@ from graphcal.geometry import (
     xyz_quat_wxyz_from_pose,
     xyz_rpy_from_pose,
 )
+from graphcal.models.sensors import sensor_for_type
 from graphcal.simulation.effects import Effects
 from graphcal.simulation.programs import station_program
-from graphcal.models.sensors import sensor_for_type
 from graphcal.simulation.sensors import capture
 from graphcal.simulation.terrain import LABEL_ROBOT, Mesh, build_scene, cylinder_mesh, make_terrain, terrain_height
 
@@ -499,8 +499,6 @@ def _stations(config: SimulationConfig, robot, true_robot, commands, stances: _S
     real body pose (the true legs' feet fitted to the planted ones), the complied joint angles,
     the encoder and IMU readings. Returns (records, station -> real T_world_body, station ->
     foot -> true joint angles)."""
-    from graphcal.models.kinematics import foot_positions
-
     q_prev = dict(q_nominal)
     records: list[StationRecord] = []
     real_poses = {}
@@ -514,7 +512,6 @@ def _stations(config: SimulationConfig, robot, true_robot, commands, stances: _S
         T_cmd = stances.T_world_stance[cmd.session] @ cmd.T_stance_body
         p_body_cmd = transform_points(invert_pose(T_cmd), stances.feet_world_assumed[cmd.session])
         q_act = {}
-        p_body_true = []
         for k, f in enumerate(robot.feet):
             leg = robot.leg(f)
             q_prev[f] = _commanded_q(leg, p_body_cmd[k], q_prev[f], q_nominal[f], cmd.station, f)

@@ -28,9 +28,9 @@ SIMULATION_FILES = frozenset({"dataset.yaml", "stations.csv", "timeseries.csv", 
 def result_to_dataset(result: SimulationResult, *, with_planes: bool, progress: bool = False):
     """The simulated data as a contract :class:`~graphcal.io.dataset.Dataset` (planes fitted from
     the clouds when ``with_planes``)."""
+    from graphcal.clouds.plane_table import planes_rows
     from graphcal.geometry import xyz_quat_wxyz_from_pose
     from graphcal.io.dataset import Dataset, ImuSpec, PosePrior, RobotSpec, SensorSpec, Table
-    from graphcal.clouds.plane_table import planes_rows
     from graphcal.simulation.session import robot_and_info
 
     _, info = robot_and_info(result.config)

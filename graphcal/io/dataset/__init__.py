@@ -29,7 +29,6 @@ from graphcal.io.dataset.model import (
     PLANE_COV_COLUMNS,
     PLANE_REQUIRED_COLUMNS,
     SCAN_PLANE_MAX_Z_M,
-    SENSOR_TYPES,
     UNIT_NORM_TOL,
     Dataset,
     ImuSpec,
@@ -49,7 +48,6 @@ from graphcal.io.dataset.write import write_dataset
 
 __all__ = [
     "FORMAT",
-    "SENSOR_TYPES",
     "BODY_POSE_COLUMNS",
     "IMU_ACCEL_COLUMNS",
     "IMU_GYRO_COLUMNS",

@@ -5,7 +5,6 @@ ids, times, markers, joint columns against the robot); each raises one
 from __future__ import annotations
 
 import logging
-
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -38,7 +37,6 @@ from graphcal.io.dataset.paths import path_inside
 from graphcal.io.dataset.schema import YamlHeader
 from graphcal.io.dataset.tables import ParsedCsv
 from graphcal.io.dataset.text import MILLIMETRES_HINT, did_you_mean
-
 
 #: (columns, largest magnitude, what it is) of the values a robot can have, checked first
 log = logging.getLogger(__name__)

@@ -12,7 +12,6 @@ import numpy as np
 
 from graphcal.geometry import pose_from_xyz_rpy
 from graphcal.io.dataset.text import did_you_mean
-from graphcal.models.sensors import SENSOR_TYPES  # defined once, with the sensor models
 
 FORMAT = "graphcal-dataset/1"
 
@@ -166,7 +165,7 @@ class RobotSpec:
 @dataclass(frozen=True)
 class SensorSpec:
     """One entry of ``sensors``: ``name`` (used in file and column names), ``type`` (one of
-    :data:`SENSOR_TYPES`), ``T_body_sensor_prior`` and ``extra`` (the entry's other keys, kept)."""
+    :data:`graphcal.models.sensors.SENSOR_TYPES`), ``T_body_sensor_prior`` and ``extra`` (the entry's other keys, kept)."""
 
     name: str
     type: str

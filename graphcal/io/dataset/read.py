@@ -9,8 +9,8 @@ import numpy as np
 
 from graphcal.errors import DatasetError
 from graphcal.io.dataset.checks import (
-    check_magnitudes,
     check_joint_columns,
+    check_magnitudes,
     check_mocap,
     check_mocap_poses,
     check_planes,

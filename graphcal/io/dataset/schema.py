@@ -22,7 +22,6 @@ from graphcal.io.dataset.model import (
     MAX_PRIOR_SIGMA_MM,
     MIN_PRIOR_SIGMA,
     MM_LIMIT_PRIOR_M,
-    SENSOR_TYPES,
     Dataset,
     ImuSpec,
     MarkerSpec,
@@ -33,6 +32,7 @@ from graphcal.io.dataset.model import (
 from graphcal.io.dataset.text import MILLIMETRES_HINT, decode_utf8, did_you_mean, one_line, shown_value
 from graphcal.io.files import read_regular_file
 from graphcal.io.yaml_strict import StrictSafeLoader as _YamlLoader
+from graphcal.models.sensors import SENSOR_TYPES
 
 _NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*")
 
