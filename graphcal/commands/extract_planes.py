@@ -25,6 +25,7 @@ from graphcal.clouds.plane_table import camera_clouds_without_planes, check_max_
 from graphcal.errors import DatasetError, GraphcalError
 from graphcal.io.atomic import atomic_write_text, check_output_location, make_parent_folder
 from graphcal.io.dataset import Dataset, Table, cloud_paths, load_cloud, read_dataset, table_csv_text
+from graphcal.models.sensors import sensor_type
 
 __all__ = ["run", "ExtractPlanesResult", "EXTRACTED_NAME", "output_path", "summary_lines"]
 
@@ -75,7 +76,7 @@ def summary_lines(rows: dict, ds, max_planes: int) -> list[str]:
     clouds = Counter(sensor for sensor, _ in paths)
     lines = []
     for sensor in sorted(clouds):
-        if ds.sensors[sensor].type not in ("depth_camera", "stereo_camera"):
+        if not sensor_type(ds.sensors[sensor].type).fits_planes:
             lines.append(f"  {sensor}: {clouds[sensor]} clouds skipped ({ds.sensors[sensor].type}: a scan line has "
                          "no plane)")
             continue
