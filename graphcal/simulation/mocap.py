@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.geometry import invert_pose, pose_from_xyz_rpy, xyz_quat_wxyz_from_pose, xyz_rpy_from_pose
+from graphcal.geometry import invert_pose, pose_from_xyz_rpy, xyz_quat_wxyz_from_pose
+from graphcal.io.calibration_yaml import pose_to_dict
 from graphcal.models.perturb import LegPerturbation, apply_perturbation
 
 __all__ = [
@@ -90,13 +91,6 @@ class MocapSimulation:
     q_true: dict
     T_body_mocap_true: np.ndarray
     robot_urdf: str | None = None
-
-
-def _pose_yaml(T) -> dict:
-    xyz, q = xyz_quat_wxyz_from_pose(T)
-    _, rpy = xyz_rpy_from_pose(T)
-    return {"xyz": [float(v) for v in xyz], "quaternion_wxyz": [float(v) for v in q],
-            "rpy_deg": [float(v) for v in np.degrees(rpy)]}
 
 
 def _noise(rng, kind: str, a: float, shape) -> np.ndarray:
@@ -249,8 +243,8 @@ def simulate_mocap(
             "joint_offsets_rad": {k: float(v) for k, v in perturbation.joint_offsets_rad.items()},
             "origin_deltas_m": {k: [float(x) for x in v] for k, v in perturbation.origin_deltas_m.items()},
         },
-        "T_mocap_body": _pose_yaml(T_mb),
-        "T_body_mocap" if not body_markers else "T_body_vbase": _pose_yaml(T_body_meas),
+        "T_mocap_body": pose_to_dict(T_mb),
+        "T_body_mocap" if not body_markers else "T_body_vbase": pose_to_dict(T_body_meas),
         "body_markers_true": {n: [float(x) for x in layout_true[k]] for k, n in enumerate(BODY_MARKERS)} if body_markers else {},
         "p_foot_marker": {f: [float(x) for x in markers.get(f, np.zeros(3))] for f in feet},
         "noise": {"kind": noise, "joint_rad": float(joint_noise_rad), "marker_m": float(marker_noise_m),

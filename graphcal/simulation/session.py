@@ -35,9 +35,8 @@ from graphcal.geometry import (
     rotation_angle_between,
     se3_exp,
     transform_points,
-    xyz_quat_wxyz_from_pose,
-    xyz_rpy_from_pose,
 )
+from graphcal.io.calibration_yaml import pose_to_dict
 from graphcal.models.sensors import sensor_for_type
 from graphcal.simulation.effects import Effects
 from graphcal.simulation.programs import station_program
@@ -671,26 +670,16 @@ def strided(sensor, stride: int):
     return replace(sensor, width_px=max(8, sensor.width_px // stride), height_px=max(6, sensor.height_px // stride))
 
 
-def _pose_yaml(T: np.ndarray) -> dict:
-    xyz, q = xyz_quat_wxyz_from_pose(T)
-    _, rpy = xyz_rpy_from_pose(T)
-    return {
-        "xyz": [float(v) for v in xyz],
-        "quaternion_wxyz": [float(v) for v in q],
-        "rpy_deg": [float(v) for v in np.degrees(rpy)],
-    }
-
-
 def _truth_dict(
     config, info, sensor_names, T_body_sensor_true, ext_by_station, records, joint_offsets, link_changes,
     R_body_imu_true, accel_bias, gyro_bias, terrain, swapped, T_world_stance, feet_world_real,
 ) -> dict:
     sensors = {}
     for s in sensor_names:
-        entry = {"type": info.sensors[s].type, "T_body_sensor": _pose_yaml(T_body_sensor_true[s])}
+        entry = {"type": info.sensors[s].type, "T_body_sensor": pose_to_dict(T_body_sensor_true[s])}
         ch = config.effects.extrinsic_change
         if ch is not None and ch.sensor == s:
-            entry["T_body_sensor_after_change"] = _pose_yaml(ext_by_station[(s, ch.station)])
+            entry["T_body_sensor_after_change"] = pose_to_dict(ext_by_station[(s, ch.station)])
         sensors[s] = entry
     return {
         "format": "graphcal-truth/1",
@@ -701,7 +690,7 @@ def _truth_dict(
         "seed": int(config.seed),
         "sensors": sensors,
         "imu": {
-            "T_body_imu": _pose_yaml(pose_matrix(R_body_imu_true, info.T_body_imu[:3, 3])),
+            "T_body_imu": pose_to_dict(pose_matrix(R_body_imu_true, info.T_body_imu[:3, 3])),
             "accel_bias_m_s2": [float(v) for v in accel_bias],
             "gyro_bias_rad_s": [float(v) for v in gyro_bias],
         },
@@ -712,11 +701,11 @@ def _truth_dict(
         "effects": config.effects.to_dict(),
         "outliers": {int(k): int(v) for k, v in swapped.items()},
         "sessions": {
-            s: {"T_world_stance": _pose_yaml(T), "feet_world": {f: [float(x) for x in p] for f, p in zip(info.feet, feet_world_real[s])}}
+            s: {"T_world_stance": pose_to_dict(T), "feet_world": {f: [float(x) for x in p] for f, p in zip(info.feet, feet_world_real[s])}}
             for s, T in T_world_stance.items()
         },
         "stations": {
-            int(r.station): {"T_world_body": _pose_yaml(r.T_world_body_real)} for r in records
+            int(r.station): {"T_world_body": pose_to_dict(r.T_world_body_real)} for r in records
         },
         "noise": {
             "tracking_sigma_rad": float(config.tracking_sigma_rad),

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from graphcal.errors import GraphcalError
+from graphcal.io.calibration_yaml import pose_to_dict
 from graphcal.simulation.session import SimulationResult
 from graphcal.simulation.walking import WalkingConfig, WalkingResult, simulate_walking
 
@@ -140,16 +141,6 @@ def write_simulation(result: SimulationResult, out_dir: str | Path, *, output: s
 
 
 # ----------------------------------------------------------------------------- walks
-def _pose_yaml(T: np.ndarray) -> dict:
-    """``{xyz: [m], quaternion_wxyz, rpy_deg}`` of a 4x4 pose (truth.yaml)."""
-    from graphcal.geometry import xyz_quat_wxyz_from_pose, xyz_rpy_from_pose
-
-    xyz, q = xyz_quat_wxyz_from_pose(T)
-    _, rpy = xyz_rpy_from_pose(T)
-    return {"xyz": [float(v) for v in xyz], "quaternion_wxyz": [float(v) for v in q],
-            "rpy_deg": [float(v) for v in np.degrees(rpy)]}
-
-
 def truth_table(result: WalkingResult):
     """The truth trajectory at ``truth_rate_hz``: a :class:`~graphcal.io.dataset.Table`-like dict of
     columns time, x, y, z, qw, qx, qy, qz (T_world_body), vx, vy, vz (world), gyro/accel biases."""
@@ -250,8 +241,8 @@ def truth_dict(result: WalkingResult) -> dict:
         "distance_m": result.distance_m,
         "gait": {"groups": [list(g) for g in result.groups], "cycle_s": c.cycle_s, "duty_factor": c.duty_factor,
                  **({"phase_offsets": dict(c.gait.phase_offsets)} if c.gait.phase_offsets else {})},
-        "sensors": {"depth": {"type": "depth_camera", "T_body_sensor": _pose_yaml(result.T_body_sensor)}},
-        "imu": {"T_body_imu": _pose_yaml(result.T_body_imu),
+        "sensors": {"depth": {"type": "depth_camera", "T_body_sensor": pose_to_dict(result.T_body_sensor)}},
+        "imu": {"T_body_imu": pose_to_dict(result.T_body_imu),
                 "accel_bias_start_m_s2": [float(v) for v in result.accel_bias[0]],
                 "gyro_bias_start_rad_s": [float(v) for v in result.gyro_bias[0]]},
         "body_mass_kg": c.body_mass_kg,
