@@ -1,4 +1,5 @@
-"""The legged EKF (graphcal.locomotion): the constructor's checks, the lean update against filterpy's,
+"""The legged EKF (graphcal.locomotion): the constructor's checks, the measurement Jacobians handed to
+filterpy against numerical ones, filterpy's update against the Kalman update written out,
 the IMU preintegration against a plain integration, the degeneracy-aware ICP, and the filter's
 consistency on simulated walks: Monte Carlo NEES inside its chi-square band and white innovations.
 
@@ -12,8 +13,8 @@ import pytest
 from graphcal.errors import GraphcalError
 from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim
 from graphcal.locomotion.estimator import TrackerConfig, run_filter
-from graphcal.locomotion.track_inputs import inputs_from_walking
 from graphcal.locomotion.metrics import chi2_band, pose_errors, whiteness
+from graphcal.locomotion.track_inputs import inputs_from_walking
 from graphcal.simulation.walking import WalkingConfig, simulate_walking
 
 D = state_dim(3)
@@ -27,7 +28,8 @@ def _ekf(**kw):
     args = dict(x0=_x0(), P0=np.eye(D) * 1e-4, Qc=EkfNoise().process_density(3), encoder_cov=np.eye(3) * 1e-7,
                 kinematic_cov=np.eye(3) * 1e-8)
     args.update(kw)
-    return LeggedEKF(args.pop("x0"), args.pop("P0"), args.pop("Qc"), args.pop("encoder_cov"), args.pop("kinematic_cov"))
+    return LeggedEKF(args.pop("x0"), args.pop("P0"), args.pop("Qc"), args.pop("encoder_cov"), args.pop("kinematic_cov"),
+                     **args)
 
 
 @pytest.mark.parametrize("kw,message", [
@@ -36,11 +38,15 @@ def _ekf(**kw):
     ({"P0": np.eye(D) + np.triu(np.ones((D, D)), 1) * 1e-3}, "P0 must be symmetric"),
     ({"Qc": np.full((D, D), np.nan)}, "Qc must be finite"),
     ({"Qc": -np.eye(D)}, "Qc must be positive semi-definite"),
-    ({"encoder_cov": np.ones((3, 2))}, "encoder_cov"),
+    ({"encoder_cov": np.ones((3, 2))}, r"encoder_cov must be a square \(n, n\) matrix, got shape \(3, 2\)"),
+    ({"encoder_cov": np.ones(3)}, r"encoder_cov must be a square \(n, n\) matrix, got shape \(3,\)"),
+    ({"Qc": np.eye(D + 3)}, r"Qc must have shape \(30, 30\), got \(33, 33\)"),
+    ({"kinematic_cov": np.diag([1e-6, np.inf, 1e-6])}, "kinematic_cov must be finite"),
     ({"kinematic_cov": [[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]},
      "kinematic_cov must be positive semi-definite"),
     ({"x0": NominalState(np.zeros(3), np.zeros(3), 2 * np.eye(3), np.zeros(3), np.zeros(3))}, "rotation matrix"),
     ({"x0": NominalState(np.zeros(2), np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3))}, "x0.p_world_body"),
+    ({"T_body_imu": np.diag([1.0, 1.0, -1.0, 1.0])}, "T_body_imu must hold a rotation matrix"),
 ])
 def test_constructor_refuses_bad_matrices(kw, message):
     with pytest.raises(GraphcalError, match=message):
@@ -54,33 +60,125 @@ def test_noise_parameters_are_checked():
         EkfNoise(icp_cov_scale=0.0)
 
 
-def test_lean_update_equals_filterpy_update():
-    """The filter's own update (P - K S K^T) and filterpy's (Joseph form) agree to rounding."""
-    rng = np.random.default_rng(3)
+def _filter_mid_walk(seed: int = 3):
+    """A filter with a random correlated covariance, feet placed, propagated once, with a clone."""
+    from graphcal.geometry import so3_exp
+
+    rng = np.random.default_rng(seed)
     A = rng.normal(size=(D, D))
     P0 = A @ A.T * 1e-4 + np.eye(D) * 1e-6
+    x0 = NominalState(np.array([0.3, -0.2, 0.45]), np.array([0.2, 0.05, 0.0]), so3_exp(np.array([0.05, -0.1, 0.8])),
+                      np.zeros(3), np.zeros(3))
+    ekf = _ekf(P0=P0, x0=x0)
     z0 = np.array([[0.4, 0.6, -0.45], [0.8, 0.0, -0.45], [-0.4, -0.6, -0.45]])
-    z1 = z0 + rng.normal(0, 1e-3, (3, 3))
-    out = []
-    for use_filterpy in (False, True):
-        ekf = _ekf(P0=P0)
-        ekf.use_filterpy_update = use_filterpy
-        ekf.reset_feet(("a", "b", "c"), z0, np.eye(9) * 1e-7)
-        ekf.propagate(np.eye(3), np.zeros(6), np.zeros((6, 6)), 0.005)
-        nis = ekf.update_stance(z1, np.eye(9) * 1e-7)
-        out.append((ekf.p.copy(), ekf.R.copy(), ekf.p_feet.copy(), ekf.P.copy(), nis))
-    (p1, R1, f1, P1, n1), (p2, R2, f2, P2, n2) = out
-    assert np.abs(p1 - p2).max() < 1e-12 and np.abs(R1 - R2).max() < 1e-12 and np.abs(f1 - f2).max() < 1e-12
-    assert np.abs(P1 - P2).max() < 1e-9 * np.abs(P1).max()
-    assert n1 == pytest.approx(n2, rel=1e-9)
-    assert n1 > 1.0  # the 1 mm disturbance is seen (noise 0.3 mm)
+    ekf.reset_feet(("a", "b", "c"), z0, np.eye(9) * 1e-7)
+    ekf.clone_pose()
+    ekf.propagate(so3_exp(np.array([0.01, 0.02, -0.03])), np.r_[0.002, 0.0, 0.001, 0.4, 0.1, 0.0],
+                  rng.normal(0, 1e-4, (6, 6)), 0.05)
+    return ekf, z0, rng
+
+
+def _injected(ekf, dx):
+    """(p, R, p_feet, p_c, R_c) of the nominal state with the error dx injected (the filter's own rule,
+    written out)."""
+    from graphcal.geometry import so3_exp
+
+    c = 15 + 3 * ekf.n_slots
+    return (ekf.p + dx[0:3], ekf.R @ so3_exp(dx[6:9]), ekf.p_feet + dx[15:c].reshape(-1, 3), ekf.p_c + dx[c:c + 3],
+            ekf.R_c @ so3_exp(dx[c + 3:c + 6]))
+
+
+def test_measurement_jacobians_given_to_filterpy_match_numerical_ones():
+    """filterpy's HJacobian hooks (stance, relative pose) are the derivatives of the predicted
+    measurement (stance: Hx; relative pose: its residual) in the error state, injected as the
+    filter injects it."""
+    from graphcal.locomotion.ekf import relative_pose_residual
+    from graphcal.testing import numerical_jacobian
+
+    ekf, _, rng = _filter_mid_walk()
+    zero = np.zeros(D)
+
+    def h_stance(dx):
+        p, R, feet, _, _ = _injected(ekf, dx)
+        return ((feet - p) @ R).ravel()
+
+    H = ekf.stance_jacobian(zero)
+    assert np.allclose(ekf.stance_prediction(zero), h_stance(zero), atol=1e-15)
+    assert np.abs(numerical_jacobian(h_stance, zero, 1e-6) - H).max() < 1e-8
+    rows = np.r_[3:9]
+    assert np.array_equal(ekf.stance_jacobian(zero, rows), H[rows])
+
+    A = rng.normal(size=(4, 6))
+    T_meas = ekf.predicted_relative_pose()  # linearised where the residual is zero, as the filter is
+
+    def y_rel(dx):
+        p, R, _, p_c, R_c = _injected(ekf, dx)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R_c.T @ R, R_c.T @ (p - p_c)
+        return relative_pose_residual(A, T_meas, T)
+
+    # the residual y = z - h(x): its derivative is -H
+    assert not relative_pose_residual(A, T_meas, ekf.predicted_relative_pose()).any()
+    assert np.abs(numerical_jacobian(y_rel, zero, 1e-6) + ekf.relative_pose_jacobian(zero, A)).max() < 1e-7
+
+
+def test_updates_are_the_kalman_update_through_filterpy():
+    """update_stance and update_relative_pose are filterpy's EKF update (K = P H^T S^-1, Joseph
+    covariance) on the error state, the error then injected into the nominal state and reset to
+    zero; compared with the update written out here in numpy (agree to rounding), NIS = y^T S^-1 y."""
+    from graphcal.geometry import pose_matrix, so3_exp, so3_log
+
+    ekf, z0, rng = _filter_mid_walk()
+    R9 = np.eye(9) * 1e-7
+    for kind in ("stance", "relative pose"):
+        P = ekf.P.copy()
+        if kind == "stance":
+            z1 = z0 + rng.normal(0, 1e-3, (3, 3))
+            H, y, Rm = ekf.stance_jacobian(np.zeros(D)), z1.ravel() - ekf.stance_prediction(np.zeros(D)), R9
+        else:
+            A = np.eye(6)[[2, 3, 4]]
+            T_meas = ekf.predicted_relative_pose() @ pose_matrix(so3_exp(np.array([1e-3, -2e-3, 5e-4])),
+                                                                 [0.002, -0.001, 0.003])
+            dR = ekf.predicted_relative_pose()[:3, :3]
+            xi = np.r_[so3_log(dR.T @ T_meas[:3, :3]), dR.T @ (T_meas[:3, 3] - ekf.predicted_relative_pose()[:3, 3])]
+            H, y, Rm = ekf.relative_pose_jacobian(np.zeros(D), A), A @ xi, np.eye(3) * 1e-6
+        S = H @ P @ H.T + Rm
+        K = P @ H.T @ np.linalg.inv(S)
+        dx = K @ y
+        P_ref = (np.eye(D) - K @ H) @ P @ (np.eye(D) - K @ H).T + K @ Rm @ K.T
+        p_ref, R_ref, feet_ref, pc_ref, Rc_ref = _injected(ekf, dx)
+        if kind == "stance":
+            nis = ekf.update_stance(z1, R9)
+        else:
+            nis, fused = ekf.update_relative_pose(T_meas, A, Rm, gate_chi2=1e6)
+            assert fused
+        assert np.abs(ekf.p - p_ref).max() < 1e-12 and np.abs(ekf.R - R_ref).max() < 1e-12
+        assert np.abs(ekf.p_feet - feet_ref).max() < 1e-12
+        assert np.abs(ekf.p_c - pc_ref).max() < 1e-12 and np.abs(ekf.R_c - Rc_ref).max() < 1e-12
+        assert np.abs(ekf.P - P_ref).max() < 1e-9 * np.abs(P_ref).max()
+        assert nis == pytest.approx(float(y @ np.linalg.solve(S, y)), rel=1e-9)
+        assert np.allclose(ekf.last_innovation, y, rtol=0, atol=1e-15) and np.allclose(ekf.last_S, S, atol=1e-18)
+        assert not ekf.kf.x.any()  # the error state is reset to zero
+        assert nis > 1.0  # the mm disturbance is seen (noise 0.3 mm / 1 mm)
+
+
+def test_measurements_of_the_wrong_shape_are_refused():
+    ekf, z0, _ = _filter_mid_walk()
+    with pytest.raises(GraphcalError, match=r"update_stance: expected p_body_foot \(3, 3\) and R_meas \(9, 9\)"):
+        ekf.update_stance(z0, np.eye(6))
+    with pytest.raises(GraphcalError, match=r"update_stance: expected p_body_foot \(2, 3\)"):
+        ekf.update_stance(z0, np.eye(6), slots=[0, 2])
+    with pytest.raises(GraphcalError, match="relative-pose covariance must be positive definite"):
+        ekf.update_relative_pose(np.eye(4), np.eye(6)[:2], np.diag([1e-6, 0.0]))
+    with pytest.raises(GraphcalError, match="T_meas must be finite"):
+        ekf.update_relative_pose(np.full((4, 4), np.nan), np.eye(6)[:2], np.eye(2) * 1e-6)
 
 
 def test_preintegration_matches_plain_integration():
     """Chunks of preintegrated IMU with bias corrections = sample-by-sample integration."""
-    from graphcal.locomotion.imu import preintegrate, reconstruct
-    from graphcal.locomotion.ekf import GRAVITY_WORLD
     from graphcal.geometry import matrix_from_rpy
+    from graphcal.locomotion.ekf import GRAVITY_WORLD
+    from graphcal.locomotion.imu import preintegrate, reconstruct
 
     rng = np.random.default_rng(0)
     N = 400
@@ -142,9 +240,9 @@ def test_icp_measures_only_what_the_floor_constrains(clouds):
     slides along the floor."""
     import open3d as o3d
 
-    from graphcal.geometry import so3_log as _log
     from graphcal.clouds.icp import icp_relative_pose, prepare_target, range_sigma_function
     from graphcal.geometry import se3_exp
+    from graphcal.geometry import so3_log as _log
 
     sig = range_sigma_function("depth_camera")
     rng = np.random.default_rng(0)
@@ -173,8 +271,8 @@ def test_icp_measures_only_what_the_floor_constrains(clouds):
 def test_icp_on_stairs_also_measures_along_the_walk(clouds):
     """Risers add the along-walk translation: more than 3 directions on some stairs pairs, and
     the errors stay consistent."""
-    from graphcal.geometry import so3_log as _log
     from graphcal.clouds.icp import icp_relative_pose, prepare_target, range_sigma_function
+    from graphcal.geometry import so3_log as _log
 
     sig = range_sigma_function("depth_camera")
     dofs, z2 = [], []

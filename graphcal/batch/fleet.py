@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from graphcal.geometry import pose_from_xyz_quat_wxyz
+from graphcal.geometry import pose_from_xyz_quat_wxyz, so3_log_batch
 
 __all__ = ["ALPHA", "MIN_OTHERS", "Value", "Robot", "Flag", "read_robot", "loo_t", "fleet_flags",
            "rotation_vectors_deg"]
@@ -177,12 +177,10 @@ def _angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
 def rotation_vectors_deg(rotations: list[np.ndarray]) -> np.ndarray:
     """Rotation vectors (deg, about the body axes) of R_i R_ref^T, ref the medoid of ``rotations``
     (the one with the smallest sum of angles to the others); shape (n, 3)."""
-    from scipy.spatial.transform import Rotation
-
     n = len(rotations)
     cost = [sum(_angle(rotations[i], rotations[j]) for j in range(n)) for i in range(n)]
     ref = rotations[int(np.argmin(cost))]
-    return np.array([np.degrees(Rotation.from_matrix(R @ ref.T).as_rotvec()) for R in rotations]).reshape(n, 3)
+    return np.degrees(so3_log_batch(np.array([R @ ref.T for R in rotations]))).reshape(n, 3)
 
 
 def _with_rotations(robots: list[Robot]) -> list[list[Value]]:

@@ -35,14 +35,21 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.spatial.transform import Rotation
 from scipy.stats import chi2 as chi2_dist
 
 from graphcal.diagnosis.correction import Correction
-from graphcal.factors.plane_observation import tangent_basis
-from graphcal.diagnosis.plane_corrections import (PLANE_VARIANTS, StationGrounds, chi2_rows, fit_extrinsic,
-                                                  plane_rows, plane_variant, station_grounds)
+from graphcal.diagnosis.plane_corrections import (
+    PLANE_VARIANTS,
+    StationGrounds,
+    chi2_rows,
+    fit_extrinsic,
+    plane_rows,
+    plane_variant,
+    prior_residual,
+    station_grounds,
+)
 from graphcal.diagnosis.scan_association import fit_scan_extrinsic, scan_beams, scan_chi2
+from graphcal.factors.plane_observation import tangent_basis
 
 __all__ = ["find_associations", "GATE_ALPHA", "PASS_P", "MIN_CONFIDENCE"]
 
@@ -205,8 +212,7 @@ def prior_cost(prior: tuple, T) -> float:
     """The CAD prior's chi-square (6 dof) of the extrinsic ``T`` (4x4); ``prior`` (T_cad, sigma_m,
     sigma_rad)."""
     T_cad, sig_m, sig_rad = prior
-    r = np.concatenate([Rotation.from_matrix(T_cad[:3, :3].T @ T[:3, :3]).as_rotvec() / max(sig_rad, 1e-4),
-                        T[:3, :3].T @ (T[:3, 3] - T_cad[:3, 3]) / max(sig_m, 1e-4)])
+    r = prior_residual(T, T_cad) / np.repeat([max(sig_rad, 1e-4), max(sig_m, 1e-4)], 3)
     return float(r @ r)
 
 

@@ -27,9 +27,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from graphcal.factors.plane_observation import plane_cov3, tangent_basis
+from graphcal.geometry import so3_exp, so3_log
 
 __all__ = ["StationGrounds", "station_grounds", "PLANE_VARIANTS", "plane_variant", "plane_rows", "chi2_rows",
            "fit_extrinsic", "prior_information", "prior_residual", "retract_extrinsic",
@@ -187,13 +187,13 @@ def prior_residual(T: np.ndarray, T_cad: np.ndarray) -> np.ndarray:
     """[phi, rho] of T_body_sensor ``T`` (4x4) from the CAD extrinsic ``T_cad``: the rotation
     vector of R_cad^T R (rad) and the translation difference t - t_cad in T's sensor frame (m)."""
     R, t = T[:3, :3], T[:3, 3]
-    return np.concatenate([Rotation.from_matrix(T_cad[:3, :3].T @ R).as_rotvec(), R.T @ (t - T_cad[:3, 3])])
+    return np.concatenate([so3_log(T_cad[:3, :3].T @ R), R.T @ (t - T_cad[:3, 3])])
 
 
 def retract_extrinsic(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """T_body_sensor (4x4) moved by ``delta`` = [phi (rad), rho (m)], both in the sensor frame."""
     out = np.eye(4)
-    out[:3, :3] = T[:3, :3] @ Rotation.from_rotvec(delta[:3]).as_matrix()
+    out[:3, :3] = T[:3, :3] @ so3_exp(delta[:3])
     out[:3, 3] = T[:3, 3] + T[:3, :3] @ delta[3:]
     return out
 

@@ -1,11 +1,12 @@
 """Error-state extended Kalman filter of a legged robot: IMU propagation, stance-foot kinematics,
-relative-pose (ICP) updates, on filterpy's ``ExtendedKalmanFilter``.
+relative-pose (ICP) updates, through filterpy's ``ExtendedKalmanFilter`` (its ``predict`` and
+``update``); docs/state_estimation.md.
 
 Nominal state (kept here, on the manifold):
     ``p`` = p_world_body (m), ``v`` = v_world_body (m/s), ``R`` = R_world_body, ``b_g`` gyro bias
     (rad/s, IMU frame), ``b_a`` accelerometer bias (m/s^2, IMU frame), the world positions of the
-    stance feet ``p_world_foot`` (one slot per foot of a tripod, m) and a clone of the body pose at
-    the last keyframe (``p_c``, ``R_c``) for relative-pose measurements (stochastic cloning).
+    stance feet ``p_world_foot`` (one slot per foot, m) and a clone of the body pose at the last
+    keyframe (``p_c``, ``R_c``) for relative-pose measurements (stochastic cloning).
 
 Error state (filterpy's ``x``, zero between updates; its covariance is filterpy's ``P``), in order:
     ``dp`` (3, world), ``dv`` (3, world), ``dtheta`` (3, body; R = R_hat Exp(dtheta), the right
@@ -13,28 +14,27 @@ Error state (filterpy's ``x``, zero between updates; its covariance is filterpy'
     stance slot, ``dp_c`` (3), ``dtheta_c`` (3). Dimension ``15 + 3 n_slots + 6``.
 
 Models:
-    IMU (``propagate``): omega = R_body_imu (gyro - b_g), a = R_body_imu (accel - b_a) (the IMU
-    at the body origin: no lever arm), integrated between updates as a preintegrated chunk
-    (:mod:`graphcal.locomotion.imu`): R <- R dR Exp(-b_g T), v <- v + g T + R dv(b),
-    p <- p + v T + g T^2 / 2 + R dp(b); biases and feet random walks. The covariance takes one
-    step per chunk: filterpy's ``predict`` with F (the chunk's error transition) and Q = Qc T.
-    Stance kinematics (``update_stance``, Zhao Eqs. 6-9 as a filter measurement): each stance
-    foot measured in the body frame by forward kinematics, h = R^T (p_world_foot - p).
-    Foot slots (``reset_feet``): when the other tripod takes over, its feet are placed at
+    IMU (``propagate``): omega = R_body_imu (gyro - b_g), a = R_body_imu (accel - b_a) (no lever
+    arm), applied as a preintegrated chunk (:mod:`graphcal.locomotion.imu`); the covariance takes
+    one filterpy ``predict`` per chunk with F (the chunk's error transition) and Q = Qc T.
+    Stance kinematics (``update_stance``, Zhao Eqs. 6-9): each stance foot in the body frame,
+    h = R^T (p_world_foot - p); filterpy's ``update`` with ``HJacobian``/``Hx`` at the nominal state.
+    Foot slots (``reset_feet``, ``reset_slots``): a foot touching down is placed at
     p + R p_body_foot with the covariance that implies (cross-covariances included).
-    Relative pose (``update_relative_pose``): T_c^-1 T measured (e.g. by ICP between keyframe
-    clouds) in the directions it constrains: z = A xi with covariance C (xi = [omega, v], the
-    right perturbation of the relative pose); optionally gated by its NIS.
+    Relative pose (``update_relative_pose``): T_c^-1 T measured (ICP between keyframe clouds) in
+    the directions it constrains, z = A xi (xi = [omega, v], the right perturbation); filterpy's
+    ``update`` with ``Hx`` the predicted relative pose and ``residual`` the pose difference on the
+    manifold (:func:`relative_pose_residual`); optionally gated by its NIS.
 
-Updates: by default a lean Kalman update (gain, P - K S K^T symmetrised) that leaves gain,
-innovation and its covariance in the filterpy object; ``use_filterpy_update = True`` calls
-filterpy's ``update`` (Joseph form) instead: the two agree to rounding (tests/test_ekf.py), the
-lean one is faster. The manifold parts (error injection into the nominal state, resets, clones)
-are done here. NIS of every update: :attr:`last_nis`, :attr:`last_innovation`, :attr:`last_S`.
+Kept here, not in filterpy (it knows no manifold): the nominal state, the injection of the updated
+error into it and the reset of the error to zero (covariance reset Jacobian taken as I, first
+order), the foot-slot and clone covariance blocks. NIS of every update: :attr:`last_nis`,
+:attr:`last_innovation`, :attr:`last_S`.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -44,7 +44,7 @@ from graphcal.errors import GraphcalError
 from graphcal.geometry import nearest_rotation, skew, so3_exp, so3_log
 
 __all__ = ["GRAVITY_WORLD", "EkfNoise", "NominalState", "LeggedEKF", "state_dim", "check_covariance",
-           "tangent_pose_covariance"]
+           "tangent_pose_covariance", "relative_pose_residual"]
 
 GRAVITY_WORLD = np.array([0.0, 0.0, -9.80665])
 
@@ -130,13 +130,21 @@ def _as_vector(name: str, v, n: int = 3) -> np.ndarray:
     return a
 
 
-def check_covariance(name: str, M, n: int, *, definite: bool = False) -> np.ndarray:
-    """``M`` as an (n, n) float matrix; GraphcalError unless symmetric and positive semi-definite
-    (positive definite with ``definite``)."""
+def check_covariance(name: str, M, n: int | None, *, definite: bool = False) -> np.ndarray:
+    """``M`` as an (n, n) float matrix (any square size with ``n=None``), symmetrised; GraphcalError
+    naming ``name`` unless finite, symmetric and positive semi-definite (definite with ``definite``)."""
+    if n is None:
+        try:
+            shape = np.shape(M)
+        except ValueError:
+            shape = "ragged"
+        if len(shape) != 2 or shape[0] != shape[1] or shape[0] < 1:
+            raise GraphcalError(f"{name} must be a square (n, n) matrix, got shape {shape}")
+        n = shape[0]
     A = _as_matrix(name, M, (n, n))
     scale = max(1.0, float(np.abs(A).max()))
     if not np.allclose(A, A.T, rtol=1e-9, atol=1e-12 * scale):
-        raise GraphcalError(f"{name} must be symmetric")
+        raise GraphcalError(f"{name} must be symmetric (max |{name} - {name}^T| = {np.abs(A - A.T).max():.3g})")
     w = np.linalg.eigvalsh(0.5 * (A + A.T))
     tol = 1e-12 * scale
     if definite and w.min() <= 0:
@@ -144,6 +152,15 @@ def check_covariance(name: str, M, n: int, *, definite: bool = False) -> np.ndar
     if w.min() < -tol:
         raise GraphcalError(f"{name} must be positive semi-definite (smallest eigenvalue {w.min():.3g})")
     return 0.5 * (A + A.T)
+
+
+def relative_pose_residual(A: np.ndarray, T_meas: np.ndarray, T_pred: np.ndarray) -> np.ndarray:
+    """``A xi`` (k,), ``xi = [Log(R_pred^T R_meas), R_pred^T (t_meas - t_pred)]`` (rad, m): measured
+    minus predicted relative pose T_keyframebody_body (4, 4 each) as the right perturbation
+    ``T_meas = T_pred Exp(xi)`` (to first order); filterpy's ``residual`` of the relative-pose update
+    (``functools.partial(relative_pose_residual, A)``)."""
+    R_pred = T_pred[:3, :3]
+    return A @ np.r_[so3_log(R_pred.T @ T_meas[:3, :3]), R_pred.T @ (T_meas[:3, 3] - T_pred[:3, 3])]
 
 
 def tangent_pose_covariance(R_world_body: np.ndarray, cov_dp_dtheta: np.ndarray) -> np.ndarray:
@@ -171,7 +188,8 @@ def tangent_pose_covariance(R_world_body: np.ndarray, cov_dp_dtheta: np.ndarray)
 
 
 class LeggedEKF:
-    """The error-state EKF (see the module docstring).
+    """The error-state EKF (see the module docstring); every matrix is given to and checked by the
+    constructor, which builds the filterpy filter from them (:meth:`_filterpy_filter`).
 
     Args:
         x0: the initial :class:`NominalState`.
@@ -185,13 +203,12 @@ class LeggedEKF:
         T_body_imu: (4, 4) IMU pose in the body frame (its rotation is used; no lever arm).
 
     Raises:
-        GraphcalError: a matrix of the wrong shape, not finite, not symmetric, not PSD (P0 not PD).
+        GraphcalError: naming the matrix: wrong shape, not finite, not symmetric, not PSD (P0 not PD),
+            x0's rotation or T_body_imu's not a rotation.
     """
 
     def __init__(self, x0: NominalState, P0, Qc, encoder_cov, kinematic_cov, *, n_slots: int = 3,
                  T_body_imu=None):
-        from filterpy.kalman import ExtendedKalmanFilter
-
         if not isinstance(n_slots, int) or n_slots < 1:
             raise GraphcalError(f"n_slots must be a positive integer, got {n_slots!r}")
         D = state_dim(n_slots)
@@ -210,8 +227,7 @@ class LeggedEKF:
         self.ba[:] = _as_vector("x0.accel_bias", x0.accel_bias)
         P0 = check_covariance("P0", P0, D, definite=True)
         self.Qc = check_covariance("Qc", Qc, D)
-        enc = np.asarray(encoder_cov, dtype=float)
-        self.encoder_cov = check_covariance("encoder_cov", enc, enc.shape[0] if enc.ndim == 2 else -1)
+        self.encoder_cov = check_covariance("encoder_cov", encoder_cov, None)
         self.kinematic_cov = check_covariance("kinematic_cov", kinematic_cov, 3)
         T = np.eye(4) if T_body_imu is None else _as_matrix("T_body_imu", T_body_imu, (4, 4))
         Rbi = T[:3, :3]
@@ -223,11 +239,7 @@ class LeggedEKF:
         self._xn_idx = np.r_[0:6, 9:15]
         self._Sk2 = np.zeros((2, 3, 3))
 
-        self.kf = ExtendedKalmanFilter(dim_x=D, dim_z=3 * n_slots)
-        self.kf.x = np.zeros(D)
-        self.kf.P = P0.copy()
-        self.kf.Q = np.zeros((D, D))
-        self.kf.F = np.eye(D)
+        self.kf = self._filterpy_filter(P0)
         self.p_feet = np.zeros((n_slots, 3))
         self.feet: tuple = ()
         self.p_c = self.p.copy()
@@ -236,7 +248,6 @@ class LeggedEKF:
         self.last_nis = float("nan")
         self.last_innovation = np.zeros(0)
         self.last_S = np.zeros((0, 0))
-        self._F = np.eye(D)
         self._Qdiag = np.diag(self.Qc).copy() if np.count_nonzero(self.Qc - np.diag(np.diag(self.Qc))) == 0 else None
         self._fs = slice(15, 15 + 3 * n_slots)
         self._c = 15 + 3 * n_slots
@@ -248,16 +259,23 @@ class LeggedEKF:
         self._sk_j = np.array([1, 2, 0, 2, 0, 1])
         self._sk_k = np.array([2, 1, 2, 0, 1, 0])
         self._sk_sign = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
-        rows, cols = [], []
-        for i in range(n_slots):
-            for a in range(3):
-                for b in range(3):
-                    rows.append(3 * i + a)
-                    cols.append(15 + 3 * i + b)
-        self._foot_rows = np.array(rows)
-        self._foot_cols = np.array(cols)
+        slot, a, b = np.meshgrid(np.arange(n_slots), np.arange(3), np.arange(3), indexing="ij")
+        self._foot_rows = (3 * slot + a).ravel()
+        self._foot_cols = (15 + 3 * slot + b).ravel()
         self._foot_src = np.tile(np.arange(9), n_slots)
-        self.use_filterpy_update = False
+
+    def _filterpy_filter(self, P0: np.ndarray):
+        """filterpy's EKF over the error state with the checked P0. Its constructor takes only the
+        dimensions; x, P, F, Q are the attributes its ``predict``/``update`` read (filterpy's
+        documented use). ``dim_z`` is nominal: every ``update`` passes its own R."""
+        from filterpy.kalman import ExtendedKalmanFilter
+
+        kf = ExtendedKalmanFilter(dim_x=self.dim, dim_z=3 * self.n_slots)
+        kf.x = np.zeros(self.dim)  # the error state: zero between updates
+        kf.P = P0.copy()
+        kf.F = np.eye(self.dim)  # filled per chunk by propagate (in place)
+        kf.Q = np.zeros((self.dim, self.dim))
+        return kf
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -299,8 +317,8 @@ class LeggedEKF:
             T: chunk length, s.
 
         The nominal state takes the chunk with the current biases (dR Exp(-b_g T), dpv + J b);
-        the covariance takes one step over it through filterpy's ``predict`` with
-        F = d(error after)/d(error before) below and Q = Qc T.
+        the covariance takes one step over it through filterpy's ``predict`` with its F =
+        d(error after)/d(error before) below and Q = Qc T (the error state stays zero: F 0 = 0).
         """
         xn = self._xn
         b = xn[6:12] if self._imu_identity else self._Rbi6 @ xn[6:12]
@@ -311,7 +329,8 @@ class LeggedEKF:
         dRc = dR @ so3_exp(-T * b[:3])
         R = self.R
         self.R = R @ dRc
-        F = self._F
+        kf = self.kf
+        F = kf.F
         F[0, 3] = F[1, 4] = F[2, 5] = T
         Sk = self._Sk2  # skew(-R dp_c), skew(-R dv_c): -R [d]x = -[R d]x R
         Sk[:, self._sk_i, self._sk_j] = -RD.T[:, self._sk_k] * self._sk_sign
@@ -323,8 +342,6 @@ class LeggedEKF:
         else:
             F[0:6, 9:15] = (R @ (J @ self._Rbi6).reshape(2, 3, 6)).reshape(6, 6)
             F[6:9, 9:12] = -T * self.R_body_imu
-        kf = self.kf
-        kf.F = F
         if self._Qdiag is not None:
             np.fill_diagonal(kf.Q, self._Qdiag * T)
         else:
@@ -380,24 +397,40 @@ class LeggedEKF:
         P[:, fs] = GP.T
         P[np.ix_(fs, fs)] = GP @ G.T + Gz @ R_meas @ Gz.T
 
-    def update_stance(self, p_body_foot: np.ndarray, R_meas: np.ndarray, slots=None) -> float:
-        """Stance update with the measured p_body_foot (n_slots, 3) of the tracked feet (same
-        order as :meth:`reset_feet`), covariance R_meas (3 n_slots, 3 n_slots). With ``slots``
-        (indices) only those feet are measured: p_body_foot (k, 3), R_meas (3 k, 3 k) of them.
-        Returns the NIS."""
+    def stance_prediction(self, dx: np.ndarray, rows=None) -> np.ndarray:
+        """filterpy's ``Hx`` of the stance update: h = R^T (p_world_foot - p) (3 n_slots,) m of the
+        tracked feet (``rows`` of them), at the nominal state (``dx``, filterpy's error state, is
+        zero before an update)."""
+        h = ((self.p_feet - self.p) @ self.R).ravel()  # rows: R^T (p_world_foot - p)
+        return h if rows is None else h[rows]
+
+    def stance_jacobian(self, dx: np.ndarray, rows=None) -> np.ndarray:
+        """filterpy's ``HJacobian`` of the stance update: dh/d(error state) (3 n_slots, D) at the
+        nominal state (``rows`` of it): -R^T for dp, [h]x for dtheta, R^T for the foot's dp_foot."""
         RT = self.R.T
-        h = (self.p_feet - self.p) @ self.R  # rows: R^T (p_world_foot - p)
-        H = self._H
-        H3 = self._H3
+        h = (self.p_feet - self.p) @ self.R
+        H, H3 = self._H, self._H3
         H3[:, :, 0:3] = -RT
         Sk = self._Sk
         Sk[:, self._sk_i, self._sk_j] = h[:, self._sk_k] * self._sk_sign
         H3[:, :, 6:9] = Sk
         H[self._foot_rows, self._foot_cols] = RT.ravel()[self._foot_src]
+        return H if rows is None else H[rows]
+
+    def update_stance(self, p_body_foot: np.ndarray, R_meas: np.ndarray, slots=None) -> float:
+        """Stance update with the measured p_body_foot (n_slots, 3) m of the tracked feet (same
+        order as :meth:`reset_feet`), covariance R_meas (3 n_slots, 3 n_slots) m^2. With ``slots``
+        (indices) only those feet are measured: p_body_foot (k, 3), R_meas (3 k, 3 k) of them.
+        Returns the NIS."""
+        rows = None
         if slots is not None:
             rows = (3 * np.asarray(slots, dtype=np.int64)[:, None] + np.arange(3)[None]).ravel()
-            return self._update(np.asarray(p_body_foot).ravel(), h.ravel()[rows], H[rows], R_meas)[0]
-        return self._update(p_body_foot.ravel(), h.ravel(), H, R_meas)[0]
+        z = np.asarray(p_body_foot, dtype=float).ravel()
+        m = 3 * self.n_slots if rows is None else len(rows)
+        if z.shape != (m,) or np.shape(R_meas) != (m, m):
+            raise GraphcalError(f"update_stance: expected p_body_foot ({m // 3}, 3) and R_meas ({m}, {m}), got "
+                                f"{np.shape(p_body_foot)} and {np.shape(R_meas)}")
+        return self._update(z, self.stance_jacobian, self.stance_prediction, R_meas, args=(rows,), hx_args=(rows,))
 
     # ------------------------------------------------------------------ relative pose (ICP)
     def clone_pose(self) -> None:
@@ -413,22 +446,37 @@ class LeggedEKF:
         self.R_c = self.R.copy()
         self.has_clone = True
 
-    def predicted_relative_pose(self) -> np.ndarray:
-        """(4, 4) T_keyframebody_body = T_c^-1 T from the current estimate."""
+    def predicted_relative_pose(self, dx: np.ndarray | None = None) -> np.ndarray:
+        """(4, 4) T_keyframebody_body = T_c^-1 T from the current estimate (the nominal state; as
+        filterpy's ``Hx`` of the relative-pose update ``dx`` is its zero error state)."""
         T = np.eye(4)
         T[:3, :3] = self.R_c.T @ self.R
         T[:3, 3] = self.R_c.T @ (self.p - self.p_c)
         return T
+
+    def relative_pose_jacobian(self, dx: np.ndarray, A: np.ndarray) -> np.ndarray:
+        """filterpy's ``HJacobian`` of the relative-pose update: d(A xi)/d(error state) (k, D) at the
+        nominal state, xi the right perturbation [omega, v] of T_c^-1 T (clone and current pose)."""
+        dR_hat = self.R_c.T @ self.R
+        dt_hat = self.R_c.T @ (self.p - self.p_c)
+        c = self._c
+        Hx = np.zeros((6, self.dim))
+        Hx[0:3, 6:9] = np.eye(3)
+        Hx[0:3, c + 3 : c + 6] = -dR_hat.T
+        Hx[3:6, 0:3] = dR_hat.T @ self.R_c.T
+        Hx[3:6, c : c + 3] = -dR_hat.T @ self.R_c.T
+        Hx[3:6, c + 3 : c + 6] = dR_hat.T @ skew(dt_hat)
+        return A @ Hx
 
     def update_relative_pose(self, T_meas: np.ndarray, A: np.ndarray, cov: np.ndarray, *,
                              gate_chi2: float | None = None) -> tuple[float, bool]:
         """Fuse a measured T_keyframebody_body (4, 4) in the directions it constrains.
 
         Args:
-            T_meas: measured relative pose T_c^-1 T (body frames).
+            T_meas: measured relative pose T_c^-1 T (body frames, m).
             A: (k, 6) measured combinations of the right perturbation xi = [omega, v] of the
                 relative pose: z = A xi with T_true = T_meas Exp(-xi).
-            cov: (k, k) covariance of z.
+            cov: (k, k) covariance of z (rad^2, rad m, m^2).
             gate_chi2: reject the measurement (no update) when its NIS exceeds this.
 
         Returns:
@@ -441,60 +489,37 @@ class LeggedEKF:
         if A.shape[1] != 6 or k == 0:
             raise GraphcalError(f"update_relative_pose: A must have shape (k, 6), k >= 1, got {A.shape}")
         cov = check_covariance("relative-pose covariance", cov, k, definite=True)
-        dR_hat = self.R_c.T @ self.R
-        dt_hat = self.R_c.T @ (self.p - self.p_c)
-        xi = np.r_[so3_log(dR_hat.T @ T_meas[:3, :3]), dR_hat.T @ (T_meas[:3, 3] - dt_hat)]
-        c = self._c
-        Hx = np.zeros((6, self.dim))
-        Hx[0:3, 6:9] = np.eye(3)
-        Hx[0:3, c + 3 : c + 6] = -dR_hat.T
-        Hx[3:6, 0:3] = dR_hat.T @ self.R_c.T
-        Hx[3:6, c : c + 3] = -dR_hat.T @ self.R_c.T
-        Hx[3:6, c + 3 : c + 6] = dR_hat.T @ skew(dt_hat)
-        return self._update(A @ xi, np.zeros(k), A @ Hx, cov, gate_chi2=gate_chi2)
-
-    # ------------------------------------------------------------------ common
-    def _update(self, z, hx, H, R, *, gate_chi2: float | None = None) -> tuple[float, bool]:
-        """Kalman update of the error state with the linearised measurement z ~ hx + H dx.
-
-        By default a lean update (one 30x30-sized product per step; P - K S K^T, symmetrised);
-        with ``use_filterpy_update`` filterpy's ``ExtendedKalmanFilter.update`` (Joseph form) —
-        the two agree to rounding (tests). Gain, innovation and its covariance are left in the
-        filterpy object (``K``, ``y``, ``S``, ``SI``) either way; the error is injected into the
-        nominal state and reset to zero. With ``gate_chi2`` a measurement whose NIS exceeds it is
-        not fused. Returns (NIS, fused)."""
-        kf = self.kf
+        T_meas = _as_matrix("T_meas", T_meas, (4, 4))
+        residual = functools.partial(relative_pose_residual, A)
         if gate_chi2 is not None:
-            y0 = z - hx
-            S0 = H @ kf.P @ H.T + R
-            nis0 = float(y0 @ np.linalg.solve(S0, y0))
+            y0 = residual(T_meas, self.predicted_relative_pose())
+            H = self.relative_pose_jacobian(self.kf.x, A)
+            nis0 = float(y0 @ np.linalg.solve(H @ self.kf.P @ H.T + cov, y0))
             if nis0 > gate_chi2:
                 self.last_nis = nis0
                 return nis0, False
-        if self.use_filterpy_update:
-            kf.update(z, HJacobian=lambda _x: H, Hx=lambda _x: hx, R=R)
-            y, SI = kf.y, kf.SI
-            dx = kf.x
-        else:
-            P = kf.P
-            PHT = P @ H.T
-            S = H @ PHT + R
-            SI = np.linalg.inv(S)
-            K = PHT @ SI
-            y = z - hx
-            dx = K @ y
-            P -= K @ PHT.T
-            kf.P = 0.5 * (P + P.T)
-            kf.K, kf.y, kf.S, kf.SI = K, y, S, SI
+        return self._update(T_meas, self.relative_pose_jacobian, self.predicted_relative_pose, cov, args=(A,),
+                            residual=residual), True
+
+    # ------------------------------------------------------------------ common
+    def _update(self, z, HJacobian, Hx, R, *, args=(), hx_args=(), residual=np.subtract) -> float:
+        """filterpy's ``update`` of the error state (gain, Joseph-form covariance; its ``y``, ``S``,
+        ``SI``, ``K`` kept), then graphcal's part: the error injected into the nominal state and
+        reset to zero. Returns the NIS ``y^T S^-1 y``."""
+        kf = self.kf
+        kf.update(z, HJacobian, Hx, R=R, args=args, hx_args=hx_args, residual=residual)
+        y = kf.y
+        nis = float(y @ kf.SI @ y)
         self.last_innovation = y
         self.last_S = kf.S
-        nis = float(y @ SI @ y)
         self.last_nis = nis
-        self._inject(dx)
+        self._inject(kf.x)
         kf.x = np.zeros(self.dim)
-        return nis, True
+        return nis
 
     def _inject(self, dx: np.ndarray) -> None:
+        """The error ``dx`` (D,) into the nominal state: p, v, biases, feet, clone position add; R and
+        R_c take Exp of their dtheta on the right."""
         self._xn += dx[self._xn_idx]
         self.R = self.R @ so3_exp(dx[6:9])
         self.p_feet += dx[self._fs].reshape(self.n_slots, 3)

@@ -544,7 +544,7 @@ def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.
     st_k = np.empty(max_st, dtype=np.int64)
     n_st = 0
     cov_index: list[int] = [0]
-    cov_pose: list[np.ndarray] = [ekf.kf.P[np.ix_(pose_idx, pose_idx)].copy()]
+    cov_pose: list[np.ndarray] = [ekf.P[np.ix_(pose_idx, pose_idx)].copy()]
     kf_cloud = None
     kf_time = -np.inf
     icp_nis, icp_dof, icp_times = [], [], []
@@ -608,7 +608,7 @@ def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.
             ekf.renormalize()
         if k >= next_cov:
             cov_index.append(k)
-            cov_pose.append(ekf.kf.P[pose_r, pose_c])
+            cov_pose.append(ekf.P[pose_r, pose_c])
             next_cov = k + cfg.record_cov_every
         S_p[e + 1], S_v[e + 1], S_R[e + 1] = ekf.p, ekf.v, ekf.R
         S_bg[e + 1], S_ba[e + 1] = ekf.body_biases()

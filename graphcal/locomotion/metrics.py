@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from graphcal.errors import DatasetError
+from graphcal.geometry import so3_log_batch
 
 __all__ = ["Truth", "load_truth", "trajectory_metrics", "interp_truth", "pose_errors", "nees_against_truth",
            "whiteness", "chi2_band", "evo_trajectory"]
@@ -176,12 +177,10 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
     """(N, 6) errors of the poses T_est (N, 4, 4) against T_true (N, 4, 4) in the filter's
     error-state order (that of ``TrackResult.cov_pose``, not docs/conventions.md's ``[omega, v]``):
     [p_true - p_est (world frame, m), Log(R_est^T R_true) (body frame, rad)]."""
-    from scipy.spatial.transform import Rotation
-
     e = np.empty((len(T_est), 6))
     e[:, :3] = T_true[:, :3, 3] - T_est[:, :3, 3]
     dR = np.swapaxes(T_est[:, :3, :3], 1, 2) @ T_true[:, :3, :3]
-    e[:, 3:] = Rotation.from_matrix(dR).as_rotvec()
+    e[:, 3:] = so3_log_batch(dR)
     return e
 
 
