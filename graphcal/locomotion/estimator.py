@@ -48,11 +48,20 @@ class TrackerConfig:
         icp_gate_prob: an ICP measurement whose NIS exceeds this chi-square quantile is not fused.
         icp_max_points: clouds with more points are evenly thinned to this many for ICP.
         hysteresis_n: support detection hysteresis of the two-tripod gait (N).
-        contact_on_n, contact_off_n: any other gait (a quadruped's): a foot enters stance when its
-            load (foot-force sensor, else from its leg's torques) exceeds ``contact_on_n`` and
-            leaves it below ``contact_off_n`` (N; :func:`graphcal.locomotion.support.stance_from_loads`);
-            with contacts only (``contact_<foot>`` 0/1 or a probability) a foot is in stance
-            when its value exceeds 0.5.
+        contact_thresholds: any other gait (a quadruped's): a foot enters stance when its load
+            (foot-force sensor ``force_<foot>``, else from its leg's torques) exceeds its ``on``
+            threshold and leaves it below its ``off`` one
+            (:func:`graphcal.locomotion.support.stance_from_loads`). ``learned`` (default): both
+            learned per foot from the foot's own signal, between its swing and stance modes
+            (:mod:`graphcal.locomotion.contact_detection`; any unit: N or raw counts); a foot whose
+            signal has no two modes (a log where it only stands) falls back to ``contact_on_n`` /
+            ``contact_off_n``. ``fixed``: ``contact_on_n`` / ``contact_off_n`` for every foot (N).
+            With contacts only (``contact_<foot>`` 0/1 or a probability) the threshold is 0.5.
+        contact_on_n, contact_off_n: the fixed thresholds (N), off <= on.
+        contact_min_stance_s, contact_min_swing_s: stances and swings shorter than these (s) are
+            removed from the mask (a spurious touchdown, a dip of a loaded foot); 0.05 s, a third of
+            the shortest stance of a fast trot (0.3 s cycle), above the < 40 ms spurious stances of
+            real logs.
         init_window_s: accelerometer averaging window for the initial roll and pitch (s), when the
             data do not start still.
         still_start, still_min_s, still_joint_tol_rad: a still start -- the leading samples whose
@@ -84,6 +93,9 @@ class TrackerConfig:
     hysteresis_n: float = 20.0
     contact_on_n: float = 20.0
     contact_off_n: float = 10.0
+    contact_thresholds: str = "learned"
+    contact_min_stance_s: float = 0.05
+    contact_min_swing_s: float = 0.05
     init_window_s: float = 0.1
     still_start: bool = True
     still_min_s: float = 0.3
@@ -100,6 +112,12 @@ class TrackerConfig:
     def __post_init__(self):
         if self.stance_every < 1 or self.record_cov_every < 1:
             raise GraphcalError("stance_every and record_cov_every must be >= 1")
+        if self.contact_thresholds not in ("learned", "fixed"):
+            raise GraphcalError(f"contact_thresholds: expected learned or fixed, got {self.contact_thresholds!r}")
+        if not self.contact_off_n <= self.contact_on_n:
+            raise GraphcalError(f"contact_off_n ({self.contact_off_n}) must not exceed contact_on_n ({self.contact_on_n})")
+        if not (self.contact_min_stance_s >= 0 and self.contact_min_swing_s >= 0):
+            raise GraphcalError("contact_min_stance_s and contact_min_swing_s must be >= 0 (s)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,6 +144,13 @@ class TrackResult:
         support_group: (N,) tripod in stance (index into ``groups``); for other gaits the stance
             mask as an integer (bit i: foot i of ``robot.feet``); groups (() for other gaits).
         stance_mask: (N, n_feet) bool, feet detected in stance (``robot.feet`` order).
+        contacts: how the stance mask was decided (any gait but the two tripods; None there), plain
+            values for metrics.json: ``signal`` (``force_<foot>``, ``loads from joint torques (N)``
+            or ``contact_<foot>``), ``thresholds`` (``learned`` / ``fixed``), ``min_stance_s``,
+            ``min_swing_s``, ``feet``: foot -> ``source``, ``on``, ``off``, ``low_mode``,
+            ``high_mode`` (the signal's unit), ``separation``, ``duty_factor`` (share of the samples
+            in stance), ``n_stances``, ``n_short_stances_removed``, ``n_short_swings_removed``
+            (:meth:`graphcal.locomotion.contact_detection.FootContacts.as_dict`).
         processing_s: wall time of the filter (support detection, kinematics and loop included).
         duration_s: span of the data (s).
     """
@@ -151,6 +176,7 @@ class TrackResult:
     duration_s: float
     stance_dofs: np.ndarray | None = None
     stance_mask: np.ndarray | None = None
+    contacts: dict | None = None
 
     def cov_pose_tangent(self) -> np.ndarray:
         """(M, 6, 6) ``cov_pose`` converted to docs/conventions.md's order: covariance of
@@ -288,13 +314,14 @@ class _Support:
     the foot (index into robot.feet) in each slot, ``slot_stance`` (N, n_slots) whether it is in
     stance; ``touchdown`` (N, n_slots) a new foot in the slot at that sample (reset, no update);
     ``mask`` (N, n_feet) feet in stance; ``code`` (N,) the tripod index (two-tripod gait) or the
-    mask as an integer (bit i: foot i)."""
+    mask as an integer (bit i: foot i); ``contacts`` how the mask was decided (TrackResult.contacts)."""
 
     slot_feet: np.ndarray
     slot_stance: np.ndarray
     touchdown: np.ndarray
     mask: np.ndarray
     code: np.ndarray
+    contacts: dict | None = None
 
     @property
     def n_slots(self) -> int:
@@ -304,11 +331,11 @@ class _Support:
 def _support(inp: TrackInputs, feet: tuple, groups: tuple, jacobians: dict, cfg: TrackerConfig) -> _Support:
     """The support model. Two tripods (``groups``, no foot-force sensors): one slot per foot of a
     tripod, all of them reset when the other tripod takes over (:func:`_support_group`). Any other
-    gait: one slot per foot, stance from each foot's load (force sensors, else torques; hysteresis
-    ``contact_on_n`` / ``contact_off_n``) or its contact column; a foot touching down is reset."""
-    from graphcal.locomotion.support import foot_loads, stance_from_loads
-
+    gait: one slot per foot, stance from each foot's load (force sensors, else torques; per-foot
+    hysteresis and minimum durations, :func:`_stance_mask`) or its contact column; a foot touching
+    down is reset."""
     N = len(inp.times)
+    contacts = None
     if groups and inp.force is None:
         group = _support_group(inp, feet, groups, jacobians, cfg)
         group_idx = np.array([[feet.index(f) for f in g] for g in groups])
@@ -318,19 +345,35 @@ def _support(inp: TrackInputs, feet: tuple, groups: tuple, jacobians: dict, cfg:
         np.put_along_axis(mask, slot_feet, True, axis=1)
         code = np.asarray(group)
     else:
-        if inp.force is not None:
-            mask = stance_from_loads(inp.force, on_n=cfg.contact_on_n, off_n=cfg.contact_off_n)
-        elif inp.tau is not None:
-            mask = stance_from_loads(foot_loads(inp.robot, inp.q, inp.tau, feet, jacobians=jacobians),
-                                     on_n=cfg.contact_on_n, off_n=cfg.contact_off_n)
-        else:
-            mask = np.asarray(inp.contact, dtype=bool)
+        mask, contacts = _stance_mask(inp, feet, jacobians, cfg)
         slot_feet = np.broadcast_to(np.arange(len(feet)), mask.shape)
         slot_stance = mask
         code = (mask.astype(np.int64) << np.arange(len(feet))).sum(axis=1)
     touchdown = np.zeros(slot_stance.shape, dtype=bool)
     touchdown[1:] = slot_stance[1:] & (~slot_stance[:-1] | (slot_feet[1:] != slot_feet[:-1]))
-    return _Support(slot_feet, slot_stance, touchdown, mask, code)
+    return _Support(slot_feet, slot_stance, touchdown, mask, code, contacts)
+
+
+def _stance_mask(inp: TrackInputs, feet: tuple, jacobians: dict, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
+    """(N, n_feet) stance mask and how it was decided (TrackResult.contacts): from the foot-force
+    signals, else the loads from the joint torques (N), else the contact columns (threshold 0.5);
+    thresholds learned per foot or fixed (``cfg.contact_thresholds``), then the minimum durations."""
+    from graphcal.locomotion.contact_detection import detect_contacts
+    from graphcal.locomotion.support import foot_loads
+
+    fixed = (cfg.contact_on_n, cfg.contact_off_n)
+    mode = cfg.contact_thresholds
+    if inp.force is not None:
+        signal, what = np.asarray(inp.force, dtype=float), "force_<foot>"
+    elif inp.tau is not None:
+        signal, what = foot_loads(inp.robot, inp.q, inp.tau, feet, jacobians=jacobians), "loads from joint torques (N)"
+    else:
+        signal, what, mode, fixed = np.asarray(inp.contact, dtype=float), "contact_<foot>", "fixed", (0.5, 0.5)
+    det = detect_contacts(signal, inp.times, feet, thresholds=mode, fixed=fixed, fallback=fixed,
+                          min_stance_s=cfg.contact_min_stance_s, min_swing_s=cfg.contact_min_swing_s)
+    info = {"signal": what, "thresholds": mode, "min_stance_s": det.min_stance_s, "min_swing_s": det.min_swing_s,
+            "feet": det.summary()}
+    return det.mask, info
 
 
 def _stance_measurement(kin: _FootKinematics, feet_idx: list[int], k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -715,6 +758,7 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
         icp_dof=np.asarray(out.icp_dof, dtype=np.int64), icp_times=np.asarray(out.icp_times),
         n_icp_rejected=out.n_rejected, support_group=np.asarray(sup.code), groups=groups, processing_s=elapsed,
         duration_s=float(times[-1] - times[0]), stance_dofs=out.st_dof, stance_mask=sup.mask,
+        contacts=sup.contacts,
     )
 
 

@@ -13,7 +13,8 @@ short six-foot support.
 Any other gait (a quadruped's trot or walk: any set of feet in stance) is read foot by foot: the
 load of each foot -- from a foot-force sensor, or from its leg's torques as above -- switches it
 into stance above ``on_n`` and out below ``off_n`` (a hysteresis per foot,
-:func:`stance_from_loads`), giving a stance mask per sample.
+:func:`stance_from_loads`), giving a stance mask per sample; the thresholds can be learned per foot
+from the loads themselves (:mod:`graphcal.locomotion.contact_detection`).
 
 Everything is vectorised over the samples.
 """
@@ -143,22 +144,12 @@ def foot_loads(robot, q_by_joint, tau_by_joint, feet, *, jacobians: dict | None 
     return loads
 
 
-def stance_from_loads(loads: np.ndarray, *, on_n: float, off_n: float) -> np.ndarray:
-    """(N, n_feet) bool stance mask from foot loads (N, n_feet) in N, a hysteresis per foot: a foot
+def stance_from_loads(loads: np.ndarray, *, on_n, off_n) -> np.ndarray:
+    """(N, n_feet) bool stance mask from foot loads (N, n_feet), a hysteresis per foot: a foot
     enters stance when its load exceeds ``on_n`` and leaves it when the load falls below ``off_n``
-    (``off_n <= on_n``); it starts in stance when its first load is above the midpoint."""
-    loads = np.asarray(loads, dtype=float)
-    if not off_n <= on_n:
-        raise GraphcalError(f"contact thresholds: off ({off_n} N) must not exceed on ({on_n} N)")
-    N, n = loads.shape
-    out = np.empty((N, n), dtype=bool)
-    for i in range(n):
-        up = loads[:, i] > on_n
-        down = loads[:, i] < off_n
-        # the state is the last decisive sample's: forward-fill the index of the last up/down sample
-        decided = up | down
-        last = np.where(decided, np.arange(N), -1)
-        np.maximum.accumulate(last, out=last)
-        first = bool(loads[0, i] > 0.5 * (on_n + off_n)) if N else False
-        out[:, i] = np.where(last >= 0, up[np.maximum(last, 0)], first)
-    return out
+    (``off_n <= on_n``); it starts in stance when its first load is above the midpoint. ``on_n``
+    and ``off_n`` are numbers or one per foot (n_feet,), in the loads' unit (N, or raw counts with
+    thresholds learned from them: :mod:`graphcal.locomotion.contact_detection`)."""
+    from graphcal.locomotion.contact_detection import hysteresis_mask
+
+    return hysteresis_mask(loads, on_n, off_n)

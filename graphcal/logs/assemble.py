@@ -16,7 +16,7 @@ from graphcal.errors import DatasetError
 from graphcal.io.dataset.model import Dataset, ImuSpec, RobotSpec, SensorSpec, Table
 from graphcal.logs.stations import StationFinder, Window
 
-__all__ = ["SampleSink", "StampCheck", "DatasetParts", "write_imported"]
+__all__ = ["SampleSink", "StampCheck", "DatasetParts", "write_imported", "foot_thresholds"]
 
 log = logging.getLogger(__name__)
 
@@ -49,30 +49,77 @@ class StampCheck:
         self._last[topic] = t
 
 
+def foot_thresholds(samples: dict[str, np.ndarray], specs: dict[str, dict], default: float) -> dict:
+    """foot -> :class:`~graphcal.locomotion.contact_detection.ContactThresholds` (the unit of the
+    samples: N after the map's offset/scale, or raw counts with ``threshold_raw``): the map's own
+    ``threshold_n`` / ``threshold_raw`` of the foot when it gives one (on = off = it, source
+    ``map``), else learned from the foot's samples (its swing and stance modes), else -- a foot that
+    was never lifted, or never loaded -- ``default`` (``stations.force_threshold_n``, source
+    ``fallback``)."""
+    from graphcal.locomotion.contact_detection import ContactSignalError, ContactThresholds, learn_thresholds
+
+    out = {}
+    for foot, spec in specs.items():
+        given = spec.get("threshold_raw", spec.get("threshold_n"))
+        if given is not None:
+            out[foot] = ContactThresholds(foot, float(given), float(given), source="map")
+            continue
+        try:
+            out[foot] = learn_thresholds(np.asarray(samples.get(foot, ()), dtype=float), foot)
+        except ContactSignalError:
+            out[foot] = ContactThresholds(foot, float(default), float(default), source="fallback")
+    return out
+
+
 class SampleSink:
     """Where samples go, in time order: the :class:`StationFinder` and (with ``timeseries``) the
-    rows of ``timeseries.csv`` (one per joint sample, the latest IMU sample and foot contacts held)."""
+    rows of ``timeseries.csv`` (one per joint sample, the latest IMU sample and foot loads held).
 
-    def __init__(self, finder: StationFinder, feet_thresholds: dict[str, float], timeseries: bool):
+    A foot is loaded above its ``on`` threshold and unloaded below its ``off`` one (a hysteresis;
+    ``feet_thresholds`` foot -> ContactThresholds, or a number for on = off). The timeseries'
+    ``contact_<foot>`` are decided at the end from the stored loads (``force_<foot>``, the unit of
+    the map: N, or raw counts with ``threshold_raw``) with the same hysteresis and the minimum
+    stance and swing durations ``min_stance_s``, ``min_swing_s`` (s); the joints' efforts, when
+    every joint message had them, become ``tau_<joint>`` (N m)."""
+
+    def __init__(self, finder: StationFinder, feet_thresholds: dict, timeseries: bool, *,
+                 min_stance_s: float | None = None, min_swing_s: float | None = None):
+        from graphcal.locomotion.contact_detection import MIN_STANCE_S, MIN_SWING_S, ContactThresholds
+
         self.finder = finder
-        self.thresholds = feet_thresholds
+        self.thresholds = {f: (t if isinstance(t, ContactThresholds) else ContactThresholds(f, float(t), float(t),
+                                                                                              source="map"))
+                           for f, t in feet_thresholds.items()}
         self.timeseries = timeseries
+        self.min_stance_s = MIN_STANCE_S if min_stance_s is None else float(min_stance_s)
+        self.min_swing_s = MIN_SWING_S if min_swing_s is None else float(min_swing_s)
         self.rows: list[np.ndarray] = []
         self._imu = np.full(6, np.nan)
-        self._contact = {f: 0.0 for f in feet_thresholds}
+        self._force = np.full(len(self.thresholds), np.nan)
+        self._loaded = np.zeros(len(self.thresholds), dtype=bool)
+        self._foot_index = {f: i for i, f in enumerate(self.thresholds)}
+        self._tau_ok: bool | None = None
         self.n_joint = 0
         self.n_imu = 0
-        self._thr: dict = {}
-        self._last_feet: set = set()
+        self._cols: dict = {}
+        self._reported: set = set()  # the feet reported to the finder once (the first report always goes)
+        #: the timeseries' ContactDetection, once timeseries_table made it
+        self.contacts = None
         #: receive time minus header stamp of the first joint message (s), set by the bag reader
         self.receive_offset_s = 0.0
 
-    def joints(self, t: float, q: np.ndarray) -> None:
+    def joints(self, t: float, q: np.ndarray, tau: np.ndarray | None = None) -> None:
+        """Joint positions ``q`` (rad) and, when the message has them, efforts ``tau`` (N m) at ``t`` (s)."""
         self.n_joint += 1
         self.finder.joints(t, q)
-        if self.timeseries and (np.isfinite(self._imu[0]) or not self.finder.has_imu):
+        if not self.timeseries:
+            return
+        ok = tau is not None and len(tau) == len(q)
+        self._tau_ok = ok if self._tau_ok is None else (self._tau_ok and ok)
+        if np.isfinite(self._imu[0]) or not self.finder.has_imu:
             imu = self._imu if self.finder.has_imu else ()
-            self.rows.append(np.concatenate([[t], q, imu, list(self._contact.values())]))
+            efforts = tau if ok else np.full(len(q), np.nan)
+            self.rows.append(np.concatenate([[t], q, efforts, imu, self._force]))
 
     def imu(self, t: float, accel, gyro) -> None:
         """Specific force (m/s²) and rate (rad/s) at ``t`` (s), each three numbers."""
@@ -88,25 +135,69 @@ class SampleSink:
     def feet_array(self, t: float, names: tuple[str, ...], forces: np.ndarray) -> None:
         """Loads ``forces`` (N, or raw counts with a raw threshold) of the feet ``names`` at ``t``
         (s); the finder hears of it only when a foot's state changes."""
-        thr = self._thr.get(names)
-        if thr is None:
-            thr = self._thr[names] = np.array([self.thresholds[n] for n in names])
-        loaded = forces > thr
-        key = (names, loaded.tobytes())
-        if key in self._last_feet:
+        cols = self._cols.get(names)
+        if cols is None:
+            idx = np.array([self._foot_index[n] for n in names])
+            on = np.array([self.thresholds[n].on for n in names])
+            off = np.array([self.thresholds[n].off for n in names])
+            cols = self._cols[names] = (idx, on, off)
+        idx, on, off = cols
+        self._force[idx] = forces
+        prev = self._loaded[idx]
+        now = np.where(forces > on, True, np.where(forces < off, False, prev))
+        if np.array_equal(now, prev) and names in self._reported:
             return
-        self._last_feet = {k for k in self._last_feet if k[0] != names} | {key}
-        for name, ok in zip(names, loaded):
-            self._contact[name] = float(ok)
-        self.finder.feet(t, dict(zip(names, loaded.tolist())))
+        self._reported.add(names)
+        self._loaded[idx] = now
+        self.finder.feet(t, dict(zip(names, now.tolist())))
+
+    def contact_detection(self, forces: np.ndarray, times: np.ndarray):
+        """The timeseries' contacts: :func:`graphcal.locomotion.contact_detection.stance_mask` of the
+        stored ``forces`` (N rows, n_feet) with the sink's thresholds and minimum durations."""
+        from graphcal.locomotion.contact_detection import stance_mask
+
+        return stance_mask(forces, times, list(self.thresholds.values()), min_stance_s=self.min_stance_s,
+                           min_swing_s=self.min_swing_s)
 
     def timeseries_table(self, joint_names) -> Table | None:
+        """timeseries.csv: time, q_*, tau_* (when every joint message had efforts), imu_*,
+        force_<foot> (the map's unit), contact_<foot> (0/1)."""
         if not self.timeseries or not self.rows:
             return None
         a = np.vstack(self.rows)
-        imu = ["imu_ax", "imu_ay", "imu_az", "imu_gx", "imu_gy", "imu_gz"] if self.finder.has_imu else []
-        cols = ["time"] + [f"q_{j}" for j in joint_names] + imu + [f"contact_{f}" for f in self._contact]
-        return Table(tuple(cols), {c: a[:, i] for i, c in enumerate(cols)})
+        nj = len(joint_names)
+        n_imu = 6 if self.finder.has_imu else 0
+        data = {"time": a[:, 0]}
+        data.update({f"q_{j}": a[:, 1 + i] for i, j in enumerate(joint_names)})
+        if self._tau_ok:
+            data.update({f"tau_{j}": a[:, 1 + nj + i] for i, j in enumerate(joint_names)})
+        imu = ["imu_ax", "imu_ay", "imu_az", "imu_gx", "imu_gy", "imu_gz"][:n_imu]
+        data.update({c: a[:, 1 + 2 * nj + i] for i, c in enumerate(imu)})
+        if self.thresholds:
+            forces = _backfilled(a[:, 1 + 2 * nj + n_imu:])
+            det = self.contact_detection(forces, a[:, 0])
+            self.contacts = det
+            data.update({f"force_{f}": forces[:, i] for i, f in enumerate(self.thresholds)})
+            data.update({f"contact_{f}": det.mask[:, i].astype(float) for i, f in enumerate(self.thresholds)})
+        return Table(tuple(data), data)
+
+    def contacts_report(self) -> dict:
+        """foot -> thresholds used (the map's unit) and, with a timeseries, duty factor and runs."""
+        det = self.contacts
+        if det is not None:
+            return {"min_stance_s": det.min_stance_s, "min_swing_s": det.min_swing_s, "feet": det.summary()}
+        return {"feet": {f: {"source": t.source, "on": float(t.on), "off": float(t.off)}
+                         for f, t in self.thresholds.items()}}
+
+
+def _backfilled(x: np.ndarray) -> np.ndarray:
+    """Columns with their leading NaN (rows before the first foot message) set to the first value
+    (0 for a column without any)."""
+    x = x.copy()
+    for i in range(x.shape[1]):
+        ok = np.flatnonzero(np.isfinite(x[:, i]))
+        x[: ok[0] if len(ok) else len(x), i] = x[ok[0], i] if len(ok) else 0.0
+    return x
 
 
 @dataclass
@@ -201,6 +292,8 @@ def write_imported(parts: DatasetParts, out_dir: Path, *, overwrite: bool = Fals
               "units": "times in s (the log's stamps); stations.csv, clouds and timeseries.csv in SI units",
               "stations": [_window_dict(w, i + 1) for i, w in enumerate(kept)],
               "rejected": [_window_dict(w) for w in rejected], "clock": list(jumps), "notes": list(parts.notes)}
+    if parts.sink.thresholds:
+        report["contacts"] = parts.sink.contacts_report()
     report_text = yaml.safe_dump(report, sort_keys=False, default_flow_style=None)
     out = write_dataset(ds, out_dir, clouds=clouds, robot_urdf_xml=parts.urdf_xml, overwrite=overwrite,
                         extra_files={"import_map.yaml": parts.map_text, "import_report.yaml": report_text})

@@ -15,7 +15,7 @@ import numpy as np
 from graphcal.errors import DatasetError
 from graphcal.io.dataset.model import ImuSpec, PosePrior, RobotSpec, SensorSpec
 from graphcal.logs import messages as M
-from graphcal.logs.assemble import DatasetParts, SampleSink, StampCheck, write_imported
+from graphcal.logs.assemble import DatasetParts, SampleSink, StampCheck, foot_thresholds, write_imported
 from graphcal.logs.mapping import IMAGE, SCAN, check_map, detect_map, map_yaml_text, read_map, thresholds_of
 from graphcal.logs.reader import LogReader, types_from_msg_dir
 from graphcal.logs.stations import StationFinder
@@ -91,6 +91,9 @@ def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
     for t in [*topics, *point_topics, *info_topics]:
         reader.check_type_known(t)
     th = sink_args["thresholds"]
+    learn = [f for f, spec in feet.items() if "threshold_n" not in spec and "threshold_raw" not in spec]
+    samples = _foot_samples(reader, foot_topics, learn) if learn else {}
+    thresholds = foot_thresholds(samples, feet, th.force_threshold_n)
     names: tuple[str, ...] | None = None
     sink = None
     offset = 0.0
@@ -125,11 +128,12 @@ def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
                 names = jn
                 offset = t_ns * 1e-9 - t  # receive time minus stamp (s): where to look for clouds
                 finder = StationFinder(names, tuple(feet), bool(it), th)
-                sink = SampleSink(finder, {f: float(feet[f].get("threshold_n", th.force_threshold_n)) for f in feet},
-                                  sink_args["timeseries"])
+                sink = SampleSink(finder, thresholds, sink_args["timeseries"])
+            tau = M.joint_efforts(msg)
             if jn != names:
                 q = _reorder(reader, topic, t, names, jn, q)
-            sink.joints(t, q)
+                tau = _reorder(reader, topic, t, names, jn, tau) if tau is not None else None
+            sink.joints(t, q, tau)
         elif sink is None:
             continue  # nothing before the first joint sample
         elif topic == it:
@@ -144,6 +148,20 @@ def _pass1(reader: LogReader, m: dict, sink_args: dict, progress: bool):
     sink.finder.finish()
     sink.receive_offset_s = offset
     return names, sink, transforms, imu_frame, stamps.jumps, received, K
+
+
+def _foot_samples(reader: LogReader, foot_topics: dict, feet: list[str]) -> dict[str, np.ndarray]:
+    """A first read of the foot topics only: foot -> its loads (the map's unit), for the feet
+    ``feet`` whose contact thresholds are learned from their own signal."""
+    topics = [t for t, r in foot_topics.items() if set(r.names) & set(feet)]
+    values: dict[str, list] = {f: [] for f in feet}
+    for topic, t_ns, raw in reader.messages(topics):
+        r = foot_topics[topic]
+        v = r(reader.deserialize(raw, topic, t_ns))
+        for name, x in zip(r.names, v):
+            if name in values:
+                values[name].append(float(x))
+    return {f: np.asarray(v, dtype=float) for f, v in values.items()}
 
 
 def _reorder(reader: LogReader, topic: str, t: float, names, jn, q) -> np.ndarray:

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import csv
 import logging
+from array import array
 from pathlib import Path
 
 import numpy as np
 
 from graphcal.errors import DatasetError
 from graphcal.io.dataset.model import ImuSpec, PosePrior, RobotSpec
-from graphcal.logs.assemble import DatasetParts, SampleSink, StampCheck, write_imported
+from graphcal.logs.assemble import DatasetParts, SampleSink, StampCheck, foot_thresholds, write_imported
 from graphcal.logs.mapping import load_yaml, thresholds_of
 from graphcal.logs.stations import StationFinder
 from graphcal.progress import ProgressBar
@@ -110,10 +111,8 @@ def import_csv(path: Path, out_dir: Path, *, map_path: Path, urdf_file: Path | N
     th = thresholds_of(m, str(map_path))
     joints = tuple(m["joints"]["columns"])
     feet = m.get("feet") or {}
-    thresholds = {}
-    for f, spec in feet.items():
-        thresholds[f] = (float(spec["threshold_raw"]) if "threshold_raw" in spec
-                         else float(spec.get("threshold_n", th.force_threshold_n)))
+    learn = [f for f, spec in feet.items() if "threshold_raw" not in spec and "threshold_n" not in spec]
+    thresholds = foot_thresholds(_foot_samples(path, m, learn) if learn else {}, feet, th.force_threshold_n)
     finder = StationFinder(joints, tuple(feet), bool(m.get("imu")), th)
     sink = SampleSink(finder, thresholds, timeseries)
     stamps = StampCheck(path)
@@ -165,6 +164,31 @@ def import_csv(path: Path, out_dir: Path, *, map_path: Path, urdf_file: Path | N
     parts = DatasetParts(robot, urdf_xml, joints, {}, imu, finder, sink, source=str(path),
                          map_text=map_path.read_text(encoding="utf-8"))
     return write_imported(parts, Path(out_dir), overwrite=overwrite, jumps=stamps.jumps)
+
+
+def _foot_samples(path: Path, m: dict, feet: list[str]) -> dict[str, np.ndarray]:
+    """A first pass over the CSV: foot -> its loads in the map's unit (N after offset and scale), to
+    learn its contact thresholds from; rows that do not parse are skipped (the main pass names them)."""
+    specs = m["feet"]
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            reader = csv.reader(f)
+            index = {c.strip(): i for i, c in enumerate(next(reader, None) or [])}
+            cols = [index.get(specs[foot].get("column")) for foot in feet]
+            if any(c is None for c in cols):
+                return {}  # the main pass names the missing column
+            values = [array("d") for _ in feet]
+            for row in reader:
+                try:
+                    v = [float(row[c]) for c in cols]
+                except (ValueError, IndexError):
+                    continue
+                for out, x in zip(values, v):
+                    out.append(x)
+    except OSError:
+        return {}  # the main pass says why
+    return {foot: (np.frombuffer(v, dtype=np.float64) - float(specs[foot].get("offset", 0.0)))
+            * float(specs[foot].get("scale", 1.0)) for foot, v in zip(feet, values)}
 
 
 def _number(source: Path, row: list[str], i: int, row_no: int, header: list[str]) -> float:

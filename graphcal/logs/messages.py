@@ -1,7 +1,7 @@
 """ROS messages (as rosbags deserialises them) -> numbers in SI units: header stamps (s), joint
-positions (rad or m), IMU specific force (m/s²) and rate (rad/s), points in the message's frame (m)
-from PointCloud2, LaserScan (the scan plane z = 0) and depth images (camera optical frame: x right,
-y down, z forward), foot loads (N) and static transforms ``T_parent_child``."""
+positions (rad or m) and efforts (N m or N), IMU specific force (m/s²) and rate (rad/s), points in
+the message's frame (m) from PointCloud2, LaserScan (the scan plane z = 0) and depth images (camera
+optical frame: x right, y down, z forward), foot loads (N) and static transforms ``T_parent_child``."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 from graphcal.errors import DatasetError
 from graphcal.geometry import pose_from_xyz_quat_wxyz
 
-__all__ = ["header_stamp", "joint_state", "imu_sample", "cloud_points", "laser_scan_points",
+__all__ = ["header_stamp", "joint_state", "joint_efforts", "imu_sample", "cloud_points", "laser_scan_points",
            "depth_image_points", "camera_matrix", "foot_value", "FootForces", "static_transforms", "chain_pose"]
 
 # sensor_msgs/PointField datatypes -> numpy
@@ -30,6 +30,13 @@ def header_stamp(msg: Any) -> float | None:
 def joint_state(msg: Any) -> tuple[tuple[str, ...], np.ndarray]:
     """``sensor_msgs/JointState`` -> (joint names, positions (rad; m for prismatic joints))."""
     return tuple(msg.name), np.asarray(msg.position, dtype=np.float64)
+
+
+def joint_efforts(msg: Any) -> np.ndarray | None:
+    """``sensor_msgs/JointState`` -> efforts (N m; N for prismatic joints) in the order of
+    ``msg.name``, or None when the message has none (an empty or short ``effort``)."""
+    e = np.asarray(getattr(msg, "effort", ()), dtype=np.float64).reshape(-1)
+    return e if len(e) and len(e) == len(msg.name) else None
 
 
 def imu_sample(msg: Any) -> tuple[tuple[float, float, float], tuple[float, float, float]]:

@@ -17,7 +17,7 @@ from graphcal.simulation.session import SimulationResult
 from graphcal.simulation.walking import WalkingConfig, WalkingResult, simulate_walking
 
 __all__ = ["SIMULATION_FILES", "TRUTH_TRAJECTORY_FILE", "result_to_dataset", "clouds_written", "write_simulation",
-           "truth_table", "walking_dataset", "truth_dict", "write_walking", "simulate_walking_to_folder"]
+           "truth_table", "force_counts_of", "walking_dataset", "truth_dict", "write_walking", "simulate_walking_to_folder"]
 
 #: a walk's true trajectory, beside its dataset.yaml
 TRUTH_TRAJECTORY_FILE = "truth_trajectory.csv"
@@ -177,9 +177,25 @@ def _truth_csv_text(cols: dict) -> str:
     return buf.getvalue()
 
 
-def walking_dataset(result: WalkingResult, cloud_names: list[str] | None = None):
+def force_counts_of(force_n: np.ndarray, feet, force_counts: dict) -> np.ndarray:
+    """Foot loads (N, n_feet) in N as a real sensor's raw counts: ``round(offset + force / gain)``
+    with ``force_counts`` foot -> (offset counts, gain N per count) (the import map's ``offset`` and
+    ``scale``: force_N = (raw - offset) * scale)."""
+    missing = [f for f in feet if f not in force_counts]
+    if missing:
+        raise GraphcalError(f"force_counts: expected (offset, gain) for every foot, missing {', '.join(missing)}")
+    offset = np.array([float(force_counts[f][0]) for f in feet])
+    gain = np.array([float(force_counts[f][1]) for f in feet])
+    if not np.all(gain > 0):
+        raise GraphcalError(f"force_counts: expected gains > 0 (N per count), got {gain.tolist()}")
+    return np.round(offset + np.asarray(force_n, dtype=float) / gain)
+
+
+def walking_dataset(result: WalkingResult, cloud_names: list[str] | None = None, *, force_counts: dict | None = None):
     """The walk as a contract :class:`~graphcal.io.dataset.Dataset` (timeseries only).
-    ``cloud_names``: relative PLY path per cloud (default ``clouds/depth/<frame>.ply``)."""
+    ``cloud_names``: relative PLY path per cloud (default ``clouds/depth/<frame>.ply``).
+    ``force_counts``: foot -> (offset, gain N/count): ``force_<foot>`` written as raw counts of a
+    real sensor (:func:`force_counts_of`) instead of N."""
     from graphcal.io.dataset import Dataset, ImuSpec, PosePrior, RobotSpec, SensorSpec, Table
 
     info = result.info
@@ -207,8 +223,10 @@ def walking_dataset(result: WalkingResult, cloud_names: list[str] | None = None)
     for i, f in enumerate(result.feet):
         cols[f"contact_{f}"] = result.contact[:, i].astype(float)
     if result.foot_force is not None:
+        force = result.foot_force if force_counts is None else force_counts_of(result.foot_force, result.feet,
+                                                                               force_counts)
         for i, f in enumerate(result.feet):
-            cols[f"force_{f}"] = result.foot_force[:, i]
+            cols[f"force_{f}"] = force[:, i]
     ground = {"type": "stairs"} if result.config.stairs else {"type": "level"}
     return Dataset(
         robot=RobotSpec(urdf=None, model=result.config.robot, base_frame=info.base_frame, feet=tuple(result.feet)),
@@ -255,16 +273,18 @@ def truth_dict(result: WalkingResult) -> dict:
     }
 
 
-def write_walking(result: WalkingResult, out_dir: str | Path, *, overwrite: bool = False) -> Path:
+def write_walking(result: WalkingResult, out_dir: str | Path, *, overwrite: bool = False,
+                  force_counts: dict | None = None) -> Path:
     """Write the walk as a dataset folder (contract files, clouds) with ``truth.yaml`` and
-    ``truth_trajectory.csv`` beside it, atomically (:func:`graphcal.io.dataset.write_dataset`)."""
+    ``truth_trajectory.csv`` beside it, atomically (:func:`graphcal.io.dataset.write_dataset`);
+    ``force_counts`` as in :func:`walking_dataset` (raw counts in ``force_<foot>``)."""
     import yaml
 
     from graphcal.io.dataset import write_dataset
 
     out = Path(out_dir)
     names = [f"clouds/depth/{j:05d}.ply" if len(cl) else "" for j, cl in enumerate(result.clouds)]
-    ds = walking_dataset(result, names)  # a frame that saw nothing has no file
+    ds = walking_dataset(result, names, force_counts=force_counts)  # a frame that saw nothing has no file
     extra = {
         "truth.yaml": yaml.safe_dump(truth_dict(result), sort_keys=False),
         TRUTH_TRAJECTORY_FILE: _truth_csv_text(truth_table(result)),
