@@ -11,6 +11,11 @@ What is simulated, all vectorised over the samples (numpy, one loop over the leg
   changes; on the stairs it runs straight along +x and the body stays parallel to the least-squares ground
   line under its nominal feet (smoothed), at its standing height above it less the depth of the
   lowest foot's ground below that line (pitch like Zhao's Fig. 9b).
+* **Standing up and lying down** (optional, ``stand_up_s`` / ``lie_down_s``): the robot starts on
+  its belly at ``lying_height_m`` with its feet on the ground at their first footholds carrying
+  ``lying_load_fraction`` of its weight, the legs take the load, the body rises to its standing
+  height; at the end the reverse. Feet stay planted; the IMU, the truth and the foot forces
+  follow the body's height (forces: the legs' share of ``m (a - g)``).
 * **Gait** (Zhao Fig. 4): group A = mf, rb, lb; group B = mb, rf, lf, half a cycle apart, duty
   factor ``duty_factor`` > 0.5 (a short six-foot support at each switch). The quadruped programs
   give each foot its phase offset (:class:`GaitSpec`). Each foothold is the
@@ -160,6 +165,18 @@ class WalkingConfig:
         gyro_bias_sigma_rad_s, accel_bias_sigma_m_s2: spread of the initial biases.
         truth_rate_hz: rate of ``truth_trajectory.csv``.
         force_sigma_n: foot-force sensor noise (white, per sample, N; programs with force sensors).
+        stand_up_s: > 0: the robot starts on its belly (``lying_s`` s at ``lying_height_m``, the feet
+            on the ground carrying ``lying_load_fraction`` of its weight, the belly the rest) and
+            stands up over this long (s) before its first ``still_s``: the legs take the load over
+            the first fifth, the body rises to ``body_height_m`` over the rest (quintic
+            smoothsteps). 0 (default): it starts standing.
+        lie_down_s: > 0: after its last ``still_s`` the robot lies down over this long (s) -- the
+            body lowers over the first four fifths, the legs unload over the last fifth -- and lies
+            ``lying_s`` s. 0 (default): it ends standing.
+        lying_s: time on the belly before standing up and after lying down (s).
+        lying_height_m: body origin height on the belly (m); default 0.4 x ``body_height_m``
+            (a1 0.112 m: the folded leg keeps 0.17 rad from its knee limit).
+        lying_load_fraction: share of the weight the feet carry while lying (the belly the rest).
     """
 
     program: str = "tripod-walk"
@@ -195,6 +212,17 @@ class WalkingConfig:
     accel_bias_sigma_m_s2: float = 0.02
     truth_rate_hz: float = 100.0
     force_sigma_n: float = 2.0
+    stand_up_s: float = 0.0
+    lie_down_s: float = 0.0
+    lying_s: float = 1.0
+    lying_height_m: float | None = None
+    lying_load_fraction: float = 0.1
+
+    @property
+    def posture_s(self) -> tuple[float, float]:
+        """(before, after) the walk's standing time: lying plus standing up, lying down plus lying (s)."""
+        return (self.lying_s + self.stand_up_s if self.stand_up_s > 0 else 0.0,
+                self.lie_down_s + self.lying_s if self.lie_down_s > 0 else 0.0)
 
     @property
     def gait(self) -> GaitSpec:
@@ -228,6 +256,8 @@ class WalkingConfig:
                 dist = c.stairs_start_x_m + 2.7 + 1.2
             elif c.duration_s is not None:
                 dist = c.speed_m_s * (c.duration_s - 2 * c.still_s - c.ramp_s - c.cycle_s)
+                if c.stand_up_s > 0 or c.lie_down_s > 0:
+                    dist -= c.speed_m_s * sum(c.posture_s)
             else:
                 dist = 20.0
             c = replace(c, distance_m=float(dist))
@@ -248,6 +278,10 @@ class WalkingConfig:
               f"the path ({c.distance_m:.2f} m) is shorter than the speed ramps "
               f"({c.speed_m_s * c.ramp_s:.2f} m): walk further or longer")),
             (c.still_s >= 0 and c.ramp_s > 0, "still_s must be >= 0 and ramp_s > 0"),
+            (c.stand_up_s >= 0 and c.lie_down_s >= 0 and c.lying_s >= 0,
+             "stand_up_s, lie_down_s and lying_s must be >= 0"),
+            (0.0 <= c.lying_load_fraction < 1.0, "lying_load_fraction must be in [0, 1)"),
+            (c.lying_height_m is None or c.lying_height_m > 0, "lying_height_m must be > 0"),
         ]
         if st:
             checks.append((c.distance_m >= c.stairs_start_x_m + 2.7 + 0.9,
@@ -360,6 +394,44 @@ class _Timeline:
     gain: np.ndarray
     phase: np.ndarray
     h0: float
+    posture: "_Posture | None" = None
+
+
+@dataclass(frozen=True, eq=False)
+class _Posture:
+    """Standing up and lying down (WalkingConfig's ``stand_up_s``, ``lie_down_s``): per sample the
+    body's ``rise`` (N,) from its lying height (0) to its standing height (1), the ``legs_share``
+    (N,) of the weight the feet carry (the belly the rest), and the lying height ``h_lie`` (m)."""
+
+    rise: np.ndarray
+    legs_share: np.ndarray
+    h_lie: float
+
+
+#: the part of a stand-up (lie-down) in which the legs take (give up) the load, the body still on
+#: its belly; the body rises (lowers) over the rest
+_LOAD_PART = 0.2
+
+
+def _posture(c: WalkingConfig, t: np.ndarray, t_g1: float, h0: float) -> _Posture | None:
+    """The stand-up before the walk and the lie-down after it (None when neither is asked)."""
+    from graphcal.models.kinematics import smoothstep
+
+    if c.stand_up_s <= 0 and c.lie_down_s <= 0:
+        return None
+    rise = np.ones(len(t))
+    load = np.ones(len(t))
+    if c.stand_up_s > 0:
+        u = (t - c.lying_s) / c.stand_up_s
+        load *= smoothstep(u / _LOAD_PART, degree=5)
+        rise *= smoothstep((u - _LOAD_PART) / (1 - _LOAD_PART), degree=5)
+    if c.lie_down_s > 0:
+        u = (t - t_g1 - c.still_s) / c.lie_down_s
+        rise *= 1.0 - smoothstep(u / (1 - _LOAD_PART), degree=5)
+        load *= 1.0 - smoothstep((u - 1 + _LOAD_PART) / _LOAD_PART, degree=5)
+    h_lie = c.lying_height_m if c.lying_height_m is not None else 0.4 * h0
+    share = c.lying_load_fraction + (1.0 - c.lying_load_fraction) * load
+    return _Posture(rise, share, float(h_lie))
 
 
 def _timeline(c: WalkingConfig, info) -> _Timeline:
@@ -369,11 +441,12 @@ def _timeline(c: WalkingConfig, info) -> _Timeline:
     v_max, Tc, beta = c.speed_m_s, c.cycle_s, c.duty_factor
     dt = 1.0 / c.rate_hz
     t_cruise = c.distance_m / v_max - c.ramp_s
-    t_g0 = c.still_s
+    pre, post = c.posture_s
+    t_g0 = c.still_s + pre
     t_stop = t_g0 + 2 * c.ramp_s + t_cruise
     n_cycles = int(math.ceil((t_stop - t_g0) / Tc + beta))
     t_g1 = t_g0 + n_cycles * Tc
-    t_end = t_g1 + c.still_s
+    t_end = t_g1 + c.still_s + post
     N = int(round(t_end * c.rate_hz)) + 1
     t = np.arange(N) * dt
     v = v_max * (smoothstep((t - t_g0) / c.ramp_s, degree=5)
@@ -381,7 +454,7 @@ def _timeline(c: WalkingConfig, info) -> _Timeline:
     s = _cumtrapz(v, t)
     gain = v / v_max
     phase = (t - t_g0) / Tc
-    return _Timeline(t, dt, t_g0, t_g1, v, s, gain, phase, h0)
+    return _Timeline(t, dt, t_g0, t_g1, v, s, gain, phase, h0, _posture(c, t, t_g1, h0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -465,6 +538,8 @@ def _body_path(c: WalkingConfig, info, feet: tuple, tl: _Timeline) -> _BodyPath:
         z = tl.h0 + bob
         pitch = nod
         ground_stairs = ()
+    if tl.posture is not None:  # on its belly before standing up and after lying down
+        z = z + (tl.posture.h_lie - tl.h0) * (1.0 - tl.posture.rise)
     R = matrix_from_rpy(np.column_stack(np.broadcast_arrays(roll, pitch, yaw)))
     return _BodyPath(roll, pitch, yaw, np.c_[x, y, z], R, terrain, ground_stairs)
 
@@ -667,14 +742,17 @@ def _imu(c: WalkingConfig, info, body: _BodyPath, dt: float, rng: np.random.Gene
 
 
 def _quasi_static_forces(c: WalkingConfig, body: _BodyPath, p_body_foot: np.ndarray, weight: np.ndarray,
-                         dt: float) -> np.ndarray:
+                         dt: float, legs_share: np.ndarray | None = None) -> np.ndarray:
     """(n_feet, N, 3) force (N) each foot exerts on the ground, body frame: the ground reaction that
     carries the body's mass and acceleration, spread over the feet by their ``weight`` (n_feet, N)
-    with zero moment about the body origin (weighted least norm)."""
+    with zero moment about the body origin (weighted least norm); ``legs_share`` (N,) the part of
+    it the legs carry (lying: the belly carries the rest), None for all of it."""
     R = body.R
     N = len(R)
     a_body = _second_difference(body.p, dt)
     F_body = c.body_mass_kg * np.einsum("nji,nj->ni", R, a_body - _G_WORLD)  # ground reaction sum, body frame
+    if legs_share is not None:  # lying: the belly carries the rest
+        F_body = F_body * legs_share[:, None]
     P = np.swapaxes(p_body_foot, 0, 1)  # (N, nf, 3)
     W = weight.T  # (N, nf)
     Px = skew_batch(P)  # (N, nf, 3, 3)
@@ -691,12 +769,16 @@ def _quasi_static_forces(c: WalkingConfig, body: _BodyPath, p_body_foot: np.ndar
     return -np.swapaxes(f_ground, 0, 1)  # what each foot exerts on the ground
 
 
-def _shared_forces(c: WalkingConfig, body: _BodyPath, weight: np.ndarray, dt: float) -> np.ndarray:
+def _shared_forces(c: WalkingConfig, body: _BodyPath, weight: np.ndarray, dt: float,
+                   legs_share: np.ndarray | None = None) -> np.ndarray:
     """(n_feet, N, 3) force (N) each foot exerts on the ground, body frame: the ground reaction that
     carries the body's mass and acceleration, shared by the feet in proportion to their ``weight``
     (n_feet, N) -- no moment balance (two diagonal feet of a trot cannot hold one quasi-statically);
-    the torques follow from these forces."""
+    the torques follow from these forces. ``legs_share`` (N,): the part the legs carry (lying: the
+    belly carries the rest), None for all of it."""
     F_body = c.body_mass_kg * np.einsum("nji,nj->ni", body.R, _second_difference(body.p, dt) - _G_WORLD)
+    if legs_share is not None:  # lying: the belly carries the rest
+        F_body = F_body * legs_share[:, None]
     share = weight / np.maximum(weight.sum(axis=0, keepdims=True), 1e-12)
     return -share[:, :, None] * F_body[None]
 
@@ -771,10 +853,11 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
     q_true, q_leg, jac = _joint_angles(robot, info, feet, t, p_body_foot, tl.h0)
     v_world = np.gradient(body.p, tl.dt, axis=0)
     imu = _imu(c, info, body, tl.dt, rng)
+    share = tl.posture.legs_share if tl.posture is not None else None
     if c.gait.force_sensors:
-        force_body_foot = _shared_forces(c, body, plan.weight, tl.dt)
+        force_body_foot = _shared_forces(c, body, plan.weight, tl.dt, share)
     else:
-        force_body_foot = _quasi_static_forces(c, body, p_body_foot, plan.weight, tl.dt)
+        force_body_foot = _quasi_static_forces(c, body, p_body_foot, plan.weight, tl.dt, share)
     q_measured, tau_measured = _joint_measurements(c, robot, feet, q_leg, jac, force_body_foot, rng)
     foot_force = None
     if c.gait.force_sensors:  # drawn after the joints: the tripod walks' draws are unchanged
