@@ -193,6 +193,12 @@ def _build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--tum-rate", type=float, default=100.0,
                     help="poses per second in trajectory.tum (default 100; 0 = every sample)")
     tr.add_argument("--no-icp", action="store_true", help="proprioception only (no ICP between clouds)")
+    tr.add_argument("--noise", type=Path, default=None, metavar="FILE",
+                    help="the filter's noise (noise.yaml's format, SI units: a track output's noise.yaml, or a subset "
+                         "of its keys); every value given is used as it is")
+    tr.add_argument("--no-noise-learning", action="store_true",
+                    help="do not learn the noise nobody gave from the log (still windows, stance innovations): use "
+                         "the real-robot defaults (docs/state_estimation.md, 'Noise settings')")
 
     _add_import_parser(sub, common)
     _add_batch_parsers(sub, common)
@@ -334,7 +340,8 @@ def _cmd_track(args):
     from graphcal.locomotion.estimator import TrackerConfig
 
     return track.run(args.dataset, args.out, progress=not args.quiet, tum_rate_hz=args.tum_rate,
-                     config=TrackerConfig(icp=not args.no_icp))
+                     config=TrackerConfig(icp=not args.no_icp), noise_file=args.noise,
+                     learn_noise=not args.no_noise_learning)
 
 
 def _cmd_import(args):

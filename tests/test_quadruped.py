@@ -84,26 +84,39 @@ def test_walk_from_forces_and_from_torques(walk_result):
         assert set(np.unique(res.stance_dofs)) <= {6, 9, 12}
 
 
-def test_encoder_noise_10x_is_inconsistent_and_warned(trot, tmp_path, capsys):
-    """The joint angles 10x noisier than the filter's encoder model: the verdict turns inconsistent,
-    the console warns, the report says so at the top."""
+def test_encoder_noise_10x_is_learned_or_inconsistent_and_warned(trot, tmp_path, capsys):
+    """The joint angles 10x noisier than the simulator's 0.02 deg: track learns the encoder noise from
+    the still windows (within 5 %) and stays consistent; told the old value with --noise it does
+    not learn it (nor the kinematic and foot noise that would absorb it), the verdict turns
+    inconsistent, the console warns, the report says so at the top."""
     ds = tmp_path / "noisy"
     shutil.copytree(trot[0], ds)
     lines = (ds / "timeseries.csv").read_text().splitlines()
     header = lines[0].split(",")
     cols = [j for j, c in enumerate(header) if c.startswith("q_")]
     rng = np.random.default_rng(0)
-    sigma = 10 * np.radians(0.02)  # the filter assumes 0.02 deg (EkfNoise.encoder_sigma_rad)
+    sigma = 10 * np.radians(0.02)
     rows = [ln.split(",") for ln in lines[1:]]
     for r in rows:
         for j in cols:
             r[j] = repr(float(r[j]) + rng.normal(0.0, sigma))
     (ds / "timeseries.csv").write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
+    assert main(["track", str(ds), "--out", str(tmp_path / "learned"), "--quiet"]) == 0
+    m = json.loads((tmp_path / "learned" / "metrics.json").read_text())
+    true_sigma = float(np.hypot(sigma, np.radians(0.02)))
+    assert m["noise"]["values"]["encoder_sigma_rad"] == pytest.approx(true_sigma, rel=0.05)
+    assert m["noise"]["sources"]["encoder_sigma_rad"].startswith("learned: still windows")
+    assert m["consistency"]["verdict"] == "consistent" and m["drift_percent"] <= 1.0
+
+    fixed = tmp_path / "fixed.yaml"
+    fixed.write_text(f"format: graphcal-track-noise/1\nnoise: {{encoder_sigma_rad: {float(np.radians(0.02))!r}, "
+                     "kinematic_sigma_m: 0.0, foot_rw: 1.0e-5}\n")  # nothing left to learn the level from
     capsys.readouterr()
-    assert main(["track", str(ds), "--out", str(tmp_path / "out")]) == 0
+    assert main(["track", str(ds), "--out", str(tmp_path / "out"), "--noise", str(fixed)]) == 0
     err = capsys.readouterr().err
     assert "WARNING" in err and "inconsistent with its covariance" in err and "stance" in err
     m = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert m["noise"]["sources"]["encoder_sigma_rad"] == f"--noise {fixed}"
     st = m["consistency"]["kinds"]["stance"]
     assert m["consistency"]["verdict"] == "inconsistent" and m["consistency"]["inconsistent_kinds"] == ["stance"]
     assert st["statistic"] == 2 and st["p_value"] < 0.01 and st["mean_nis_per_dof"] > 10

@@ -284,7 +284,8 @@ def test_track_returns_its_result_and_prints_its_summary(short_walk, tmp_path, c
     lines = capsys.readouterr().out.splitlines()  # the console's words
     assert lines[0].startswith(f"tracked {short_walk}: {m['n_samples']} samples") and f"wrote {tmp_path / 'cli'}" in lines[0]
     assert lines[1].startswith(f"  consistency: {result.verdict}")
-    assert lines[2].startswith("  against the truth: APE ") and f"of {m['distance_m']:.2f} m" in lines[2]
+    assert lines[2].startswith("  noise: learned ") and lines[2].endswith("; noise.yaml)")
+    assert lines[3].startswith("  against the truth: APE ") and f"of {m['distance_m']:.2f} m" in lines[3]
 
 
 def test_track_refuses_a_negative_tum_rate_before_any_work(tmp_path):

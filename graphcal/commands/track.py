@@ -8,6 +8,9 @@
   (:mod:`graphcal.locomotion.consistency`; a warning on the console when it is ``inconsistent``);
 * ``trajectory.png``, ``errors.png``, ``nis.png`` -- plots;
 * ``report.html``     -- the report (:func:`graphcal.report.track_page.track_html`, the plots embedded);
+* ``noise.yaml``      -- the noise the filter used, each value with where it came from (``--noise``,
+  dataset.yaml's ``tracker: noise:``, learned from the log, or the real-robot default;
+  :mod:`graphcal.locomotion.noise_settings`); give it back with ``--noise`` to use it as it is;
 * ``stairs.json``     -- on a stairs dataset, the stairs model of :mod:`graphcal.locomotion.stairs` from the
   keyframe clouds (:func:`stairs_keyframes`) placed with the estimated poses, with per-tread errors
   against the truth's ascending flight (:func:`ascending_flight`) when there is a truth.
@@ -27,20 +30,22 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from graphcal.errors import GraphcalError
 from graphcal.io.atomic import atomic_directory, atomic_write_bytes, check_command_output
-from graphcal.locomotion.track import ascending_flight, stairs_keyframes, track, tum_text
+from graphcal.locomotion.noise_settings import noise_document
+from graphcal.locomotion.track import ascending_flight, stairs_keyframes, track_run, tum_text
 from graphcal.report.track_page import track_figures, track_html
 
 __all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run", "TrackResult", "summary_lines", "consistency_section",
-           "consistency_warning"]
+           "consistency_warning", "noise_line"]
 
 log = logging.getLogger(__name__)
 
 TRACK_FORMAT = "graphcal-track/1"
 OUTPUT_FILES = ("trajectory.tum", "metrics.json", "trajectory.png", "errors.png", "nis.png", "report.html",
-                "stairs.json")
+                "stairs.json", "noise.yaml")
 #: what a previous track output may hold (before 2026-11-27 the report was report.md)
 _PREVIOUS_FILES = OUTPUT_FILES + ("report.md",)
 
@@ -187,14 +192,20 @@ class TrackResult:
 
 
 def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=None,
-        tum_rate_hz: float = 100.0, overwrite: bool = True, stairs: bool = True) -> TrackResult:
+        tum_rate_hz: float = 100.0, overwrite: bool = True, stairs: bool = True, noise_file: str | Path | None = None,
+        noise: dict | None = None, learn_noise: bool = True) -> TrackResult:
     """The ``graphcal track`` command (see the module docstring). Returns a :class:`TrackResult`.
 
     Args:
         dataset: dataset folder with a timeseries (``truth.yaml`` beside it is read for the evaluation only).
         out: output folder (replaces only an empty folder or a previous track output).
         progress: progress bar (tqdm) of the filter.
-        config: :class:`~graphcal.locomotion.estimator.TrackerConfig` (default: its defaults).
+        config: :class:`~graphcal.locomotion.estimator.TrackerConfig` (default: its defaults); its
+            ``noise`` is replaced by the noise settled from the next three and the log.
+        noise_file: a noise file (noise.yaml's format): its values are used as they are.
+        noise: EkfNoise name -> value (SI), over the file's and dataset.yaml's.
+        learn_noise: learn the values nobody gave from the log (the still windows, the stance
+            innovations); False: the real-robot defaults for them.
         tum_rate_hz: poses per second in trajectory.tum (Hz; 0 = every filter sample).
         overwrite: replace a previous track output in ``out``.
         stairs: on a stairs dataset, also model the stairs (stairs.json).
@@ -209,7 +220,10 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
     if not (np.isfinite(tum_rate_hz) and tum_rate_hz >= 0):
         raise GraphcalError(f"--tum-rate must be a finite number >= 0 (Hz; 0 = every sample), got {tum_rate_hz}")
     _check_out(out, overwrite)
-    ds, inp, res = track(dataset, config=config, progress=progress)
+    tr = track_run(dataset, config=config, progress=progress, noise_file=None if noise_file is None else Path(noise_file),
+                   noise=noise, learn_noise=learn_noise)
+    ds, inp, res = tr.dataset, tr.inputs, tr.result
+    noise_doc = noise_document(tr.noise, tr.learning)
     truth = load_truth(ds.root) if ds.root is not None else None
 
     m: dict = {"format": TRACK_FORMAT, "dataset": str(dataset), "truth": truth is not None}
@@ -237,6 +251,8 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
     m["distance_estimated_m"] = est_len
     consistency = consistency_section(res)
     m["consistency"] = consistency
+    m["noise"] = {"values": noise_doc["noise"], "sources": noise_doc["sources"], "units": noise_doc["units"],
+                  "file": "noise.yaml"}
     white = whiteness(res.stance_innovations)
     white.pop("autocorr", None)
     dofs = res.stance_dofs if res.stance_dofs is not None else np.full(len(res.stance_nis), res.stance_dof)
@@ -274,7 +290,8 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
         keep = np.union1d(keep, [len(res.times) - 1])
     else:
         keep = np.arange(len(res.times))
-    files: dict[str, bytes] = {"trajectory.tum": tum_text(res.times[keep], res.T_world_body[keep]).encode()}
+    files: dict[str, bytes] = {"trajectory.tum": tum_text(res.times[keep], res.T_world_body[keep]).encode(),
+                               "noise.yaml": yaml.safe_dump(_clean(noise_doc), sort_keys=False).encode()}
     # the metrics are of the filter (every sample), not of the thinned file: evo on trajectory.tum
     # at --tum-rate 10 matches a tenth of the poses and reads a slightly different RMS
     m["metrics_samples"] = "every filter sample (n_samples), whatever --tum-rate"
@@ -301,6 +318,20 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
                        warnings=() if warning is None else (warning,), verdict=consistency["verdict"])
 
 
+def noise_line(section: dict) -> str:
+    """The console's noise line: which values were learned, given or defaults (metrics.json's ``noise``)."""
+    src = section["sources"]
+    kinds = {"learned": [k for k, s in src.items() if s.startswith("learned")],
+             "given": [k for k, s in src.items() if not s.startswith(("learned", "default"))],
+             "default": [k for k, s in src.items() if s.startswith("default")]}
+    v = section["values"]
+    parts = [f"{name} {', '.join(keys)}" for name, keys in kinds.items() if keys]
+    return (f"{'; '.join(parts)} (encoder {np.degrees(v['encoder_sigma_rad']):.3g} deg, kinematic "
+            f"{1e3 * v['kinematic_sigma_m']:.3g} mm, foot {1e3 * v['foot_rw']:.3g} mm/sqrt(s), gyro "
+            f"{v['gyro_noise_density']:.3g} rad/s/sqrt(Hz), accel {v['accel_noise_density']:.3g} m/s^2/sqrt(Hz); "
+            f"{section['file']})")
+
+
 def summary_lines(m: dict, consistency: dict, stairs_doc: dict | None, dataset, out) -> list[str]:
     """The console summary of a track run: samples and speed, the consistency verdict, the accuracy
     against the truth (``m``: metrics.json's document), the stairs model."""
@@ -309,6 +340,7 @@ def summary_lines(m: dict, consistency: dict, stairs_doc: dict | None, dataset, 
     lines.append(f"  consistency: {consistency['verdict']}" + "".join(
         f"; {k} {r['verdict']} (mean NIS per dof {r['mean_nis_per_dof']:.3f}, p = {r['p_value']:.2g})"
         for k, r in consistency["kinds"].items() if r["verdict"] != "not tested"))
+    lines.append("  noise: " + noise_line(m["noise"]))
     if m["truth"]:
         lines.append(f"  against the truth: APE {1e3 * m['ape_rmse_m']:.1f} mm RMS, drift {m['drift_percent']:.3f} % "
                      f"of {m['distance_m']:.2f} m, NEES mean {m['nees_mean']:.2f} (dof {m['nees_dof']})")
