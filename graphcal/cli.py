@@ -50,7 +50,8 @@ def _add_import_parser(sub, common) -> None:
     im.add_argument("--out", required=True, type=Path, help="dataset folder to write (must not exist or be empty)")
     im.add_argument("--map", type=Path, default=None, help="import map (the import_map.yaml of an earlier import, "
                     "edited; for a CSV log its column map)")
-    im.add_argument("--urdf", type=Path, default=None, help="the robot's URDF (instead of /robot_description)")
+    im.add_argument("--urdf", type=Path, default=None, help="the robot's URDF (instead of /robot_description or the map's "
+                    "robot.urdf, which may then be left out)")
     im.add_argument("--receive-time", action="store_true", help="time messages by receive time, not header stamps")
     im.add_argument("--msg-dir", type=Path, default=None,
                     help="folder of .msg definitions (<pkg>/msg/<Name>.msg) for message types rosbags does not know")

@@ -81,9 +81,10 @@ def test_bag_import_validate_calibrate(fmt, sim, reference_error, tmp_path):
     ds = tmp_path / "ds"
     result = import_log.run(log, ds, progress=False)
     if fmt == "sqlite3":
-        # raw counts read as newtons (offset 0, scale 1): every foot always "loaded", so the decoy
-        # with a foot in the air would be a station: the user edits the map and imports again
-        assert result.n_stations == N_STATIONS + 1
+        # raw counts read as newtons (offset 0, scale 1): each foot's thresholds are learned from its
+        # own counts (issue 42), so the decoy with a foot in the air is rejected already (with one
+        # threshold of 20 "N" on counts it was a station); the map the user edits gives the same
+        assert (result.n_stations, result.n_rejected) == (N_STATIONS, 2)
         m = yaml.safe_load((ds / "import_map.yaml").read_text())
         for f in m["feet"].values():
             f.update(offset=plan.raw_offset, scale=plan.raw_scale)

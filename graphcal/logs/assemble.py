@@ -258,7 +258,8 @@ def write_imported(parts: DatasetParts, out_dir: Path, *, overwrite: bool = Fals
     timeseries when gathered), ``import_map.yaml`` and ``import_report.yaml``; returns the folder
     and a summary. A window's cloud is (N, 3) points or a PLY file under ``staging`` (a folder on
     the same file system, renamed into ``staging/clouds`` and copied from there). DatasetError when
-    there is neither a station nor a timeseries."""
+    there is neither a station nor a timeseries (with the hint that a walk needs ``--timeseries``
+    when it was not asked for)."""
     from graphcal.io.dataset.write import write_dataset
 
     kept, rejected = [], list(parts.finder.rejected)
@@ -273,8 +274,10 @@ def write_imported(parts: DatasetParts, out_dir: Path, *, overwrite: bool = Fals
     ts = parts.sink.timeseries_table(parts.joint_names)
     if not kept and ts is None:
         reasons = "; ".join(f"{w.start:.2f}-{w.end:.2f} s: {w.reason}" for w in rejected[:3])
+        hint = "" if parts.sink.timeseries else ("; a walking log for graphcal track: import it with --timeseries "
+                                 "(timeseries.csv, no stations needed)")
         raise DatasetError(parts.source, "stations", "at least one still window with every foot loaded "
-                           "(see the stations thresholds of the import map)",
+                           f"(see the stations thresholds of the import map){hint}",
                            f"none ({len(rejected)} rejected{': ' + reasons if reasons else ''})")
     stations, within = _stations_table(parts, kept) if kept else (None, "session")
     clouds = {}

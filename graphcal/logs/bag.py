@@ -19,6 +19,7 @@ from graphcal.logs.assemble import DatasetParts, SampleSink, StampCheck, foot_th
 from graphcal.logs.mapping import IMAGE, SCAN, check_map, detect_map, map_yaml_text, read_map, thresholds_of
 from graphcal.logs.reader import LogReader, types_from_msg_dir
 from graphcal.logs.stations import StationFinder
+from graphcal.logs.urdf_frames import UrdfFrames, check_robot, resolve_map_path
 from graphcal.progress import ProgressBar
 
 __all__ = ["import_bag", "urdf_feet_and_root", "staged_ply"]
@@ -48,9 +49,11 @@ def _first_message(reader: LogReader, topic: str):
     return None
 
 
-def _robot(reader: LogReader, m: dict | None, urdf_file: Path | None) -> tuple[str | None, str | None]:
+def _robot(reader: LogReader, m: dict | None, urdf_file: Path | None,
+           map_path: Path | None = None) -> tuple[str | None, str | None]:
     """(URDF text or None, where it came from): ``urdf_file``, else the map's ``robot.urdf`` (a
-    topic of the log or a file), else (no map) the log's ``/robot_description``."""
+    topic of the log or a file, relative to the map's folder), else (no map) the log's
+    ``/robot_description``."""
     if m is not None:
         source = (m.get("robot") or {}).get("urdf")
     else:
@@ -62,6 +65,8 @@ def _robot(reader: LogReader, m: dict | None, urdf_file: Path | None) -> tuple[s
     if source in reader.topics:
         msg = _first_message(reader, source)
         return (msg.data if msg is not None else None), source
+    if urdf_file is None:
+        source = str(resolve_map_path(source, map_path))
     try:
         return Path(source).read_text(encoding="utf-8"), source
     except OSError as exc:
@@ -245,6 +250,48 @@ def _prior(m: dict, transforms: dict, base: str, frame: str | None, what: str, s
     return PosePrior.from_matrix(M.chain_pose(transforms, base, frame, str(source)), sig_m, sig_r)
 
 
+def _frames(urdf_xml: str | None, urdf_src: str | None, rob: dict) -> UrdfFrames:
+    """The robot's link tree: its URDF, or the built-in model's."""
+    if urdf_xml:
+        return UrdfFrames(urdf_xml, str(urdf_src))
+    from graphcal.models.builtin import builtin_urdf
+
+    return UrdfFrames(builtin_urdf(rob["model"]), f"of the built-in model {rob['model']}")
+
+
+def _imu_link_prior(m: dict, frames: UrdfFrames, map_file) -> PosePrior | None:
+    """The base frame and feet checked against the URDF, and the ``T_body_imu`` prior of the
+    map's ``imu.link`` (the URDF's fixed transform), before the log is read."""
+    rob = m["robot"]
+    check_robot(frames, rob["base_frame"], rob["feet"], (), map_file)
+    spec = m.get("imu") or {}
+    return frames.imu_prior(rob["base_frame"], spec, map_file) if spec.get("link") is not None else None
+
+
+def _imu_spec(m: dict, link_prior, transforms: dict, base: str, imu_frame: str | None, frames: UrdfFrames,
+              log_path: Path, notes: list[str]) -> ImuSpec | None:
+    """The IMU's mount: the map's ``imu.link`` in the URDF, else /tf_static from the base to the
+    IMU messages' frame, else that frame as a URDF link fixed to the base, else identity (1 deg)."""
+    if not m.get("imu"):
+        return None
+    if link_prior is not None:
+        return ImuSpec(link_prior)
+    if not imu_frame or imu_frame == base:
+        return ImuSpec(PosePrior(np.zeros(3), np.zeros(3), 0.0, np.radians(1.0)))
+    try:
+        return ImuSpec(_prior(m, transforms, base, imu_frame, "imu", log_path))
+    except DatasetError:
+        pass
+    try:
+        prior = frames.imu_prior(base, {"link": imu_frame}, log_path, "imu (frame of the IMU messages)")
+        notes.append(f"IMU mount from the URDF link {imu_frame} (no /tf_static from {base} to it)")
+        return ImuSpec(prior)
+    except DatasetError:
+        notes.append(f"no /tf_static or URDF link from {base} to the IMU frame {imu_frame}: IMU prior identity, "
+                     "1 deg (name the IMU's URDF link as imu.link in the import map)")
+        return ImuSpec(PosePrior(np.zeros(3), np.zeros(3), 0.0, np.radians(1.0)))
+
+
 def import_bag(log_path: Path, out_dir: Path, *, map_path: Path | None = None, urdf_file: Path | None = None,
                receive_time: bool = False, msg_dir: Path | None = None, timeseries: bool = False,
                progress: bool = True, overwrite: bool = False) -> tuple[Path, str]:
@@ -263,7 +310,7 @@ def _import_bag(log_path: Path, out_dir: Path, staging: Path, *, map_path, urdf_
                 timeseries, progress, overwrite) -> tuple[Path, str]:
     with LogReader(log_path, extra) as reader:
         given = read_map(map_path) if map_path is not None else None
-        urdf_xml, urdf_src = _robot(reader, given, urdf_file)
+        urdf_xml, urdf_src = _robot(reader, given, urdf_file, map_path)
         root, feet_guess = urdf_feet_and_root(urdf_xml, urdf_src) if urdf_xml else ("", ())
         m = given or detect_map(reader.topics, feet_guess)
         if receive_time:
@@ -289,6 +336,7 @@ def _import_bag(log_path: Path, out_dir: Path, staging: Path, *, map_path, urdf_
             raise DatasetError(map_path or log_path, "robot.feet / robot.base_frame",
                                "the robot's foot frames and base frame (set them in the import map)", None)
         th = thresholds_of(m, str(map_path or "import map"))
+        imu_link_prior = _imu_link_prior(m, _frames(urdf_xml, urdf_src, rob), map_path or log_path)
         names, sink, transforms, imu_frame, jumps, received, K = _pass1(
             reader, m, {"thresholds": th, "timeseries": timeseries}, progress)
         frames = _pass2(reader, m, sink.finder.accepted, received, K, progress, staging, sink.receive_offset_s)
@@ -304,15 +352,9 @@ def _import_bag(log_path: Path, out_dir: Path, staging: Path, *, map_path, urdf_
         else:
             pp = PosePrior(np.zeros(3), np.zeros(3), 0.05, np.radians(5.0))
         sensors[name] = SensorSpec(name, s["type"], pp)
-    imu = None
-    notes = []
-    if m.get("imu"):
-        imu = ImuSpec(PosePrior(np.zeros(3), np.zeros(3), 0.0, np.radians(1.0)))
-        if imu_frame and imu_frame != base:
-            try:
-                imu = ImuSpec(_prior(m, transforms, base, imu_frame, "imu", log_path))
-            except DatasetError:
-                notes.append(f"no /tf_static from {base} to the IMU frame {imu_frame}: IMU prior identity, 1 deg")
+    notes: list[str] = []
+    imu = _imu_spec(m, imu_link_prior, transforms, base, imu_frame, _frames(urdf_xml, urdf_src, rob), log_path,
+                    notes)
     robot = RobotSpec("robot.urdf" if urdf_xml else None, None if urdf_xml else rob["model"], base, rob["feet"])
     parts = DatasetParts(robot, urdf_xml, names, sensors, imu, sink.finder, sink, notes=notes,
                          source=str(log_path), map_text=map_text)

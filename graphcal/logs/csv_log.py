@@ -18,6 +18,7 @@ from graphcal.io.dataset.model import ImuSpec, PosePrior, RobotSpec
 from graphcal.logs.assemble import DatasetParts, SampleSink, StampCheck, foot_thresholds, write_imported
 from graphcal.logs.mapping import load_yaml, thresholds_of
 from graphcal.logs.stations import StationFinder
+from graphcal.logs.urdf_frames import UrdfFrames, check_robot, resolve_map_path
 from graphcal.progress import ProgressBar
 
 __all__ = ["CSV_MAP_FORMAT", "import_csv", "read_csv_map"]
@@ -38,8 +39,9 @@ def _unit(table: dict, value, source, key: str) -> float:
     return table[value]
 
 
-def read_csv_map(path: Path) -> dict:
-    """The column map: checked keys, units as factors to SI (``time.factor`` etc.)."""
+def read_csv_map(path: Path, *, urdf_given: bool = False) -> dict:
+    """The column map: checked keys, units as factors to SI (``time.factor`` etc.); ``robot`` may
+    be left out when the URDF is given (``--urdf``, ``urdf_given``)."""
     try:
         m = load_yaml(path.read_text(encoding="utf-8"), path)
     except OSError as exc:
@@ -64,10 +66,60 @@ def read_csv_map(path: Path) -> dict:
                 raise DatasetError(path, f"imu.{k}", "three column names (x, y, z of the IMU frame)", imu.get(k))
         imu["accel_factor"] = _unit(_ACCEL_UNITS, imu.get("accel_unit", "m/s^2"), path, "imu.accel_unit")
         imu["gyro_factor"] = _unit(_GYRO_UNITS, imu.get("gyro_unit", "rad/s"), path, "imu.gyro_unit")
-    r = m.get("robot") or {}
-    if not (r.get("model") or r.get("urdf")):
-        raise DatasetError(path, "robot", "robot.model (a built-in robot) or robot.urdf (a file)", None)
+    if m.get("robot") is None:
+        m["robot"] = {}
+    r = m["robot"]
+    if not isinstance(r, dict):
+        raise DatasetError(path, "robot", "a mapping (model or urdf, base_frame, feet)", r)
+    if not (r.get("model") or r.get("urdf") or urdf_given):
+        raise DatasetError(path, "robot", "robot.model (a built-in robot) or robot.urdf (a file), or --urdf", None)
     return m
+
+
+def _csv_robot(m: dict, map_path: Path, urdf_file: Path | None) -> tuple[RobotSpec, str | None, UrdfFrames]:
+    """(robot, URDF text to write or None for a built-in model, its link tree): ``--urdf``, else
+    the map's ``robot.urdf`` (relative to the map's folder), else ``robot.model``; the base frame
+    (default: the URDF's root), the feet (default: its leaves named like feet) and the mapped
+    joints checked against it, all before the log is read."""
+    r = m["robot"]
+    urdf_xml = None
+    if urdf_file is not None or r.get("urdf"):
+        p = Path(urdf_file) if urdf_file is not None else resolve_map_path(str(r["urdf"]), map_path)
+        try:
+            urdf_xml = p.read_text(encoding="utf-8")
+        except OSError as exc:
+            where = "file (--urdf)" if urdf_file is not None else f"file (robot.urdf of {map_path})"
+            raise DatasetError(p, where, "a readable URDF", exc.strerror or str(exc)) from None
+        frames = UrdfFrames(urdf_xml, str(p))
+        base, feet = r.get("base_frame") or frames.root, r.get("feet") or list(frames.feet_guess)
+    else:
+        from graphcal.models.builtin import builtin_info, builtin_urdf
+
+        info = builtin_info(r["model"])  # ModelError (one line) for an unknown name
+        frames = UrdfFrames(builtin_urdf(r["model"]), f"of the built-in model {r['model']}")
+        base, feet = r.get("base_frame") or info.base_frame, r.get("feet") or list(info.feet)
+    if not base or not feet:
+        raise DatasetError(map_path, "robot.base_frame / robot.feet", "the base frame and the foot frames", None)
+    check_robot(frames, base, feet, m["joints"]["columns"], map_path)
+    robot = RobotSpec("robot.urdf" if urdf_xml else None, None if urdf_xml else r["model"], base, list(feet))
+    return robot, urdf_xml, frames
+
+
+def _csv_imu(m: dict, frames: UrdfFrames, base: str, map_path: Path, notes: list[str]) -> ImuSpec | None:
+    """``T_body_imu`` prior: the URDF's fixed transform base -> ``imu.link`` (2 mm, 1 deg unless
+    ``imu.sigma_mm`` / ``imu.sigma_rpy_deg``); without ``imu.link``, the URDF's one link named
+    ``*imu*`` (with a note), else identity (0 mm, 1 deg, with a note)."""
+    imu = m.get("imu")
+    if not imu:
+        return None
+    if imu.get("link") is not None:
+        return ImuSpec(frames.imu_prior(base, imu, map_path))
+    guess = frames.imu_guess()
+    if guess is not None and guess != base:
+        notes.append(f"IMU mount from the URDF link {guess} (imu.link not in the column map)")
+        return ImuSpec(frames.imu_prior(base, {**imu, "link": guess}, map_path))
+    notes.append("IMU mount unknown (no imu.link in the column map): T_body_imu identity, 1 deg")
+    return ImuSpec(PosePrior(np.zeros(3), np.zeros(3), 0.0, np.radians(1.0)))
 
 
 def _columns(header: list[str], m: dict, source: Path) -> dict[str, int]:
@@ -106,29 +158,50 @@ def _plausible(source: Path, m: dict, first: list[tuple[int, float, np.ndarray, 
 
 def import_csv(path: Path, out_dir: Path, *, map_path: Path, urdf_file: Path | None = None, timeseries: bool = False,
                progress: bool = True, overwrite: bool = False) -> tuple[Path, str]:
-    """``graphcal import`` of a CSV log with a column map; returns (folder, summary)."""
-    m = read_csv_map(map_path)
+    """``graphcal import`` of a CSV log with a column map; returns (folder, summary). Everything the
+    map says that can be checked (the robot, its URDF, the IMU link, the header's columns) is
+    checked before the first row is read."""
+    m = read_csv_map(map_path, urdf_given=urdf_file is not None)
     th = thresholds_of(m, str(map_path))
+    robot, urdf_xml, frames = _csv_robot(m, map_path, urdf_file)
+    notes: list[str] = []
+    imu = _csv_imu(m, frames, robot.base_frame, map_path, notes)
+    header = _header(path)
+    idx = _columns(header, m, path)
     joints = tuple(m["joints"]["columns"])
     feet = m.get("feet") or {}
     learn = [f for f, spec in feet.items() if "threshold_raw" not in spec and "threshold_n" not in spec]
     thresholds = foot_thresholds(_foot_samples(path, m, learn) if learn else {}, feet, th.force_threshold_n)
     finder = StationFinder(joints, tuple(feet), bool(m.get("imu")), th)
     sink = SampleSink(finder, thresholds, timeseries)
+    stamps = _read_rows(path, m, idx, header, sink, progress)
+    finder.finish()
+    parts = DatasetParts(robot, urdf_xml, joints, {}, imu, finder, sink, notes=notes, source=str(path),
+                         map_text=map_path.read_text(encoding="utf-8"))
+    return write_imported(parts, Path(out_dir), overwrite=overwrite, jumps=stamps.jumps)
+
+
+def _header(path: Path) -> list[str]:
+    """The CSV's header row; DatasetError for an unreadable or empty file."""
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            header = next(csv.reader(f), None)
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise DatasetError(path, "file", "a readable CSV log", getattr(exc, "strerror", None) or str(exc)) from None
+    if not header:
+        raise DatasetError(path, "header (row 0)", "a header row of column names", "an empty file")
+    return header
+
+
+def _read_rows(path: Path, m: dict, idx: dict, header: list[str], sink: SampleSink, progress: bool) -> StampCheck:
+    """Every row into ``sink`` (stamps checked, units checked on the first 200 rows)."""
     stamps = StampCheck(path)
     first: list = []
-    try:
-        f = path.open(newline="", encoding="utf-8")
-    except OSError as exc:
-        raise DatasetError(path, "file", "a readable CSV log", exc.strerror or str(exc)) from None
-    with f:
+    with path.open(newline="", encoding="utf-8") as f:
         reader = csv.reader(f)
-        header = next(reader, None)
-        if not header:
-            raise DatasetError(path, "header (row 0)", "a header row of column names", "an empty file")
-        idx = _columns(header, m, path)
+        next(reader, None)
         for row_no, row in enumerate(ProgressBar(reader, desc="import: rows", unit="row", disable=not progress,
-                                          mininterval=0.5), start=1):
+                                                 mininterval=0.5), start=1):
             t, q, acc, gyr, forces = _parse_row(path, m, idx, row, row_no, header)
             stamps(f"column {m['time']['column']}", t, f"row {row_no}")
             if len(first) < 200:
@@ -142,28 +215,7 @@ def import_csv(path: Path, out_dir: Path, *, map_path: Path, urdf_file: Path | N
             sink.joints(t, q)
     if len(first) < 200:
         _plausible(path, m, first)
-    finder.finish()
-    r = m["robot"]
-    urdf_xml = None
-    if urdf_file is not None or r.get("urdf"):
-        p = Path(urdf_file or r["urdf"])
-        try:
-            urdf_xml = p.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise DatasetError(p, "file", "a readable URDF", exc.strerror or str(exc)) from None
-    base, feet_frames = r.get("base_frame"), r.get("feet")
-    if r.get("model") and not (base and feet_frames):
-        from graphcal.models.builtin import builtin_info
-
-        info = builtin_info(r["model"])
-        base, feet_frames = base or info.base_frame, feet_frames or list(info.feet)
-    if not base or not feet_frames:
-        raise DatasetError(map_path, "robot.base_frame / robot.feet", "the base frame and the foot frames", None)
-    robot = RobotSpec("robot.urdf" if urdf_xml else None, None if urdf_xml else r["model"], base, feet_frames)
-    imu = ImuSpec(PosePrior(np.zeros(3), np.zeros(3), 0.0, np.radians(1.0))) if m.get("imu") else None
-    parts = DatasetParts(robot, urdf_xml, joints, {}, imu, finder, sink, source=str(path),
-                         map_text=map_path.read_text(encoding="utf-8"))
-    return write_imported(parts, Path(out_dir), overwrite=overwrite, jumps=stamps.jumps)
+    return stamps
 
 
 def _foot_samples(path: Path, m: dict, feet: list[str]) -> dict[str, np.ndarray]:
