@@ -66,11 +66,13 @@ def test_level_walk_20_m_drift_below_1_percent(level20):
 @pytest.mark.slow
 def test_level_walk_filter_is_consistent(level20):
     """One run: NEES samples are correlated in time, so the single-sample 95 % band is the honest
-    check of the mean (the Monte Carlo band is in test_ekf.py), with most samples inside it."""
+    check of the mean (the Monte Carlo band is in test_ekf.py); the real-robot defaults (biases that
+    wander 10x the simulator's) make it cautious, never over-confident: at most 2.5 % of the
+    samples above the band (5 % of a consistent filter's fall outside it, half of them above)."""
     _, _, m = level20
     lo, hi = chi2_band(6)
     assert lo <= m["nees_mean"] <= hi
-    assert m["nees_fraction_in_band"] >= 0.8
+    assert m["nees_fraction_above_band"] <= 0.025 and m["nees_fraction_in_band"] >= 0.7
     assert m["stance_nis_mean"] == pytest.approx(m["stance_nis_dof"], rel=0.1)
     assert m["innovation_whiteness"]["fraction_inside"] >= 0.9
     assert m["icp_nis_mean"] < 2 * m["icp_dof_mean"]
@@ -138,13 +140,15 @@ def test_track_outputs(level20):
     assert np.median(np.diff(A[:, 0])) == pytest.approx(0.01)  # 100 Hz
     assert np.abs(np.linalg.norm(A[:, 4:8], axis=1) - 1).max() < 1e-6
     assert np.linalg.norm(A[0, 1:3]) < 1e-6  # starts at the world origin (x, y)
-    for name in ("trajectory.png", "errors.png", "nis.png"):
+    for name in ("trajectory.png", "errors.png", "nis.png", "contacts.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     report = (out / "report.html").read_text()
     assert "drift" in report and f"{m['drift_percent']:.3f}" in report
+    assert report.index("Physical plausibility: plausible") < report.index("Filter consistency: consistent")
+    assert "Noise (noise.yaml" in report and "Contacts and phases" in report
     from graphcal.report.page import CSS
 
-    assert CSS in report and report.count("data:image/png;base64,") == 3  # the page of every report, plots inside
+    assert CSS in report and report.count("data:image/png;base64,") == 4  # the page of every report, plots inside
     assert set(m["output_files"]) == {p.name for p in out.iterdir()}
     for key in ("ape_rmse_m", "rpe_rmse_m", "drift_percent", "distance_m", "nees_mean"):
         assert isinstance(m[key], float), key
@@ -284,8 +288,9 @@ def test_track_returns_its_result_and_prints_its_summary(short_walk, tmp_path, c
     lines = capsys.readouterr().out.splitlines()  # the console's words
     assert lines[0].startswith(f"tracked {short_walk}: {m['n_samples']} samples") and f"wrote {tmp_path / 'cli'}" in lines[0]
     assert lines[1].startswith(f"  consistency: {result.verdict}")
-    assert lines[2].startswith("  noise: learned ") and lines[2].endswith("; noise.yaml)")
-    assert lines[3].startswith("  against the truth: APE ") and f"of {m['distance_m']:.2f} m" in lines[3]
+    assert lines[2] == f"  plausibility: {m['plausibility']['verdict']} ({m['plausibility']['reason']})"
+    assert lines[3].startswith("  noise: learned ") and lines[3].endswith("; noise.yaml)")
+    assert lines[4].startswith("  against the truth: APE ") and f"of {m['distance_m']:.2f} m" in lines[4]
 
 
 def test_track_refuses_a_negative_tum_rate_before_any_work(tmp_path):

@@ -184,6 +184,7 @@ def run(
     distance_m: float | None = None,
     duration_s: float | None = None,
     cloud_rate_hz: float | None = None,
+    real_like: bool = False,
 ) -> SimulateResult:
     """Simulate and write the dataset folder ``out_dir`` (contract files and ``truth.yaml``).
 
@@ -193,6 +194,8 @@ def run(
             "delta_m": "0.015"})``; no parameters: drawn from the seed.
         leg_errors: random joint-offset (0.5 deg) and link-length (3 mm) errors on every leg joint.
         cloud_stride: None = 4 (walking programs: 16 level, 8 stairs).
+        real_like: a walking program written as a real robot's log (raw foot counts, stand-up and
+            lie-down, IMU off the base, other noise: :mod:`graphcal.simulation.real_like`).
         distance_m, duration_s, cloud_rate_hz: the walking programs (``tripod-walk``,
             ``tripod-stairs`` of the qingzhui, ``trot``, ``walk`` of the a1:
             :mod:`graphcal.simulation.walking`) only.
@@ -227,7 +230,9 @@ def run(
                                cloud_stride=cloud_stride, leg_errors=leg_errors, effects=effects,
                                n_stations=n_stations, n_sessions=n_sessions, sensors=sensors,
                                overwrite=overwrite, progress=progress, distance_m=distance_m,
-                               duration_s=duration_s, cloud_rate_hz=cloud_rate_hz)
+                               duration_s=duration_s, cloud_rate_hz=cloud_rate_hz, real_like=real_like)
+    if real_like:
+        raise GraphcalError("--real-like belongs to the walking programs (tripod-walk, trot, walk)")
     if distance_m is not None or duration_s is not None or cloud_rate_hz is not None:
         raise GraphcalError("--distance, --duration and --cloud-rate belong to the walking programs "
                             "(tripod-walk, tripod-stairs, trot, walk)")
@@ -343,7 +348,8 @@ def _mocap_to_folder(*, robot, out_dir, seed, n_stations, leg_errors, overwrite,
 
 
 def _walk_to_folder(*, program, robot, out_dir, seed, output, cloud_stride, leg_errors, effects, n_stations,
-                    n_sessions, sensors, overwrite, progress, distance_m, duration_s, cloud_rate_hz) -> SimulateResult:
+                    n_sessions, sensors, overwrite, progress, distance_m, duration_s, cloud_rate_hz,
+                    real_like=False) -> SimulateResult:
     """The walking programs: refuse the station-program options, then simulate the walk."""
     from graphcal.simulation.write import simulate_walking_to_folder
 
@@ -361,6 +367,7 @@ def _walk_to_folder(*, program, robot, out_dir, seed, output, cloud_stride, leg_
                             f"pass --robot {GAITS[program].robot}")
     text = simulate_walking_to_folder(program=program, out_dir=out_dir, robot=robot, seed=seed,
                                       distance_m=distance_m, duration_s=duration_s, cloud_rate_hz=cloud_rate_hz,
-                                      cloud_stride=cloud_stride, overwrite=overwrite, progress=progress)
+                                      cloud_stride=cloud_stride, overwrite=overwrite, progress=progress,
+                                      real_like=real_like)
     return SimulateResult(out=Path(out_dir), robot=robot, program=program, simulation=None,
                           files=folder_files(out_dir), walk_summary=text)

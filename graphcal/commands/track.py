@@ -6,7 +6,11 @@
   ``nees_mean`` (null when the dataset has no truth), NIS, whiteness, real-time factor, ...,
   and ``consistency``: the verdict of the NIS of each update kind over 10 s windows
   (:mod:`graphcal.locomotion.consistency`; a warning on the console when it is ``inconsistent``);
-* ``trajectory.png``, ``errors.png``, ``nis.png`` -- plots;
+  ``plausibility``: whether the trajectory is physically possible (:mod:`graphcal.locomotion.plausibility`;
+  a warning naming the first failure's time and size when it is not); ``contacts`` (per-foot
+  thresholds, duty factors), ``phases`` (lying, standing up, walking, ...), ``floor`` (the
+  level-floor updates) and ``noise`` (values and sources);
+* ``trajectory.png``, ``errors.png``, ``nis.png``, ``contacts.png`` (the stance diagram) -- plots;
 * ``report.html``     -- the report (:func:`graphcal.report.track_page.track_html`, the plots embedded);
 * ``noise.yaml``      -- the noise the filter used, each value with where it came from (``--noise``,
   dataset.yaml's ``tracker: noise:``, learned from the log, or the real-robot default;
@@ -39,13 +43,13 @@ from graphcal.locomotion.track import ascending_flight, stairs_keyframes, track_
 from graphcal.report.track_page import track_figures, track_html
 
 __all__ = ["TRACK_FORMAT", "OUTPUT_FILES", "run", "TrackResult", "summary_lines", "consistency_section",
-           "consistency_warning", "noise_line"]
+           "consistency_warning", "noise_line", "plausibility_warning", "bias_warning"]
 
 log = logging.getLogger(__name__)
 
 TRACK_FORMAT = "graphcal-track/1"
-OUTPUT_FILES = ("trajectory.tum", "metrics.json", "trajectory.png", "errors.png", "nis.png", "report.html",
-                "stairs.json", "noise.yaml")
+OUTPUT_FILES = ("trajectory.tum", "metrics.json", "trajectory.png", "errors.png", "nis.png", "contacts.png",
+                "report.html", "stairs.json", "noise.yaml")
 #: what a previous track output may hold (before 2026-11-27 the report was report.md)
 _PREVIOUS_FILES = OUTPUT_FILES + ("report.md",)
 
@@ -145,6 +149,66 @@ def consistency_warning(section: dict) -> str | None:
               "the trajectory's sigma and NEES are not to be trusted")
 
 
+def _innovation_bias(inp, res) -> dict:
+    """metrics.json's ``innovation_bias`` (:func:`graphcal.locomotion.consistency.innovation_bias`): per
+    foot (slot) axis, the stance innovations' mean; a biased one points at the leg model."""
+    from graphcal.locomotion.consistency import innovation_bias
+
+    n_slots = res.stance_innovations.shape[1] // 3 if res.stance_innovations.ndim == 2 else 0
+    names = list(inp.robot.feet) if not res.groups and n_slots == len(inp.robot.feet) else [
+        f"tripod slot {i}" for i in range(n_slots)]
+    return innovation_bias(res.stance_times, res.stance_innovations, names)
+
+
+def bias_warning(section: dict) -> str | None:
+    """The console warning for biased stance innovations (None otherwise)."""
+    if section.get("verdict") != "biased":
+        return None
+    w = section["worst"]
+    return (f"the stance innovations of {w['slot']} are biased along body {w['axis']} (mean {w['mean_sigma']:+.2f} "
+            f"sigma, t = {w['t']:.1f} over {w['blocks']} s; {len(section['biased'])} foot axes in all): the leg "
+            "model is off by a constant (joint zero offsets, link lengths): the trajectory drifts with it; identify "
+            "the legs (graphcal identify-legs) or calibrate them")
+
+
+def _plausibility(ds, inp, res) -> dict:
+    """metrics.json's ``plausibility``: :func:`graphcal.locomotion.plausibility.track_plausibility` on
+    the samples where the leg model was used (the log's phases), level checks on declared level ground."""
+    from graphcal.locomotion.plausibility import plausibility_section, track_plausibility
+
+    active = res.phases.leg_model_mask if res.phases is not None else None
+    level = str(ds.ground.get("type", "")) == "level"
+    return plausibility_section(track_plausibility(res, inp, level_ground=level, active=active))
+
+
+def plausibility_warning(section: dict) -> str | None:
+    """The console warning for an ``implausible`` trajectory (None otherwise): the first failure."""
+    if section.get("verdict") != "implausible":
+        return None
+    f = section["failures"]
+    more = f" (and {len(f) - 1} more failure{'s' if len(f) > 2 else ''}: metrics.json plausibility)" if len(f) > 1 else ""
+    return (f"the trajectory is physically implausible: {f[0]['message']}{more}: the leg model, the contacts or the "
+            "noise settings do not fit this robot; the trajectory and its sigma are not to be trusted")
+
+
+def _phases_section(ph) -> dict | None:
+    """metrics.json's ``phases``: the segments (phase, start s, end s) and where the leg model was used."""
+    if ph is None:
+        return None
+    return {"segments": [{"phase": s.phase, "start_s": s.start_s, "end_s": s.end_s} for s in ph.segments],
+            "standing_height_m": ph.standing_height_m, "lying_height_m": ph.lying_height_m,
+            "leg_model_fraction": float(np.mean(ph.leg_model_mask)),
+            "note": "no leg model while lying (a zero-velocity update instead) or lifted"}
+
+
+def _floor_section(res) -> dict:
+    """metrics.json's ``floor``: the level-floor updates at touchdowns and the zero-velocity updates."""
+    n = int(np.sum(res.floor_dofs))
+    return {"updates": int(len(res.floor_nis)), "feet_measured": n,
+            "nis_per_dof": float(np.sum(res.floor_nis)) / n if n else None,
+            "zero_velocity_updates": int(res.n_zero_velocity)}
+
+
 # ----------------------------------------------------------------------------- the command
 def _clean(x):
     if isinstance(x, dict):
@@ -242,15 +306,22 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
             "nees_dof": nees_dof,
             "nees_band_95_single": [lo, hi],
             "nees_fraction_in_band": float(np.mean((nees >= lo) & (nees <= hi))) if len(nees) else None,
+            "nees_fraction_above_band": float(np.mean(nees > hi)) if len(nees) else None,
         })
     else:
         m.update({"ape_rmse_m": None, "ape_max_m": None, "rpe_rmse_m": None, "drift_percent": None,
                   "final_error_m": None, "distance_m": est_len, "distance_source": "estimate",
                   "nees_mean": None, "nees_dof": nees_dof, "nees_band_95_single": None,
-                  "nees_fraction_in_band": None})
+                  "nees_fraction_in_band": None, "nees_fraction_above_band": None})
     m["distance_estimated_m"] = est_len
     consistency = consistency_section(res)
     m["consistency"] = consistency
+    m["innovation_bias"] = _innovation_bias(inp, res)
+    plaus = _plausibility(ds, inp, res)
+    m["plausibility"] = plaus
+    m["contacts"] = res.contacts
+    m["phases"] = _phases_section(res.phases)
+    m["floor"] = _floor_section(res)
     m["noise"] = {"values": noise_doc["noise"], "sources": noise_doc["sources"], "units": noise_doc["units"],
                   "file": "noise.yaml"}
     white = whiteness(res.stance_innovations)
@@ -296,7 +367,7 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
     # at --tum-rate 10 matches a tenth of the poses and reads a slightly different RMS
     m["metrics_samples"] = "every filter sample (n_samples), whatever --tum-rate"
     m["tum_samples"] = int(len(keep))
-    pngs = track_figures(res, truth, nees_t, nees, nees_dof)
+    pngs = track_figures(res, truth, nees_t, nees, nees_dof, feet=tuple(inp.robot.feet))
     files.update(pngs)
     if stairs_doc is not None:
         files["stairs.json"] = json.dumps(_clean(stairs_doc), indent=2).encode()
@@ -310,12 +381,13 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
         for name, data in files.items():
             atomic_write_bytes(tmp / name, data)
         _check_out(out, overwrite)
-    warning = consistency_warning(consistency)
-    if warning is not None:
-        log.warning("WARNING: %s", warning)
+    warnings = tuple(w for w in (plausibility_warning(plaus), consistency_warning(consistency),
+                                 bias_warning(m["innovation_bias"])) if w is not None)
+    for w in warnings:
+        log.warning("WARNING: %s", w)
     return TrackResult(estimate=res, metrics=m, consistency=consistency, stairs=stairs_doc, dataset=str(dataset),
-                       out=out, files=tuple(out / name for name in sorted(files)),
-                       warnings=() if warning is None else (warning,), verdict=consistency["verdict"])
+                       out=out, files=tuple(out / name for name in sorted(files)), warnings=warnings,
+                       verdict=consistency["verdict"])
 
 
 def noise_line(section: dict) -> str:
@@ -340,6 +412,14 @@ def summary_lines(m: dict, consistency: dict, stairs_doc: dict | None, dataset, 
     lines.append(f"  consistency: {consistency['verdict']}" + "".join(
         f"; {k} {r['verdict']} (mean NIS per dof {r['mean_nis_per_dof']:.3f}, p = {r['p_value']:.2g})"
         for k, r in consistency["kinds"].items() if r["verdict"] != "not tested"))
+    ib = m.get("innovation_bias") or {}
+    if ib.get("worst"):
+        w = ib["worst"]
+        lines.append(f"  leg model: stance innovations {ib['verdict']} (worst {w['slot']} {w['axis']}: mean "
+                     f"{w['mean_sigma']:+.2f} sigma, t = {w['t']:.1f})")
+    pl = m.get("plausibility") or {}
+    if pl:
+        lines.append(f"  plausibility: {pl['verdict']}" + (f" ({pl['reason']})" if pl.get("reason") else ""))
     lines.append("  noise: " + noise_line(m["noise"]))
     if m["truth"]:
         lines.append(f"  against the truth: APE {1e3 * m['ape_rmse_m']:.1f} mm RMS, drift {m['drift_percent']:.3f} % "

@@ -67,6 +67,8 @@ class EkfNoise:
         kinematic_sigma_m: extra foot-position noise for model errors, per axis, m.
         icp_cov_scale: the ICP covariance (from its point-to-plane information) is multiplied by
             this (unmodelled errors: sampling, local planes; measured ~2.5-3 on simulated data).
+        floor_sigma_m: on declared level ground, a foot touching down is at the height of the floor
+            the robot started on, within this (m; unevenness, foot radius and compliance).
     """
 
     gyro_noise_density: float = 2.5e-4
@@ -77,6 +79,7 @@ class EkfNoise:
     encoder_sigma_rad: float = float(np.radians(0.02))
     kinematic_sigma_m: float = 0.0
     icp_cov_scale: float = 4.0
+    floor_sigma_m: float = 0.01
 
     def __post_init__(self):
         for name, v in self.__dict__.items():
@@ -84,6 +87,8 @@ class EkfNoise:
                 raise GraphcalError(f"EkfNoise.{name} must be a finite number >= 0, got {v!r}")
         if self.icp_cov_scale <= 0:
             raise GraphcalError("EkfNoise.icp_cov_scale must be > 0")
+        if self.floor_sigma_m <= 0:
+            raise GraphcalError("EkfNoise.floor_sigma_m must be > 0")
 
     def process_density(self, n_slots: int) -> np.ndarray:
         """Qc: the error state's process-noise spectral density (diagonal), per second."""
@@ -431,6 +436,26 @@ class LeggedEKF:
             raise GraphcalError(f"update_stance: expected p_body_foot ({m // 3}, 3) and R_meas ({m}, {m}), got "
                                 f"{np.shape(p_body_foot)} and {np.shape(R_meas)}")
         return self._update(z, self.stance_jacobian, self.stance_prediction, R_meas, args=(rows,), hx_args=(rows,))
+
+    # ------------------------------------------------------------------ level floor, zero velocity
+    def update_floor(self, slots, z_floor_m: float, var_m2: float) -> float:
+        """Level-ground update of the feet in ``slots`` (indices; just touched down): their world
+        height ``p_world_foot_z`` measured as ``z_floor_m`` (m) with variance ``var_m2`` (m^2) each.
+        Returns the NIS (dof = len(slots))."""
+        slots = np.asarray(slots, dtype=np.int64)
+        cols = 15 + 3 * slots + 2
+        H = np.zeros((len(slots), self.dim))
+        H[np.arange(len(slots)), cols] = 1.0
+        z = np.full(len(slots), float(z_floor_m))
+        return self._update(z, lambda dx: H, lambda dx: self.p_feet[slots, 2].copy(),
+                            np.eye(len(slots)) * float(var_m2))
+
+    def update_zero_velocity(self, var_m2_s2: float) -> float:
+        """Zero-velocity update (the body at rest, e.g. lying on its belly): ``v_world_body`` = 0
+        with variance ``var_m2_s2`` (m^2/s^2) per axis. Returns the NIS (dof 3)."""
+        H = np.zeros((3, self.dim))
+        H[:, 3:6] = np.eye(3)
+        return self._update(np.zeros(3), lambda dx: H, lambda dx: self.v.copy(), np.eye(3) * float(var_m2_s2))
 
     # ------------------------------------------------------------------ relative pose (ICP)
     def clone_pose(self) -> None:

@@ -25,7 +25,7 @@ from graphcal.locomotion.ekf import GRAVITY_WORLD as GRAVITY
 from graphcal.locomotion.ekf import EkfNoise, LeggedEKF, NominalState, state_dim, tangent_pose_covariance
 from graphcal.locomotion.track_inputs import TrackInputs, inputs_from_dataset
 
-__all__ = ["TrackerConfig", "TrackResult", "run_filter", "estimate_trajectory", "still_samples"]
+__all__ = ["TrackerConfig", "TrackResult", "run_filter", "estimate_trajectory", "still_samples", "lever_arm_corrected"]
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,12 @@ class TrackerConfig:
             ``contact_off_n``. ``fixed``: ``contact_on_n`` / ``contact_off_n`` for every foot (N).
             With contacts only (``contact_<foot>`` 0/1 or a probability) the threshold is 0.5.
         contact_on_n, contact_off_n: the fixed thresholds (N), off <= on.
+        level_ground: the ground is declared level (dataset.yaml ``ground: {type: level}``): a foot
+            touching down is measured at the height of the floor the robot started on (world z 0),
+            within ``noise.floor_sigma_m``.
+        phases: segment the log (:func:`graphcal.locomotion.phases.phases_of_inputs`) and use no
+            leg model while the robot lies on its belly or is lifted; while it lies, a zero-velocity
+            update (``lying_velocity_sigma_m_s``, m/s) instead.
         contact_min_stance_s, contact_min_swing_s: stances and swings shorter than these (s) are
             removed from the mask (a spurious touchdown, a dip of a loaded foot); 0.05 s, a third of
             the shortest stance of a fast trot (0.3 s cycle), above the < 40 ms spurious stances of
@@ -96,6 +102,9 @@ class TrackerConfig:
     contact_thresholds: str = "learned"
     contact_min_stance_s: float = 0.05
     contact_min_swing_s: float = 0.05
+    level_ground: bool = False
+    phases: bool = True
+    lying_velocity_sigma_m_s: float = 0.01
     init_window_s: float = 0.1
     still_start: bool = True
     still_min_s: float = 0.3
@@ -118,6 +127,8 @@ class TrackerConfig:
             raise GraphcalError(f"contact_off_n ({self.contact_off_n}) must not exceed contact_on_n ({self.contact_on_n})")
         if not (self.contact_min_stance_s >= 0 and self.contact_min_swing_s >= 0):
             raise GraphcalError("contact_min_stance_s and contact_min_swing_s must be >= 0 (s)")
+        if not self.lying_velocity_sigma_m_s > 0:
+            raise GraphcalError("lying_velocity_sigma_m_s must be > 0 (m/s)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,6 +162,11 @@ class TrackResult:
             ``high_mode`` (the signal's unit), ``separation``, ``duty_factor`` (share of the samples
             in stance), ``n_stances``, ``n_short_stances_removed``, ``n_short_swings_removed``
             (:meth:`graphcal.locomotion.contact_detection.FootContacts.as_dict`).
+        floor_nis, floor_times, floor_dofs: the level-floor updates at touchdowns (NIS, s, feet);
+            floor_y2, floor_s: per update the sum of the squared innovations (m^2) and of the
+            innovation variances (m^2) -- covariance matching reads them.
+        n_zero_velocity: zero-velocity updates (lying). phases: the
+            :class:`~graphcal.locomotion.phases.PhaseResult`, or None.
         processing_s: wall time of the filter (support detection, kinematics and loop included).
         duration_s: span of the data (s).
     """
@@ -177,6 +193,13 @@ class TrackResult:
     stance_dofs: np.ndarray | None = None
     stance_mask: np.ndarray | None = None
     contacts: dict | None = None
+    floor_nis: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    floor_times: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    floor_dofs: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    floor_y2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    floor_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    n_zero_velocity: int = 0
+    phases: object = None
 
     def cov_pose_tangent(self) -> np.ndarray:
         """(M, 6, 6) ``cov_pose`` converted to docs/conventions.md's order: covariance of
@@ -271,11 +294,17 @@ class _FootKinematics:
 
 def _foot_kinematics(inp: TrackInputs, feet: tuple, cfg: TrackerConfig, N: int) -> _FootKinematics:
     """Kinematics of every foot at every sample (vectorised, one pass per leg): positions,
-    Jacobians, and the covariance of the measured foot positions."""
+    Jacobians, and the covariance of the measured foot positions. Inputs carrying body-frame foot
+    points instead of joint angles (``inp.p_body_foot``: a robot given by its feet) give those
+    points, the kinematic noise only and no encoder Jacobian (zero joints)."""
     from graphcal.models.kinematics import joint_frames, position_jacobian
 
     enc_var = cfg.noise.encoder_sigma_rad**2
     kin_cov = np.eye(3) * cfg.noise.kinematic_sigma_m**2
+    if inp.p_body_foot is not None:
+        pbf = np.asarray(inp.p_body_foot, dtype=float).reshape(len(feet), N, 3)
+        cov = np.broadcast_to(kin_cov, (len(feet), N, 3, 3)).copy()
+        return _FootKinematics(pbf, cov, {f: np.zeros((N, 3, 0)) for f in feet})
     pbf = np.empty((len(feet), N, 3))
     Rf = np.empty((len(feet), N, 3, 3))
     jac = {}
@@ -314,7 +343,8 @@ class _Support:
     the foot (index into robot.feet) in each slot, ``slot_stance`` (N, n_slots) whether it is in
     stance; ``touchdown`` (N, n_slots) a new foot in the slot at that sample (reset, no update);
     ``mask`` (N, n_feet) feet in stance; ``code`` (N,) the tripod index (two-tripod gait) or the
-    mask as an integer (bit i: foot i); ``contacts`` how the mask was decided (TrackResult.contacts)."""
+    mask as an integer (bit i: foot i); ``contacts`` how the mask was decided (TrackResult.contacts);
+    ``at_rest`` (N,) samples of a zero-velocity update (lying), or None."""
 
     slot_feet: np.ndarray
     slot_stance: np.ndarray
@@ -322,18 +352,34 @@ class _Support:
     mask: np.ndarray
     code: np.ndarray
     contacts: dict | None = None
+    at_rest: np.ndarray | None = None
 
     @property
     def n_slots(self) -> int:
         return self.slot_feet.shape[1]
 
 
-def _support(inp: TrackInputs, feet: tuple, groups: tuple, jacobians: dict, cfg: TrackerConfig) -> _Support:
+def _posture_moving(times: np.ndarray, p_body_foot: np.ndarray, *, rate_m_s: float = 0.02,
+                    window_s: float = 0.1) -> np.ndarray:
+    """(N,) bool: the legs raise or lower the body (the mean foot height in the body frame,
+    ``p_body_foot`` (n_feet, N, 3) m, averaged over ``window_s``, changes faster than ``rate_m_s``)."""
+    h = -np.asarray(p_body_foot, dtype=float)[:, :, 2].mean(axis=0)
+    if len(h) < 3:
+        return np.zeros(len(h), dtype=bool)
+    n = max(1, int(round(window_s / float(np.median(np.diff(times))))))
+    hs = np.convolve(h, np.ones(n) / n, mode="same")
+    return np.abs(np.gradient(hs, times)) > rate_m_s
+
+
+def _support(inp: TrackInputs, feet: tuple, groups: tuple, jacobians: dict, cfg: TrackerConfig,
+             phases=None, moving=None) -> _Support:
     """The support model. Two tripods (``groups``, no foot-force sensors): one slot per foot of a
     tripod, all of them reset when the other tripod takes over (:func:`_support_group`). Any other
     gait: one slot per foot, stance from each foot's load (force sensors, else torques; per-foot
     hysteresis and minimum durations, :func:`_stance_mask`) or its contact column; a foot touching
-    down is reset."""
+    down is reset. With ``phases`` (a PhaseResult), no foot is in stance where its
+    ``leg_model_mask`` is False unless the legs are raising or lowering the body (``moving`` (N,):
+    the segmentation's edges lag the motion), and its lying samples are at rest where they do not."""
     N = len(inp.times)
     contacts = None
     if groups and inp.force is None:
@@ -349,9 +395,18 @@ def _support(inp: TrackInputs, feet: tuple, groups: tuple, jacobians: dict, cfg:
         slot_feet = np.broadcast_to(np.arange(len(feet)), mask.shape)
         slot_stance = mask
         code = (mask.astype(np.int64) << np.arange(len(feet))).sum(axis=1)
+    at_rest = None
+    if phases is not None:
+        from graphcal.locomotion.phases import PHASES
+
+        moving = np.zeros(N, dtype=bool) if moving is None else np.asarray(moving, dtype=bool)
+        use = np.asarray(phases.leg_model_mask, dtype=bool) | moving
+        mask = mask & use[:, None]
+        slot_stance = slot_stance & use[:, None]
+        at_rest = (np.asarray(phases.labels) == PHASES.index("lying")) & ~moving
     touchdown = np.zeros(slot_stance.shape, dtype=bool)
     touchdown[1:] = slot_stance[1:] & (~slot_stance[:-1] | (slot_feet[1:] != slot_feet[:-1]))
-    return _Support(slot_feet, slot_stance, touchdown, mask, code, contacts)
+    return _Support(slot_feet, slot_stance, touchdown, mask, code, contacts, at_rest)
 
 
 def _stance_mask(inp: TrackInputs, feet: tuple, jacobians: dict, cfg: TrackerConfig) -> tuple[np.ndarray, dict]:
@@ -415,25 +470,52 @@ def _icp_setup(inp: TrackInputs, cfg: TrackerConfig) -> _IcpSetup:
     return _IcpSetup(use_icp, T_bs, T_sb, Ad_inv, sigma_fn)
 
 
-def _events(N: int, every: int, sup: _Support, cloud_samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _events(N: int, every: int, sup: _Support, cloud_samples: np.ndarray,
+            measured: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(events, switches): the samples that end an IMU chunk (every ``every``-th sample, support
     changes, clouds and the last sample; increasing, > 0) and the support changes (a foot touching
     down or lifting off; the tripods' switches)."""
     changed = np.any(np.diff(sup.slot_feet, axis=0) != 0, axis=1) | np.any(np.diff(sup.slot_stance, axis=0), axis=1)
     switches = np.flatnonzero(changed) + 1
-    events = np.union1d(np.union1d(np.arange(every, N, every), switches), cloud_samples)
+    updates = np.arange(every, N, every) if measured is None else np.flatnonzero(measured)
+    events = np.union1d(np.union1d(updates, switches), cloud_samples)
     events = np.union1d(events[(events > 0) & (events < N)], [N - 1]).astype(np.int64)
     return events, switches
 
 
+def lever_arm_corrected(times: np.ndarray, w_body: np.ndarray, f_body: np.ndarray, p_body_imu: np.ndarray, *,
+                        window_s: float = 0.02) -> np.ndarray:
+    """The specific force at the body origin (N, 3) m/s^2, body frame, from the IMU's ``f_body`` (N, 3)
+    (rotated into the body frame) at ``p_body_imu`` (3,) m: less ``alpha x r + w x (w x r)``, with
+    ``w_body`` (N, 3) rad/s and the angular acceleration alpha the difference of the mean rates over
+    ``window_s`` after and before each sample (the gyro's noise differentiated otherwise)."""
+    r = np.asarray(p_body_imu, dtype=float)
+    if not np.any(r) or len(times) < 3:
+        return f_body
+    dt = float(np.median(np.diff(times)))
+    n = max(1, int(round(window_s / dt)))
+    c = np.vstack([np.zeros((1, 3)), np.cumsum(w_body, axis=0)])
+    N = len(times)
+    k = np.arange(N)
+    hi = np.minimum(k + n, N - 1)
+    lo = np.maximum(k - n, 0)
+    after = (c[hi + 1] - c[k + 1]) / np.maximum(hi - k, 1)[:, None]
+    before = (c[k] - c[lo]) / np.maximum(k - lo, 1)[:, None]
+    span = 0.5 * ((hi - k) + (k - lo) + 2) * dt
+    alpha = (after - before) / span[:, None]
+    alpha[(hi == k) | (lo == k)] = 0.0
+    return f_body - np.cross(alpha, r) - np.cross(w_body, np.cross(w_body, r))
+
+
 def _preintegrated_imu(inp: TrackInputs, times: np.ndarray, events: np.ndarray):
-    """IMU: body-frame rates and specific forces held over each interval (mean of its two ends),
-    preintegrated between ``events`` (vectorised; see graphcal.locomotion.imu)."""
+    """IMU: body-frame rates and specific forces (at the body origin: :func:`lever_arm_corrected`) held
+    over each interval (mean of its two ends), preintegrated between ``events`` (vectorised; see graphcal.locomotion.imu)."""
     from graphcal.locomotion.imu import preintegrate
 
     R_bi = np.asarray(inp.T_body_imu, dtype=float)[:3, :3]
     gyro = np.asarray(inp.gyro, dtype=float) @ R_bi.T
-    accel = np.asarray(inp.accel, dtype=float) @ R_bi.T
+    accel = lever_arm_corrected(times, gyro, np.asarray(inp.accel, dtype=float) @ R_bi.T,
+                                np.asarray(inp.T_body_imu, dtype=float)[:3, 3])
     w_mid = np.empty_like(gyro)
     a_mid = np.empty_like(accel)
     w_mid[0], a_mid[0] = gyro[0], accel[0]
@@ -460,6 +542,7 @@ class _EventInputs:
     R: np.ndarray
     stance: np.ndarray
     touchdown: np.ndarray
+    at_rest: np.ndarray
 
 
 def _event_inputs(pre, events: np.ndarray, sup: _Support, kin: _FootKinematics, n_slots: int) -> _EventInputs:
@@ -474,8 +557,9 @@ def _event_inputs(pre, events: np.ndarray, sup: _Support, kin: _FootKinematics, 
     ev_R = np.zeros((len(events), 3 * n_slots, 3 * n_slots))
     for s_ in range(n_slots):
         ev_R[:, 3 * s_ : 3 * s_ + 3, 3 * s_ : 3 * s_ + 3] = kin.cov[ev_feet[:, s_], events]
+    at_rest = sup.at_rest[events] if sup.at_rest is not None else np.zeros(len(events), dtype=bool)
     return _EventInputs(ev_dR, ev_dpv, ev_J, ev_T, ev_feet, ev_z, ev_R, sup.slot_stance[events],
-                        sup.touchdown[events])
+                        sup.touchdown[events], at_rest)
 
 
 def _fuse_icp(ekf: LeggedEKF, pts: np.ndarray, kf_cloud, icp: _IcpSetup, cfg: TrackerConfig) -> tuple[float, int] | None:
@@ -519,7 +603,9 @@ class _LoopOutput:
     p, v (n_ev + 1, 3), R (n_ev + 1, 3, 3), body-frame biases bg, ba (n_ev + 1, 3)); the stance
     updates' innovations (K, 3 n_slots; NaN in the slots not measured), their covariances, NIS,
     dof and times; the ICP updates' NIS,
-    dof and times and the number not fused; the sample indices and (6, 6) pose covariances kept."""
+    dof and times and the number not fused; the sample indices and (6, 6) pose covariances kept;
+    the level-floor updates ``floors`` (K, 5): time s, NIS, dof, sum of y^2 and of S_ii (m^2); the
+    number of zero-velocity updates."""
 
     S_p: np.ndarray
     S_v: np.ndarray
@@ -537,28 +623,43 @@ class _LoopOutput:
     n_rejected: int
     cov_index: list
     cov_pose: list
+    floors: np.ndarray
+    n_zupt: int
 
 
-def _stance_step(ekf: LeggedEKF, ev: _EventInputs, e: int, names: tuple, update: bool):
-    """At event ``e``: the feet touching down are reset (all slots at once at a tripod switch); with
-    ``update``, the other feet in stance are measured. Returns (NIS, measured slots) of the update,
-    or None."""
+def _floor_step(ekf: LeggedEKF, slots, cfg: TrackerConfig):
+    """The level-floor update of the feet just reset in ``slots``: (NIS, dof, sum y^2, sum S_ii)."""
+    var = cfg.noise.floor_sigma_m**2
+    nis = ekf.update_floor(slots, 0.0, var)
+    return nis, len(slots), float(ekf.last_innovation @ ekf.last_innovation), float(np.trace(ekf.last_S))
+
+
+def _stance_step(ekf: LeggedEKF, ev: _EventInputs, e: int, names: tuple, update: bool, cfg: TrackerConfig):
+    """At event ``e``: the feet touching down are reset (all slots at once at a tripod switch) and,
+    on level ground, measured at the floor's height; with ``update``, the other feet in stance are
+    measured. Returns (the stance update's (NIS, measured slots) or None, the floor update's
+    :func:`_floor_step` or None)."""
     touch = ev.touchdown[e]
+    floor = None
     if touch.all():  # a tripod switch (or every foot landing at once)
         ekf.reset_feet(tuple(names[i] for i in ev.feet[e]), ev.z[e], ev.R[e])
-        return None
+        if cfg.level_ground:
+            floor = _floor_step(ekf, np.arange(len(touch)), cfg)
+        return None, floor
     if touch.any():
         idx = np.flatnonzero(touch)
         rows = (3 * idx[:, None] + np.arange(3)[None]).ravel()
         ekf.reset_slots(idx, ev.z[e][idx], ev.R[e][np.ix_(rows, rows)])
+        if cfg.level_ground:
+            floor = _floor_step(ekf, idx, cfg)
     meas = ev.stance[e] & ~touch
     if not update or not meas.any():
-        return None
+        return None, floor
     if meas.all():
-        return ekf.update_stance(ev.z[e], ev.R[e]), meas
+        return (ekf.update_stance(ev.z[e], ev.R[e]), meas), floor
     idx = np.flatnonzero(meas)
     rows = (3 * idx[:, None] + np.arange(3)[None]).ravel()
-    return ekf.update_stance(ev.z[e][idx], ev.R[e][np.ix_(rows, rows)], slots=idx), meas
+    return (ekf.update_stance(ev.z[e][idx], ev.R[e][np.ix_(rows, rows)], slots=idx), meas), floor
 
 
 def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.ndarray, switches: np.ndarray,
@@ -592,6 +693,8 @@ def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.
     kf_time = -np.inf
     icp_nis, icp_dof, icp_times = [], [], []
     n_rejected = 0
+    floors: list[tuple] = []
+    n_zupt = 0
     # chunk-start states (for the per-sample reconstruction afterwards)
     n_ev = len(events)
     S_p = np.empty((n_ev + 1, 3))
@@ -611,7 +714,13 @@ def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.
     for e in it:
         k = int(events[e])
         ekf.propagate(ev.dR[e], ev.dpv[e], ev.J[e], ev.T[e])
-        upd = _stance_step(ekf, ev, e, names, k % every == 0)
+        due = k % every == 0 if inp.p_body_measured is None else bool(inp.p_body_measured[k])
+        upd, floor = _stance_step(ekf, ev, e, names, due, cfg)
+        if floor is not None:
+            floors.append((times[k], *floor))
+        if ev.at_rest[e] and due:
+            ekf.update_zero_velocity(cfg.lying_velocity_sigma_m_s**2)
+            n_zupt += 1
         if upd is not None:
             st_nis[n_st] = upd[0]
             st_t[n_st] = times[k]
@@ -656,7 +765,8 @@ def _run_events(ekf: LeggedEKF, inp: TrackInputs, times: np.ndarray, events: np.
         S_p[e + 1], S_v[e + 1], S_R[e + 1] = ekf.p, ekf.v, ekf.R
         S_bg[e + 1], S_ba[e + 1] = ekf.body_biases()
     return _LoopOutput(S_p, S_v, S_R, S_bg, S_ba, st_y[:n_st], st_S[:n_st], st_nis[:n_st], st_t[:n_st],
-                       st_k[:n_st], icp_nis, icp_dof, icp_times, n_rejected, cov_index, cov_pose)
+                       st_k[:n_st], icp_nis, icp_dof, icp_times, n_rejected, cov_index, cov_pose,
+                       np.asarray(floors, dtype=float).reshape(-1, 5), n_zupt)
 
 
 def _states_at_samples(pre, events: np.ndarray, out: _LoopOutput, R_bi: np.ndarray, N: int):
@@ -699,6 +809,19 @@ def _whitened_innovations(st_y: np.ndarray, st_S: np.ndarray) -> np.ndarray:
     return st_w
 
 
+def _phases(inp: TrackInputs, cfg: TrackerConfig):
+    """The log's phases (:func:`graphcal.locomotion.phases.phases_of_inputs`) when ``cfg.phases``
+    and the log shows them (None when its loads cannot be segmented)."""
+    if not cfg.phases:
+        return None
+    from graphcal.locomotion.phases import phases_of_inputs
+
+    try:
+        return phases_of_inputs(inp)
+    except GraphcalError:
+        return None
+
+
 def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, progress: bool = False) -> TrackResult:
     """Run the EKF over ``inp`` (see the module docstring); returns the estimate at every sample."""
     # imports first: the processing time measures the filter, not module loading
@@ -720,7 +843,9 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
     groups = tuple(tuple(g) for g in inp.groups)
 
     kin = _foot_kinematics(inp, feet, cfg, N)
-    sup = _support(inp, feet, groups, kin.jacobians, cfg)
+    phases = _phases(inp, cfg)
+    moving = _posture_moving(times, kin.p_body_foot) if phases is not None else None
+    sup = _support(inp, feet, groups, kin.jacobians, cfg, phases, moving)
     n_slots = sup.n_slots
     n_joints = robot.leg(feet[0]).n_joints
 
@@ -730,14 +855,14 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
     still_s = float(times[n_still - 1] - times[0]) if n_still else 0.0
     window_s = _init_window(times, cfg)[1] if not n_still else n_still * float(np.median(np.diff(times[:n_still])))
     P0 = _initial_covariance(cfg, n_slots, np.asarray(inp.T_body_imu, dtype=float)[:3, :3], window_s, still_s)
-    ekf = LeggedEKF(x0, P0, cfg.noise.process_density(n_slots), np.eye(n_joints) * cfg.noise.encoder_sigma_rad**2,
+    ekf = LeggedEKF(x0, P0, cfg.noise.process_density(n_slots), np.eye(max(n_joints, 1)) * cfg.noise.encoder_sigma_rad**2,
                     np.eye(3) * cfg.noise.kinematic_sigma_m**2, n_slots=n_slots, T_body_imu=inp.T_body_imu)
     z, Rm = _stance_measurement(kin, list(sup.slot_feet[0]), 0)
     ekf.reset_feet(tuple(feet[i] for i in sup.slot_feet[0]), z, Rm)
 
     icp = _icp_setup(inp, cfg)
     cloud_samples = np.array(sorted(inp.clouds), dtype=np.int64) if icp.use else np.zeros(0, dtype=np.int64)
-    events, switches = _events(N, cfg.stance_every, sup, cloud_samples)
+    events, switches = _events(N, cfg.stance_every, sup, cloud_samples, inp.p_body_measured)
     pre = _preintegrated_imu(inp, times, events)
     ev = _event_inputs(pre, events, sup, kin, n_slots)
     out = _run_events(ekf, inp, times, events, switches, cloud_samples, ev, icp, cfg, progress=progress)
@@ -758,7 +883,9 @@ def run_filter(inp: TrackInputs, config: TrackerConfig = TrackerConfig(), *, pro
         icp_dof=np.asarray(out.icp_dof, dtype=np.int64), icp_times=np.asarray(out.icp_times),
         n_icp_rejected=out.n_rejected, support_group=np.asarray(sup.code), groups=groups, processing_s=elapsed,
         duration_s=float(times[-1] - times[0]), stance_dofs=out.st_dof, stance_mask=sup.mask,
-        contacts=sup.contacts,
+        contacts=sup.contacts, floor_times=out.floors[:, 0], floor_nis=out.floors[:, 1],
+        floor_dofs=out.floors[:, 2].astype(np.int64), floor_y2=out.floors[:, 3], floor_s=out.floors[:, 4],
+        n_zero_velocity=out.n_zupt, phases=phases,
     )
 
 

@@ -16,7 +16,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["StillNoise", "still_windows", "still_noise", "match_measurement_noise", "MatchResult"]
+__all__ = ["StillNoise", "still_windows", "still_noise", "match_measurement_noise", "MatchResult",
+           "matched_floor_sigma"]
 
 
 @dataclass(frozen=True)
@@ -129,9 +130,34 @@ def _next_sigma(a: tuple, b: tuple) -> float:
     return float(max(sb, 1e-3) * np.sqrt(max(rb, 1e-6)))
 
 
-def _record(noise, r: float) -> dict:
-    return {"kinematic_sigma_m": noise.kinematic_sigma_m, "foot_rw": noise.foot_rw,
-            "encoder_sigma_rad": noise.encoder_sigma_rad, "stance_nis_per_dof": r}
+def _record(noise, r: float, res) -> dict:
+    out = {"kinematic_sigma_m": noise.kinematic_sigma_m, "foot_rw": noise.foot_rw,
+           "encoder_sigma_rad": noise.encoder_sigma_rad, "stance_nis_per_dof": r}
+    n = int(np.sum(getattr(res, "floor_dofs", ())))
+    if n:
+        out.update({"floor_sigma_m": noise.floor_sigma_m, "floor_nis_per_dof": float(np.sum(res.floor_nis)) / n})
+    return out
+
+
+def matched_floor_sigma(res, sigma_m: float, *, min_m: float = 1e-3) -> float | None:
+    """Covariance matching of the level-floor updates: the floor sigma (m) whose variance is the
+    innovations' mean square less the state's part of their variance, at least ``min_m``; None
+    without floor updates."""
+    n = int(np.sum(res.floor_dofs))
+    if not n:
+        return None
+    hph = float(np.sum(res.floor_s)) - sigma_m**2 * n
+    return float(np.sqrt(max(min_m**2, (float(np.sum(res.floor_y2)) - hph) / n)))
+
+
+def _floor_moved(noise, res, free) -> object | None:
+    """The noise with the matched floor sigma when it moved by more than 10 % (else None)."""
+    if "floor_sigma_m" not in free:
+        return None
+    s = matched_floor_sigma(res, noise.floor_sigma_m)
+    if s is None or abs(np.log(s / noise.floor_sigma_m)) < 0.1:
+        return None
+    return replace(noise, floor_sigma_m=s)
 
 
 def _raised(noise, pts: list, r: float, first_guess_m: float, max_kinematic_m: float):
@@ -166,16 +192,22 @@ def match_measurement_noise(run, noise, *, free: frozenset, tol: float = 1.02, m
     ``noise`` (an EkfNoise) changed until the mean stance NIS per dof is within ``[1/tol, tol]``.
     Only the names in ``free`` change: ``kinematic_sigma_m`` up when the NIS is high; when it is low,
     ``kinematic_sigma_m`` down to 0, then ``foot_rw``, then ``encoder_sigma_rad`` (:func:`_lowered`), a
-    knob given up when a pass moves the NIS less than a tenth of the way."""
+    knob given up when a pass moves the NIS less than a tenth of the way; ``floor_sigma_m`` (if
+    free) matched alongside (:func:`matched_floor_sigma`) until it moves less than 10 %."""
     passes: list[dict] = []
     res = run(noise)
     r = _nis_per_dof(res)
-    passes.append(_record(noise, r))
+    passes.append(_record(noise, r, res))
     pts: list[tuple] = [(noise.kinematic_sigma_m, r)]
     down = [k for k in ("foot_rw", "encoder_sigma_rad") if k in free]
-    while len(passes) < max_passes and np.isfinite(r) and not (1 / tol <= r <= tol):
+    while len(passes) < max_passes and np.isfinite(r):
         knob = None
-        if r > tol and "kinematic_sigma_m" in free:
+        floor_new = _floor_moved(noise, res, free)
+        if 1 / tol <= r <= tol:
+            if floor_new is None:
+                break
+            new = floor_new
+        elif r > tol and "kinematic_sigma_m" in free:
             new = _raised(noise, pts, r, first_guess_m, max_kinematic_m)
             if new is None:
                 return MatchResult(res, noise, tuple(passes), False, f"the stance innovations need a kinematic "
@@ -188,10 +220,12 @@ def match_measurement_noise(run, noise, *, free: frozenset, tol: float = 1.02, m
             new = replace(noise, **{knob: _lowered(knob, noise, passes, r)})
         else:
             break
+        if floor_new is not None:
+            new = replace(new, floor_sigma_m=floor_new.floor_sigma_m)
         res, r_old = run(new), r
         r = _nis_per_dof(res)
         noise = new
-        passes.append(_record(noise, r))
+        passes.append(_record(noise, r, res))
         pts.append((noise.kinematic_sigma_m, r))
         if knob is not None and abs(np.log(r / r_old)) < 0.1 * abs(np.log(r_old)):
             down.remove(knob)  # this knob does not carry the innovations' level

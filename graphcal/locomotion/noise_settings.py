@@ -30,6 +30,7 @@ NOISE_UNITS = {
     "encoder_sigma_rad": "rad",
     "kinematic_sigma_m": "m",
     "icp_cov_scale": "1 (a factor on ICP's covariance)",
+    "floor_sigma_m": "m",
 }
 
 #: what a real robot gets where neither the user nor the log gives a value: a MEMS IMU shaken by
@@ -40,7 +41,7 @@ NOISE_UNITS = {
 #: (docs/state_estimation.md, "Noise settings"); the simulator's values are not these
 REAL_ROBOT_NOISE = EkfNoise(gyro_noise_density=1.6e-3, accel_noise_density=5e-3, gyro_bias_rw=1e-4,
                             accel_bias_rw=1e-3, foot_rw=1e-4, encoder_sigma_rad=2e-3, kinematic_sigma_m=0.0,
-                            icp_cov_scale=4.0)
+                            icp_cov_scale=4.0, floor_sigma_m=0.01)
 
 
 @dataclass(frozen=True)
@@ -72,8 +73,9 @@ def _checked_values(m, path, where: str) -> dict:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not (v >= 0 and v < float("inf")):
             raise DatasetError(path, f"{where}.{k}", f"a finite number >= 0 ({NOISE_UNITS[k]})", shown_value(v))
         out[k] = float(v)
-    if out.get("icp_cov_scale", 1.0) <= 0:
-        raise DatasetError(path, f"{where}.icp_cov_scale", "a number > 0", out["icp_cov_scale"])
+    for k in ("icp_cov_scale", "floor_sigma_m"):
+        if out.get(k, 1.0) <= 0:
+            raise DatasetError(path, f"{where}.{k}", "a number > 0", out[k])
     return out
 
 

@@ -22,11 +22,11 @@ the *lying height* the 2nd percentile of ``h`` over the log, when it is below ``
 (0.6) of the standing height (else the log has no lying, and 0.4 of the standing height stands in
 for it). A sample is
 
-* ``lying``: ``h`` below ``lying_fraction`` (a quarter) of the way from the lying to the standing
+* ``lying``: ``h`` below ``lying_fraction`` (a tenth) of the way from the lying to the standing
   height;
-* ``lifted``: no foot loaded, the legs reaching down at least ``standing_fraction`` (three
-  quarters) of the way, for at least ``lifted_min_s`` (shorter: a trot's flight phase, walking);
-* ``standing`` or ``walking``: a foot loaded and ``h`` at least three quarters of the way up;
+* ``lifted``: no foot loaded, the legs reaching down at least ``standing_fraction`` (nine
+  tenths) of the way, for at least ``lifted_min_s`` (shorter: a trot's flight phase, walking);
+* ``standing`` or ``walking``: a foot loaded and ``h`` at least nine tenths of the way up;
   ``walking`` where some foot is loaded while another is not (a step), gaps between steps shorter
   than ``gait_gap_s`` (a double support, a trot's four-foot moments) filled;
 * ``standing_up`` / ``lying_down``: in between, rising / falling (the height at the end of the
@@ -72,8 +72,8 @@ class PhaseConfig:
 
     load_on: float = 0.25
     range_percentiles: tuple = (2.0, 98.0)
-    lying_fraction: float = 0.25
-    standing_fraction: float = 0.75
+    lying_fraction: float = 0.1
+    standing_fraction: float = 0.9
     min_lying_ratio: float = 0.6
     gait_gap_s: float = 0.6
     lifted_min_s: float = 0.3
@@ -248,4 +248,6 @@ def phases_of_inputs(inputs, config: PhaseConfig = PhaseConfig()) -> PhaseResult
         loads = foot_loads(robot, inputs.q, inputs.tau, tuple(robot.feet))
     else:
         loads = np.asarray(inputs.contact, dtype=float)
-    return segment_phases(inputs.times, loads, feet_in_body(robot, inputs.q), config)
+    p_body_foot = getattr(inputs, "p_body_foot", None)  # measured foot points (a robot given by its feet)
+    feet = p_body_foot if p_body_foot is not None else feet_in_body(robot, inputs.q)
+    return segment_phases(inputs.times, loads, feet, config)

@@ -448,8 +448,9 @@ def track_plausibility(result, inputs, *, level_ground: bool, active=None,
                        for k, u in (("touchdown", "m"), ("body_below_floor", "m"), ("body_above_reach", "m"),
                                     ("attitude", "deg"), ("slip", "m")))
         return PlausibilityResult("not tested", "no stance mask in the result", (), checks, None, reach.leg_length_m)
-    return check_plausibility(result.times, result.T_world_body, result.stance_mask,
-                              feet_in_body(inputs.robot, inputs.q), reach, level_ground=level_ground,
+    p_body_foot = getattr(inputs, "p_body_foot", None)  # measured foot points (a robot given by its feet)
+    feet = p_body_foot if p_body_foot is not None else feet_in_body(inputs.robot, inputs.q)
+    return check_plausibility(result.times, result.T_world_body, result.stance_mask, feet, reach, level_ground=level_ground,
                               active=active, config=config)
 
 

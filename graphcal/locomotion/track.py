@@ -154,7 +154,7 @@ def learned_noise(inp, cfg, settings, *, learn: bool = True):
         return settings, {"enabled": False}, None
     settings, still = _still_part(inp, settings)
     # what the innovations may set: what no user gave and the still windows did not measure
-    free = frozenset(("kinematic_sigma_m", "foot_rw", "encoder_sigma_rad")) - settings.given()
+    free = frozenset(("kinematic_sigma_m", "foot_rw", "encoder_sigma_rad", "floor_sigma_m")) - settings.given()
     learning: dict = {"enabled": True, "still": still}
     if not free:
         return settings, learning, None
@@ -189,7 +189,7 @@ def track_run(dataset, *, config=None, progress: bool = False, noise_file: Path 
 
         settings = NoiseSettings(replace(settings.noise, **noise), {**settings.sources, **dict.fromkeys(noise, "caller")})
     inp = inputs_from_dataset(ds)
-    cfg = config or TrackerConfig()
+    cfg = replace(config or TrackerConfig(), level_ground=str(ds.ground.get("type", "")) == "level")
     settings, learning, last = learned_noise(inp, cfg, settings, learn=learn_noise)
     cfg = replace(cfg, noise=settings.noise)
     # the last matching pass is the result when it ran with these values and ICP has nothing to add

@@ -32,6 +32,12 @@ class TrackInputs:
         clouds: sample index -> loader returning (M, 3) points in the sensor frame (m).
         T_body_sensor: (4, 4) of the cloud sensor; sensor_type: its dataset type.
         source: where the data came from (for messages).
+        p_body_foot: (n_feet, N, 3) body-frame foot points (m) in ``robot.feet`` order, measured
+            instead of joint angles (a robot given by its feet: legs without joints, ``q`` empty;
+            timeseries.csv's ``p_body_<foot>_x/_y/_z``), or None (forward kinematics of ``q``).
+        p_body_measured: (N,) bool, the samples where those points were measured (``p_body_measured``
+            1; elsewhere they are interpolated for the stance's bookkeeping and not used as a
+            measurement), or None (every sample).
     """
 
     times: np.ndarray
@@ -48,6 +54,8 @@ class TrackInputs:
     sensor_type: str = "depth_camera"
     source: str = "data"
     force: np.ndarray | None = None
+    p_body_foot: np.ndarray | None = None
+    p_body_measured: np.ndarray | None = None
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -130,10 +138,18 @@ def inputs_from_dataset(ds, *, sensor: str | None = None) -> TrackInputs:
     force = None
     if all(t.has(f"force_{f}") for f in robot.feet):
         force = np.column_stack([np.asarray(t[f"force_{f}"], dtype=float) for f in robot.feet])
+    if not tau:  # legs without joints (a robot given by its feet): no torques
+        tau = None
+    p_body_foot = _foot_points(t, robot, ts_file)
+    measured = np.asarray(t["p_body_measured"], dtype=float) > 0.5 if p_body_foot is not None and t.has(
+        "p_body_measured") else None
     if tau is None and force is None:
         missing = [f for f in robot.feet if not t.has(f"contact_{f}")]
         if missing:
-            joint = next(j for f in robot.feet for j in robot.leg(f).joint_names if not t.has(f"tau_{j}"))
+            joint = next((j for f in robot.feet for j in robot.leg(f).joint_names if not t.has(f"tau_{j}")), None)
+            if joint is None:
+                raise DatasetError(ts_file, f"header, column contact_{missing[0]}", "contact_<foot> of every foot "
+                                   "(a robot given by its feet has no torques)", "missing")  # fmt: skip
             raise DatasetError(ts_file, f"header, column tau_{joint}", "joint torques tau_<joint> of every leg joint "
                                "(support detection), force_<foot> or contact_<foot> of every foot", "missing")  # fmt: skip
         contact = np.column_stack([t[f"contact_{f}"] > 0.5 for f in robot.feet])
@@ -165,7 +181,24 @@ def inputs_from_dataset(ds, *, sensor: str | None = None) -> TrackInputs:
         accel=np.column_stack([t["imu_ax"], t["imu_ay"], t["imu_az"]]).astype(float),
         robot=robot, groups=groups, q=q, tau=tau, contact=contact, T_body_imu=T_body_imu,
         clouds=clouds, T_body_sensor=T_body_sensor, sensor_type=sensor_type, source=str(ts_file), force=force,
+        p_body_foot=p_body_foot, p_body_measured=measured,
     )
+
+
+def _foot_points(t, robot, ts_file) -> np.ndarray | None:
+    """(n_feet, N, 3) ``p_body_<foot>_x/_y/_z`` (m) when the legs have no joints (a robot given by
+    its feet), None when they have joints; DatasetError naming the first missing column."""
+    if any(robot.leg(f).n_joints for f in robot.feet):
+        return None
+    out = np.empty((len(robot.feet), len(t), 3))
+    for i, f in enumerate(robot.feet):
+        for a, ax in enumerate("xyz"):
+            c = f"p_body_{f}_{ax}"
+            if not t.has(c):
+                raise DatasetError(ts_file, f"header, column {c}", "the body-frame foot points p_body_<foot>_x/_y/_z "
+                                   "of every foot (the robot's legs have no joints)", "missing")  # fmt: skip
+            out[i, :, a] = np.asarray(t[c], dtype=float)
+    return out
 
 
 def inputs_from_walking(result, *, clouds: bool = True) -> TrackInputs:
@@ -179,7 +212,7 @@ def inputs_from_walking(result, *, clouds: bool = True) -> TrackInputs:
     return TrackInputs(
         times=result.times, gyro=result.imu_gyro, accel=result.imu_accel, robot=result.robot,
         groups=tuple(result.groups), q=result.q_measured, tau=result.tau_measured,
-        T_body_imu=np.asarray(info.T_body_imu), clouds=cl, T_body_sensor=T_bs, source="simulation",
+        T_body_imu=np.asarray(result.T_body_imu), clouds=cl, T_body_sensor=T_bs, source="simulation",
         force=result.foot_force,
     )
 

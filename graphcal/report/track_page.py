@@ -16,10 +16,39 @@ FIGURE_CAPTIONS = {
     "trajectory.png": "body trajectory: top view (world) and height",
     "errors.png": "estimate - truth (solid) and the filter's 3 sigma (dotted), position (mm) and orientation (deg)",
     "nis.png": "normalised innovation squared: stance kinematics, ICP, and the pose NEES against the truth",
+    "contacts.png": "stance diagram: each foot's stance (bars) with its duty factor, over the log's phases",
 }
 
 
-def track_figures(result, truth, nees_t, nees, nees_dof) -> dict[str, bytes]:
+def _contacts_figure(result, feet: tuple) -> bytes:
+    """The stance diagram: a bar per foot where it is in stance (``result.stance_mask``), its duty
+    factor, the log's phases shaded behind (``result.phases``)."""
+    mask = np.asarray(result.stance_mask, dtype=bool)
+    t = np.asarray(result.times, dtype=float)
+    fig = new_figure(10, 1.2 + 0.45 * len(feet))
+    ax = fig.add_subplot(1, 1, 1)
+    if result.phases is not None:
+        colours = {"lying": "0.75", "standing_up": "C2", "standing": "C9", "walking": "w", "lying_down": "C1",
+                   "lifted": "C3"}
+        for seg in result.phases.segments:
+            if seg.phase != "walking":
+                ax.axvspan(seg.start_s, seg.end_s, color=colours.get(seg.phase, "0.9"), alpha=0.25, lw=0)
+                ax.text(0.5 * (seg.start_s + seg.end_s), len(feet) - 0.35, seg.phase.replace("_", " "), ha="center",
+                        fontsize=7)
+    for i, f in enumerate(feet):
+        on = np.flatnonzero(np.diff(np.r_[0, mask[:, i].astype(int), 0]) == 1)
+        off = np.flatnonzero(np.diff(np.r_[0, mask[:, i].astype(int), 0]) == -1) - 1
+        ax.broken_barh([(t[a], max(t[b] - t[a], 1e-3)) for a, b in zip(on, off)], (i - 0.35, 0.7), color="C0")
+        ax.text(t[-1], i, f"  duty {mask[:, i].mean():.2f}", va="center", fontsize=8)
+    ax.set_yticks(range(len(feet)), labels=list(feet))
+    ax.set_ylim(-0.6, len(feet) - 0.1)
+    ax.set_xlim(t[0], t[-1] + 0.12 * (t[-1] - t[0]))
+    ax.set_xlabel("time (s)")
+    ax.set_title("stance per foot (the filter's contact decision)")
+    return figure_png(fig)
+
+
+def track_figures(result, truth, nees_t, nees, nees_dof, feet: tuple | None = None) -> dict[str, bytes]:
     """The plots of a track output, file name -> PNG: ``trajectory.png`` (top view and height, with the
     truth when there is one), ``errors.png`` (estimate - truth with the filter's 3 sigma, mm and deg)
     and ``nis.png`` (stance NIS, ICP NIS and the pose NEES against ``nees_dof``).
@@ -96,7 +125,13 @@ def track_figures(result, truth, nees_t, nees, nees_dof) -> dict[str, bytes]:
             ax.plot(result.stance_times, m, "C1-", lw=1, label="running mean")
         ax.axhline(dof, color="k", lw=0.8, label=f"dof {dof}")
         ax.axhspan(lo, hi, color="g", alpha=0.1, label="95 % band")
-        ax.set_ylim(0, max(3 * hi, 1))
+        top = float(np.nanpercentile(nis, 99)) if len(nis) else 0.0
+        if top > 3 * hi:  # far outside the band: a log scale shows how far (a linear one would cut it off)
+            ax.set_yscale("log")
+            ax.set_ylim(max(1e-2, float(np.nanmin(nis[nis > 0])) if np.any(nis > 0) else 1e-2), 2 * float(np.nanmax(nis)))
+            ax.set_title("log scale: the NIS is far above its band", fontsize=8, loc="right")
+        else:
+            ax.set_ylim(0, max(3 * hi, 1))
     ax.set_ylabel("NIS")
     ax.legend(loc="upper right", fontsize=8)
     ax.set_title("normalised innovation squared (stance kinematics; ICP below)")
@@ -120,6 +155,8 @@ def track_figures(result, truth, nees_t, nees, nees_dof) -> dict[str, bytes]:
     else:
         ax.text(0.5, 0.5, "no ICP updates, no truth", ha="center", va="center", transform=ax.transAxes)
     out["nis.png"] = figure_png(fig)
+    if feet and result.stance_mask is not None:
+        out["contacts.png"] = _contacts_figure(result, tuple(feet))
     return out
 
 
@@ -178,6 +215,68 @@ def _verdict_section(c: dict | None) -> Section:
     return Section("Filter consistency: " + c["verdict"], f"<p>{esc(how)}</p>", table(rows))
 
 
+def _bias_fact(b: dict | None) -> str:
+    if not b or not b.get("worst"):
+        return "stance innovation bias: not tested"
+    w = b["worst"]
+    return (f"stance innovation bias: {b['verdict']} (worst {w['slot']} along body {w['axis']}: mean "
+            f"{w['mean_sigma']:+.2f} sigma, t = {w['t']:.1f}; biased from 0.3 sigma and t = 5: a leg model off by a "
+            "constant)")
+
+
+def _floor_fact(f: dict | None) -> str:
+    if not f or not (f["updates"] or f["zero_velocity_updates"]):
+        return "level floor: not used (the ground is not declared level); no zero-velocity update"
+    nis = "n/a" if f["nis_per_dof"] is None else format(f["nis_per_dof"], ".3g")
+    return (f"level floor: {f['updates']} touchdown updates ({f['feet_measured']} feet), NIS per dof {nis}; "
+            f"{f['zero_velocity_updates']} zero-velocity updates while lying")
+
+
+def _plausibility_section(p: dict | None) -> Section:
+    """The plausibility verdict (metrics.json ``plausibility``): each check's bound and worst value,
+    then the failures with their times."""
+    if not p:
+        return Section("Physical plausibility", "<p>not computed</p>")
+    rows = [row(["check", "ran", "bound", "worst", "at (s)", "failures"], header=True)]
+    for kind, c in p["checks"].items():
+        rows.append(row([esc(kind), "yes" if c["tested"] else esc(f"no: {c['reason']}"), num(c["bound"], ".3g") +
+                         f" {esc(c['unit'])}", num(c["worst"], ".3g"), num(c["worst_s"], ".1f"), str(c["n_failures"])]))
+    fails = _facts(esc(f["message"]) for f in p["failures"][:12]) if p["failures"] else "<p>no failure</p>"
+    how = ("Against what the robot's legs and a level floor allow, with no truth (docs/state_estimation.md, "
+           "'Plausibility'): touchdown and body heights against the floor it stood on, body within its legs' reach, "
+           "attitude on level ground, stance-foot slip.")
+    return Section("Physical plausibility: " + p["verdict"], f"<p>{esc(how)}</p>", table(rows), fails)
+
+
+def _noise_section(noise: dict | None) -> Section:
+    """The noise the filter used (metrics.json ``noise``), each value with its unit and source."""
+    if not noise:
+        return Section("Noise", "<p>not recorded</p>")
+    rows = [row(["value", "", "unit", "source"], header=True)]
+    for k, v in noise["values"].items():
+        rows.append(row([esc(k), num(v, ".4g"), esc(noise["units"].get(k, "")), esc(noise["sources"].get(k, ""))]))
+    return Section("Noise (noise.yaml; give it back with --noise)", table(rows))
+
+
+def _contacts_section(c: dict | None, phases: dict | None) -> Section:
+    """The contact decision per foot (metrics.json ``contacts``) and the log's phases."""
+    parts = []
+    if phases:
+        parts.append(_facts(esc(f"{s['phase'].replace('_', ' ')}: {s['start_s']:.2f}-{s['end_s']:.2f} s")
+                            for s in phases["segments"]))
+    if c:
+        rows = [row(["foot", "thresholds", "on", "off", "low mode", "high mode", "duty factor", "stances",
+                     "short removed"], header=True)]
+        for f, r in c["feet"].items():
+            rows.append(row([esc(f), esc(r["source"]), num(r["on"], ".3g"), num(r["off"], ".3g"), num(r["low_mode"], ".3g"),
+                             num(r["high_mode"], ".3g"), num(r["duty_factor"], ".2f"), str(r["n_stances"]),
+                             str(r["n_short_stances_removed"] + r["n_short_swings_removed"])]))
+        source = esc(f"from {c['signal']}")
+        parts.append(f"<p>{source}; minimum stance {c['min_stance_s']:g} s, swing {c['min_swing_s']:g} s.</p>")
+        parts.append(table(rows))
+    return Section("Contacts and phases", *(parts or ["<p>the two-tripod support model (no per-foot thresholds)</p>"]))
+
+
 def track_html(m: dict, stairs_doc: dict | None, pngs: dict[str, bytes], *, title: str = "graphcal track") -> str:
     """The page of a track output: ``m`` is metrics.json (SI units; null without truth), ``stairs_doc``
     stairs.json or None, ``pngs`` the plots (file name -> PNG, :func:`track_figures`)."""
@@ -201,9 +300,13 @@ def track_html(m: dict, stairs_doc: dict | None, pngs: dict[str, bytes], *, titl
         f"1..{w.get('lags')} inside ±1.96/sqrt(n) (white: 0.95); max |rho| {_value(w.get('max_abs_autocorr'), '.3f')}",
         f"ICP: {m['icp_updates']} fused (mean NIS {_value(m.get('icp_nis_mean'), '.2f')}, "
         f"{_value(m.get('icp_dof_mean'), '.1f')} directions on average), {m['icp_rejected']} rejected",
+        _floor_fact(m.get("floor")),
+        _bias_fact(m.get("innovation_bias")),
     ))
     heading = "Accuracy" + ("" if m["truth"] else " (no truth.yaml beside the dataset: the keys that need it are null)")
-    sections = [_verdict_section(m.get("consistency")), Section(heading, accuracy), Section("Consistency", consistency)]
+    sections = [_plausibility_section(m.get("plausibility")), _verdict_section(m.get("consistency")),
+                Section(heading, accuracy), Section("Consistency", consistency),
+                _contacts_section(m.get("contacts"), m.get("phases")), _noise_section(m.get("noise"))]
     if stairs_doc is not None:
         sections.append(_stairs_section(stairs_doc))
     sections.append(Section("Figures", *(figure_png_html(png, f"{name}: {FIGURE_CAPTIONS.get(name, '')}")
@@ -211,7 +314,14 @@ def track_html(m: dict, stairs_doc: dict | None, pngs: dict[str, bytes], *, titl
                             "<p class='small'>Trajectory: trajectory.tum (TUM: t x y z qx qy qz qw); every number "
                             "above: metrics.json.</p>"))
     c = m.get("consistency") or {}
-    warn = ([f"The filter's innovations are inconsistent with its covariance ({', '.join(c['inconsistent_kinds'])}): "
+    p = m.get("plausibility") or {}
+    warn = ([f"The trajectory is physically implausible: {p['failures'][0]['message']}."]
+            if p.get("verdict") == "implausible" and p.get("failures") else [])
+    b = m.get("innovation_bias") or {}
+    if b.get("verdict") == "biased":
+        warn.append(f"The stance innovations of {b['worst']['slot']} are biased along body {b['worst']['axis']}: "
+                    "the leg model is off by a constant (joint offsets, link lengths); the trajectory drifts with it.")
+    warn += ([f"The filter's innovations are inconsistent with its covariance ({', '.join(c['inconsistent_kinds'])}): "
              "the noise settings or the model do not fit the data; the trajectory's sigma are not to be trusted."]
             if c.get("verdict") == "inconsistent" else [])
     return render_page(title, sections, subtitle=subtitle, warnings=warn, footer="Written by graphcal track.")

@@ -165,6 +165,11 @@ class WalkingConfig:
         gyro_bias_sigma_rad_s, accel_bias_sigma_m_s2: spread of the initial biases.
         truth_rate_hz: rate of ``truth_trajectory.csv``.
         force_sigma_n: foot-force sensor noise (white, per sample, N; programs with force sensors).
+        imu_xyz_m: the IMU's position in the body frame (m; None: the model's), as on a robot whose
+            IMU board sits off the base link.
+        joint_offset_sigma_rad: a constant zero offset per joint encoder, drawn with this spread
+            (rad; 0: none) from its own generator (the other draws are unchanged): the kinematic
+            error a real robot's joint calibration leaves.
         stand_up_s: > 0: the robot starts on its belly (``lying_s`` s at ``lying_height_m``, the feet
             on the ground carrying ``lying_load_fraction`` of its weight, the belly the rest) and
             stands up over this long (s) before its first ``still_s``: the legs take the load over
@@ -217,6 +222,8 @@ class WalkingConfig:
     lying_s: float = 1.0
     lying_height_m: float | None = None
     lying_load_fraction: float = 0.1
+    imu_xyz_m: tuple | None = None
+    joint_offset_sigma_rad: float = 0.0
 
     @property
     def posture_s(self) -> tuple[float, float]:
@@ -725,7 +732,9 @@ def _imu(c: WalkingConfig, info, body: _BodyPath, dt: float, rng: np.random.Gene
     p, R = body.p, body.R
     N = len(p)
     w_body = _body_rates(body, dt)
-    T_body_imu = np.asarray(info.T_body_imu, dtype=float)
+    T_body_imu = np.array(info.T_body_imu, dtype=float)
+    if c.imu_xyz_m is not None:
+        T_body_imu[:3, 3] = np.asarray(c.imu_xyz_m, dtype=float)
     p_imu = p + np.einsum("nij,j->ni", R, T_body_imu[:3, 3])
     a_imu = _second_difference(p_imu, dt)
     R_world_imu = R @ T_body_imu[:3, :3]
@@ -789,10 +798,13 @@ def _joint_measurements(c: WalkingConfig, robot, feet: tuple, q_leg: dict, jac: 
     angles and the torques that hold the feet's forces, plus encoder and torque noise, rounded."""
     tau_measured: dict[str, np.ndarray] = {}
     q_measured: dict[str, np.ndarray] = {}
+    offsets = np.random.default_rng([c.seed, 7919])  # its own draws: the others are those of no offsets
     for i, f in enumerate(feet):
         leg = robot.leg(f)
         tau = np.einsum("nji,nj->ni", jac[f], force_body_foot[i])
         noisy_q = q_leg[f] + rng.normal(0, c.encoder_sigma_rad, q_leg[f].shape)
+        if c.joint_offset_sigma_rad > 0:
+            noisy_q = noisy_q + offsets.normal(0, c.joint_offset_sigma_rad, leg.n_joints)
         noisy_tau = tau + rng.normal(0, c.torque_sigma_nm, tau.shape)
         for jj, name in enumerate(leg.joint_names):
             q_measured[name] = np.round(noisy_q[:, jj], 8)

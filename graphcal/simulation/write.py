@@ -231,7 +231,7 @@ def walking_dataset(result: WalkingResult, cloud_names: list[str] | None = None,
     return Dataset(
         robot=RobotSpec(urdf=None, model=result.config.robot, base_frame=info.base_frame, feet=tuple(result.feet)),
         sensors=sensors,
-        imu=ImuSpec(PosePrior.from_matrix(info.T_body_imu, 0.0, float(np.radians(1.0)))),
+        imu=ImuSpec(PosePrior.from_matrix(result.T_body_imu, 0.0, float(np.radians(1.0)))),
         ground=ground,
         stance={"feet_fixed_within": "step"},
         timeseries=Table.from_columns(cols),
@@ -306,9 +306,11 @@ def simulate_walking_to_folder(
     cloud_stride: int | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    real_like: bool = False,
 ) -> str:
-    """``graphcal simulate --program tripod-walk|tripod-stairs|trot|walk``: simulate and write the folder.
-    Returns a one-paragraph summary."""
+    """``graphcal simulate --program tripod-walk|tripod-stairs|trot|walk``: simulate and write the folder
+    (``real_like``: as a real robot's log, :mod:`graphcal.simulation.real_like`). Returns a
+    one-paragraph summary."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise GraphcalError(f"{out}: exists and is not a folder")
@@ -319,10 +321,25 @@ def simulate_walking_to_folder(
         kw["cloud_rate_hz"] = float(cloud_rate_hz)
     if cloud_stride is not None:
         kw["cloud_stride"] = int(cloud_stride)
-    cfg = WalkingConfig(program=program, robot=robot, seed=seed, distance_m=distance_m, duration_s=duration_s, **kw)
+    counts = None
+    if real_like:
+        from graphcal.simulation.real_like import real_like_log
+
+        if distance_m is not None or kw:
+            raise GraphcalError("--real-like takes --duration only (a 25 s log at 400 Hz by default, no clouds)")
+        log = real_like_log(program, seed, **({"duration_s": duration_s} if duration_s is not None else {}))
+        cfg, counts = log.config, log.force_counts
+    else:
+        cfg = WalkingConfig(program=program, robot=robot, seed=seed, distance_m=distance_m, duration_s=duration_s, **kw)
     result = simulate_walking(cfg, progress=progress)
-    write_walking(result, out, overwrite=overwrite)
+    write_walking(result, out, overwrite=overwrite, force_counts=counts)
     c = result.config
+    if real_like:
+        return (f"wrote {out}: a real-like log of the {c.robot}'s {c.program}, {result.distance_m:.2f} m in "
+                f"{result.times[-1]:.1f} s at {c.rate_hz:g} Hz: lying {c.lying_s:.1f} s, standing up, walking, "
+                f"lying down; IMU at {tuple(round(v, 3) for v in c.imu_xyz_m)} m off the base; "
+                f"{'raw foot counts with per-foot offsets and gains; ' if counts else 'joint torques; '}"
+                f"noise drawn away from graphcal's defaults (truth.yaml); truth in {out / 'truth.yaml'}")
     return (
         f"wrote {out}: {c.program} of the {c.robot}, {result.distance_m:.2f} m in {result.times[-1]:.1f} s; "
         f"{len(result.times)} samples at {c.rate_hz:g} Hz (joints, torques, IMU), {len(result.cloud_indices)} depth "

@@ -63,7 +63,8 @@ def _allowed_text(kind: str) -> str:
     if kind == "mocap_poses":
         return "time, frame, x, y, z, qw, qx, qy, qz, sigma_rx ... sigma_z or cov_00 ... cov_55"
     base = "session, time, q_<joint>, tau_<joint>, body_x ... body_qz, imu_ax ... imu_gz"
-    return "station, " + base if kind == "stations" else base + ", cloud_<sensor>, contact_<foot>, force_<foot>"
+    ts = ", cloud_<sensor>, contact_<foot>, force_<foot>, p_body_<foot>_x/_y/_z"
+    return "station, " + base if kind == "stations" else base + ts
 
 
 def _column_ok(kind: str, name: str) -> bool:
@@ -77,7 +78,8 @@ def _column_ok(kind: str, name: str) -> bool:
         return True
     if kind == "stations" and name == "station":
         return True
-    prefixes = ("q_", "tau_") + (("cloud_", "contact_", "force_") if kind == "timeseries" else ())
+    # p_body_<foot>_x/_y/_z: body-frame foot points (m) of a robot given by its feet (docs/dataset.md)
+    prefixes = ("q_", "tau_") + (("cloud_", "contact_", "force_", "p_body_") if kind == "timeseries" else ())
     return any(name.startswith(p) and len(name) > len(p) for p in prefixes)
 
 
