@@ -56,7 +56,10 @@ def _add_import_parser(sub, common) -> None:
     im.add_argument("--msg-dir", type=Path, default=None,
                     help="folder of .msg definitions (<pkg>/msg/<Name>.msg) for message types rosbags does not know")
     im.add_argument("--timeseries", action="store_true",
-                    help="also write timeseries.csv (every joint sample, for track; memory grows with the log)")
+                    help="also write timeseries.csv (every joint sample, for track; memory grows with the log) and, "
+                         "from a bag, the depth images / PointCloud2 messages along the walk as clouds")
+    im.add_argument("--cloud-rate", type=float, default=None, metavar="HZ",
+                    help="with --timeseries: thin the clouds along the walk to this rate (Hz; default 5, 0 = none)")
     im.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
 
 
@@ -87,6 +90,10 @@ def _build_parser() -> argparse.ArgumentParser:
                         "(a leg in the air in a motion-capture room, Yuan et al.'s set-up, for identify-legs; "
                         "--stations samples, default 1000; see docs/legs.md)")
     s.add_argument("--ground", default="level", help="level, bumpy-little, bumpy-big, stairs, boxes")
+    s.add_argument("--real-like", action="store_true",
+                   help="a walking program written as a real robot's log: 400 Hz, lying, standing up and lying down, "
+                        "raw foot counts with per-foot offsets and gains, the IMU off the base link, noise drawn away "
+                        "from graphcal's defaults (docs/simulation.md)")
     s.add_argument("--out", required=True, type=Path, help="output dataset folder (must not exist or be empty)")
     s.add_argument("--seed", type=int, default=0,
                    help="seed of every random draw (noise, random stations, effects without parameters); "
@@ -281,6 +288,7 @@ def _cmd_simulate(args):
         distance_m=args.distance,
         duration_s=args.duration,
         cloud_rate_hz=args.cloud_rate,
+        real_like=args.real_like,
         leg_errors=args.leg_errors,
         effects=args.effect,
         overwrite=args.overwrite,
@@ -350,7 +358,7 @@ def _cmd_import(args):
 
     return import_log.run(args.log, args.out, map_path=args.map, urdf=args.urdf, receive_time=args.receive_time,
                           msg_dir=args.msg_dir, timeseries=args.timeseries, progress=not args.quiet,
-                          overwrite=args.overwrite)
+                          overwrite=args.overwrite, cloud_rate_hz=args.cloud_rate)
 
 
 #: the handler attached to the ``graphcal`` logger by :func:`configure_logging` (replaced on each call)

@@ -217,6 +217,10 @@ class DatasetParts:
     notes: list[str] = field(default_factory=list)
     source: str = ""
     map_text: str = ""
+    #: the clouds along the walk: sensor -> [(stamp s, staged PLY file)], in time order
+    walk_clouds: dict = field(default_factory=dict)
+    #: the rate they were thinned to (Hz), None when not asked (no timeseries)
+    walk_cloud_rate_hz: float | None = None
 
 
 def _window_dict(w: Window, station: int | None = None) -> dict:
@@ -252,6 +256,44 @@ def _stations_table(parts: DatasetParts, windows: list[Window]) -> tuple[Table, 
     return Table(tuple(data), data), ("session" if feet_known else "station")
 
 
+def _walk_cloud_columns(ts: Table | None, parts: DatasetParts, staging: Path | None) -> tuple[Table | None, dict]:
+    """timeseries.csv with a ``cloud_<sensor>`` column per sensor that has clouds along the walk:
+    each cloud's path (``clouds/<sensor>/walk/<n>.ply``, the staged file renamed there) on the
+    joint row nearest its stamp; a cloud outside the joints' time span (by more than one joint step)
+    or on a row another cloud of the sensor already took is dropped. Returns (table, report)."""
+    if ts is None or not parts.walk_clouds or staging is None:
+        return ts, {}
+    t = np.asarray(ts["time"], dtype=float)
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    cols = {c: ts[c] for c in ts.columns}
+    report: dict[str, Any] = {}
+    for s, items in parts.walk_clouds.items():
+        col = np.full(len(t), "", dtype=object)
+        outside = shared = 0
+        written = []
+        for tc, src in items:
+            i = int(np.clip(np.searchsorted(t, tc), 1, len(t) - 1)) if len(t) > 1 else 0
+            i = i - 1 if len(t) > 1 and abs(t[i - 1] - tc) <= abs(t[i] - tc) else i
+            if tc < t[0] - dt or tc > t[-1] + dt:
+                outside += 1
+                continue
+            if col[i]:
+                shared += 1
+                continue
+            rel = f"clouds/{s}/walk/{len(written) + 1:06d}.ply"
+            target = staging / rel
+            target.parent.mkdir(parents=True, exist_ok=True)
+            src.rename(target)
+            col[i] = rel
+            written.append(tc)
+        if written:
+            cols[f"cloud_{s}"] = col.astype(str)
+        report[s] = {"clouds": len(written), "first_s": round(written[0], 6) if written else None,
+                     "last_s": round(written[-1], 6) if written else None,
+                     "dropped_outside_joint_times": outside, "dropped_sharing_a_row": shared}
+    return Table(tuple(cols), cols), report
+
+
 def write_imported(parts: DatasetParts, out_dir: Path, *, overwrite: bool = False, jumps=(),
                    staging: Path | None = None) -> tuple[Path, str]:
     """Write the dataset (stations from the accepted windows that have a cloud of every sensor,
@@ -272,6 +314,7 @@ def write_imported(parts: DatasetParts, out_dir: Path, *, overwrite: bool = Fals
             kept.append(w)
     rejected.sort(key=lambda w: w.start)
     ts = parts.sink.timeseries_table(parts.joint_names)
+    ts, walk_report = _walk_cloud_columns(ts, parts, staging)
     if not kept and ts is None:
         reasons = "; ".join(f"{w.start:.2f}-{w.end:.2f} s: {w.reason}" for w in rejected[:3])
         hint = "" if parts.sink.timeseries else ("; a walking log for graphcal track: import it with --timeseries "
@@ -297,6 +340,8 @@ def write_imported(parts: DatasetParts, out_dir: Path, *, overwrite: bool = Fals
               "rejected": [_window_dict(w) for w in rejected], "clock": list(jumps), "notes": list(parts.notes)}
     if parts.sink.thresholds:
         report["contacts"] = parts.sink.contacts_report()
+    if parts.walk_cloud_rate_hz is not None and parts.sensors:
+        report["walk_clouds"] = {"rate_hz": float(parts.walk_cloud_rate_hz), "sensors": walk_report}
     report_text = yaml.safe_dump(report, sort_keys=False, default_flow_style=None)
     out = write_dataset(ds, out_dir, clouds=clouds, robot_urdf_xml=parts.urdf_xml, overwrite=overwrite,
                         extra_files={"import_map.yaml": parts.map_text, "import_report.yaml": report_text})
@@ -309,6 +354,9 @@ def write_imported(parts: DatasetParts, out_dir: Path, *, overwrite: bool = Fals
         log.warning("%s", j)
     lines = [f"imported {parts.source} -> {out}: {len(kept)} station(s), {len(rejected)} window(s) rejected"
              + (f", timeseries of {ts.n_rows if hasattr(ts, 'n_rows') else len(ts.data['time'])} samples" if ts else "")]
+    lines += [f"  {r['clouds']} cloud(s) of {s} along the walk ({r['first_s']:.2f}-{r['last_s']:.2f} s, "
+              f"thinned to {parts.walk_cloud_rate_hz:g} Hz) in timeseries.csv's cloud_{s}"
+              for s, r in walk_report.items() if r["clouds"]]
     lines.append(f"  map: {out / 'import_map.yaml'}; report: {out / 'import_report.yaml'}")
     lines += [f"  warning: {j}" for j in jumps] + [f"  note: {n}" for n in parts.notes]
     return out, "\n".join(lines)

@@ -1,8 +1,10 @@
 """Import a ROS 1 bag, ROS 2 bag or bare MCAP file: detect or read the map, then two streaming
 passes. Pass 1 reads the log once: joints, IMU, feet and /tf_static are deserialised and the still windows
 found; of the point topics only the receive times are kept (8 bytes a message). Pass 2 reads, through
-the log's index, only the message nearest each window's centre. Memory does not grow with the log's
-length (except those receive times and the optional timeseries). Times in s, SI units."""
+the log's index, only the message nearest each window's centre; with ``--timeseries`` also the
+messages along the walk, thinned to ``--cloud-rate``, each staged as a PLY file at once. Memory does
+not grow with the log's length (except those receive times and the optional timeseries). Times in
+s, SI units."""
 
 from __future__ import annotations
 
@@ -22,9 +24,12 @@ from graphcal.logs.stations import StationFinder
 from graphcal.logs.urdf_frames import UrdfFrames, check_robot, resolve_map_path
 from graphcal.progress import ProgressBar
 
-__all__ = ["import_bag", "urdf_feet_and_root", "staged_ply"]
+__all__ = ["import_bag", "urdf_feet_and_root", "staged_ply", "thinned_receive_times", "WALK_CLOUD_RATE_HZ"]
 
 log = logging.getLogger(__name__)
+
+#: default rate (Hz) of the clouds kept along a walk with ``--timeseries`` (``--cloud-rate``)
+WALK_CLOUD_RATE_HZ = 5.0
 
 
 def urdf_feet_and_root(urdf_xml: str, source: str) -> tuple[str, tuple[str, ...]]:
@@ -238,6 +243,68 @@ def _pass2(reader: LogReader, m: dict, windows, received: dict, K: dict, progres
     return frames
 
 
+def thinned_receive_times(received: np.ndarray, rate_hz: float) -> np.ndarray:
+    """The receive times (ns, increasing) of the messages kept along a walk at ``rate_hz``: the one
+    nearest each tick of a 1 / ``rate_hz`` s grid from the first message (all of them when they come
+    slower than that); none for ``rate_hz`` <= 0."""
+    r = np.asarray(received, dtype=np.int64)
+    if rate_hz <= 0 or len(r) == 0:
+        return r[:0]
+    if len(r) == 1:
+        return r
+    rel = (r - r[0]).astype(np.float64)  # ns from the first (float64 keeps ns exactly over ~100 days)
+    step = 1e9 / float(rate_hz)
+    grid = step * np.arange(int(rel[-1] // step) + 1)
+    i = np.searchsorted(rel, grid).clip(1, len(r) - 1)
+    i = np.where(np.abs(rel[i - 1] - grid) <= np.abs(rel[i] - grid), i - 1, i)
+    return r[np.unique(i)]
+
+
+def _walk_clouds(reader: LogReader, m: dict, received: dict, K: dict, rate_hz: float, progress: bool,
+                 staging: Path) -> tuple[dict[str, list[tuple[float, Path]]], dict[str, str], list[str]]:
+    """The clouds along the walk: each sensor's point messages thinned to ``rate_hz``
+    (:func:`thinned_receive_times`), read one by one by receive time through the log's index (as
+    :func:`_pass2` does) and staged as PLY files under ``staging/walk/<sensor>/`` (no cloud stays in
+    memory). Returns (sensor -> [(stamp s, staged file)], sensor -> frame id, notes)."""
+    sensors = m.get("sensors") or {}
+    use_header = m["stamps"] == "header"
+    picked = {name: thinned_receive_times(np.frombuffer(received[name], dtype=np.int64), rate_hz)
+              for name in sensors}
+    out: dict[str, list[tuple[float, Path]]] = {name: [] for name in sensors}
+    frames: dict[str, str] = {}
+    notes: list[str] = []
+    bar = ProgressBar(total=sum(len(v) for v in picked.values()), desc="import: walk clouds", unit="cloud",
+                      disable=not progress or not any(len(v) for v in picked.values()))
+    for name, s in sensors.items():
+        if s["msgtype"] == IMAGE and name not in K and len(picked[name]):
+            notes.append(f"sensors.{name}: no CameraInfo on {s.get('camera_info')}: its depth images along the "
+                         "walk are not written")
+            bar.update(len(picked[name]))
+            continue
+        empty = 0
+        for t_ns in picked[name]:
+            bar.update(1)
+            got = next(reader.messages([s["topic"]], int(t_ns), int(t_ns) + 1), None)
+            if got is None:
+                continue
+            msg = reader.deserialize(got[2], s["topic"], int(t_ns))
+            t = M.header_stamp(msg) if use_header else None
+            t = int(t_ns) * 1e-9 if t is None else t
+            pts = _points(reader, s, s["topic"], msg, K.get(name), t)
+            if not len(pts):
+                empty += 1
+                continue
+            path = staging / "walk" / name / f"{len(out[name]):06d}.ply"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            staged_ply(path, pts)
+            out[name].append((t, path))
+            frames.setdefault(name, msg.header.frame_id.lstrip("/"))
+        if empty:
+            notes.append(f"sensors.{name}: {empty} message(s) along the walk without a point (not written)")
+    bar.close()
+    return {k: v for k, v in out.items() if v}, frames, notes
+
+
 def _prior(m: dict, transforms: dict, base: str, frame: str | None, what: str, source, default_sigma=None):
     p = m.get("priors") or {}
     sig_m = 1e-3 * float(p.get("sigma_mm", 50.0))
@@ -294,8 +361,14 @@ def _imu_spec(m: dict, link_prior, transforms: dict, base: str, imu_frame: str |
 
 def import_bag(log_path: Path, out_dir: Path, *, map_path: Path | None = None, urdf_file: Path | None = None,
                receive_time: bool = False, msg_dir: Path | None = None, timeseries: bool = False,
-               progress: bool = True, overwrite: bool = False) -> tuple[Path, str]:
-    """``graphcal import`` of a bag or MCAP file (see the module docstring); returns (folder, summary)."""
+               progress: bool = True, overwrite: bool = False,
+               cloud_rate_hz: float = WALK_CLOUD_RATE_HZ) -> tuple[Path, str]:
+    """``graphcal import`` of a bag or MCAP file (see the module docstring); returns (folder, summary).
+    With ``timeseries``, the point messages along the walk are also written, thinned to
+    ``cloud_rate_hz`` (Hz; 0: none), and named in timeseries.csv's ``cloud_<sensor>`` column on the
+    joint row nearest each one's stamp."""
+    if not np.isfinite(cloud_rate_hz) or cloud_rate_hz < 0:
+        raise DatasetError(log_path, "--cloud-rate", "a rate >= 0 Hz (0: no clouds along the walk)", cloud_rate_hz)
     import tempfile
 
     extra = types_from_msg_dir(msg_dir) if msg_dir is not None else None
@@ -303,11 +376,11 @@ def import_bag(log_path: Path, out_dir: Path, *, map_path: Path | None = None, u
     with tempfile.TemporaryDirectory(prefix=".graphcal-import-", dir=Path(out_dir).absolute().parent) as staging:
         return _import_bag(log_path, Path(out_dir), Path(staging), map_path=map_path, urdf_file=urdf_file,
                            receive_time=receive_time, extra=extra, timeseries=timeseries, progress=progress,
-                           overwrite=overwrite)
+                           overwrite=overwrite, cloud_rate_hz=cloud_rate_hz)
 
 
 def _import_bag(log_path: Path, out_dir: Path, staging: Path, *, map_path, urdf_file, receive_time, extra,
-                timeseries, progress, overwrite) -> tuple[Path, str]:
+                timeseries, progress, overwrite, cloud_rate_hz) -> tuple[Path, str]:
     with LogReader(log_path, extra) as reader:
         given = read_map(map_path) if map_path is not None else None
         urdf_xml, urdf_src = _robot(reader, given, urdf_file, map_path)
@@ -340,6 +413,9 @@ def _import_bag(log_path: Path, out_dir: Path, staging: Path, *, map_path, urdf_
         names, sink, transforms, imu_frame, jumps, received, K = _pass1(
             reader, m, {"thresholds": th, "timeseries": timeseries}, progress)
         frames = _pass2(reader, m, sink.finder.accepted, received, K, progress, staging, sink.receive_offset_s)
+        walk, walk_frames, walk_notes = _walk_clouds(reader, m, received, K, cloud_rate_hz if timeseries else 0.0,
+                                                     progress, staging)
+        frames = {**walk_frames, **frames}
     base = rob["base_frame"]
     sensors = {}
     for name, s in (m.get("sensors") or {}).items():
@@ -352,10 +428,11 @@ def _import_bag(log_path: Path, out_dir: Path, staging: Path, *, map_path, urdf_
         else:
             pp = PosePrior(np.zeros(3), np.zeros(3), 0.05, np.radians(5.0))
         sensors[name] = SensorSpec(name, s["type"], pp)
-    notes: list[str] = []
+    notes: list[str] = list(walk_notes)
     imu = _imu_spec(m, imu_link_prior, transforms, base, imu_frame, _frames(urdf_xml, urdf_src, rob), log_path,
                     notes)
     robot = RobotSpec("robot.urdf" if urdf_xml else None, None if urdf_xml else rob["model"], base, rob["feet"])
     parts = DatasetParts(robot, urdf_xml, names, sensors, imu, sink.finder, sink, notes=notes,
-                         source=str(log_path), map_text=map_text)
+                         source=str(log_path), map_text=map_text, walk_clouds=walk,
+                         walk_cloud_rate_hz=cloud_rate_hz if timeseries else None)
     return write_imported(parts, Path(out_dir), overwrite=overwrite, jumps=jumps, staging=staging)
