@@ -92,7 +92,7 @@ def test_a_wrong_leg_model_is_implausible_and_named_with_its_time(tmp_path, caps
     the URDF of another variant): the body seems pitched on level ground, the console warns that
     the trajectory is physically implausible and names when and how much, the report says it at the
     top; with the robot's own legs the same log is plausible (above). (All four legs scaled alike
-    are not caught: docs/state_estimation.md, "What the verdicts cannot see".)"""
+    are not caught: docs/state_estimation.md, "A leg model off by a constant".)"""
     import shutil
 
     import yaml
@@ -140,3 +140,38 @@ def test_joint_zero_offsets_bias_the_innovations_and_are_named(tmp_path, capsys)
     ib = m["innovation_bias"]
     assert ib["verdict"] == "biased" and abs(ib["worst"]["t"]) >= 5.0 and abs(ib["worst"]["mean_sigma"]) >= 0.3
     assert f"the stance innovations of {ib['worst']['slot']} are biased" in err and "identify-legs" in err
+
+
+def _docs_map() -> str:
+    """The Unitree-style column map of docs/state_estimation.md (the block marked docs-example)."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "state_estimation.md").read_text()
+    block = text.split("# docs-example: unitree-csv-map\n", 1)[1].split("```", 1)[0]
+    return block
+
+
+@pytest.mark.slow
+def test_the_docs_unitree_csv_example_imports_and_tracks(tmp_path):
+    """docs/state_estimation.md's worked example as written: a real-like trot exported as a Unitree
+    CSV (raw counts), imported with the docs' map (no offsets, scales or thresholds), tracked with the
+    defaults: within 1 % drift, consistent, plausible, every foot's thresholds learned."""
+    import shutil
+    from dataclasses import replace
+
+    from graphcal.simulation.real_like import RealLikeLog, real_like_log, write_real_like
+    from graphcal.simulation.ros_log import write_walk_csv
+
+    log = real_like_log("trot", 1)  # the built-in a1's URDF has no IMU link: the IMU at the base origin
+    write_real_like(RealLikeLog(replace(log.config, imu_xyz_m=(0.0, 0.0, 0.0)), log.force_counts), tmp_path / "sim")
+    write_walk_csv(tmp_path / "sim", tmp_path / "go1.csv")
+    (tmp_path / "go1_map.yaml").write_text(_docs_map())
+    assert main(["import", str(tmp_path / "go1.csv"), "--map", str(tmp_path / "go1_map.yaml"), "--timeseries",
+                 "--out", str(tmp_path / "go1"), "--quiet"]) == 0
+    for name in ("truth.yaml", "truth_trajectory.csv"):  # the simulator's truth, for the accuracy only
+        shutil.copy(tmp_path / "sim" / name, tmp_path / "go1" / name)
+    assert main(["track", str(tmp_path / "go1"), "--out", str(tmp_path / "go1_track"), "--quiet"]) == 0
+    m = json.loads((tmp_path / "go1_track" / "metrics.json").read_text())
+    assert m["drift_percent"] <= 1.0 and m["consistency"]["verdict"] == "consistent"
+    assert m["plausibility"]["verdict"] == "plausible" and m["innovation_bias"]["verdict"] == "unbiased"
+    assert {r["source"] for r in m["contacts"]["feet"].values()} == {"learned"}
