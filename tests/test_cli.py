@@ -614,3 +614,28 @@ def test_every_command_has_quiet_verbose_and_documented_arguments(capsys):
     assert capsys.readouterr().err == "calibrate: a message\n"
     logging.getLogger("graphcal").removeHandler(mine[0])
     logging.getLogger("graphcal").setLevel(logging.NOTSET)
+
+
+def test_calibrate_compares_with_truth_yaml_when_it_is_there(small_dataset, tmp_path):
+    """On simulated data calibrate says how far each sensor is from the hidden truth (issue 46 item
+    6), with the extrinsic NEES; without a truth.yaml beside the dataset, nothing is said."""
+    import shutil
+
+    import numpy as np
+
+    from graphcal.commands import calibrate
+    from graphcal.io.calibration_yaml import pose_from_dict
+    from graphcal.solvers.covariance import extrinsic_errors
+
+    res = calibrate.run(small_dataset, tmp_path / "cal", progress=False)
+    t = res.truth["depth"]
+    truth = yaml.safe_load((small_dataset / "truth.yaml").read_text())["sensors"]["depth"]["T_body_sensor"]
+    s = res.calibration.sensors["depth"]
+    e = extrinsic_errors(s.T_body_sensor, pose_from_dict(truth), s.covariance)
+    assert t["rotation_error_deg"] == pytest.approx(e["angle_deg"]) and t["nees"] == pytest.approx(e["nees"])
+    assert np.isfinite(t["translation_error_mm"]) and t["translation_error_mm"] > 0
+    assert f"against the truth (truth.yaml beside the dataset): depth {t['rotation_error_deg']:.4f} deg" in res.summary_text()
+    bare = tmp_path / "bare"
+    shutil.copytree(small_dataset, bare, ignore=shutil.ignore_patterns("truth*"))
+    res2 = calibrate.run(bare, tmp_path / "cal2", progress=False)
+    assert res2.truth is None and "against the truth" not in res2.summary_text()

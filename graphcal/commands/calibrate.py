@@ -84,6 +84,8 @@ class CalibrateResult:
         verdict: the model's adequacy (``fits`` / ``does not fit``), or None when not judged.
         incremental: the incremental mode (iSAM2) was used.
         noise_from: the ``calibration.yaml`` whose noise model was given (``--noise-from``), or None.
+        truth: on simulated data (a ``truth.yaml`` beside the dataset), per sensor the error against
+            the hidden truth (:func:`truth_comparison`); None otherwise.
     """
 
     calibration: CalibrationResult
@@ -94,6 +96,7 @@ class CalibrateResult:
     verdict: str | None
     incremental: bool = False
     noise_from: str | None = None
+    truth: dict | None = None
 
     def summary_text(self) -> str:
         """The console summary: the verdict, the sensors' poses and sigma, the residuals, the noise
@@ -118,8 +121,48 @@ class CalibrateResult:
         # the misfit warning is printed first (verdict_lines), not again here
         said = {verdict_warning(result), *range_scale_warnings(result)}
         lines += [f"  warning: {w}" for w in result.warnings if w not in said]
+        lines += truth_lines(self.truth)
         lines.append("  files: " + ", ".join(sorted(p.name for p in self.files)))
         return "\n".join(lines)
+
+
+def truth_comparison(dataset: str | Path, result) -> dict | None:
+    """Per sensor of ``result`` with a pose in ``truth.yaml`` beside the dataset (simulated data): the
+    rotation (deg) and translation (mm) errors of T_body_sensor and the extrinsic NEES (6 dof) of its
+    covariance (:func:`graphcal.solvers.covariance.extrinsic_errors`); None without a truth.yaml."""
+    import yaml
+
+    from graphcal.io.calibration_yaml import pose_from_dict
+    from graphcal.solvers.covariance import extrinsic_errors
+
+    path = Path(dataset) / "truth.yaml"
+    if not path.is_file():
+        return None
+    try:
+        sensors = (yaml.safe_load(path.read_text(encoding="utf-8")) or {}).get("sensors") or {}
+    except (OSError, yaml.YAMLError, AttributeError):
+        return None
+    out = {}
+    for name, s in result.sensors.items():
+        truth = sensors.get(name, {}).get("T_body_sensor") if isinstance(sensors.get(name), dict) else None
+        if truth is None:
+            continue
+        e = extrinsic_errors(s.T_body_sensor, pose_from_dict(truth), s.covariance)
+        out[name] = {"rotation_error_deg": e["angle_deg"], "translation_error_mm": e["distance_mm"],
+                     "nees": float(e["nees"])}
+    return out or None
+
+
+def truth_lines(truth: dict | None) -> list[str]:
+    """The summary's comparison with the simulator's truth.yaml (none without one)."""
+    if not truth:
+        return []
+    from graphcal.stats import ppf
+
+    lo, hi = float(ppf(0.025, 6)), float(ppf(0.975, 6))
+    return ["  against the truth (truth.yaml beside the dataset): " + "; ".join(
+        f"{n} {t['rotation_error_deg']:.4f} deg, {t['translation_error_mm']:.2f} mm, NEES {t['nees']:.2f}"
+        for n, t in truth.items()) + f" (6 dof: one run falls in [{lo:.2f}, {hi:.1f}] 95 % of the time)"]
 
 
 def noise_lines(result, noise_from, incremental: bool) -> list[str]:
@@ -191,4 +234,5 @@ def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, increme
     return CalibrateResult(calibration=result, dataset=str(dataset), out=Path(out_dir), files=tuple(written.values()),
                            warnings=tuple(dict.fromkeys([*first, *result.warnings])),
                            verdict=a.verdict if a is not None else None, incremental=incremental,
-                           noise_from=None if noise_from is None else str(noise_from))
+                           noise_from=None if noise_from is None else str(noise_from),
+                           truth=truth_comparison(dataset, result))
