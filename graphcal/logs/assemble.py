@@ -73,7 +73,9 @@ def foot_thresholds(samples: dict[str, np.ndarray], specs: dict[str, dict], defa
 
 class SampleSink:
     """Where samples go, in time order: the :class:`StationFinder` and (with ``timeseries``) the
-    rows of ``timeseries.csv`` (one per joint sample, the latest IMU sample and foot loads held).
+    rows of ``timeseries.csv`` (one per joint sample, the foot loads held, the IMU interpolated
+    linearly to the joint stamp: holding the latest sample puts it up to one IMU period late, which
+    alone turned a walk's stance verdict inconsistent).
 
     A foot is loaded above its ``on`` threshold and unloaded below its ``off`` one (a hysteresis;
     ``feet_thresholds`` foot -> ContactThresholds, or a number for on = off). The timeseries'
@@ -95,6 +97,8 @@ class SampleSink:
         self.min_swing_s = MIN_SWING_S if min_swing_s is None else float(min_swing_s)
         self.rows: list[np.ndarray] = []
         self._imu = np.full(6, np.nan)
+        self._imu_t: list[float] = []
+        self._imu_v: list[np.ndarray] = []
         self._force = np.full(len(self.thresholds), np.nan)
         self._loaded = np.zeros(len(self.thresholds), dtype=bool)
         self._foot_index = {f: i for i, f in enumerate(self.thresholds)}
@@ -127,6 +131,8 @@ class SampleSink:
         self.finder.imu(t, accel, gyro)
         if self.timeseries:
             self._imu = np.array([*accel, *gyro], dtype=np.float64)
+            self._imu_t.append(float(t))
+            self._imu_v.append(self._imu)
 
     def feet(self, t: float, forces: dict[str, float]) -> None:
         """Foot loads at ``t`` (s): foot -> force (N; raw counts with a raw threshold)."""
@@ -172,7 +178,11 @@ class SampleSink:
         if self._tau_ok:
             data.update({f"tau_{j}": a[:, 1 + nj + i] for i, j in enumerate(joint_names)})
         imu = ["imu_ax", "imu_ay", "imu_az", "imu_gx", "imu_gy", "imu_gz"][:n_imu]
-        data.update({c: a[:, 1 + 2 * nj + i] for i, c in enumerate(imu)})
+        if n_imu and len(self._imu_t) >= 2:  # to the joint stamps (the rows keep their held values otherwise)
+            ti, vi = np.asarray(self._imu_t), np.vstack(self._imu_v)
+            data.update({c: np.interp(a[:, 0], ti, vi[:, i]) for i, c in enumerate(imu)})
+        else:
+            data.update({c: a[:, 1 + 2 * nj + i] for i, c in enumerate(imu)})
         if self.thresholds:
             forces = _backfilled(a[:, 1 + 2 * nj + n_imu:])
             det = self.contact_detection(forces, a[:, 0])
