@@ -52,28 +52,31 @@ def test_labecki2012_reproduction(load_example):
 @pytest.mark.slow
 def test_qingzhui_walk_tracking(load_example, tmp_path):
     """Zhao 2020's EKF on the qingzhui: the example's 20 m level walk and stairs (seed 0, clouds at
-    10 Hz), simulated and tracked. Measured on 2026-11-27 (the level walk's row of
-    docs/state_estimation.md, seed 0): level 20.15 m, drift 0.0127 %, APE 3.83 mm, RPE 1.10 mm, NEES
-    4.41 (0.95 in band), stance NIS 8.93 / 9, whiteness 0.928, ICP 63 fused / 0 rejected; stairs
-    5.62 m, drift 0.0234 %, APE 1.51 mm, RPE 3.15 mm, NEES 9.65 (0.98 in band), stance NIS 8.97 / 9,
-    whiteness 0.950, ICP 16 fused / 3 rejected. The bands are a fifth of each value (the drift's,
-    two fifths): a change of the filter or the simulator moves them further, floating point does not."""
+    10 Hz), simulated and tracked with track's defaults (the noise learned from the log, the level
+    floor on the level walk). Measured on 2026-12-02: level 20.15 m, drift 0.0016 %, APE 0.45 mm,
+    RPE 0.65 mm, NEES 2.76 (0.71 in band: cautious, the real-robot bias walks), stance NIS 8.94 / 9,
+    whiteness 0.933, ICP 63 fused / 0 rejected; stairs 5.62 m, drift 0.0099 %, APE 1.47 mm, RPE
+    2.93 mm, NEES 9.23 (0.99 in band), stance NIS 8.93 / 9, whiteness 0.933, ICP 16 fused / 3
+    rejected. (Before the noise was learned, 2026-11-27: level drift 0.0127 %, APE 3.83 mm, NEES
+    4.41; stairs 0.0234 %, 1.51 mm, 9.65.) The bands are a fifth of each value (the drift's, two
+    fifths or 0.003 %): a change of the filter or the simulator moves them further, floating point
+    does not."""
     mod = load_example("qingzhui_walk_tracking.py")
     out = mod.main(tmp_path)
     mod._print(out)
     rel, within = (lambda r: {"rel": r}), (lambda a: {"abs": a})
     expected = {  # metric: (measured value, band)
-        "level": {"distance_m": (20.15, within(0.01)), "drift_percent": (0.0127, within(0.005)),  # goal <= 1 %
-                  "ape_rmse_m": (0.00383, rel(0.2)), "rpe_rmse_m": (0.00110, rel(0.2)), "nees_mean": (4.41, rel(0.2)),
-                  "stance_nis_mean": (8.93, within(0.2)), "whiteness_fraction_inside": (0.928, within(0.03)),
+        "level": {"distance_m": (20.15, within(0.01)), "drift_percent": (0.0016, within(0.003)),  # goal <= 1 %
+                  "ape_rmse_m": (0.00045, rel(0.2)), "rpe_rmse_m": (0.00065, rel(0.2)), "nees_mean": (2.76, rel(0.2)),
+                  "stance_nis_mean": (8.94, within(0.2)), "whiteness_fraction_inside": (0.933, within(0.03)),
                   "icp_updates": (63, within(3)), "icp_rejected": (0, within(2))},
-        "stairs": {"distance_m": (5.62, within(0.01)), "drift_percent": (0.0234, within(0.01)),  # goal <= 2 %
-                   "ape_rmse_m": (0.00151, rel(0.2)), "rpe_rmse_m": (0.00315, rel(0.2)), "nees_mean": (9.65, rel(0.2)),
-                   "stance_nis_mean": (8.97, within(0.2)), "whiteness_fraction_inside": (0.950, within(0.03)),
+        "stairs": {"distance_m": (5.62, within(0.01)), "drift_percent": (0.0099, within(0.004)),  # goal <= 2 %
+                   "ape_rmse_m": (0.00147, rel(0.2)), "rpe_rmse_m": (0.00293, rel(0.2)), "nees_mean": (9.23, rel(0.2)),
+                   "stance_nis_mean": (8.93, within(0.2)), "whiteness_fraction_inside": (0.933, within(0.03)),
                    "icp_updates": (16, within(3)), "icp_rejected": (3, within(2))},
     }
     for name, metrics in expected.items():
         m = out[name][0]
         for key, (value, band) in metrics.items():
             assert m[key] == pytest.approx(value, **band), (name, key, m[key])
-        assert m["nees_fraction_in_band"] > 0.9, (name, m["nees_fraction_in_band"])
+        assert m["nees_fraction_in_band"] > 0.65, (name, m["nees_fraction_in_band"])

@@ -21,7 +21,8 @@ CASES = [("trot", 1), ("walk", 2), ("tripod-walk", 3), ("trot", 4)]
 
 @pytest.fixture(scope="module", params=CASES, ids=[f"{p}-{s}" for p, s in CASES])
 def tracked(request, tmp_path_factory):
-    from graphcal.simulation.real_like import real_like_log, write_real_like
+    from graphcal.simulation.real_like import real_like_log
+    from graphcal.simulation.write import write_real_like
 
     program, seed = request.param
     root = tmp_path_factory.mktemp(f"real_like_{program}_{seed}")
@@ -98,7 +99,8 @@ def test_a_wrong_leg_model_is_implausible_and_named_with_its_time(tmp_path, caps
     import yaml
 
     from graphcal.io.dataset import load_dataset_robot, read_dataset
-    from graphcal.simulation.real_like import real_like_log, write_real_like
+    from graphcal.simulation.real_like import real_like_log
+    from graphcal.simulation.write import write_real_like
 
     ds = tmp_path / "ds"
     write_real_like(real_like_log("trot", 1), ds)
@@ -129,7 +131,8 @@ def test_joint_zero_offsets_bias_the_innovations_and_are_named(tmp_path, capsys)
     mean per foot says the leg model is off by a constant, on the console and in metrics.json."""
     from dataclasses import replace
 
-    from graphcal.simulation.real_like import RealLikeLog, real_like_log, write_real_like
+    from graphcal.simulation.real_like import RealLikeLog, real_like_log
+    from graphcal.simulation.write import write_real_like
 
     log = real_like_log("trot", 1)
     write_real_like(RealLikeLog(replace(log.config, joint_offset_sigma_rad=0.005), log.force_counts), tmp_path / "ds")
@@ -159,8 +162,9 @@ def test_the_docs_unitree_csv_example_imports_and_tracks(tmp_path):
     import shutil
     from dataclasses import replace
 
-    from graphcal.simulation.real_like import RealLikeLog, real_like_log, write_real_like
+    from graphcal.simulation.real_like import RealLikeLog, real_like_log
     from graphcal.simulation.ros_log import write_walk_csv
+    from graphcal.simulation.write import write_real_like
 
     log = real_like_log("trot", 1)  # the built-in a1's URDF has no IMU link: the IMU at the base origin
     write_real_like(RealLikeLog(replace(log.config, imu_xyz_m=(0.0, 0.0, 0.0)), log.force_counts), tmp_path / "sim")

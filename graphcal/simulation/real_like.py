@@ -2,18 +2,17 @@
 per-foot offset and gain, a stand-up before the walk and a lie-down after it, the IMU off the base
 link, a 400 Hz log, and noise levels drawn away from graphcal's defaults -- the simulator's values
 never reach a tracker that reads this log, which must learn them (docs/simulation.md, "Real-like
-logs"). Every draw comes from the seed."""
+logs"). Every draw comes from the seed; :func:`graphcal.simulation.write.write_real_like` writes one."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from graphcal.simulation.walking import GAITS, WalkingConfig, simulate_walking
+from graphcal.simulation.walking import GAITS, WalkingConfig
 
-__all__ = ["RealLikeLog", "real_like_log", "write_real_like"]
+__all__ = ["RealLikeLog", "real_like_log"]
 
 
 @dataclass(frozen=True)
@@ -49,12 +48,3 @@ def _feet(robot: str) -> tuple:
     from graphcal.models.builtin import builtin_info
 
     return tuple(builtin_info(robot).feet)
-
-
-def write_real_like(log: RealLikeLog, out_dir: str | Path, *, overwrite: bool = False) -> Path:
-    """Simulate the walk and write it as a dataset folder with its truth (raw counts when the robot
-    has foot-force sensors; :func:`graphcal.simulation.write.write_walking`)."""
-    from graphcal.simulation.write import write_walking
-
-    result = simulate_walking(log.config)
-    return write_walking(result, out_dir, overwrite=overwrite, force_counts=log.force_counts)

@@ -17,7 +17,8 @@ from graphcal.simulation.session import SimulationResult
 from graphcal.simulation.walking import WalkingConfig, WalkingResult, simulate_walking
 
 __all__ = ["SIMULATION_FILES", "TRUTH_TRAJECTORY_FILE", "result_to_dataset", "clouds_written", "write_simulation",
-           "truth_table", "force_counts_of", "walking_dataset", "truth_dict", "write_walking", "simulate_walking_to_folder"]
+           "truth_table", "force_counts_of", "walking_dataset", "truth_dict", "write_walking", "simulate_walking_to_folder",
+           "write_real_like"]
 
 #: a walk's true trajectory, beside its dataset.yaml
 TRUTH_TRAJECTORY_FILE = "truth_trajectory.csv"
@@ -346,3 +347,10 @@ def simulate_walking_to_folder(
         f"clouds at {c.cloud_rate_hz:g} Hz (stride {c.cloud_stride}); truth in {out / 'truth.yaml'} and "
         f"{out / TRUTH_TRAJECTORY_FILE}"
     )
+
+
+def write_real_like(log, out_dir: str | Path, *, overwrite: bool = False) -> Path:
+    """Simulate a :class:`~graphcal.simulation.real_like.RealLikeLog` and write it as a dataset folder
+    with its truth (raw counts when the robot has foot-force sensors; :func:`write_walking`)."""
+    result = simulate_walking(log.config)
+    return write_walking(result, out_dir, overwrite=overwrite, force_counts=log.force_counts)
