@@ -137,7 +137,7 @@ def test_calibrate_writes_the_outputs_and_never_into_the_dataset(small_dataset, 
     held = [k for k, g in groups.items() if g["status"] != "learned"]
     assert ("noise not learned:" in proc.stdout) == bool(held)
     assert all(k in proc.stdout for k in held)
-    for name in ("robot_calibrated.urdf", "static_transforms.sh", "report.html"):
+    for name in ("robot_calibrated.urdf", "static_transforms.sh", "report.html", "scene.mcap"):
         assert (out / name).stat().st_size > 0
     before = sorted(p.name for p in small_dataset.iterdir())
     proc = run("calibrate", small_dataset, "--out", small_dataset, "--quiet")

@@ -709,7 +709,7 @@ def test_written_outputs_name_the_dataset_relative_to_the_output_folder_not_by_a
 
 def test_write_outputs_creates_the_four_files(written):
     res, out, paths = written
-    assert set(paths) == {"calibration", "urdf", "static_transforms", "report"}
+    assert set(paths) == {"calibration", "urdf", "static_transforms", "report", "scene"}
     assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUT_FILES.values())
     for key, p in paths.items():
         assert p == out / OUTPUT_FILES[key] and p.stat().st_size > 0

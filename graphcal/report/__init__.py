@@ -1,7 +1,7 @@
 """Calibration outputs: calibration.yaml, the calibrated URDF, ROS 2 static transforms, the HTML
 report and its figures (docs/outputs.md).
 
-``write_calibration_outputs(result, out_dir)`` writes the four files as one atomic set.
+``write_calibration_outputs(result, out_dir)`` writes the five files as one atomic set.
 """
 
 from graphcal.report.calibration_yaml import calibration_to_dict, calibration_yaml_text

@@ -6,8 +6,9 @@
 * ``robot_calibrated.urdf``  -- :mod:`graphcal.report.urdf`
 * ``static_transforms.sh``   -- :mod:`graphcal.report.ros` (executable)
 * ``report.html``            -- :mod:`graphcal.report.calibration_page`
+* ``scene.mcap``             -- :mod:`graphcal.report.scene_mcap` (ROS 2 MCAP: transforms, URDF, clouds)
 
-into a hidden sibling temporary folder and renames it onto ``out_dir`` only when all four are
+into a hidden sibling temporary folder and renames it onto ``out_dir`` only when all five are
 complete (:func:`graphcal.io.atomic.atomic_directory`): an exception or an interruption half-way
 leaves the previous results (or nothing) in ``out_dir``, never a partial set or a half-written file.
 
@@ -26,6 +27,7 @@ from graphcal.io.atomic import atomic_directory, atomic_write_text, previous_out
 from graphcal.io.atomic import check_output_folder as check_output_folder_of
 from graphcal.report.calibration_yaml import calibration_yaml_text
 from graphcal.report.ros import static_transforms_script
+from graphcal.report.scene_mcap import DEFAULT_MAX_POINTS, write_scene_mcap
 from graphcal.report.urdf import calibrated_urdf
 
 __all__ = ["OUTPUT_FILES", "write_calibration_outputs", "check_output_folder", "shown_dataset"]
@@ -36,6 +38,7 @@ OUTPUT_FILES: dict[str, str] = {
     "urdf": "robot_calibrated.urdf",
     "static_transforms": "static_transforms.sh",
     "report": "report.html",
+    "scene": "scene.mcap",
 }
 _FORMAT_PREFIX = "graphcal-calibration/"
 
@@ -86,6 +89,13 @@ def _write_urdf(folder: Path, result) -> Path:
     return atomic_write_text(folder / OUTPUT_FILES["urdf"], text)
 
 
+def _write_scene(folder: Path, result, dataset, max_points: int | None) -> Path:
+    """scene.mcap: the clouds and station times read from ``dataset`` (the folder as given to
+    calibrate; ``result.dataset`` is by then relative to the output folder)."""
+    urdf = (folder / OUTPUT_FILES["urdf"]).read_text(encoding="utf-8")
+    return write_scene_mcap(folder / OUTPUT_FILES["scene"], result, urdf, dataset=dataset, max_points=max_points)
+
+
 def _write_static_transforms(folder: Path, result) -> Path:
     text = static_transforms_script(
         result.base_frame, {name: s.T_body_sensor for name, s in result.sensors.items()}, dataset=str(result.dataset),
@@ -114,9 +124,10 @@ def shown_dataset(dataset, out_dir: Path) -> str:
         return Path(str(dataset)).name
 
 
-def write_calibration_outputs(result, out_dir: str | Path, *, overwrite: bool = True, title: str | None = None) -> dict[str, Path]:
-    """Write calibration.yaml, robot_calibrated.urdf, static_transforms.sh and report.html into
-    ``out_dir`` as one atomic set.
+def write_calibration_outputs(result, out_dir: str | Path, *, overwrite: bool = True, title: str | None = None,
+                              scene_max_points: int | None = DEFAULT_MAX_POINTS) -> dict[str, Path]:
+    """Write calibration.yaml, robot_calibrated.urdf, static_transforms.sh, report.html and
+    scene.mcap into ``out_dir`` as one atomic set.
 
     Args:
         result: a :class:`~graphcal.calibration.result.CalibrationResult`.
@@ -124,10 +135,13 @@ def write_calibration_outputs(result, out_dir: str | Path, *, overwrite: bool = 
         overwrite: replace a previous graphcal calibration in ``out_dir`` (default). With False any
             non-empty ``out_dir`` is refused.
         title: title of the HTML report (default: names the dataset).
+        scene_max_points: cap on the points of each cloud in scene.mcap (evenly thinned above it;
+            default 20000; None or 0: all points).
 
     Returns:
         ``{"calibration": .../calibration.yaml, "urdf": .../robot_calibrated.urdf,
-        "static_transforms": .../static_transforms.sh, "report": .../report.html}``.
+        "static_transforms": .../static_transforms.sh, "report": .../report.html,
+        "scene": .../scene.mcap}``.
 
     Raises:
         OutputExistsError (a GraphcalError): ``out_dir`` is a file or symbolic link, or a non-empty
@@ -138,11 +152,13 @@ def write_calibration_outputs(result, out_dir: str | Path, *, overwrite: bool = 
     """
     out = Path(out_dir)
     check_output_folder(out, overwrite=overwrite)
+    dataset = result.dataset or None  # where the clouds are, before it is made relative to out
     result = dataclasses.replace(result, dataset=shown_dataset(result.dataset, out))  # as written, shareable
     with atomic_directory(out, overwrite=True) as tmp:
         _write_yaml(tmp, result)
         _write_urdf(tmp, result)
         _write_static_transforms(tmp, result)
         _write_report(tmp, result, title)
+        _write_scene(tmp, result, dataset, scene_max_points)
         check_output_folder(out, overwrite=overwrite)  # nothing foreign appeared meanwhile
     return {key: out / name for key, name in OUTPUT_FILES.items()}
