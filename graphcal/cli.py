@@ -63,6 +63,26 @@ def _add_import_parser(sub, common) -> None:
     im.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
 
 
+class _CommandParser(argparse.ArgumentParser):
+    """A command's parser: its errors also name the flags it has closest to a misspelt one in the
+    command line (``--ouput`` -> ``--out``), whatever argparse complains about first."""
+
+    argv: list[str] = []
+
+    def error(self, message: str):
+        import difflib
+        import re
+
+        flags = sorted(set(re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", self.format_help())))
+        hints = []
+        for a in self.argv:
+            name = a.split("=")[0]
+            if name.startswith("--") and name not in flags and "did you mean" not in message:
+                close = difflib.get_close_matches(name, flags, n=3, cutoff=0.6)
+                hints.append(f"{name}: did you mean {', '.join(close)}?" if close else f"{name}: no such flag")
+        super().error(message + (f" ({'; '.join(hints)})" if hints else ""))
+
+
 def _build_parser() -> argparse.ArgumentParser:
     from graphcal import __version__
 
@@ -71,7 +91,8 @@ def _build_parser() -> argparse.ArgumentParser:
         description="Self-calibration and state estimation for legged robots (factor graphs).",
     )
     p.add_argument("--version", action="version", version=f"graphcal {__version__}")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_CommandParser)
+    p.set_defaults(subcommands=sub.choices)  # name -> its parser, for the unknown-flag message
     # every command: --quiet / --verbose (log levels, configure_logging); DATASET (the positional)
     common = argparse.ArgumentParser(add_help=False)
     talk = common.add_mutually_exclusive_group()
@@ -412,10 +433,25 @@ def _output_guard(args):
         yield
 
 
+def _refuse_unknown(parser: argparse.ArgumentParser, extra: list[str]) -> None:
+    """An unknown flag of a command: that command's usage and the nearest flags it has (exit 2)."""
+    import difflib
+    import re
+
+    flags = sorted(set(re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", parser.format_help())))
+    bad = next((a for a in extra if a.startswith("-")), extra[0])
+    close = difflib.get_close_matches(bad.split("=")[0], flags, n=3, cutoff=0.6)
+    hint = f" (did you mean {', '.join(close)}?)" if close else ""
+    parser.error(f"unrecognized argument{'s' if len(extra) > 1 else ''} {' '.join(extra)}{hint}")
+
+
 def main(argv: list[str] | None = None) -> int:
     from graphcal.errors import GraphcalError
 
-    args = _build_parser().parse_args(argv)
+    _CommandParser.argv = list(sys.argv[1:] if argv is None else argv)
+    args, extra = _build_parser().parse_known_args(argv)
+    if extra:
+        _refuse_unknown(args.subcommands[args.command], extra)
     configure_logging(args.quiet, args.verbose)
     handlers = {
         "simulate": _cmd_simulate,

@@ -235,3 +235,27 @@ def test_ros_command_fits_its_box():
     lines = static_transform_publisher_command("body", "depth", np.eye(4), sep=" \\\n    ").splitlines()
     assert len(lines) == 4 and max(map(len, lines)) < 90 and all(ln.endswith("\\") for ln in lines[:-1])
     assert "overflow-x:auto" not in CSS and "pre-wrap" in CSS
+
+
+@pytest.mark.parametrize("argv, command, words", [
+    (["calibrate", "ds", "--out", "o", "--legz"], "calibrate", "unrecognized argument --legz (did you mean --legs?)"),
+    (["simulate", "--program", "random", "--ouput", "x"], "simulate", "--ouput: did you mean --output, --out?"),
+    (["track", "ds", "--out", "o", "--noize", "n.yaml"], "track", "did you mean --noise"),
+])
+def test_a_misspelt_flag_gets_its_commands_usage_and_the_nearest_flag(argv, command, words, capsys):
+    """issue 46 friction 14: a typo in a flag prints the subcommand's usage (not the top-level one)
+    and the nearest flags the command has; exit 2."""
+    from graphcal.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and f"usage: graphcal {command}" in err and words in err
+
+
+def test_an_unknown_program_lists_every_kind(tmp_path, capsys):
+    from graphcal.cli import main
+
+    assert main(["simulate", "--program", "chai2016", "--out", str(tmp_path / "x"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "chai2015" in err and "tripod-walk" in err and "trot" in err and "mocap" in err

@@ -89,7 +89,10 @@ def station_program(
             :data:`RANDOM_REDRAWS` times, then kept).
     """
     if name not in PROGRAMS:
-        raise GraphcalError(f"unknown program {name!r}; expected one of {', '.join(PROGRAMS)}")
+        from graphcal.simulation.walking import WALKING_PROGRAMS
+
+        raise GraphcalError(f"unknown program {name!r}; expected a station program ({', '.join(PROGRAMS)}), a walk "
+                            f"({', '.join(WALKING_PROGRAMS)}) or mocap")
     poses: list[np.ndarray] = []
     if name == "chai2015":
         scale = default_height_m / CHAI2015_REFERENCE_HEIGHT_M
