@@ -94,7 +94,7 @@ def _build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_CommandParser)
     p.set_defaults(subcommands=sub.choices)  # name -> its parser, for the unknown-flag message
     # every command: --quiet / --verbose (log levels, configure_logging); DATASET (the positional)
-    common = argparse.ArgumentParser(add_help=False)
+    common = _CommandParser(add_help=False)
     talk = common.add_mutually_exclusive_group()
     talk.add_argument("--quiet", action="store_true",
                       help="no progress bars, only warnings and errors on stderr (the summary still goes to stdout)")
