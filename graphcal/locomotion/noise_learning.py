@@ -48,9 +48,11 @@ def _window_stack(x: np.ndarray, n: int) -> np.ndarray:
     return x[: w * n].reshape(w, n, x.shape[1])
 
 
-def still_windows(times: np.ndarray, channels: np.ndarray, *, window_s: float = 0.25, ratio: float = 1.5) -> np.ndarray:
-    """(W,) bool per window of ``window_s``: every channel of ``channels`` (N, C) white in it (a
-    constant channel, e.g. a quantised encoder at rest, counts as white); and the windows' start indices."""
+def still_windows(times: np.ndarray, channels: np.ndarray, *, window_s: float = 0.25,
+                  ratio: float = 1.5) -> tuple[np.ndarray, np.ndarray, int]:
+    """(still (W,) bool, start index (W,), samples per window): a window of ``window_s`` is still when
+    every channel of ``channels`` (N, C) is white in it (a constant channel, e.g. a quantised encoder
+    at rest, counts as white)."""
     dt = float(np.median(np.diff(times)))
     n = max(8, int(round(window_s / dt)))
     X = _window_stack(np.asarray(channels, dtype=float), n)
