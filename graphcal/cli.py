@@ -63,6 +63,26 @@ def _add_import_parser(sub, common) -> None:
     im.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
 
 
+def _add_plan_gait_parser(sub, common) -> None:
+    """``graphcal plan-gait TRACK_DIR --out DIR`` (docs/stairs_gait.md)."""
+    pg = sub.add_parser("plan-gait", help="Zhao's gait adaptation up the stairs a track perceived: per step the step "
+                                          "length and height, body height and pitch, the swinging tripod, footholds "
+                                          "with their edge distances and clearances (gait.yaml, report.html)",
+                        parents=[common], formatter_class=_DefaultsHelpFormatter)
+    pg.add_argument("track_dir", type=Path, metavar="TRACK_DIR",
+                    help="a graphcal track output of a stairs dataset (stairs.json, trajectory.tum, metrics.json)")
+    pg.add_argument("--out", required=True, type=Path,
+                    help="output folder (replaces only an empty folder or a previous plan-gait output)")
+    pg.add_argument("--dataset", type=Path, default=None,
+                    help="the dataset the track ran on (robot model, joint angles); default: the one metrics.json names")
+    pg.add_argument("--start-time", type=float, default=None, metavar="S",
+                    help="start the plan at the tracked sample nearest this time (s); default: the last moment "
+                         "before the stairs with every foot down")
+    pg.add_argument("--max-steps", type=int, default=40, metavar="N", help="most steps planned")
+    pg.add_argument("--min-tread-points", type=int, default=150, metavar="N",
+                    help="a tread of stairs.json with fewer points is refused (not stepped on)")
+
+
 class _CommandParser(argparse.ArgumentParser):
     """A command's parser: its errors also name the flags it has closest to a misspelt one in the
     command line (``--ouput`` -> ``--out``), whatever argparse complains about first."""
@@ -230,6 +250,7 @@ def _build_parser() -> argparse.ArgumentParser:
                          "the real-robot defaults (docs/state_estimation.md, 'Noise settings')")
 
     _add_import_parser(sub, common)
+    _add_plan_gait_parser(sub, common)
     _add_batch_parsers(sub, common)
     return p
 
@@ -374,6 +395,19 @@ def _cmd_track(args):
                      learn_noise=not args.no_noise_learning)
 
 
+def _cmd_plan_gait(args):
+    from graphcal.commands import plan_gait
+    from graphcal.errors import GraphcalError
+    from graphcal.planning.climb import ClimbConfig
+
+    if args.max_steps < 1:
+        raise GraphcalError(f"--max-steps must be >= 1, got {args.max_steps}")
+    if args.min_tread_points < 0:
+        raise GraphcalError(f"--min-tread-points must be >= 0, got {args.min_tread_points}")
+    return plan_gait.run(args.track_dir, args.out, dataset=args.dataset, start_time_s=args.start_time,
+                         climb=ClimbConfig(max_steps=args.max_steps, min_tread_points=args.min_tread_points))
+
+
 def _cmd_import(args):
     from graphcal.commands import import_log
 
@@ -463,6 +497,7 @@ def main(argv: list[str] | None = None) -> int:
         "identify-legs": _cmd_identify_legs,
         "diagnose": _cmd_diagnose,
         "import": _cmd_import,
+        "plan-gait": _cmd_plan_gait,
         "batch": _cmd_batch,
         "study": _cmd_study,
     }
