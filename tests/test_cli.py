@@ -592,7 +592,7 @@ def test_every_command_has_quiet_verbose_and_documented_arguments(capsys):
     parser = _build_parser()
     subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
     assert set(subs) == {"simulate", "validate", "calibrate", "suggest-poses", "extract-planes", "diagnose",
-                         "identify-legs", "track", "import", "batch", "study"}
+                         "identify-legs", "track", "import", "batch", "study", "plan-gait"}
     for name, sp in subs.items():
         opts = {o for a in sp._actions for o in a.option_strings}
         assert {"--quiet", "--verbose"} <= opts, name
