@@ -288,9 +288,12 @@ def test_track_returns_its_result_and_prints_its_summary(short_walk, tmp_path, c
     lines = capsys.readouterr().out.splitlines()  # the console's words
     assert lines[0].startswith(f"tracked {short_walk}: {m['n_samples']} samples") and f"wrote {tmp_path / 'cli'}" in lines[0]
     assert lines[1].startswith(f"  consistency: {result.verdict}")
-    assert lines[2] == f"  plausibility: {m['plausibility']['verdict']} ({m['plausibility']['reason']})"
-    assert lines[3].startswith("  noise: learned ") and lines[3].endswith("; noise.yaml)")
-    assert lines[4].startswith("  against the truth: APE ") and f"of {m['distance_m']:.2f} m" in lines[4]
+    w = m["innovation_bias"]["worst"]
+    assert lines[2] == (f"  leg model: stance innovations {m['innovation_bias']['verdict']} (worst {w['slot']} "
+                        f"{w['axis']}: mean {w['mean_sigma']:+.2f} sigma, t = {w['t']:.1f})")
+    assert lines[3] == f"  plausibility: {m['plausibility']['verdict']} ({m['plausibility']['reason']})"
+    assert lines[4].startswith("  noise: learned ") and lines[4].endswith("; noise.yaml)")
+    assert lines[5].startswith("  against the truth: APE ") and f"of {m['distance_m']:.2f} m" in lines[5]
 
 
 def test_track_refuses_a_negative_tum_rate_before_any_work(tmp_path):
