@@ -103,6 +103,24 @@ class _CommandParser(argparse.ArgumentParser):
         super().error(message + (f" ({'; '.join(hints)})" if hints else ""))
 
 
+def _add_track_parser(sub, common, dataset_help: str) -> None:
+    """``graphcal track`` (docs/state_estimation.md)."""
+    tr = sub.add_parser("track", help="estimate the body trajectory of a timeseries dataset (EKF: IMU, leg "
+                                      "kinematics, ICP): trajectory.tum, metrics.json, plots, report", parents=[common])
+    tr.add_argument("dataset", type=Path, help=dataset_help)
+    tr.add_argument("--out", required=True, type=Path,
+                    help="output folder (replaces only an empty folder or a previous track output)")
+    tr.add_argument("--tum-rate", type=float, default=100.0,
+                    help="poses per second in trajectory.tum (default 100; 0 = every sample)")
+    tr.add_argument("--no-icp", action="store_true", help="proprioception only (no ICP between clouds)")
+    tr.add_argument("--noise", type=Path, default=None, metavar="FILE",
+                    help="the filter's noise (noise.yaml's format, SI units: a track output's noise.yaml, or a subset "
+                         "of its keys); every value given is used as it is")
+    tr.add_argument("--no-noise-learning", action="store_true",
+                    help="do not learn the noise nobody gave from the log (still windows, stance innovations): use "
+                         "the real-robot defaults (docs/state_estimation.md, 'Noise settings')")
+
+
 def _build_parser() -> argparse.ArgumentParser:
     from graphcal import __version__
 
@@ -180,6 +198,9 @@ def _build_parser() -> argparse.ArgumentParser:
                         "all). Faster on large clouds, a little less accurate: on 258k-point Kinect clouds 50000 "
                         "took 0.5-0.6x the time, with 35 %% more translation error (docs/calibration.md). No effect "
                         "when the dataset has planes.csv")
+    c.add_argument("--scene-max-points", type=int, default=20_000, metavar="N",
+                   help="each station's cloud in scene.mcap evenly thinned to at most N points (default 20000; "
+                        "0: every point; docs/outputs.md)")
     c.add_argument("--noise-from", type=Path, default=None, metavar="CALIBRATION_YAML",
                    help="use the noise model (noise_model) of an earlier calibration.yaml of this robot as "
                         "given instead of learning it; for --incremental, which cannot learn it "
@@ -234,21 +255,7 @@ def _build_parser() -> argparse.ArgumentParser:
     il.add_argument("--robust", choices=("none", "huber", "cauchy"), default="none",
                     help="robust loss per posture sample (down-weights gross postures); default none")
 
-    tr = sub.add_parser("track", help="estimate the body trajectory of a timeseries dataset (EKF: IMU, leg "
-                                      "kinematics, ICP): trajectory.tum, metrics.json, plots, report", parents=[common])
-    tr.add_argument("dataset", type=Path, help=dataset_help)
-    tr.add_argument("--out", required=True, type=Path,
-                    help="output folder (replaces only an empty folder or a previous track output)")
-    tr.add_argument("--tum-rate", type=float, default=100.0,
-                    help="poses per second in trajectory.tum (default 100; 0 = every sample)")
-    tr.add_argument("--no-icp", action="store_true", help="proprioception only (no ICP between clouds)")
-    tr.add_argument("--noise", type=Path, default=None, metavar="FILE",
-                    help="the filter's noise (noise.yaml's format, SI units: a track output's noise.yaml, or a subset "
-                         "of its keys); every value given is used as it is")
-    tr.add_argument("--no-noise-learning", action="store_true",
-                    help="do not learn the noise nobody gave from the log (still windows, stance innovations): use "
-                         "the real-robot defaults (docs/state_estimation.md, 'Noise settings')")
-
+    _add_track_parser(sub, common, dataset_help)
     _add_import_parser(sub, common)
     _add_plan_gait_parser(sub, common)
     _add_batch_parsers(sub, common)
@@ -348,7 +355,9 @@ def _cmd_calibrate(args):
     return calibrate.run(args.dataset, args.out, legs=args.legs, incremental=args.incremental,
                          progress=not args.quiet, ground_roughness_m=1e-3 * args.ground_roughness_mm,
                          plane_max_points=check_max_points(args.plane_points, "--plane-points"),
-                         noise_from=args.noise_from)
+                         noise_from=args.noise_from,
+                         scene_max_points=None if args.scene_max_points == 0 else check_max_points(
+                             args.scene_max_points, "--scene-max-points"))
 
 
 def _cmd_suggest_poses(args):

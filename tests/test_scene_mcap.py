@@ -200,3 +200,17 @@ def test_a_failing_scene_leaves_the_previous_calibration(calibrated, tmp_path, m
     with pytest.raises(RuntimeError, match="disk full"):
         write_mod.write_calibration_outputs(result, prev)
     assert {p.name: p.read_bytes() for p in prev.iterdir()} == before
+
+
+def test_calibrate_scene_max_points_from_the_command_line(calibrated, tmp_path, capsys):
+    """--scene-max-points N caps every station's cloud in scene.mcap; a value under 100 (not 0) is one line, exit 2."""
+    from graphcal.cli import main
+
+    ds_dir = calibrated[0]
+    assert main(["calibrate", str(ds_dir), "--out", str(tmp_path / "cal"), "--quiet", "--scene-max-points", "500"]) == 0
+    clouds = read_scene(tmp_path / "cal" / "scene.mcap")["msgs"]["/depth/points"]
+    assert clouds and all(m.width == 500 for _, m in clouds)
+    capsys.readouterr()
+    assert main(["calibrate", str(ds_dir), "--out", str(tmp_path / "cal2"), "--quiet", "--scene-max-points", "7"]) == 2
+    err = capsys.readouterr().err
+    assert "--scene-max-points must be a whole number of points >= 100" in err and "Traceback" not in err

@@ -14,6 +14,7 @@ import numpy as np
 from graphcal.calibration.result import CalibrationResult
 from graphcal.calibration.session import calibrate_session
 from graphcal.errors import GraphcalError
+from graphcal.report.scene_mcap import DEFAULT_MAX_POINTS as SCENE_MAX_POINTS
 from graphcal.report.write import check_output_folder, write_calibration_outputs
 
 __all__ = ["run", "CalibrateResult", "GROUP_WORDS", "covariance_scale_text", "noise_lines", "verdict_lines",
@@ -204,7 +205,8 @@ def noise_lines(result, noise_from, incremental: bool) -> list[str]:
 
 def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,
         progress: bool = True, ground_roughness_m: float = 0.0,
-        plane_max_points: int | None = None, noise_from: str | Path | None = None) -> CalibrateResult:
+        plane_max_points: int | None = None, noise_from: str | Path | None = None,
+        scene_max_points: int | None = SCENE_MAX_POINTS) -> CalibrateResult:
     """The ``graphcal calibrate`` command: calibrate and write the outputs.
 
     Args:
@@ -218,6 +220,8 @@ def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, increme
         plane_max_points: see :func:`graphcal.calibration.calibrate.calibrate`.
         noise_from: an earlier ``calibration.yaml`` whose noise model is used as given, not learned
             (:func:`graphcal.calibration.noise_file.options_with_noise_from`).
+        scene_max_points: each station's cloud in scene.mcap evenly thinned to at most this many
+            points (None: every point; graphcal.report.scene_mcap).
 
     Returns:
         a :class:`CalibrateResult` (the calibration, the files written, warnings, verdict).
@@ -228,7 +232,7 @@ def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, increme
                             "replaces: the file would be lost; copy it elsewhere or choose another --out")
     result = calibrate_session(dataset, legs=legs, incremental=incremental, ground_roughness_m=ground_roughness_m,
                                plane_max_points=plane_max_points, noise_from=noise_from, progress=progress)
-    written = write_calibration_outputs(result, out_dir)
+    written = write_calibration_outputs(result, out_dir, scene_max_points=scene_max_points)
     first = [w for w in (verdict_warning(result), *range_scale_warnings(result)) if w]
     a = getattr(result, "adequacy", None)
     return CalibrateResult(calibration=result, dataset=str(dataset), out=Path(out_dir), files=tuple(written.values()),
