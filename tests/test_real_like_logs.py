@@ -179,3 +179,25 @@ def test_the_docs_unitree_csv_example_imports_and_tracks(tmp_path):
     assert m["drift_percent"] <= 1.0 and m["consistency"]["verdict"] == "consistent"
     assert m["plausibility"]["verdict"] == "plausible" and m["innovation_bias"]["verdict"] == "unbiased"
     assert {r["source"] for r in m["contacts"]["feet"].values()} == {"learned"}
+
+
+@pytest.mark.slow
+def test_stairs_declared_level_are_implausible_and_the_warning_says_declare_the_ground(tmp_path, capsys):
+    """A stairs walk whose dataset.yaml says the ground is level (a user's mistake): the floor updates
+    cannot fit it; the verdict is implausible (touchdowns far above the floor) and the warning says
+    to declare the ground, not only that the model does not fit."""
+    import yaml
+
+    ds = tmp_path / "ds"
+    assert main(["simulate", "--robot", "qingzhui", "--program", "tripod-stairs", "--cloud-rate", "0", "--out",
+                 str(ds), "--quiet"]) == 0
+    doc = yaml.safe_load((ds / "dataset.yaml").read_text())
+    doc["ground"] = {"type": "level"}
+    (ds / "dataset.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    capsys.readouterr()
+    assert main(["track", str(ds), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    m = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert m["plausibility"]["verdict"] == "implausible"
+    assert any(f["kind"] == "touchdown" and f["size"] > 0.1 for f in m["plausibility"]["failures"])
+    assert "if the ground is not level, declare it" in err

@@ -187,8 +187,11 @@ def plausibility_warning(section: dict) -> str | None:
         return None
     f = section["failures"]
     more = f" (and {len(f) - 1} more failure{'s' if len(f) > 2 else ''}: metrics.json plausibility)" if len(f) > 1 else ""
+    floor = ("; touchdowns off the floor: if the ground is not level, declare it (dataset.yaml ground: {type: "
+             "stairs} or {type: uneven}), since on level ground the filter holds every touchdown at the floor's height"
+             if any(x["kind"] == "touchdown" for x in f) else "")
     return (f"the trajectory is physically implausible: {f[0]['message']}{more}: the leg model, the contacts or the "
-            "noise settings do not fit this robot; the trajectory and its sigma are not to be trusted")
+            f"noise settings do not fit this robot{floor}; the trajectory and its sigma are not to be trusted")
 
 
 def _phases_section(ph) -> dict | None:
