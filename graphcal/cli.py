@@ -139,46 +139,7 @@ def _build_parser() -> argparse.ArgumentParser:
     talk.add_argument("--verbose", action="store_true", help="also debug messages on stderr")
     dataset_help = "dataset folder (dataset.yaml and its files; the contract: docs/dataset.md)"
 
-    s = sub.add_parser("simulate", help="simulate a calibration session and write it as a dataset", parents=[common],
-                       formatter_class=_DefaultsHelpFormatter)
-    s.add_argument("--robot", default="octopus", help="built-in robot model (octopus, qingzhui, messor, a1)")
-    s.add_argument("--program", default="chai2015",
-                   help="station program (chai2015, labecki2012, random), walk (tripod-walk, tripod-stairs: "
-                        "the qingzhui's tripod gait; trot, walk: the a1 quadruped with foot-force sensors; 1 kHz "
-                        "timeseries; see docs/state_estimation.md), or mocap "
-                        "(a leg in the air in a motion-capture room, Yuan et al.'s set-up, for identify-legs; "
-                        "--stations samples, default 1000; see docs/legs.md)")
-    s.add_argument("--ground", default="level", help="level, bumpy-little, bumpy-big, stairs, boxes")
-    s.add_argument("--real-like", action="store_true",
-                   help="a walking program written as a real robot's log: 400 Hz, lying, standing up and lying down, "
-                        "raw foot counts with per-foot offsets and gains, the IMU off the base link, noise drawn away "
-                        "from graphcal's defaults (docs/simulation.md)")
-    s.add_argument("--out", required=True, type=Path, help="output dataset folder (must not exist or be empty)")
-    s.add_argument("--seed", type=int, default=0,
-                   help="seed of every random draw (noise, random stations, effects without parameters); "
-                        "the same seed writes the same dataset")
-    s.add_argument("--stations", type=int, default=None, help="number of stations (random program)")
-    s.add_argument("--sessions", type=int, default=1, help="number of stances (feet re-planted between them)")
-    s.add_argument("--sensor", action="append", default=None, help="simulate only this sensor (repeatable)")
-    s.add_argument("--output", choices=("clouds", "planes", "both"), default="both",
-                   help="write raw clouds, fitted planes (planes.csv), or both (default); a laser "
-                        "scanner's scans are written as clouds with every choice (a scan has no plane)")
-    s.add_argument("--cloud-stride", type=int, default=None,
-                   help="keep every k-th camera pixel row/column (1 = full 640x480 frames; default 4; "
-                        "tripod-walk 16, tripod-stairs 8)")
-    s.add_argument("--distance", type=float, default=None,
-                   help="walking programs: body path length, m (tripod-walk default 20)")
-    s.add_argument("--duration", type=float, default=None,
-                   help="tripod-walk: walk about this long, s (instead of --distance)")
-    s.add_argument("--cloud-rate", type=float, default=None,
-                   help="walking programs: depth clouds per second (default 30; 0 = none)")
-    s.add_argument("--leg-errors", action="store_true",
-                   help="draw random joint-offset (0.5 deg) and link-length (3 mm) errors on every leg")
-    s.add_argument("--effect", action="append", type=_effect_arg, default=[],
-                   help="hide an effect: CAUSE or CAUSE:key=value,... (see docs/simulation.md); "
-                        "CAUSE alone draws its magnitude and location from the seed")
-    s.add_argument("--overwrite", action="store_true",
-                   help="replace a previous simulation in --out (one with a graphcal truth.yaml and nothing else)")
+    _add_simulate_parser(sub, common)
 
     v = sub.add_parser("validate", help="check a dataset against the contract (docs/dataset.md)", parents=[common])
     v.add_argument("dataset", type=Path, help=dataset_help)
@@ -193,6 +154,9 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="RMS height of bumps in the ground (default 0: a flat floor). On uneven ground the "
                         "feet stand on bumps and within one stance that cannot be told from the extrinsic; "
                         "this puts it into the sigma (docs/calibration.md)")
+    c.add_argument("--time-offset-ms", action="append", default=[], metavar="SENSOR=MS",
+                   help="a walking dataset: the camera's known time offset (its stamp minus its capture time, ms); "
+                        "not estimated then (repeatable; default: every camera's is estimated from the walk)")
     c.add_argument("--plane-points", type=int, default=None, metavar="N",
                    help="fit each cloud's ground plane on at most N of its points, every k-th one (default: "
                         "all). Faster on large clouds, a little less accurate: on 258k-point Kinect clouds 50000 "
@@ -320,11 +284,75 @@ def _cmd_study(args):
                      scheduler=args.scheduler, workers=args.workers, progress=not args.quiet)
 
 
+def _add_simulate_parser(sub, common) -> None:
+    """The ``simulate`` subcommand's arguments."""
+    s = sub.add_parser("simulate", help="simulate a calibration session and write it as a dataset", parents=[common],
+                       formatter_class=_DefaultsHelpFormatter)
+    s.add_argument("--robot", default=None,
+                   help="built-in robot model (octopus, qingzhui, messor, a1); default: the walking program's own "
+                        "robot, otherwise octopus")
+    s.add_argument("--program", default="chai2015",
+                   help="station program (chai2015, labecki2012, random), walk (tripod-walk, tripod-stairs: "
+                        "the qingzhui's tripod gait; trot, walk: the a1 quadruped with foot-force sensors; 1 kHz "
+                        "timeseries; see docs/state_estimation.md), or mocap "
+                        "(a leg in the air in a motion-capture room, Yuan et al.'s set-up, for identify-legs; "
+                        "--stations samples, default 1000; see docs/legs.md)")
+    s.add_argument("--ground", default="level", help="level, bumpy-little, bumpy-big, stairs, boxes")
+    s.add_argument("--real-like", action="store_true",
+                   help="a walking program written as a real robot's log: 400 Hz, lying, standing up and lying down, "
+                        "raw foot counts with per-foot offsets and gains, the IMU off the base link, noise drawn away "
+                        "from graphcal's defaults (docs/simulation.md)")
+    s.add_argument("--out", required=True, type=Path, help="output dataset folder (must not exist or be empty)")
+    s.add_argument("--seed", type=int, default=0,
+                   help="seed of every random draw (noise, random stations, effects without parameters); "
+                        "the same seed writes the same dataset")
+    s.add_argument("--stations", type=int, default=None, help="number of stations (random program)")
+    s.add_argument("--sessions", type=int, default=1, help="number of stances (feet re-planted between them)")
+    s.add_argument("--sensor", action="append", default=None, help="simulate only this sensor (repeatable)")
+    s.add_argument("--output", choices=("clouds", "planes", "both"), default="both",
+                   help="write raw clouds, fitted planes (planes.csv), or both (default); a laser "
+                        "scanner's scans are written as clouds with every choice (a scan has no plane)")
+    s.add_argument("--cloud-stride", type=int, default=None,
+                   help="keep every k-th camera pixel row/column (1 = full 640x480 frames; default 4; "
+                        "tripod-walk 16, tripod-stairs 8)")
+    s.add_argument("--distance", type=float, default=None,
+                   help="walking programs: body path length, m (tripod-walk default 20)")
+    s.add_argument("--duration", type=float, default=None,
+                   help="tripod-walk: walk about this long, s (instead of --distance)")
+    s.add_argument("--cloud-rate", type=float, default=None,
+                   help="walking programs: depth clouds per second (default 30; 0 = none)")
+    s.add_argument("--cad-error-mm", type=float, default=None, metavar="MM",
+                   help="walking programs: the depth camera's CAD prior in dataset.yaml is its true pose moved by a "
+                        "draw of this spread per axis (default 0: the prior is the truth)")
+    s.add_argument("--cad-error-deg", type=float, default=None, metavar="DEG",
+                   help="walking programs: ... and rotated by a draw of this spread per axis (default 0)")
+    s.add_argument("--camera-delay-ms", type=float, default=None, metavar="MS",
+                   help="walking programs: every depth cloud stamped this late (default 0)")
+    s.add_argument("--sway-deg", type=float, default=None, metavar="DEG",
+                   help="walking programs: the body's roll sway amplitude at full speed (default 1; its pitch nod "
+                        "is half of it)")
+    s.add_argument("--leg-errors", action="store_true",
+                   help="draw random joint-offset (0.5 deg) and link-length (3 mm) errors on every leg")
+    s.add_argument("--effect", action="append", type=_effect_arg, default=[],
+                   help="hide an effect: CAUSE or CAUSE:key=value,... (see docs/simulation.md); "
+                        "CAUSE alone draws its magnitude and location from the seed")
+    s.add_argument("--overwrite", action="store_true",
+                   help="replace a previous simulation in --out (one with a graphcal truth.yaml and nothing else)")
+
+
 def _cmd_simulate(args):
+    import math
+
     from graphcal.commands import simulate
 
+    walk = {key: scale * value for key, scale, value in (
+        ("cad_error_m", 1e-3, args.cad_error_mm), ("cad_error_rad", math.pi / 180, args.cad_error_deg),
+        ("camera_delay_s", 1e-3, args.camera_delay_ms), ("sway_rad", math.pi / 180, args.sway_deg)) if value is not None}
+    if args.sway_deg is not None:
+        walk["nod_rad"] = walk["sway_rad"] / 2
     return simulate.run(
         robot=args.robot,
+        walk=walk,
         program=args.program,
         ground=args.ground,
         out_dir=args.out,
@@ -352,7 +380,18 @@ def _cmd_calibrate(args):
 
     if not (math.isfinite(args.ground_roughness_mm) and args.ground_roughness_mm >= 0):
         raise GraphcalError(f"--ground-roughness-mm must be a number >= 0 (mm), got {args.ground_roughness_mm}")
-    return calibrate.run(args.dataset, args.out, legs=args.legs, incremental=args.incremental,
+    offsets = {}
+    for text in args.time_offset_ms:
+        name, _, value = text.partition("=")
+        try:
+            ms = float(value)
+        except ValueError:
+            ms = float("nan")
+        if not name or not math.isfinite(ms) or abs(ms) > 1000:
+            raise GraphcalError(f"--time-offset-ms {text}: expected SENSOR=MS with MS a number of milliseconds "
+                                "within +-1000 (e.g. depth=25)")
+        offsets[name] = 1e-3 * ms
+    return calibrate.run(args.dataset, args.out, legs=args.legs, incremental=args.incremental, time_offsets_s=offsets,
                          progress=not args.quiet, ground_roughness_m=1e-3 * args.ground_roughness_mm,
                          plane_max_points=check_max_points(args.plane_points, "--plane-points"),
                          noise_from=args.noise_from,

@@ -601,7 +601,8 @@ def test_every_command_has_quiet_verbose_and_documented_arguments(capsys):
                 assert a.help, (name, a.dest)
     subs["simulate"].print_help()
     text = capsys.readouterr().out
-    assert "(default: octopus)" in text and "(default: 0)" in text
+    # --robot: a walking program's own robot (tripod-walk: the qingzhui), otherwise the Octopus
+    assert "walking program's own robot, otherwise" in " ".join(text.split()) and "(default: 0)" in text
     log = logging.getLogger("graphcal.calibration.calibrate")
     for quiet, verbose, shown in ((True, False, logging.WARNING), (False, False, logging.INFO),
                                   (False, True, logging.DEBUG)):

@@ -176,3 +176,28 @@ def test_pointcloud2_walk_in_mcap(tmp_path):
     j = int(np.argmin(np.abs(T0 + result.times[result.cloud_indices] - times[3])))
     np.testing.assert_allclose(read_ply(ds / paths[3]), result.clouds[j], atol=1e-6)  # float32 points
     assert main(["validate", str(ds), "--quiet"]) == 0
+
+
+@pytest.mark.slow
+def test_walk_bag_to_calibration_in_three_commands(walk, tmp_path):
+    """import, validate, calibrate: the README's three commands on the ROS 2 bag of a walk (issue 43)
+    give the camera's pose and a time offset near 0 (the images' stamps are their capture times)."""
+    from graphcal.geometry import rotation_angle_between
+    from graphcal.solvers.covariance import extrinsic_errors
+    from graphcal.stats import ppf
+
+    result, bag = walk
+    ds, out = tmp_path / "walk", tmp_path / "walk-cal"
+    assert main(["import", str(bag), "--timeseries", "--cloud-rate", "15", "--out", str(ds), "--quiet"]) == 0
+    assert main(["validate", str(ds), "--quiet"]) == 0
+    assert main(["calibrate", str(ds), "--out", str(out), "--quiet"]) == 0
+    doc = yaml.safe_load((out / "calibration.yaml").read_text())
+    entry = doc["sensors"]["camera_depth"]
+    from graphcal.io.calibration_yaml import pose_from_dict
+
+    T = pose_from_dict(entry["T_body_sensor"])
+    e = extrinsic_errors(T, result.T_body_sensor, np.array(entry["covariance"]))
+    assert np.degrees(rotation_angle_between(T[:3, :3], result.T_body_sensor[:3, :3])) < 0.1
+    assert e["distance_mm"] < 3.0 and e["nees"] < float(ppf(0.999, 6))
+    assert entry["time_offset_source"] == "estimated" and abs(entry["time_offset_s"]) < 0.002
+    assert doc["walk"]["frames"]["camera_depth"] >= 100

@@ -671,6 +671,19 @@ def _add_legs(b: GraphBuild, robot, ext: GraphExtension, ek: ExtensionKeys) -> d
     return leg_keys
 
 
+def planted_foot_index(data, robot) -> dict:
+    """(stance label, foot) -> j of the planted-foot variable F(j): every (session, foot) of
+    ``robot.feet`` in session order, then the walks' own stances (a foot's label per touchdown,
+    :attr:`~graphcal.calibration.measurements.StationMeasurements.stances`) in order of appearance."""
+    sessions = list(dict.fromkeys(st.session for st in data.stations if st.stances is None))
+    index = {(s, f): j for j, (s, f) in enumerate((s, f) for s in sessions for f in robot.feet)}
+    for st in data.stations:
+        if st.stances is not None:
+            for f in st.q_by_foot:
+                index.setdefault((st.stances[f], f), len(index))
+    return index
+
+
 def _add_stations(b: GraphBuild, robot, station_keys: dict, leg_keys: dict, T_body0: dict, ext: GraphExtension,
                   ek: ExtensionKeys) -> None:
     """The proprioceptive factors of every station (:func:`station_factors`), the IMU mounting
@@ -681,7 +694,7 @@ def _add_stations(b: GraphBuild, robot, station_keys: dict, leg_keys: dict, T_bo
     ds, data, options, values = b.ds, b.data, b.options, b.values
     kin = leg_kinematics(data, robot)
     par_kin = {f: leg_parameter_kinematics(data, robot, f, param) for f, (_, param) in leg_keys.items()}
-    foot_index = {(s, f): j for j, (s, f) in enumerate((s, f) for s in b.sessions for f in robot.feet)}
+    foot_index = planted_foot_index(data, robot)
     feet_sum: dict = {}
     R_body_imu = ds.imu.T_body_imu_prior.matrix[:3, :3] if ds.imu is not None else None
     for st in data.stations:
@@ -695,7 +708,7 @@ def _add_stations(b: GraphBuild, robot, station_keys: dict, leg_keys: dict, T_bo
             else:
                 b.extension_keys["imu_mounting"] = M(0)
                 b.add_prior(factor, "imu_mounting")
-        foot_keys = {f: F(foot_index[(st.session, f)]) for f in st.q_by_foot}
+        foot_keys = {f: F(foot_index[(st.stance_of(f), f)]) for f in st.q_by_foot}
         for factor, group, comps in station_factors(robot, st, station_keys[st.station], foot_keys, leg_keys,
                                                     options, R_body_imu=R_body_imu, kinematics=kin,
                                                     w_key=ek.ground_tilt, stance=ek.stance,
@@ -703,7 +716,7 @@ def _add_stations(b: GraphBuild, robot, station_keys: dict, leg_keys: dict, T_bo
             b.add(factor, group, comps)
         for f, q in st.q_by_foot.items():
             p_world = T[:3, :3] @ kin[(st.station, f)][0] + T[:3, 3]
-            feet_sum.setdefault(foot_index[(st.session, f)], []).append(p_world)
+            feet_sum.setdefault(foot_index[(st.stance_of(f), f)], []).append(p_world)
     for j, pts in feet_sum.items():
         p0 = np.mean(pts, axis=0)
         p0[2] = 0.0

@@ -143,7 +143,8 @@ def _compute_kinematic_bodies(data, robot) -> tuple[dict, dict, dict]:
     for st in data.stations:
         if len(st.q_by_foot) >= 3:
             u, h = ground_from_feet(np.array([kin[(st.station, f)][0] for f in st.q_by_foot]))
-            T = initial_body_pose(u, h, st.T_world_body_cmd)
+            T = initial_body_pose(u, h, st.T_world_body_cmd if st.T_world_body_cmd is not None
+                                  else st.T_world_body_start)
         elif st.T_world_body_cmd is not None:
             T = st.T_world_body_cmd
             u, h = T[:3, :3].T @ np.array([0.0, 0.0, 1.0]), float(T[2, 3])

@@ -40,6 +40,11 @@ class StationMeasurements:
         q_by_foot: foot -> (n,) measured joint angles of that leg (rad / m), Leg order.
         T_world_body_cmd: (4, 4) commanded pose, or None.
         imu_accel: (3,) specific force in the IMU frame (m/s^2), or None.
+        stances: foot -> label of the stance it stands in (a walk: one per foot and touchdown), or
+            None: every foot of ``q_by_foot`` stands in the session's stance.
+        T_world_body_start: (4, 4) a start guess of the body pose carrying no information (a
+            walk's leg odometry: its x, y and yaw start the solve), or None.
+        time_s: log time of the joint angles (s; a walk's stations), or None.
     """
 
     station: int
@@ -47,6 +52,13 @@ class StationMeasurements:
     q_by_foot: dict
     T_world_body_cmd: np.ndarray | None
     imu_accel: np.ndarray | None
+    stances: dict | None = None
+    T_world_body_start: np.ndarray | None = None
+    time_s: float | None = None
+
+    def stance_of(self, foot: str) -> str:
+        """The label of the stance ``foot`` stands in (its planted point's)."""
+        return self.stances[foot] if self.stances is not None else self.session
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,6 +107,16 @@ def station_measurements(ds, robot) -> tuple[StationMeasurements, ...]:
         accel = np.array([t["imu_ax"][i], t["imu_ay"][i], t["imu_az"][i]]) if has_imu else None
         out.append(StationMeasurements(int(t["station"][i]), str(sessions[i]), q_by_foot, T_cmd, accel))
     return tuple(out)
+
+
+def plane_measurements_from_rows(rows: dict) -> dict:
+    """(station, sensor) -> [:class:`PlaneMeasurement`, ...] largest first, from a planes table
+    (planes.csv's columns, e.g. :func:`graphcal.clouds.plane_table.planes_rows`)."""
+    out: dict = {}
+    _plane_rows_to_measurements(rows, len(rows["station"]), out)
+    for key in out:
+        out[key].sort(key=lambda p: -p.n_points)
+    return out
 
 
 def _plane_rows_to_measurements(rows: dict, count: int, out: dict) -> None:

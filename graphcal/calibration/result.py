@@ -54,6 +54,10 @@ class SensorEstimate:
         range_scale_check: how well the data determine the sensor's range scale and what a scale
             error would do (:class:`~graphcal.calibration.range_observability.RangeScaleCheck`);
             None when not checked.
+        time_offset_s, time_offset_sigma_s, time_offset_source: a walk's camera: its stamp minus
+            its capture time (s), the 1-sigma (s; None when given or not determined) and
+            ``estimated``, ``given`` or ``not determined`` (calibration/time_offset.py); None and
+            "" for stations.
     """
 
     name: str
@@ -72,6 +76,9 @@ class SensorEstimate:
     covariance_robust: np.ndarray | None = None
     robust_terms: tuple[tuple[str, str], ...] = ()
     range_scale_check: object = None
+    time_offset_s: float | None = None
+    time_offset_sigma_s: float | None = None
+    time_offset_source: str = ""
 
     @property
     def model_covariance(self) -> np.ndarray:
@@ -182,6 +189,8 @@ class CalibrationResult:
             to ``calibration.yaml`` so that ``--noise-from`` can tell another robot's file; "" if unknown.
         adequacy: the verdict on the model (:class:`~graphcal.calibration.adequacy.Adequacy`), or
             None when not judged.
+        walk: a walking dataset's summary (``duration_s``, ``stations``, ``frames`` and
+            ``frames_in_log`` per sensor, ``station_times_s``: station -> log time, s), or None.
     """
 
     dataset: str
@@ -203,6 +212,7 @@ class CalibrationResult:
     noise_source: str = ""
     robot_name: str = ""
     adequacy: object = None
+    walk: dict | None = None
 
 
 #: A CAD prior further from the estimate than this many of its own sigmas is reported as wrong.

@@ -106,11 +106,12 @@ class CalibrateResult:
         lines = verdict_lines(result)
         lines.append(f"calibrated {len(result.sensors)} sensor(s) from {self.dataset} ({result.solver}); "
                      f"wrote {self.out}:")
+        lines += walk_lines(result)
         for name, s in result.sensors.items():
             lines.append(
                 f"  {name}: xyz {np.round(s.T_body_sensor[:3, 3], 4).tolist()} m, "
                 f"sigma rot {np.round(s.sigma_rot_deg, 3).tolist()} deg, xyz {np.round(s.sigma_xyz_mm, 2).tolist()} mm"
-            )
+                + time_offset_text(s))
         if np.isfinite(result.normal_rms_deg):
             lines.append(f"  residuals after: normal {result.normal_rms_deg:.3g} deg RMS, distance "
                          f"{result.distance_rms_mm:.3g} mm RMS")
@@ -125,6 +126,66 @@ class CalibrateResult:
         lines += truth_lines(self.truth)
         lines.append("  files: " + ", ".join(sorted(p.name for p in self.files)))
         return "\n".join(lines)
+
+
+def _walking_dataset(dataset):
+    """The dataset read, when it is a walk (clouds in timeseries.csv, no stations.csv); else None."""
+    from graphcal.calibration.walking import is_walking_dataset
+    from graphcal.io.dataset import Dataset, read_dataset
+
+    ds = dataset if isinstance(dataset, Dataset) else read_dataset(dataset)
+    return ds if is_walking_dataset(ds) else None
+
+
+def walk_contacts(ds, robot) -> np.ndarray:
+    """(N, n_feet) bool stance of every timeseries row: the ``force_<foot>`` columns through each
+    foot's learned thresholds when there, else ``contact_<foot>`` > 0.5, else the feet's loads from
+    the joint torques (locomotion/support.py) through learned thresholds; one line naming the file
+    when none is there for every foot."""
+    from graphcal.errors import DatasetError
+
+    t = ds.timeseries
+    where = (ds.root / "timeseries.csv") if ds.root is not None else "timeseries.csv"
+    if all(t.has(f"force_{f}") for f in robot.feet):
+        from graphcal.locomotion.contact_detection import detect_contacts
+
+        signals = np.column_stack([t[f"force_{f}"] for f in robot.feet])
+        return np.asarray(detect_contacts(signals, np.asarray(t["time"]), robot.feet).mask, dtype=bool)
+    if all(t.has(f"contact_{f}") for f in robot.feet):
+        return np.column_stack([np.asarray(t[f"contact_{f}"]) > 0.5 for f in robot.feet])
+    joints = [j for f in robot.feet for j in robot.leg(f).joint_names]
+    if all(t.has(f"tau_{j}") for j in joints):
+        from graphcal.locomotion.contact_detection import detect_contacts
+        from graphcal.locomotion.support import foot_loads
+
+        loads = foot_loads(robot, {j: np.asarray(t[f"q_{j}"]) for j in joints},
+                           {j: np.asarray(t[f"tau_{j}"]) for j in joints}, robot.feet)
+        return np.asarray(detect_contacts(loads, np.asarray(t["time"]), robot.feet).mask, dtype=bool)
+    missing = [f for f in robot.feet if not t.has(f"contact_{f}") and not t.has(f"force_{f}")]
+    raise DatasetError(where, f"header, column force_{(missing or robot.feet)[0]}",
+                       "the stance of every foot for a walk's calibration: force_<foot> (N or raw counts), "
+                       "contact_<foot> (0/1) or the joint torques tau_<joint> of every foot", "missing")
+
+
+def _calibrate_walk(ds, *, legs, incremental, ground_roughness_m, plane_max_points, noise_from, progress,
+                    time_offsets_s):
+    """The walking dataset ``ds`` calibrated (:func:`graphcal.calibration.walk_calibration.calibrate_walk`)."""
+    from graphcal.calibration.graph import CalibrationOptions, options_for_ground_roughness
+    from graphcal.calibration.walk_calibration import calibrate_walk
+    from graphcal.io.dataset import load_dataset_robot
+
+    for flag, given in (("--incremental", incremental), ("--legs", legs), ("--noise-from", noise_from is not None)):
+        if given:
+            raise GraphcalError(f"{flag} is not supported on a walking dataset yet ({ds.root}: clouds along a walk); "
+                                "calibrate it without, or from still stations")
+    unknown = sorted(set(time_offsets_s or {}) - set(ds.sensors))
+    if unknown:
+        raise GraphcalError(f"--time-offset-ms {unknown[0]}=...: no such sensor in {ds.root}/dataset.yaml "
+                            f"(sensors: {', '.join(ds.sensors)})")
+    robot = load_dataset_robot(ds)
+    options = options_for_ground_roughness(CalibrationOptions(), ground_roughness_m)
+    return calibrate_walk(ds, robot, walk_contacts(ds, robot), options=options, time_offsets_s=time_offsets_s,
+                          progress=progress, plane_max_points=plane_max_points)
 
 
 def truth_comparison(dataset: str | Path, result) -> dict | None:
@@ -151,7 +212,29 @@ def truth_comparison(dataset: str | Path, result) -> dict | None:
         e = extrinsic_errors(s.T_body_sensor, pose_from_dict(truth), s.covariance)
         out[name] = {"rotation_error_deg": e["angle_deg"], "translation_error_mm": e["distance_mm"],
                      "nees": float(e["nees"])}
+        true_offset = sensors[name].get("time_offset_s")
+        if getattr(s, "time_offset_s", None) is not None and isinstance(true_offset, (int, float)):
+            out[name]["time_offset_error_ms"] = 1e3 * (s.time_offset_s - float(true_offset))
     return out or None
+
+
+def walk_lines(result) -> list[str]:
+    """The summary's line on a walking dataset's stations (none for stations)."""
+    w = getattr(result, "walk", None)
+    if not w:
+        return []
+    frames = ", ".join(f"{s} {n} of {w['frames_in_log'][s]} frames" for s, n in w["frames"].items())
+    return [f"  walk: {w['duration_s']:.1f} s; {frames} taken with >= 3 feet standing; {w['stations']} stations "
+            "(the frames and one per change of stance)"]
+
+
+def time_offset_text(s) -> str:
+    """``, time offset ...`` of a walk's camera (empty for stations)."""
+    if getattr(s, "time_offset_s", None) is None:
+        return ""
+    if s.time_offset_source == "estimated":
+        return f", time offset {1e3 * s.time_offset_s:+.2f} +- {1e3 * s.time_offset_sigma_s:.2f} ms (stamp minus capture)"
+    return f", time offset {1e3 * s.time_offset_s:+.2f} ms ({s.time_offset_source})"
 
 
 def truth_lines(truth: dict | None) -> list[str]:
@@ -163,6 +246,7 @@ def truth_lines(truth: dict | None) -> list[str]:
     lo, hi = float(ppf(0.025, 6)), float(ppf(0.975, 6))
     return ["  against the truth (truth.yaml beside the dataset): " + "; ".join(
         f"{n} {t['rotation_error_deg']:.4f} deg, {t['translation_error_mm']:.2f} mm, NEES {t['nees']:.2f}"
+        + (f", time offset {t['time_offset_error_ms']:+.2f} ms off" if "time_offset_error_ms" in t else "")
         for n, t in truth.items()) + f" (6 dof: one run falls in [{lo:.2f}, {hi:.1f}] 95 % of the time)"]
 
 
@@ -206,7 +290,7 @@ def noise_lines(result, noise_from, incremental: bool) -> list[str]:
 def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, incremental: bool = False,
         progress: bool = True, ground_roughness_m: float = 0.0,
         plane_max_points: int | None = None, noise_from: str | Path | None = None,
-        scene_max_points: int | None = SCENE_MAX_POINTS) -> CalibrateResult:
+        scene_max_points: int | None = SCENE_MAX_POINTS, time_offsets_s: dict | None = None) -> CalibrateResult:
     """The ``graphcal calibrate`` command: calibrate and write the outputs.
 
     Args:
@@ -222,6 +306,8 @@ def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, increme
             (:func:`graphcal.calibration.noise_file.options_with_noise_from`).
         scene_max_points: each station's cloud in scene.mcap evenly thinned to at most this many
             points (None: every point; graphcal.report.scene_mcap).
+        time_offsets_s: a walking dataset: sensor -> its known time offset (s, stamp minus capture),
+            not estimated (the others are).
 
     Returns:
         a :class:`CalibrateResult` (the calibration, the files written, warnings, verdict).
@@ -230,8 +316,17 @@ def run(dataset: str | Path, out_dir: str | Path, *, legs: bool = False, increme
     if noise_from is not None and Path(out_dir).resolve() in Path(noise_from).resolve().parents:
         raise GraphcalError(f"--noise-from {noise_from} is inside --out {out_dir}, whose contents calibrate "
                             "replaces: the file would be lost; copy it elsewhere or choose another --out")
-    result = calibrate_session(dataset, legs=legs, incremental=incremental, ground_roughness_m=ground_roughness_m,
-                               plane_max_points=plane_max_points, noise_from=noise_from, progress=progress)
+    walk = _walking_dataset(dataset)
+    if walk is not None:
+        result = _calibrate_walk(walk, legs=legs, incremental=incremental, ground_roughness_m=ground_roughness_m,
+                                 plane_max_points=plane_max_points, noise_from=noise_from, progress=progress,
+                                 time_offsets_s=time_offsets_s)
+    elif time_offsets_s:
+        raise GraphcalError("--time-offset-ms belongs to a walking dataset (clouds in timeseries.csv, no "
+                            f"stations.csv); {dataset} has stations")
+    else:
+        result = calibrate_session(dataset, legs=legs, incremental=incremental, ground_roughness_m=ground_roughness_m,
+                                   plane_max_points=plane_max_points, noise_from=noise_from, progress=progress)
     written = write_calibration_outputs(result, out_dir, scene_max_points=scene_max_points)
     first = [w for w in (verdict_warning(result), *range_scale_warnings(result)) if w]
     a = getattr(result, "adequacy", None)

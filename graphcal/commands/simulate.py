@@ -166,7 +166,7 @@ class SimulateResult:
 
 def run(
     *,
-    robot: str,
+    robot: str | None,
     program: str,
     ground: str,
     out_dir: str | Path,
@@ -185,6 +185,7 @@ def run(
     duration_s: float | None = None,
     cloud_rate_hz: float | None = None,
     real_like: bool = False,
+    walk: dict | None = None,
 ) -> SimulateResult:
     """Simulate and write the dataset folder ``out_dir`` (contract files and ``truth.yaml``).
 
@@ -199,11 +200,15 @@ def run(
         distance_m, duration_s, cloud_rate_hz: the walking programs (``tripod-walk``,
             ``tripod-stairs`` of the qingzhui, ``trot``, ``walk`` of the a1:
             :mod:`graphcal.simulation.walking`) only.
+        walk: the walking programs: more :class:`~graphcal.simulation.walking.WalkingConfig` fields
+            (``cad_error_m``, ``cad_error_rad``, ``camera_delay_s``, ``sway_rad``, ``nod_rad``; SI units).
     Returns:
         A :class:`SimulateResult` (its summary: one paragraph on what was written).
     """
-    from graphcal.simulation.walking import WALKING_PROGRAMS
+    from graphcal.simulation.walking import GAITS, WALKING_PROGRAMS
 
+    if robot is None:  # the walking program's own robot, otherwise the Octopus
+        robot = GAITS[program].robot if program in GAITS else "octopus"
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise GraphcalError(f"--seed must be a whole number >= 0, got {seed}")
     if n_stations is not None and program not in ("random", MOCAP_PROGRAM):
@@ -224,13 +229,18 @@ def run(
                                     ("--sessions", n_sessions != 1), ("--sensor", bool(sensors)),
                                     ("--output", output != "both"), ("--cloud-stride", cloud_stride not in (None, 4)),
                                     ("--distance", distance_m is not None), ("--duration", duration_s is not None),
-                                    ("--cloud-rate", cloud_rate_hz is not None)))
+                                    ("--cloud-rate", cloud_rate_hz is not None), ("--cad-error/--camera-delay/--sway",
+                                                                                  bool(walk))))
     if program in WALKING_PROGRAMS:
         return _walk_to_folder(program=program, robot=robot, out_dir=out_dir, seed=seed, output=output,
                                cloud_stride=cloud_stride, leg_errors=leg_errors, effects=effects,
                                n_stations=n_stations, n_sessions=n_sessions, sensors=sensors,
                                overwrite=overwrite, progress=progress, distance_m=distance_m,
-                               duration_s=duration_s, cloud_rate_hz=cloud_rate_hz, real_like=real_like)
+                               duration_s=duration_s, cloud_rate_hz=cloud_rate_hz, real_like=real_like,
+                               walk=walk)
+    if walk:
+        raise GraphcalError("--cad-error-mm, --cad-error-deg, --camera-delay-ms and --sway-deg belong to the walking "
+                            "programs (tripod-walk, tripod-stairs, trot, walk)")
     if real_like:
         raise GraphcalError("--real-like belongs to the walking programs (tripod-walk, trot, walk)")
     if distance_m is not None or duration_s is not None or cloud_rate_hz is not None:
@@ -349,7 +359,7 @@ def _mocap_to_folder(*, robot, out_dir, seed, n_stations, leg_errors, overwrite,
 
 def _walk_to_folder(*, program, robot, out_dir, seed, output, cloud_stride, leg_errors, effects, n_stations,
                     n_sessions, sensors, overwrite, progress, distance_m, duration_s, cloud_rate_hz,
-                    real_like=False) -> SimulateResult:
+                    real_like=False, walk=None) -> SimulateResult:
     """The walking programs: refuse the station-program options, then simulate the walk."""
     from graphcal.simulation.write import simulate_walking_to_folder
 
@@ -368,6 +378,6 @@ def _walk_to_folder(*, program, robot, out_dir, seed, output, cloud_stride, leg_
     text = simulate_walking_to_folder(program=program, out_dir=out_dir, robot=robot, seed=seed,
                                       distance_m=distance_m, duration_s=duration_s, cloud_rate_hz=cloud_rate_hz,
                                       cloud_stride=cloud_stride, overwrite=overwrite, progress=progress,
-                                      real_like=real_like)
+                                      real_like=real_like, walk=walk)
     return SimulateResult(out=Path(out_dir), robot=robot, program=program, simulation=None,
                           files=folder_files(out_dir), walk_summary=text)

@@ -29,11 +29,9 @@ def _stance_rows(model, problem, system):
     from graphcal.factors.keys import F
 
     x_station = {int(k): st for st, k in problem.station_keys.items()}
-    foot_of, j = {}, 0
-    for s in model.sessions():
-        for f in model.robot.feet:
-            foot_of[int(F(j))] = f
-            j += 1
+    from graphcal.calibration.graph import planted_foot_index
+
+    foot_of = {int(F(j)): f for (_, f), j in planted_foot_index(model.data, model.robot).items()}
     rows_of: dict[int, list] = {}
     stance = {i for i, g in problem.factor_groups.items() if g == "stance_foot"}
     for r, i in enumerate(system.row_factor):

@@ -161,11 +161,11 @@ def _free_legs_chi2(phys, a: str, b: str) -> float:
 
 def _stance_chi2(phys, problem, values) -> dict:
     """(station, foot) -> the stance-foot factor's chi-square at ``values``."""
+    from graphcal.calibration.graph import planted_foot_index
     from graphcal.factors.keys import F
     from graphcal.solvers.batch import whitened_errors
 
-    sessions = list(dict.fromkeys(st.session for st in phys.data.stations))
-    foot_of = {int(F(j)): f for j, (s, f) in enumerate((s, f) for s in sessions for f in phys.robot.feet)}
+    foot_of = {int(F(j)): f for (_, f), j in planted_foot_index(phys.data, phys.robot).items()}
     x_station = {int(k): st for st, k in problem.station_keys.items()}
     idx = [i for i, g in problem.factor_groups.items() if g == "stance_foot"]
     e = whitened_errors(problem.graph, values, idx)

@@ -107,15 +107,10 @@ def stance_records(model, problem, values) -> tuple[StanceRecord, ...]:
 
     order = {st.station: j for j, st in enumerate(model.data.stations)}
     x_station = {int(k): st for st, k in problem.station_keys.items()}
+    from graphcal.calibration.graph import planted_foot_index
     from graphcal.factors.keys import F
 
-    foot_of = {}
-    sessions = list(dict.fromkeys(st.session for st in model.data.stations))
-    j = 0
-    for s in sessions:
-        for f in model.robot.feet:
-            foot_of[int(F(j))] = f
-            j += 1
+    foot_of = {int(F(j)): f for (_, f), j in planted_foot_index(model.data, model.robot).items()}
     idx = [i for i, g in problem.factor_groups.items() if g == "stance_foot"]
     chi = whitened_errors(problem.graph, values, idx)
     out = []

@@ -122,12 +122,10 @@ def _factor_table(model, problem, values, group: str):
     x_station = {int(k): st for st, k in problem.station_keys.items()}
     order = {st.station: j for j, st in enumerate(model.data.stations)}
     session_of = {st.station: st.session for st in model.data.stations}
+    from graphcal.calibration.graph import planted_foot_index
+
     sessions = list(dict.fromkeys(session_of.values()))
-    foot_of, j = {}, 0
-    for s in sessions:
-        for f in model.robot.feet:
-            foot_of[int(F(j))] = (s, f)
-            j += 1
+    foot_of = {int(F(j)): (s, f) for (s, f), j in planted_foot_index(model.data, model.robot).items()}
     kin = leg_kinematics(model.data, model.robot) if group == "stance_foot" else {}
     rows, reg = [], {}
     for i in idx:

@@ -129,6 +129,11 @@ def _sensor_dict(s) -> dict:
         terms = getattr(s, "robust_terms", ())
         if terms:
             entry["robust_terms"] = {str(k): str(v) for k, v in terms}
+    if getattr(s, "time_offset_s", None) is not None:
+        # a walk's camera: its stamp minus its capture time (s); sigma null when given or not determined
+        entry["time_offset_s"] = _f(s.time_offset_s)
+        entry["time_offset_sigma_s"] = None if s.time_offset_sigma_s is None else _f(s.time_offset_sigma_s)
+        entry["time_offset_source"] = str(s.time_offset_source)
     check = getattr(s, "range_scale_check", None)
     if check is not None:
         entry["range_scale_check"] = range_scale_check_dict(check)
@@ -186,6 +191,12 @@ def calibration_to_dict(result) -> dict:
         "stations": int(len({int(r.station) for r in result.residuals})),
     }
     doc["solver"] = {"kind": str(result.solver), "iterations": int(result.iterations)}
+    walk = getattr(result, "walk", None)
+    if walk:
+        # a walking dataset: its stations are camera frames and stance changes (station_times_s: log time, s)
+        doc["walk"] = {"duration_s": _f(walk["duration_s"]), "stations": int(walk["stations"]),
+                       "frames": {str(k): int(v) for k, v in walk["frames"].items()},
+                       "frames_in_log": {str(k): int(v) for k, v in walk["frames_in_log"].items()}}
     doc["warnings"] = [str(w) for w in result.warnings]
     noise = getattr(result, "noise", None) or {}
     if noise:
@@ -236,6 +247,9 @@ def frames_note(base_frame: str) -> dict[str, str]:
         "sigma": f"1-sigma rotation about and translation along the {base_frame.upper()} axes x, y, z, "
                  "in deg and mm (sqrt(diag(covariance)) is in sensor axes and differs)",
         "correlation": f"6x6 correlation of [rot x, y, z, trans x, y, z] in {base_frame} axes",
+        "time_offset_s": "a walking dataset's camera: its cloud stamp minus its capture time, in s (the frame "
+                         "stamped t shows the body at t - time_offset_s); time_offset_sigma_s its 1-sigma in s "
+                         "(null when given or not determined); time_offset_source estimated | given | not determined",
         "sigma_from": "model: covariance and sigma are the model's; robust: the model does not fit (adequacy:), "
                       "covariance and sigma are the robust covariance (= covariance_robust, sigma_robust), the "
                       "model's is beside it as covariance_model, sigma_model (same axes and units); robust_terms "

@@ -182,6 +182,11 @@ class WalkingConfig:
         lying_height_m: body origin height on the belly (m); default 0.4 x ``body_height_m``
             (a1 0.112 m: the folded leg keeps 0.17 rad from its knee limit).
         lying_load_fraction: share of the weight the feet carry while lying (the belly the rest).
+        cad_error_m, cad_error_rad: the depth camera's CAD prior (dataset.yaml) is its true pose
+            moved by a draw of this spread per axis (m; rad, about the sensor's own axes) from its
+            own generator (the other draws are unchanged); 0: the prior is the truth.
+        camera_delay_s: every depth cloud is stamped this late (s >= 0): the cloud captured at
+            sample k is written on the row ``round(camera_delay_s * rate_hz)`` samples later.
     """
 
     program: str = "tripod-walk"
@@ -224,6 +229,9 @@ class WalkingConfig:
     lying_load_fraction: float = 0.1
     imu_xyz_m: tuple | None = None
     joint_offset_sigma_rad: float = 0.0
+    cad_error_m: float = 0.0
+    cad_error_rad: float = 0.0
+    camera_delay_s: float = 0.0
 
     @property
     def posture_s(self) -> tuple[float, float]:
@@ -289,6 +297,8 @@ class WalkingConfig:
              "stand_up_s, lie_down_s and lying_s must be >= 0"),
             (0.0 <= c.lying_load_fraction < 1.0, "lying_load_fraction must be in [0, 1)"),
             (c.lying_height_m is None or c.lying_height_m > 0, "lying_height_m must be > 0"),
+            (c.cad_error_m >= 0 and c.cad_error_rad >= 0, "cad_error_m and cad_error_rad must be >= 0"),
+            (0.0 <= c.camera_delay_s <= 1.0, "camera_delay_s must be in [0, 1] s"),
         ]
         if st:
             checks.append((c.distance_m >= c.stairs_start_x_m + 2.7 + 0.9,
@@ -323,6 +333,8 @@ class WalkingResult:
         terrain: the :class:`~graphcal.simulation.terrain.Terrain` (meshes and treads).
         foot_force: (N, n_feet) measured foot loads (N: the force each foot exerts on the ground
             along the body's -z axis, plus noise), or None without foot-force sensors.
+        T_body_sensor_cad: (4, 4) the depth camera's CAD prior (the truth unless
+            ``config.cad_error_m`` / ``cad_error_rad``), or None (the truth).
     """
 
     config: WalkingConfig
@@ -349,6 +361,7 @@ class WalkingResult:
     clouds: list = field(default_factory=list)
     terrain: Terrain | None = None
     foot_force: np.ndarray | None = None
+    T_body_sensor_cad: np.ndarray | None = None
 
     @property
     def distance_m(self) -> float:
@@ -877,6 +890,7 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
         foot_force = np.round(load + rng.normal(0, c.force_sigma_n, load.shape), 2)
     T_body_sensor = np.asarray(info.sensors["depth"].T_body_sensor, dtype=float) if "depth" in info.sensors else None
     cloud_idx, clouds = _depth_clouds(c, T_body_sensor, t, T_world_body, body.terrain, rng, progress)
+    T_cad = _cad_prior(c, T_body_sensor) if T_body_sensor is not None else None
     return WalkingResult(
         config=c, robot=robot, info=info, times=t, T_world_body=T_world_body, v_world_body=v_world,
         feet=feet, groups=groups, p_world_foot=plan.p_world_foot, contact=plan.contact, q_true=q_true,
@@ -884,4 +898,19 @@ def simulate_walking(config: WalkingConfig = WalkingConfig(), *, progress: bool 
         imu_accel=imu.accel, imu_gyro=imu.gyro, accel_bias=imu.accel_bias, gyro_bias=imu.gyro_bias,
         T_body_imu=imu.T_body_imu, T_body_sensor=T_body_sensor if T_body_sensor is not None else np.eye(4),
         cloud_indices=cloud_idx, clouds=clouds, terrain=body.terrain, foot_force=foot_force,
+        T_body_sensor_cad=T_cad,
     )
+
+
+def _cad_prior(c: WalkingConfig, T_body_sensor: np.ndarray) -> np.ndarray:
+    """The CAD prior of the depth camera: its true pose (4, 4) moved by N(0, cad_error_m) per axis
+    and rotated by N(0, cad_error_rad) per sensor axis, from a generator of its own."""
+    from graphcal.geometry import so3_exp
+
+    if c.cad_error_m == 0 and c.cad_error_rad == 0:
+        return np.array(T_body_sensor, dtype=float)
+    draw = np.random.default_rng([int(c.seed), 7]).normal(0.0, 1.0, 6)
+    T = np.array(T_body_sensor, dtype=float)
+    T[:3, :3] = T[:3, :3] @ so3_exp(c.cad_error_rad * draw[:3])
+    T[:3, 3] = T[:3, 3] + c.cad_error_m * draw[3:]
+    return T

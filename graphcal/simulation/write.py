@@ -216,11 +216,14 @@ def walking_dataset(result: WalkingResult, cloud_names: list[str] | None = None,
     if len(result.cloud_indices):
         names = cloud_names or [f"clouds/depth/{j:05d}.ply" for j in range(len(result.cloud_indices))]
         col = np.full(N, "", dtype=object)
-        col[result.cloud_indices] = names
+        delay = int(round(result.config.camera_delay_s * result.config.rate_hz))  # stamped late
+        rows = result.cloud_indices + delay
+        keep = rows < N
+        col[rows[keep]] = np.asarray(names, dtype=object)[keep]
         cols["cloud_depth"] = col.astype(str)
         cad = info.sensors["depth"]
-        sensors["depth"] = SensorSpec("depth", cad.type,
-                                      PosePrior.from_matrix(cad.T_body_sensor, cad.sigma_m, cad.sigma_rad))
+        T_cad = result.T_body_sensor_cad if result.T_body_sensor_cad is not None else cad.T_body_sensor
+        sensors["depth"] = SensorSpec("depth", cad.type, PosePrior.from_matrix(T_cad, cad.sigma_m, cad.sigma_rad))
     for i, f in enumerate(result.feet):
         cols[f"contact_{f}"] = result.contact[:, i].astype(float)
     if result.foot_force is not None:
@@ -260,7 +263,9 @@ def truth_dict(result: WalkingResult) -> dict:
         "distance_m": result.distance_m,
         "gait": {"groups": [list(g) for g in result.groups], "cycle_s": c.cycle_s, "duty_factor": c.duty_factor,
                  **({"phase_offsets": dict(c.gait.phase_offsets)} if c.gait.phase_offsets else {})},
-        "sensors": {"depth": {"type": "depth_camera", "T_body_sensor": pose_to_dict(result.T_body_sensor)}},
+        "sensors": {"depth": {"type": "depth_camera", "T_body_sensor": pose_to_dict(result.T_body_sensor),
+                              # the cloud stamp minus its capture time (s)
+                              "time_offset_s": float(round(c.camera_delay_s * c.rate_hz) / c.rate_hz)}},
         "imu": {"T_body_imu": pose_to_dict(result.T_body_imu),
                 "accel_bias_start_m_s2": [float(v) for v in result.accel_bias[0]],
                 "gyro_bias_start_rad_s": [float(v) for v in result.gyro_bias[0]]},
@@ -284,7 +289,10 @@ def write_walking(result: WalkingResult, out_dir: str | Path, *, overwrite: bool
     from graphcal.io.dataset import write_dataset
 
     out = Path(out_dir)
-    names = [f"clouds/depth/{j:05d}.ply" if len(cl) else "" for j, cl in enumerate(result.clouds)]
+    c = result.config
+    last = len(result.times) - 1 - int(round(c.camera_delay_s * c.rate_hz))  # a late stamp past the log's end: dropped
+    names = [f"clouds/depth/{j:05d}.ply" if len(cl) and k <= last else ""
+             for j, (k, cl) in enumerate(zip(result.cloud_indices, result.clouds))]
     ds = walking_dataset(result, names, force_counts=force_counts)  # a frame that saw nothing has no file
     extra = {
         "truth.yaml": yaml.safe_dump(truth_dict(result), sort_keys=False),
@@ -308,16 +316,17 @@ def simulate_walking_to_folder(
     overwrite: bool = False,
     progress: bool = True,
     real_like: bool = False,
+    walk: dict | None = None,
 ) -> str:
     """``graphcal simulate --program tripod-walk|tripod-stairs|trot|walk``: simulate and write the folder
-    (``real_like``: as a real robot's log, :mod:`graphcal.simulation.real_like`). Returns a
-    one-paragraph summary."""
+    (``real_like``: as a real robot's log, :mod:`graphcal.simulation.real_like`; ``walk``: more
+    :class:`~graphcal.simulation.walking.WalkingConfig` fields). Returns a one-paragraph summary."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise GraphcalError(f"{out}: exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise GraphcalError(f"{out}: folder exists and is not empty; choose another --out or pass --overwrite")
-    kw = {}
+    kw = dict(walk or {})
     if cloud_rate_hz is not None:
         kw["cloud_rate_hz"] = float(cloud_rate_hz)
     if cloud_stride is not None:
@@ -344,9 +353,23 @@ def simulate_walking_to_folder(
     return (
         f"wrote {out}: {c.program} of the {c.robot}, {result.distance_m:.2f} m in {result.times[-1]:.1f} s; "
         f"{len(result.times)} samples at {c.rate_hz:g} Hz (joints, torques, IMU), {len(result.cloud_indices)} depth "
-        f"clouds at {c.cloud_rate_hz:g} Hz (stride {c.cloud_stride}); truth in {out / 'truth.yaml'} and "
-        f"{out / TRUTH_TRAJECTORY_FILE}"
+        f"clouds at {c.cloud_rate_hz:g} Hz (stride {c.cloud_stride}){_hidden_camera_errors(result)}; truth in "
+        f"{out / 'truth.yaml'} and {out / TRUTH_TRAJECTORY_FILE}"
     )
+
+
+def _hidden_camera_errors(result: WalkingResult) -> str:
+    """``, hidden: ...`` naming the camera's CAD error and stamp delay when the walk has them."""
+    from graphcal.geometry import rotation_angle_between
+
+    c, out = result.config, []
+    if result.T_body_sensor_cad is not None and (c.cad_error_m > 0 or c.cad_error_rad > 0):
+        dT = result.T_body_sensor_cad
+        out.append(f"the CAD prior {1e3 * np.linalg.norm(dT[:3, 3] - result.T_body_sensor[:3, 3]):.1f} mm and "
+                   f"{np.degrees(rotation_angle_between(dT[:3, :3], result.T_body_sensor[:3, :3])):.2f} deg off the truth")
+    if c.camera_delay_s > 0:
+        out.append(f"clouds stamped {1e3 * c.camera_delay_s:g} ms late")
+    return f"; hidden: {', '.join(out)}" if out else ""
 
 
 def write_real_like(log, out_dir: str | Path, *, overwrite: bool = False) -> Path:
