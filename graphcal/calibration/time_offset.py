@@ -18,9 +18,11 @@ __all__ = ["TimeOffsetEstimate", "estimate_time_offset", "COARSE_HALF_WIDTH_S", 
 #: the offsets searched: +- this around 0 (s), on a grid of COARSE_STEP_S
 COARSE_HALF_WIDTH_S = 0.1
 COARSE_STEP_S = 0.02
+#: the coarse profile uses every COARSE_THINNING-th camera frame (it only finds the minimum's 20 ms)
+COARSE_THINNING = 3
 #: the fine profile around the coarse minimum: +- FINE_HALF_WIDTH_S on a grid of FINE_STEP_S
 FINE_HALF_WIDTH_S = 0.008
-FINE_STEP_S = 0.002
+FINE_STEP_S = 0.004
 #: a walk whose profile gives the offset a sigma above this (s) does not determine it
 UNDETERMINED_SIGMA_S = 0.005
 
@@ -45,17 +47,27 @@ class TimeOffsetEstimate:
     extrinsic_rate: np.ndarray | None = None
 
 
-def _solve_at(ds, robot, frames, priors, options, sensor: str, offsets: dict, dt: float, steady):
-    """(chi2, T_body_sensor (4, 4)) of the walk solved with ``sensor`` at offset ``dt`` (s)."""
+def _solve_at(ds, robot, frames, priors, options, sensor: str, offsets: dict, dt: float, steady, start=None):
+    """(chi2, T_body_sensor (4, 4), solution) of the walk solved with ``sensor`` at offset ``dt``
+    (s), warm started from ``start`` (the solution at a neighbouring offset: the same stations)."""
     from graphcal.calibration.calibrate import solve_problem
     from graphcal.calibration.graph import build_problem
     from graphcal.calibration.walking import walking_data
     from graphcal.geometry import from_gtsam_pose
 
     data, _ = walking_data(frames, robot, priors, offsets={**offsets, sensor: dt}, steady=steady)
-    problem = build_problem(ds, robot, data, options)
+    problem = build_problem(ds, robot, data, options, initial=start)
     lm = solve_problem(problem)
-    return 2.0 * lm.error_final, from_gtsam_pose(lm.values.atPose3(problem.sensor_keys[sensor]))
+    return 2.0 * lm.error_final, from_gtsam_pose(lm.values.atPose3(problem.sensor_keys[sensor])), lm.values
+
+
+def _profile(ds, robot, frames, priors, options, sensor: str, offsets: dict, grid, steady) -> list:
+    """[(chi2, T_body_sensor), ...] at every offset of ``grid`` (s), each solve warm started from the last."""
+    out, start = [], None
+    for dt in grid:
+        chi2, T, start = _solve_at(ds, robot, frames, priors, options, sensor, offsets, float(dt), steady, start)
+        out.append((chi2, T))
+    return out
 
 
 def _parabola(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
@@ -76,9 +88,14 @@ def estimate_time_offset(ds, robot, frames, priors: dict, options, sensor: str, 
 
     log = logging.getLogger("graphcal")
     offsets = dict(offsets or {})
+    import dataclasses
+
     coarse = np.round(np.arange(-COARSE_HALF_WIDTH_S, COARSE_HALF_WIDTH_S + 1e-9, COARSE_STEP_S), 6)
     steady = (float(coarse[0]), float(coarse[-1]))
-    chi = np.array([_solve_at(ds, robot, frames, priors, options, sensor, offsets, dt, steady)[0] for dt in coarse])
+    rows, paths = frames.cloud_rows[sensor]
+    thin = dataclasses.replace(frames, cloud_rows={**frames.cloud_rows, sensor: (rows[::COARSE_THINNING],
+                                                                                  paths[::COARSE_THINNING])})
+    chi = np.array([c for c, _ in _profile(ds, robot, thin, priors, options, sensor, offsets, coarse, steady)])
     k = int(np.argmin(chi))
     lo, hi = max(0, k - 1), min(len(coarse), k + 2)
     start, _ = _parabola(coarse[lo:hi], chi[lo:hi]) if hi - lo == 3 else (float(coarse[k]), 0.0)
@@ -89,7 +106,7 @@ def estimate_time_offset(ds, robot, frames, priors: dict, options, sensor: str, 
     fine_options = learn_noise(start) if learn_noise is not None else options
     fine = start + np.arange(-FINE_HALF_WIDTH_S, FINE_HALF_WIDTH_S + 1e-9, FINE_STEP_S)
     steady = (float(fine[0]), float(fine[-1]))
-    solved = [_solve_at(ds, robot, frames, priors, fine_options, sensor, offsets, dt, steady) for dt in fine]
+    solved = _profile(ds, robot, frames, priors, fine_options, sensor, offsets, fine, steady)
     fchi = np.array([c for c, _ in solved])
     x0, a = _parabola(fine, fchi)
     profile = tuple((float(d), float(c)) for d, c in sorted([*zip(coarse, chi), *zip(fine, fchi)]))

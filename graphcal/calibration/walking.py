@@ -179,18 +179,21 @@ def _stations(frames: WalkingFrames, robot, offsets: dict, steady: tuple | None)
 
     runs = stance_runs(frames.contact)
     times = frames.times
+    rows = _station_rows(frames, offsets, steady)
+    tks = np.array([tk for tk, _ in rows])
+    q_at = {j: np.interp(tks, times, v) for j, v in frames.q.items()}  # every joint at every station time
+    i_near = np.clip(np.searchsorted(times, tks), 1, len(times) - 1)
+    i_near = np.where(tks - times[i_near - 1] < times[i_near] - tks, i_near - 1, i_near)  # the nearest row
     stations: list = []
     where: dict = {}
     known: dict = {}  # stance label -> p_world_foot of the start guess
     T_prev = None
-    for tk, clouds in _station_rows(frames, offsets, steady):
-        i = int(np.clip(np.searchsorted(times, tk), 1, len(times) - 1))
-        i = i - 1 if tk - times[i - 1] < times[i] - tk else i  # the row nearest the joints' time
+    for n, (tk, clouds) in enumerate(rows):
+        i = int(i_near[n])
         feet = [f for k, f in enumerate(frames.feet) if frames.contact[i, k]]
         if len(feet) < MIN_STANCE_FEET:
             continue
-        q_by_foot = {f: np.array([np.interp(tk, times, frames.q[j]) for j in robot.leg(f).joint_names])
-                     for f in feet}
+        q_by_foot = {f: np.array([q_at[j][n] for j in robot.leg(f).joint_names]) for f in feet}
         labels = {f: f"{f}#{runs[i, frames.feet.index(f)]}" for f in feet}
         P = feet_in_body(robot, q_by_foot)
         shared = [k for k, f in enumerate(feet) if labels[f] in known]
@@ -204,7 +207,7 @@ def _stations(frames: WalkingFrames, robot, offsets: dict, steady: tuple | None)
             known.setdefault(labels[f], T[:3, :3] @ P[k] + T[:3, 3])
         sid = len(stations)
         stations.append(StationMeasurements(sid, WALK_SESSION, q_by_foot, None, None, stances=labels,
-                                            T_world_body_start=T, time_s=tk))
-        where[sid] = (tk, clouds)
+                                            T_world_body_start=T, time_s=float(tk)))
+        where[sid] = (float(tk), clouds)
         T_prev = T
     return stations, where
