@@ -190,7 +190,8 @@ class CalibrationResult:
         adequacy: the verdict on the model (:class:`~graphcal.calibration.adequacy.Adequacy`), or
             None when not judged.
         walk: a walking dataset's summary (``duration_s``, ``stations``, ``frames`` and
-            ``frames_in_log`` per sensor, ``station_times_s``: station -> log time, s), or None.
+            ``frames_in_log`` per sensor, ``station_times_s``: station -> log time, s, ``profiles``:
+            sensor -> ((time offset s, chi2, stage), ...) of each estimated offset), or None.
     """
 
     dataset: str

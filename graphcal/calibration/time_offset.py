@@ -23,6 +23,9 @@ COARSE_THINNING = 3
 #: the fine profile around the coarse minimum: +- FINE_HALF_WIDTH_S on a grid of FINE_STEP_S
 FINE_HALF_WIDTH_S = 0.008
 FINE_STEP_S = 0.004
+#: times the fine window is moved when the vertex lies outside it (a coarse minimum more than
+#: FINE_HALF_WIDTH_S off)
+FINE_RECENTRES = 2
 #: a walk whose profile gives the offset a sigma above this (s) does not determine it
 UNDETERMINED_SIGMA_S = 0.005
 
@@ -34,7 +37,9 @@ class TimeOffsetEstimate:
     Attributes:
         sensor: its name; offset_s: stamp minus capture time (s); sigma_s: 1-sigma (s), None when
             given or not determined; source: ``estimated``, ``given`` or ``not determined``.
-        profile: ((offset s, chi2), ...) every offset solved, in order.
+        profile: ((offset s, chi2, stage), ...) every offset solved; stage ``coarse`` (every
+            third frame, the noise given) or ``fine`` (every frame, the noise learned): the two
+            stages' chi2 are not comparable with each other.
         extrinsic_rate: (6,) d xi / d offset of the extrinsic at the estimate ([omega, v] tangent,
             rad/s and m/s), to carry the offset's sigma into the extrinsic's; None when not estimated.
     """
@@ -104,12 +109,20 @@ def estimate_time_offset(ds, robot, frames, priors: dict, options, sensor: str, 
         log.info(f"calibrate: {sensor}: time offset profile {1e3 * coarse[0]:+.0f}..{1e3 * coarse[-1]:+.0f} ms, "
                  f"minimum near {1e3 * start:+.1f} ms")
     fine_options = learn_noise(start) if learn_noise is not None else options
-    fine = start + np.arange(-FINE_HALF_WIDTH_S, FINE_HALF_WIDTH_S + 1e-9, FINE_STEP_S)
-    steady = (float(fine[0]), float(fine[-1]))
-    solved = _profile(ds, robot, frames, priors, fine_options, sensor, offsets, fine, steady)
-    fchi = np.array([c for c, _ in solved])
-    x0, a = _parabola(fine, fchi)
-    profile = tuple((float(d), float(c)) for d, c in sorted([*zip(coarse, chi), *zip(fine, fchi)]))
+    fine_all: list = []
+    for _ in range(FINE_RECENTRES + 1):  # the vertex outside the fine window: centre it there and profile again
+        fine = start + np.arange(-FINE_HALF_WIDTH_S, FINE_HALF_WIDTH_S + 1e-9, FINE_STEP_S)
+        steady = (float(fine[0]), float(fine[-1]))
+        solved = _profile(ds, robot, frames, priors, fine_options, sensor, offsets, fine, steady)
+        fchi = np.array([c for c, _ in solved])
+        fine_all += list(zip(fine, fchi))
+        x0, a = _parabola(fine, fchi)
+        if a > 0 and fine[0] <= x0 <= fine[-1]:
+            break
+        start = float(np.clip(x0 if a > 0 else fine[int(np.argmin(fchi))], fine[0] - FINE_HALF_WIDTH_S,
+                              fine[-1] + FINE_HALF_WIDTH_S))
+    profile = tuple([(float(d), float(c), "coarse") for d, c in zip(coarse, chi)]
+                    + [(float(d), float(c), "fine") for d, c in fine_all])
     if a <= 0 or not (fine[0] <= x0 <= fine[-1]):
         return TimeOffsetEstimate(sensor, start, None, "not determined", profile)
     sigma = float(1.0 / np.sqrt(a))

@@ -53,7 +53,8 @@ def calibrate_walk(ds, robot, contact: np.ndarray, *, options: CalibrationOption
     walk = {"duration_s": float(times[-1] - times[0]), "stations": len(data.stations),
             "frames": {s: int(sum(1 for _, cl in where.values() if s in cl)) for s in frames.cloud_rows},
             "frames_in_log": {s: int(len(rows)) for s, (rows, _) in frames.cloud_rows.items()},
-            "station_times_s": {int(k): float(v[0]) for k, v in where.items()}}
+            "station_times_s": {int(k): float(v[0]) for k, v in where.items()},
+            "profiles": {e.sensor: tuple(e.profile) for e in estimates if e.profile}}
     return with_time_offsets(dataclasses.replace(result, walk=walk), tuple(estimates))
 
 

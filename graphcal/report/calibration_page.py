@@ -252,6 +252,8 @@ def report_html(result, *, title: str = "graphcal calibration report") -> str:
     before/after, the figures of :func:`graphcal.report.plots.report_figures` (one ``<img>`` each,
     PNG data URI), warnings and the ROS 2 static_transform_publisher lines.
     """
+    from graphcal.report.walk_section import walk_section
+
     base = str(result.base_frame)
     subtitle = Markup(
         f"Dataset: <code>{_e(result.dataset)}</code> · base frame <code>{_e(base)}</code> · "
@@ -268,6 +270,7 @@ def report_html(result, *, title: str = "graphcal calibration report") -> str:
     sections = [
         Section("Does the model fit?", _adequacy_section(result)),
         Section("Sensors", *(_sensor_section(str(name), s, base) for name, s in result.sensors.items())),
+        *([Section("Walk", *walk_section(result))] if getattr(result, "walk", None) else []),
         Section("Legs", _legs_section(result)),
         Section("Outliers", outliers),
         Section("Noise model", _noise_section(result)),
