@@ -204,7 +204,9 @@ def test_yaml_states_the_frames_of_its_numbers(result):
     readers): the covariance in sensor axes, sigma in body axes, and the two agree once rotated."""
     doc = yaml.safe_load(calibration_yaml_text(result))
     frames = doc["frames"]
-    assert set(frames) == {"T_body_sensor", "covariance", "sigma", "correlation", "sigma_from", "range_scale_check"}
+    assert set(frames) == {"T_body_sensor", "covariance", "sigma", "correlation", "sigma_from", "range_scale_check",
+                           "time_offset_s"}
+    assert "stamp minus its capture time, in s" in frames["time_offset_s"]
     assert "SENSOR axes" in frames["covariance"] and "rad and m" in frames["covariance"]
     assert "BODY axes" in frames["sigma"] and "deg and mm" in frames["sigma"]
     s = doc["sensors"]["depth"]
