@@ -193,6 +193,10 @@ class CalibrationProblem:
 #: prior pinning x, y and yaw of a session's first body pose when the dataset has no commanded
 #: poses (those directions are a free gauge); sigmas [roll, pitch, yaw (rad), x, y, z (m)]
 GAUGE_PRIOR_SIGMAS = np.array([1e3, 1e3, 0.1, 0.1, 0.1, 1e3])
+#: the same for a walk's first station: tighter, so that the gauge of a long walk's chain of
+#: stances is no weaker than the chain itself (with 0.1 m / 0.1 rad a 60 s walk's joint marginals
+#: failed as "indeterminate" near its last planted foot); it fixes only x, y and yaw of the walk
+WALK_GAUGE_PRIOR_SIGMAS = np.array([1e3, 1e3, 1e-3, 1e-3, 1e-3, 1e3])
 #: sigma (rad or m) of a prior's component that is meant to carry no information
 LOOSE_SIGMA = 1e3
 #: plane covariance used when planes.csv gives none (of (nx, ny, nz, d))
@@ -727,9 +731,11 @@ def _add_stations(b: GraphBuild, robot, station_keys: dict, leg_keys: dict, T_bo
         first = {}
         for st in data.stations:
             first.setdefault(st.session, st.station)
+        walked = {st.station for st in data.stations if st.stances is not None}
         for s, station in first.items():
+            sig = WALK_GAUGE_PRIOR_SIGMAS if station in walked else GAUGE_PRIOR_SIGMAS
             b.graph.add(gtsam.PriorFactorPose3(station_keys[station], to_gtsam_pose(T_body0[station]),
-                                               gtsam.noiseModel.Diagonal.Sigmas(GAUGE_PRIOR_SIGMAS)))
+                                               gtsam.noiseModel.Diagonal.Sigmas(sig)))
 
 
 def _copy_value(values: gtsam.Values, source: gtsam.Values, key: int) -> None:
