@@ -156,3 +156,23 @@ def test_a_walking_program_simulates_its_own_robot_when_none_is_named(tmp_path):
     assert main(["simulate", "--program", "tripod-walk", "--duration", "6", "--cloud-rate", "0", "--out", str(out),
                  "--quiet"]) == 0
     assert yaml.safe_load((out / "dataset.yaml").read_text())["robot"]["model"] == "qingzhui"
+
+
+def test_the_offsets_sigma_widens_the_extrinsic_and_an_undetermined_offset_is_warned():
+    from graphcal.calibration.result import CalibrationResult, SensorEstimate
+    from graphcal.calibration.time_offset import TimeOffsetEstimate
+    from graphcal.calibration.walk_calibration import with_time_offsets
+
+    cov = np.diag([1e-8] * 3 + [1e-8] * 3)
+    s = SensorEstimate("depth", "depth_camera", np.eye(4), cov, np.eye(4), np.zeros(3), np.zeros(3), np.eye(6))
+    res = CalibrationResult("ds", "", "body", {"depth": s})
+    J = np.array([0.0, 0.0, 0.5, 0.1, 0.0, 0.0])  # rad/s, m/s
+    out = with_time_offsets(res, (TimeOffsetEstimate("depth", 0.03, 1e-3, "estimated", (), J),))
+    got = out.sensors["depth"]
+    np.testing.assert_allclose(got.covariance, cov + np.outer(J, J) * 1e-6)
+    assert got.sigma_rot_deg[2] == pytest.approx(np.degrees(np.sqrt(1e-8 + 0.25e-6)), rel=1e-6)
+    assert got.time_offset_s == 0.03 and got.time_offset_sigma_s == 1e-3 and not out.warnings
+    vague = with_time_offsets(res, (TimeOffsetEstimate("depth", 0.01, 0.02, "not determined", (), J),))
+    assert vague.sensors["depth"].time_offset_sigma_s is None
+    assert vague.sensors["depth"].covariance[2, 2] == pytest.approx(1e-8 + 0.25 * 4e-4)
+    assert len(vague.warnings) == 1 and "does not determine the camera's time offset" in vague.warnings[0]

@@ -71,7 +71,7 @@ def with_time_offsets(result: CalibrationResult, estimates: tuple) -> Calibratio
         if s is None:
             continue
         cov = np.array(s.covariance, dtype=float)
-        if est.sigma_s is not None and est.extrinsic_rate is not None and est.source == "estimated":
+        if est.sigma_s is not None and est.extrinsic_rate is not None:  # also a sigma above the limit
             J = np.asarray(est.extrinsic_rate, dtype=float)
             cov = cov + np.outer(J, J) * est.sigma_s**2
         rot, xyz, corr, _ = body_axis_sigmas(s.T_body_sensor, cov)
