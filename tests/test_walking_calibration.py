@@ -176,3 +176,19 @@ def test_the_offsets_sigma_widens_the_extrinsic_and_an_undetermined_offset_is_wa
     assert vague.sensors["depth"].time_offset_sigma_s is None
     assert vague.sensors["depth"].covariance[2, 2] == pytest.approx(1e-8 + 0.25 * 4e-4)
     assert len(vague.warnings) == 1 and "does not determine the camera's time offset" in vague.warnings[0]
+
+
+def test_a_walk_on_ground_that_is_not_level_is_refused_in_one_line(tmp_path):
+    from graphcal.errors import GraphcalError
+    from graphcal.simulation.walking import WalkingConfig, simulate_walking
+    from graphcal.simulation.write import write_walking
+
+    walk = write_walking(simulate_walking(WalkingConfig(program="tripod-walk", duration_s=6.0, cloud_rate_hz=2.0)),
+                         tmp_path / "w")
+    text = (walk / "dataset.yaml").read_text().replace("ground: {type: level}", "ground: {type: stairs}")
+    assert "stairs" in text
+    (walk / "dataset.yaml").write_text(text)
+    with pytest.raises(GraphcalError) as e:
+        _calibrated(walk, tmp_path / "out")
+    assert "ground.type 'stairs'" in str(e.value) and "\n" not in str(e.value)
+    assert not (tmp_path / "out").exists()

@@ -178,6 +178,10 @@ def _calibrate_walk(ds, *, legs, incremental, ground_roughness_m, plane_max_poin
         if given:
             raise GraphcalError(f"{flag} is not supported on a walking dataset yet ({ds.root}: clouds along a walk); "
                                 "calibrate it without, or from still stations")
+    ground = str((ds.ground or {}).get("type", "level"))
+    if ground != "level":  # every stance foot is held on the plane z = 0: stairs would fit as a wrong pose
+        raise GraphcalError(f"{ds.root}/dataset.yaml ground.type {ground!r}: calibrating from a walk models a level "
+                            "floor under every stance foot; walk on a level floor, or calibrate from still stations")
     unknown = sorted(set(time_offsets_s or {}) - set(ds.sensors))
     if unknown:
         raise GraphcalError(f"--time-offset-ms {unknown[0]}=...: no such sensor in {ds.root}/dataset.yaml "
