@@ -677,7 +677,7 @@ def test_plots_draw_into_given_axes():
 def fast_report(monkeypatch):
     """A cheap report.html (no figures) for the tests about the file set, not the report."""
 
-    def _write_report(folder, result, title):
+    def _write_report(folder, result, title, ds):
         return write_mod.atomic_write_text(folder / "report.html", f"<html><body>{len(result.sensors)}</body></html>\n")
 
     monkeypatch.setattr(write_mod, "_write_report", _write_report)

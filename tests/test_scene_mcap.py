@@ -195,7 +195,7 @@ def test_a_failing_scene_leaves_the_previous_calibration(calibrated, tmp_path, m
         raise RuntimeError("disk full")
 
     monkeypatch.setattr(write_mod, "write_scene_mcap", boom)
-    monkeypatch.setattr(write_mod, "_write_report", lambda folder, res, title: write_mod.atomic_write_text(
+    monkeypatch.setattr(write_mod, "_write_report", lambda folder, res, title, ds: write_mod.atomic_write_text(
         folder / "report.html", "<html></html>\n"))
     with pytest.raises(RuntimeError, match="disk full"):
         write_mod.write_calibration_outputs(result, prev)

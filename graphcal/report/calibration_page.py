@@ -243,14 +243,43 @@ def _range_scale_paragraph(result) -> str:
             "(measured / true range), from the final graph with a scale added:</p>" + "".join(items))
 
 
-def report_html(result, *, title: str = "graphcal calibration report") -> str:
+def _scene_section(scene) -> list:
+    """The 3-D view, its printable PNG, and the floor's collapse per sensor."""
+    from graphcal.report.scene_3d import ELLIPSOID_SCALE
+    from graphcal.report.scene_view import floor_figure, scene_figure, scene_html
+
+    if scene is None or not scene.groups:
+        return ['<p class="small">No 3-D scene: the calibration has no body poses.</p>']
+    parts = []
+    for c in scene.collapse:
+        parts.append(
+            f"<p><b>The floor collapses</b> (<code>{_e(c.sensor)}</code>): the RMS distance of the "
+            f"{int(c.points)} ground points of {int(c.stations)} stations to the floor the feet stand on (world "
+            f"z = 0) is "
+            f"<b>{_n(c.rms_prior_m * 1e3, '.2f')} mm with the CAD prior</b> and "
+            f"<b>{_n(c.rms_calibrated_m * 1e3, '.2f')} mm with the calibrated extrinsic</b> "
+            "(the same points and body poses).</p>")
+    parts.append(scene_html(scene))
+    parts.append(f'<p class="small">World frame, m. {_e(scene.note)} Body poses: x red, y green, z blue. '
+                 "Sensor frames: the longer triad is the calibrated pose, the shorter the CAD prior; the violet "
+                 "rings the principal sections of the calibrated position's 3σ ellipsoid, drawn "
+                 f"×{ELLIPSOID_SCALE:g}.</p>")
+    parts.append(figure(scene_figure(scene), "The same scene, for printing (every group shown)."))
+    if scene.ground:
+        parts.append(figure(floor_figure(scene), "Height above the floor of every ground point (mm): the same "
+                            "points under the CAD prior and under the calibrated extrinsic."))
+    return parts
+
+
+def report_html(result, *, title: str = "graphcal calibration report", scene=None) -> str:
     """The HTML report of ``result`` (a CalibrationResult) as one self-contained page.
 
     Sections: summary per sensor (prior vs estimate, σ per body axis in mm/deg, undetermined
     directions in a warning box, segments when the sensor moved), legs, outliers, the noise model
     (how each group's σ was set), residual RMS
     before/after, the figures of :func:`graphcal.report.plots.report_figures` (one ``<img>`` each,
-    PNG data URI), warnings and the ROS 2 static_transform_publisher lines.
+    PNG data URI), warnings and the ROS 2 static_transform_publisher lines; with ``scene`` (a
+    :class:`~graphcal.report.scene_3d.Scene`) its 3-D view, printable PNG and floor collapse.
     """
     from graphcal.report.walk_section import walk_section
 
@@ -271,6 +300,7 @@ def report_html(result, *, title: str = "graphcal calibration report") -> str:
         Section("Does the model fit?", _adequacy_section(result)),
         Section("Sensors", *(_sensor_section(str(name), s, base) for name, s in result.sensors.items())),
         *([Section("Walk", *walk_section(result))] if getattr(result, "walk", None) else []),
+        *([Section("3-D scene", *_scene_section(scene))] if scene is not None else []),
         Section("Legs", _legs_section(result)),
         Section("Outliers", outliers),
         Section("Noise model", _noise_section(result)),

@@ -36,7 +36,7 @@ import numpy as np
 from graphcal.geometry import quat_wxyz_from_matrix
 
 __all__ = ["DEFAULT_MAX_POINTS", "WORLD_FRAME", "NOTES_TOPIC", "write_scene_mcap", "thin_evenly",
-           "cloud_topic"]
+           "cloud_topic", "readable_dataset"]
 
 #: the default cap on the points of one cloud in scene.mcap (evenly thinned above it)
 DEFAULT_MAX_POINTS = 20_000
@@ -123,7 +123,7 @@ def _latched():
                 QosLiveliness.AUTOMATIC, zero, False)]
 
 
-def _read(dataset):
+def readable_dataset(dataset):
     """(Dataset or None, why not) from a Dataset, a dataset folder, or None."""
     from graphcal.errors import GraphcalError
     from graphcal.io.dataset import Dataset, read_dataset
@@ -208,7 +208,7 @@ def write_scene_mcap(path: str | Path, result, urdf_text: str, *, dataset=None,
     from graphcal.io.dataset import load_cloud
 
     path = Path(path)
-    ds, why = _read(dataset)
+    ds, why = readable_dataset(dataset)
     stations, stamps = _stations(ds, result)
     found, skipped = _station_clouds(ds, result)
     n_clouds = sum((sensor, r.station) in found for r in stations for sensor in result.sensors)

@@ -27,7 +27,7 @@ from graphcal.io.atomic import atomic_directory, atomic_write_text, previous_out
 from graphcal.io.atomic import check_output_folder as check_output_folder_of
 from graphcal.report.calibration_yaml import calibration_yaml_text
 from graphcal.report.ros import static_transforms_script
-from graphcal.report.scene_mcap import DEFAULT_MAX_POINTS, write_scene_mcap
+from graphcal.report.scene_mcap import DEFAULT_MAX_POINTS, readable_dataset, write_scene_mcap
 from graphcal.report.urdf import calibrated_urdf
 
 __all__ = ["OUTPUT_FILES", "write_calibration_outputs", "check_output_folder", "shown_dataset"]
@@ -107,10 +107,29 @@ def _write_static_transforms(folder: Path, result) -> Path:
     return path
 
 
-def _write_report(folder: Path, result, title: str | None) -> Path:
+def _scene(result, ds):
+    """The report's 3-D scene (clouds and joint angles from ``ds``, a Dataset or None)."""
+    from graphcal.errors import GraphcalError
+    from graphcal.io.dataset import load_dataset_robot
+    from graphcal.report.scene_3d import calibration_scene
+
+    robot = None
+    if ds is not None and ds.robot is not None:
+        try:
+            robot = load_dataset_robot(ds)
+        except (GraphcalError, OSError, ValueError):
+            robot = None  # the scene without the stick figure
+    try:
+        return calibration_scene(result, ds, robot)
+    except (GraphcalError, OSError, ValueError):
+        return calibration_scene(result, None, robot)  # a cloud unreadable since the calibration
+
+
+def _write_report(folder: Path, result, title: str | None, ds) -> Path:
     from graphcal.report.calibration_page import report_html  # matplotlib: imported only when needed
 
-    text = report_html(result, title=title or f"graphcal calibration: {Path(str(result.dataset)).name or result.dataset}")
+    text = report_html(result, title=title or f"graphcal calibration: {Path(str(result.dataset)).name or result.dataset}",
+                       scene=_scene(result, ds))
     return atomic_write_text(folder / OUTPUT_FILES["report"], text)
 
 
@@ -152,13 +171,14 @@ def write_calibration_outputs(result, out_dir: str | Path, *, overwrite: bool = 
     """
     out = Path(out_dir)
     check_output_folder(out, overwrite=overwrite)
-    dataset = result.dataset or None  # where the clouds are, before it is made relative to out
+    given = result.dataset or None  # where the clouds are, before it is made relative to out
+    dataset, _ = readable_dataset(given)
     result = dataclasses.replace(result, dataset=shown_dataset(result.dataset, out))  # as written, shareable
     with atomic_directory(out, overwrite=True) as tmp:
         _write_yaml(tmp, result)
         _write_urdf(tmp, result)
         _write_static_transforms(tmp, result)
-        _write_report(tmp, result, title)
-        _write_scene(tmp, result, dataset, scene_max_points)
+        _write_report(tmp, result, title, dataset)
+        _write_scene(tmp, result, dataset if dataset is not None else given, scene_max_points)
         check_output_folder(out, overwrite=overwrite)  # nothing foreign appeared meanwhile
     return {key: out / name for key, name in OUTPUT_FILES.items()}

@@ -1,0 +1,219 @@
+"""The 3-D scene of a calibration report: what is drawn, in the world frame (m).
+
+* the ground points of every station laid into the world frame twice,
+  ``p_world = T_world_body T_body_sensor p_sensor``, with the CAD prior ``T_body_sensor`` and with the
+  calibrated one (the same body poses, the calibration's): the floor spreads, then collapses;
+* :class:`FloorCollapse`: the RMS distance of each set of ground points to the floor (world z = 0);
+* the body pose of every station as a small frame, each sensor's frame at one station at its prior
+  and its calibrated pose with the calibrated position's 3-sigma ellipsoid, the robot's legs as a
+  stick figure (joint origins from forward kinematics) at that station, and the floor.
+
+Ground points: a cloud's points within :data:`GROUND_BAND_M` of the floor (world z = 0) under the
+calibrated extrinsic; the same points are shown under the prior. Subsampled evenly (every k-th
+point in file order) to at most :data:`POINTS_PER_STATION` per station and
+:data:`MAX_SCENE_POINTS` in all.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from graphcal.geometry import transform_points
+from graphcal.report.calibration_yaml import body_axis_covariance
+from graphcal.report.scene_mcap import thin_evenly
+
+__all__ = ["GROUND_BAND_M", "POINTS_PER_STATION", "MAX_SCENE_POINTS", "ELLIPSOID_SCALE", "FloorCollapse",
+           "SceneGroup", "Scene", "floor_collapse", "calibration_scene"]
+
+#: a cloud's point within this distance (m) of the floor under the calibrated extrinsic is a ground point
+GROUND_BAND_M = 0.03
+#: ground points kept per station and extrinsic (evenly thinned)
+POINTS_PER_STATION = 300
+#: ground points kept in all, per extrinsic
+MAX_SCENE_POINTS = 6000
+#: the 3-sigma position ellipsoids are drawn this many times their size (mm ellipsoids in a 1 m scene)
+ELLIPSOID_SCALE = 10.0
+_FRAME_M = 0.04  # axis length of a body-pose frame
+_SENSOR_FRAME_M = 0.10
+
+
+@dataclass(frozen=True)
+class FloorCollapse:
+    """The RMS distance (m) of all stations' ground points to the floor the feet stand on (world
+    z = 0: graphcal's level ground), with the prior extrinsic and with the calibrated one, for
+    ``points`` points of ``stations`` stations of ``sensor``. A plane fitted to the points instead
+    would absorb an error every station shares (a tilted sensor tilts every station's floor alike)."""
+
+    sensor: str
+    stations: int
+    points: int
+    rms_prior_m: float
+    rms_calibrated_m: float
+
+
+@dataclass(frozen=True, eq=False)
+class SceneGroup:
+    """One toggle of the 3-D view: points (N, 3) or line segments (M, 2, 3), world frame, m."""
+
+    name: str
+    color: str
+    kind: str  # "points" | "lines"
+    data: np.ndarray
+    visible: bool = True
+    cycle: tuple[str, ...] = ()  # lines: segment i drawn in cycle[i % len(cycle)] (a frame's x, y, z)
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """The groups of a 3-D view, and per sensor the floor's collapse and its ground points (empty when
+    no clouds)."""
+
+    groups: tuple[SceneGroup, ...]
+    collapse: tuple[FloorCollapse, ...]
+    note: str
+    ground: dict = field(default_factory=dict)  # sensor -> (prior (N, 3), calibrated (N, 3)) ground points
+
+
+def floor_collapse(sensor: str, stations: int, prior: np.ndarray, calibrated: np.ndarray) -> FloorCollapse:
+    """:class:`FloorCollapse` of the same ground points (N, 3, world frame, m) under two extrinsics."""
+
+    def rms(p: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.asarray(p, dtype=float)[:, 2] ** 2)))
+
+    return FloorCollapse(sensor, int(stations), len(prior), rms(prior), rms(calibrated))
+
+
+def _triads(poses, length: float) -> np.ndarray:
+    """Line segments (3 per pose: x red, y green, z blue in that order) of frames (4x4 each)."""
+    segs = []
+    for T in poses:
+        o = T[:3, 3]
+        segs.extend([(o, o + length * T[:3, k]) for k in range(3)])
+    return np.asarray(segs, dtype=float).reshape(-1, 2, 3)
+
+
+_XYZ = ("#d62728", "#2ca02c", "#3344ff")
+
+
+def _axis_groups(name: str, poses, length: float, visible: bool = True) -> list[SceneGroup]:
+    return [SceneGroup(name, "#2ca02c", "lines", _triads(poses, length), visible, _XYZ)]
+
+
+def _ellipsoid(center: np.ndarray, cov3: np.ndarray, scale: float) -> np.ndarray:
+    """Segments of the three principal ellipses of the 3-sigma ellipsoid of ``cov3`` (m^2), ×scale."""
+    w, V = np.linalg.eigh(0.5 * (cov3 + cov3.T))
+    axes = V * (3.0 * scale * np.sqrt(np.clip(w, 0.0, None)))
+    t = np.linspace(0.0, 2.0 * np.pi, 33)
+    segs = []
+    for a, b in ((0, 1), (1, 2), (0, 2)):
+        ring = center + np.outer(np.cos(t), axes[:, a]) + np.outer(np.sin(t), axes[:, b])
+        segs.append(np.stack([ring[:-1], ring[1:]], axis=1))
+    return np.concatenate(segs)
+
+
+def _stick_figure(robot, q: dict, T_world_body: np.ndarray) -> np.ndarray:
+    """Segments body origin -> each joint origin -> foot of every leg, world frame (m)."""
+    from graphcal.models.kinematics import joint_frames
+
+    segs = []
+    for leg in robot.legs.values():
+        qs = np.array([[float(q.get(j, 0.0)) for j in leg.joint_names]])
+        _, origins, _, p_foot = joint_frames(leg, qs)
+        chain = np.vstack([np.zeros(3), origins[0], p_foot[0]])
+        chain = transform_points(T_world_body, chain)
+        segs.extend(zip(chain[:-1], chain[1:]))
+    return np.asarray(segs, dtype=float).reshape(-1, 2, 3)
+
+
+def _station_q(ds, station: int) -> dict:
+    st = ds.stations if ds is not None else None
+    if st is None:
+        return {}
+    rows = np.flatnonzero(np.asarray(st["station"]).astype(int) == int(station))
+    if not len(rows):
+        return {}
+    return {c[2:]: float(st[c][rows[0]]) for c in st.columns if c.startswith("q_")}
+
+
+def _ground_points(ds, result, sensor: str, clouds: dict):
+    """(prior, calibrated, stations): the ground points of ``sensor``'s station clouds, world frame."""
+    from graphcal.io.dataset import load_cloud
+
+    s = result.sensors[sensor]
+    T_cal, T_pri = np.asarray(s.T_body_sensor, dtype=float), np.asarray(s.T_body_sensor_prior, dtype=float)
+    pri, cal, used = [], [], 0
+    for station in sorted(st for (name, st) in clouds if name == sensor and st in result.T_world_body):
+        T_wb = np.asarray(result.T_world_body[station], dtype=float)
+        pts = load_cloud(ds, sensor, station)
+        pw = transform_points(T_wb @ T_cal, pts)
+        keep = np.abs(pw[:, 2]) < GROUND_BAND_M
+        if keep.sum() < 3:
+            continue
+        pts = thin_evenly(pts[keep], POINTS_PER_STATION)
+        cal.append(transform_points(T_wb @ T_cal, pts))
+        pri.append(transform_points(T_wb @ T_pri, pts))
+        used += 1
+    if not used:
+        return None
+    return thin_evenly(np.vstack(pri), MAX_SCENE_POINTS), thin_evenly(np.vstack(cal), MAX_SCENE_POINTS), used
+
+
+def _sensor_groups(result, name: str, T_wb: np.ndarray) -> list[SceneGroup]:
+    s = result.sensors[name]
+    T_cal, T_pri = np.asarray(s.T_body_sensor, dtype=float), np.asarray(s.T_body_sensor_prior, dtype=float)
+    groups = _axis_groups(f"{name} calibrated", [T_wb @ T_cal], _SENSOR_FRAME_M)
+    groups += _axis_groups(f"{name} prior (CAD)", [T_wb @ T_pri], 0.6 * _SENSOR_FRAME_M)
+    cov = body_axis_covariance(T_cal, s.covariance)[3:, 3:]
+    if np.all(np.isfinite(cov)):
+        cov_w = T_wb[:3, :3] @ cov @ T_wb[:3, :3].T
+        groups.append(SceneGroup(f"{name} 3σ ×{ELLIPSOID_SCALE:g}", "#9467bd", "lines",
+                                 _ellipsoid((T_wb @ T_cal)[:3, 3], cov_w, ELLIPSOID_SCALE)))
+    return groups
+
+
+def _floor_outline(points: np.ndarray) -> np.ndarray:
+    """The rectangle (4 segments) of the floor (world z = 0) under the x-y extent of ``points``."""
+    (x0, y0), (x1, y1) = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    ring = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0], [x0, y0, 0.0]])
+    return np.stack([ring[:-1], ring[1:]], axis=1)
+
+
+def calibration_scene(result, dataset=None, robot=None) -> Scene:
+    """The 3-D :class:`Scene` of a CalibrationResult; ``dataset`` (a Dataset read from its folder)
+    gives the clouds and joint angles, ``robot`` (a RobotModel) the stick figure. Without clouds the
+    scene has the body poses and the sensor frames only, and ``note`` says so."""
+    from graphcal.io.dataset import cloud_paths
+
+    poses = [np.asarray(T, dtype=float) for _, T in sorted(result.T_world_body.items())]
+    if not poses:
+        return Scene((), (), "no body poses: nothing to draw")
+    station = min(result.T_world_body)
+    T_wb = np.asarray(result.T_world_body[station], dtype=float)
+    groups: list[SceneGroup] = []
+    collapse: list[FloorCollapse] = []
+    ground: dict = {}
+    clouds = cloud_paths(dataset) if dataset is not None else {}
+    for name in result.sensors:
+        found = _ground_points(dataset, result, name, clouds) if clouds else None
+        if found is None:
+            continue
+        pri, cal, used = found
+        collapse.append(floor_collapse(name, used, pri, cal))
+        ground[name] = (pri, cal)
+        groups.append(SceneGroup(f"{name} ground, prior extrinsic", "#ff7f0e", "points", pri))
+        groups.append(SceneGroup(f"{name} ground, calibrated", "#1f77b4", "points", cal))
+        groups.append(SceneGroup(f"{name} floor (z = 0)", "#7f7f7f", "lines", _floor_outline(cal)))
+    groups += _axis_groups("body poses", poses, _FRAME_M)
+    if robot is not None:
+        groups.append(SceneGroup(f"robot at station {station}", "#333333", "lines",
+                                 _stick_figure(robot, _station_q(dataset, station), T_wb)))
+    for name in result.sensors:
+        groups += _sensor_groups(result, name, T_wb)
+    note = (f"Robot and sensor frames at station {station}. Ground points: within {GROUND_BAND_M * 1e3:g} mm of "
+            f"the floor under the calibrated extrinsic, the same points under the prior; at most "
+            f"{POINTS_PER_STATION} per station and {MAX_SCENE_POINTS} in all (evenly thinned).")
+    if not collapse:
+        note += " No station clouds: the dataset has planes only, or its clouds could not be read."
+    return Scene(tuple(groups), tuple(collapse), note, ground)
