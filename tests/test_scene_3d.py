@@ -152,3 +152,27 @@ def test_the_view_carries_its_scene_as_json_without_breaking_out_of_the_script()
     payload = re.search(r'<script type="application/json">(.*?)</script>', html, re.S).group(1)
     assert json.loads(payload)["groups"][0]["name"] == "</script><b>x"
     assert html.count("</script>") == 2
+    assert "src=" not in html and "http" not in html  # nothing fetched: the page works offline
+
+
+@pytest.mark.slow
+def test_a_walks_floor_collapses_onto_the_true_extrinsics(tmp_path):
+    """A walking dataset: each station's cloud is its frame's (timeseries.csv ``cloud_depth``)."""
+    from graphcal.commands.calibrate import run as calibrate
+    from graphcal.simulation.walking import WalkingConfig, simulate_walking
+    from graphcal.simulation.write import write_walking
+
+    cfg = WalkingConfig(program="tripod-walk", seed=5, duration_s=6.0, cloud_rate_hz=5.0, cad_error_m=0.015,
+                        cad_error_rad=np.radians(1.5), sway_rad=np.radians(1.0), nod_rad=np.radians(0.5))
+    walk = write_walking(simulate_walking(cfg), tmp_path / "walk")
+    result = calibrate(walk, tmp_path / "cal", progress=False).calibration
+    ds = read_dataset(walk)
+    scene = calibration_scene(result, ds, load_dataset_robot(ds))
+    (c,) = scene.collapse
+    assert c.stations == result.walk["stations"] and c.stations > 20
+    truth = dataclasses.replace(result, sensors={"depth": dataclasses.replace(
+        result.sensors["depth"], T_body_sensor_prior=_truth_extrinsic(walk))})
+    (t,) = calibration_scene(truth, ds, None).collapse
+    assert t.rms_prior_m == pytest.approx(c.rms_calibrated_m, rel=0.02)
+    assert c.rms_prior_m > 4 * c.rms_calibrated_m
+    assert f"robot at station {min(result.T_world_body)}" in {g.name for g in scene.groups}

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -148,7 +149,7 @@ def test_track_outputs(level20):
     assert "Noise (noise.yaml" in report and "Contacts and phases" in report
     from graphcal.report.page import CSS
 
-    assert CSS in report and report.count("data:image/png;base64,") == 4  # the page of every report, plots inside
+    assert CSS in report and report.count("data:image/png;base64,") == 5  # the page of every report: 4 plots, the 3-D print
     assert set(m["output_files"]) == {p.name for p in out.iterdir()}
     for key in ("ape_rmse_m", "rpe_rmse_m", "drift_percent", "distance_m", "nees_mean"):
         assert isinstance(m[key], float), key
@@ -321,3 +322,25 @@ def test_a_cloud_track_reads_gets_validates_checks(short_walk, tmp_path, capsys)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and ".ply" in err[0] and "copies of" in err[0], err
     assert not (tmp_path / "t").exists()
+
+
+def _scene_payload(report: Path) -> dict:
+    import re
+
+    text = report.read_text()
+    return json.loads(re.search(r'<script type="application/json">(.*?)</script>', text, re.S).group(1))
+
+
+@pytest.mark.slow
+def test_the_reports_3d_scene_puts_the_footholds_on_the_perceived_treads(stairs):
+    _, out, _ = stairs
+    payload = _scene_payload(out / "report.html")
+    groups = {g["name"]: g for g in payload["groups"]}
+    assert {"trajectory (estimate)", "trajectory (truth)", "stance footholds", "stairs (perceived)"} <= set(groups)
+    z_mm = np.asarray(groups["stance footholds"]["data"], dtype=float).reshape(-1, 3)[:, 2] - payload["floor"]
+    levels = [0.0] + [1e3 * t["height_m"] for t in json.loads((out / "stairs.json").read_text())["treads"]]
+    nearest = np.min(np.abs(z_mm[:, None] - np.asarray(levels)[None, :]), axis=1)
+    assert np.max(nearest) < 15.0, np.sort(nearest)[-5:]  # every foothold on the floor or on a tread
+    on = [int(np.sum(np.abs(z_mm - h) < 15.0)) for h in levels]
+    print("footholds per level", on, "worst mm", float(np.max(nearest)))
+    assert min(on) >= 3, on  # and the robot stood on every one of them

@@ -149,6 +149,18 @@ def consistency_warning(section: dict) -> str | None:
               "the trajectory's sigma and NEES are not to be trusted")
 
 
+def _scene(inp, res, stairs_doc, truth):
+    """The report's 3-D scene: trajectory (and truth), stance footholds, perceived stairs."""
+    from graphcal.locomotion.gtsam_legged import foot_points_from_joints
+    from graphcal.locomotion.metrics import interp_truth
+    from graphcal.report.scene_3d import stance_footholds, track_scene
+
+    feet = (stance_footholds(res.T_world_body, res.stance_mask, foot_points_from_joints(inp))
+            if res.stance_mask is not None else np.zeros((0, 3)))
+    true = interp_truth(truth, res.times) if truth is not None else None
+    return track_scene(res.T_world_body, feet, stairs_doc=stairs_doc, T_world_body_true=true)
+
+
 def _innovation_bias(inp, res) -> dict:
     """metrics.json's ``innovation_bias`` (:func:`graphcal.locomotion.consistency.innovation_bias`): per
     foot (slot) axis, the stance innovations' mean; a biased one points at the leg model."""
@@ -378,7 +390,8 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
     m["output_files"] = names
     m = _clean(m)
     files["metrics.json"] = (json.dumps(m, indent=2) + "\n").encode()
-    files["report.html"] = track_html(m, stairs_doc, pngs, title=f"graphcal track: {Path(str(dataset)).name}").encode()
+    files["report.html"] = track_html(m, stairs_doc, pngs, title=f"graphcal track: {Path(str(dataset)).name}",
+                                      scene=_scene(inp, res, stairs_doc, truth)).encode()
 
     with atomic_directory(out, overwrite=True) as tmp:
         for name, data in files.items():

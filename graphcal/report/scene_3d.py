@@ -1,4 +1,5 @@
-"""The 3-D scene of a calibration report: what is drawn, in the world frame (m).
+"""The 3-D scenes of the report pages: what is drawn, in the world frame (m). A track page's
+(:func:`track_scene`): the trajectory, the stance footholds, the perceived stairs. A calibration's:
 
 * the ground points of every station laid into the world frame twice,
   ``p_world = T_world_body T_body_sensor p_sensor``, with the CAD prior ``T_body_sensor`` and with the
@@ -24,7 +25,8 @@ from graphcal.geometry import transform_points
 from graphcal.report.calibration_yaml import body_axis_covariance
 from graphcal.report.scene_mcap import thin_evenly
 
-__all__ = ["GROUND_BAND_M", "POINTS_PER_STATION", "MAX_SCENE_POINTS", "ELLIPSOID_SCALE", "FloorCollapse",
+__all__ = ["GROUND_BAND_M", "POINTS_PER_STATION", "MAX_SCENE_POINTS", "ELLIPSOID_SCALE", "MAX_TRAJECTORY_SEGMENTS",
+           "FloorCollapse", "stance_footholds", "track_scene",
            "SceneGroup", "Scene", "floor_collapse", "calibration_scene"]
 
 #: a cloud's point within this distance (m) of the floor under the calibrated extrinsic is a ground point
@@ -127,26 +129,73 @@ def _stick_figure(robot, q: dict, T_world_body: np.ndarray) -> np.ndarray:
     return np.asarray(segs, dtype=float).reshape(-1, 2, 3)
 
 
-def _station_q(ds, station: int) -> dict:
-    st = ds.stations if ds is not None else None
-    if st is None:
+def _nearest(t: np.ndarray, rows: np.ndarray, ts: float) -> int:
+    """The row of ``rows`` (indices into ``t``, s, ascending in time) stamped nearest ``ts``."""
+    i = int(np.clip(np.searchsorted(t[rows], ts), 1, len(rows) - 1)) if len(rows) > 1 else 0
+    if i and abs(t[rows[i - 1]] - ts) <= abs(t[rows[i]] - ts):
+        i -= 1
+    return int(rows[i])
+
+
+def _walk_rows(ds, result, column: str | None = None) -> dict:
+    """A walk's station -> the timeseries.csv row stamped nearest its time (among the rows with a
+    ``column`` entry, when given)."""
+    times = (result.walk or {}).get("station_times_s") or {}
+    if ds is None or ds.timeseries is None or not times:
         return {}
-    rows = np.flatnonzero(np.asarray(st["station"]).astype(int) == int(station))
+    t = np.asarray(ds.timeseries["time"], dtype=float)
+    rows = np.argsort(t, kind="stable")
+    if column is not None:
+        rows = rows[np.asarray([bool(v) for v in ds.timeseries[column].tolist()])[rows]]
     if not len(rows):
         return {}
-    return {c[2:]: float(st[c][rows[0]]) for c in st.columns if c.startswith("q_")}
+    return {int(st): _nearest(t, rows, float(ts)) for st, ts in times.items()}
+
+
+def _station_clouds(ds, result) -> dict:
+    """(sensor, station) -> cloud file of every station of ``result``: clouds/<sensor>/<station>.ply,
+    or for a walk the ``cloud_<sensor>`` of the frame nearest the station's time in timeseries.csv."""
+    from graphcal.io.dataset import cloud_paths
+
+    if ds is None or ds.root is None:
+        return {}
+    found = dict(cloud_paths(ds))
+    for sensor in result.sensors:
+        column = f"cloud_{sensor}"
+        if ds.timeseries is None or not ds.timeseries.has(column):
+            continue
+        files = ds.timeseries[column].tolist()
+        for station, j in _walk_rows(ds, result, column).items():
+            found[(sensor, station)] = ds.root / str(files[j]).replace("\\", "/")
+    return found
+
+
+def _station_q(ds, result, station: int) -> dict:
+    """Joint angles (rad) of a station: stations.csv's q_ columns, or a walk's frame row."""
+    walk = _walk_rows(ds, result)
+    table = ds.timeseries if station in walk else (ds.stations if ds is not None else None)
+    if table is None:
+        return {}
+    if station in walk:
+        row = walk[station]
+    else:
+        rows = np.flatnonzero(np.asarray(table["station"]).astype(int) == int(station))
+        if not len(rows):
+            return {}
+        row = int(rows[0])
+    return {c[2:]: float(table[c][row]) for c in table.columns if c.startswith("q_")}
 
 
 def _ground_points(ds, result, sensor: str, clouds: dict):
     """(prior, calibrated, stations): the ground points of ``sensor``'s station clouds, world frame."""
-    from graphcal.io.dataset import load_cloud
+    from graphcal.io.ply import read_ply
 
     s = result.sensors[sensor]
     T_cal, T_pri = np.asarray(s.T_body_sensor, dtype=float), np.asarray(s.T_body_sensor_prior, dtype=float)
     pri, cal, used = [], [], 0
     for station in sorted(st for (name, st) in clouds if name == sensor and st in result.T_world_body):
         T_wb = np.asarray(result.T_world_body[station], dtype=float)
-        pts = load_cloud(ds, sensor, station)
+        pts = np.asarray(read_ply(clouds[(sensor, station)]), dtype=float)[:, :3]
         pw = transform_points(T_wb @ T_cal, pts)
         keep = np.abs(pw[:, 2]) < GROUND_BAND_M
         if keep.sum() < 3:
@@ -184,8 +233,6 @@ def calibration_scene(result, dataset=None, robot=None) -> Scene:
     """The 3-D :class:`Scene` of a CalibrationResult; ``dataset`` (a Dataset read from its folder)
     gives the clouds and joint angles, ``robot`` (a RobotModel) the stick figure. Without clouds the
     scene has the body poses and the sensor frames only, and ``note`` says so."""
-    from graphcal.io.dataset import cloud_paths
-
     poses = [np.asarray(T, dtype=float) for _, T in sorted(result.T_world_body.items())]
     if not poses:
         return Scene((), (), "no body poses: nothing to draw")
@@ -194,7 +241,7 @@ def calibration_scene(result, dataset=None, robot=None) -> Scene:
     groups: list[SceneGroup] = []
     collapse: list[FloorCollapse] = []
     ground: dict = {}
-    clouds = cloud_paths(dataset) if dataset is not None else {}
+    clouds = _station_clouds(dataset, result)
     for name in result.sensors:
         found = _ground_points(dataset, result, name, clouds) if clouds else None
         if found is None:
@@ -208,7 +255,7 @@ def calibration_scene(result, dataset=None, robot=None) -> Scene:
     groups += _axis_groups("body poses", poses, _FRAME_M)
     if robot is not None:
         groups.append(SceneGroup(f"robot at station {station}", "#333333", "lines",
-                                 _stick_figure(robot, _station_q(dataset, station), T_wb)))
+                                 _stick_figure(robot, _station_q(dataset, result, station), T_wb)))
     for name in result.sensors:
         groups += _sensor_groups(result, name, T_wb)
     note = (f"Robot and sensor frames at station {station}. Ground points: within {GROUND_BAND_M * 1e3:g} mm of "
@@ -217,3 +264,66 @@ def calibration_scene(result, dataset=None, robot=None) -> Scene:
     if not collapse:
         note += " No station clouds: the dataset has planes only, or its clouds could not be read."
     return Scene(tuple(groups), tuple(collapse), note, ground)
+
+
+#: trajectory segments kept in a track scene (evenly thinned)
+MAX_TRAJECTORY_SEGMENTS = 2000
+
+
+def _polyline(points: np.ndarray, cap: int = MAX_TRAJECTORY_SEGMENTS) -> np.ndarray:
+    p = thin_evenly(np.asarray(points, dtype=float), cap + 1)
+    return np.stack([p[:-1], p[1:]], axis=1) if len(p) > 1 else np.zeros((0, 2, 3))
+
+
+def stance_footholds(T_world_body: np.ndarray, stance_mask: np.ndarray, p_body_foot: np.ndarray) -> np.ndarray:
+    """(K, 3) world foot points (m), one per stance run of each foot, at the run's middle sample:
+    ``p_world = T_world_body p_body_foot``. ``stance_mask`` (N, n_feet), ``p_body_foot`` (n_feet, N, 3)."""
+    out = []
+    for f in range(stance_mask.shape[1]):
+        m = np.r_[False, np.asarray(stance_mask[:, f], dtype=bool), False].astype(int)
+        starts, ends = np.flatnonzero(np.diff(m) == 1), np.flatnonzero(np.diff(m) == -1)
+        mid = (starts + ends - 1) // 2
+        T = T_world_body[mid]
+        out.append(np.einsum("kij,kj->ki", T[:, :3, :3], p_body_foot[f, mid]) + T[:, :3, 3])
+    return np.vstack(out) if out else np.zeros((0, 3))
+
+
+def _tread_segments(stairs_doc: dict) -> np.ndarray:
+    """Each perceived tread's outline (nosing edge, depth up the stairs) and its riser below the nosing."""
+    T = np.asarray(stairs_doc.get("T_world_stairs", np.eye(4)), dtype=float)
+    up = T[:3, 0] - T[2, 0] * np.array([0.0, 0.0, 1.0])
+    up = up / max(np.linalg.norm(up), 1e-9)
+    segs, below = [], 0.0
+    for t in sorted(stairs_doc.get("treads", []), key=lambda t: t["height_m"]):
+        e, a = np.asarray(t["p_world_edge_m"], dtype=float), np.asarray(t["edge_direction_world"], dtype=float)
+        depth, half = float(t.get("depth_m") or 0.0), 0.5 * float(t.get("width_m") or 0.0)
+        ring = [e - half * a, e + half * a, e + half * a + depth * up, e - half * a + depth * up, e - half * a]
+        segs.extend(zip(ring[:-1], ring[1:]))
+        drop = np.array([0.0, 0.0, float(t["height_m"]) - below])
+        segs.extend([(e - half * a, e - half * a - drop), (e + half * a, e + half * a - drop)])
+        below = float(t["height_m"])
+    return np.asarray(segs, dtype=float).reshape(-1, 2, 3)
+
+
+def track_scene(T_world_body: np.ndarray, footholds: np.ndarray, *, stairs_doc: dict | None = None,
+                T_world_body_true: np.ndarray | None = None) -> Scene:
+    """The 3-D :class:`Scene` of a track output: the estimated trajectory (and the true one), the
+    stance footholds, the perceived stairs' treads and risers (stairs.json), the floor z = 0."""
+    p = np.asarray(T_world_body, dtype=float)[:, :3, 3]
+    groups = []
+    if T_world_body_true is not None:  # drawn first: the estimate on top
+        groups.append(SceneGroup("trajectory (truth)", "#2ca02c", "lines",
+                                 _polyline(np.asarray(T_world_body_true, dtype=float)[:, :3, 3])))
+    groups.append(SceneGroup("trajectory (estimate)", "#1f77b4", "lines", _polyline(p)))
+    if len(footholds):
+        groups.append(SceneGroup("stance footholds", "#d62728", "points", np.asarray(footholds, dtype=float)))
+    if stairs_doc and stairs_doc.get("treads"):
+        groups.append(SceneGroup("stairs (perceived)", "#9467bd", "lines", _tread_segments(stairs_doc)))
+    every = np.vstack([p] + ([footholds] if len(footholds) else []))
+    lo, hi = every[:, :2].min(axis=0) - 0.2, every[:, :2].max(axis=0) + 0.2
+    ring = np.array([[lo[0], lo[1], 0.0], [hi[0], lo[1], 0.0], [hi[0], hi[1], 0.0], [lo[0], hi[1], 0.0],
+                     [lo[0], lo[1], 0.0]])
+    groups.append(SceneGroup("floor (z = 0)", "#7f7f7f", "lines", np.stack([ring[:-1], ring[1:]], axis=1)))
+    note = (f"Trajectory evenly thinned to at most {MAX_TRAJECTORY_SEGMENTS} segments; one foothold per stance of "
+            "each foot, at its middle sample, placed with the estimated body pose.")
+    return Scene(tuple(groups), (), note)

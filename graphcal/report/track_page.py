@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from graphcal.report.page import Section, esc, figure_png_html, num, render_page, row, table
+from graphcal.report.page import Section, esc, figure, figure_png_html, num, render_page, row, table
 from graphcal.report.plots import figure_png, new_figure
 
 __all__ = ["track_figures", "track_html"]
@@ -278,9 +278,19 @@ def _contacts_section(c: dict | None, phases: dict | None) -> Section:
     return Section("Contacts and phases", *(parts or ["<p>the two-tripod support model (no per-foot thresholds)</p>"]))
 
 
-def track_html(m: dict, stairs_doc: dict | None, pngs: dict[str, bytes], *, title: str = "graphcal track") -> str:
+def _scene_section(scene) -> Section:
+    from graphcal.report.scene_view import scene_figure, scene_html
+
+    return Section("3-D scene", scene_html(scene),
+                   f'<p class="small">World frame, m (z up, the floor at z = 0). {esc(scene.note)}</p>',
+                   figure(scene_figure(scene, elev=24.0), "The same scene, for printing."))
+
+
+def track_html(m: dict, stairs_doc: dict | None, pngs: dict[str, bytes], *, title: str = "graphcal track",
+               scene=None) -> str:
     """The page of a track output: ``m`` is metrics.json (SI units; null without truth), ``stairs_doc``
-    stairs.json or None, ``pngs`` the plots (file name -> PNG, :func:`track_figures`)."""
+    stairs.json or None, ``pngs`` the plots (file name -> PNG, :func:`track_figures`), ``scene`` the
+    3-D view (:func:`graphcal.report.scene_3d.track_scene`) or None."""
     w = m.get("innovation_whiteness") or {}
     subtitle = (f"Dataset: {m['dataset']}; {m['n_samples']} samples over {m['duration_s']:.2f} s, processed in "
                 f"{m['processing_s']:.2f} s ({m['real_time_factor']:.1f}x real time). Filter: error-state EKF "
@@ -311,6 +321,8 @@ def track_html(m: dict, stairs_doc: dict | None, pngs: dict[str, bytes], *, titl
                 _contacts_section(m.get("contacts"), m.get("phases")), _noise_section(m.get("noise"))]
     if stairs_doc is not None:
         sections.append(_stairs_section(stairs_doc))
+    if scene is not None:
+        sections.append(_scene_section(scene))
     sections.append(Section("Figures", *(figure_png_html(png, f"{name}: {FIGURE_CAPTIONS.get(name, '')}")
                                          for name, png in pngs.items()),
                             "<p class='small'>Trajectory: trajectory.tum (TUM: t x y z qx qy qz qw); every number "
