@@ -176,3 +176,29 @@ def test_a_walks_floor_collapses_onto_the_true_extrinsics(tmp_path):
     assert t.rms_prior_m == pytest.approx(c.rms_calibrated_m, rel=0.02)
     assert c.rms_prior_m > 4 * c.rms_calibrated_m
     assert f"robot at station {min(result.T_world_body)}" in {g.name for g in scene.groups}
+
+
+def _payload(report) -> dict:
+    text = report.read_text()
+    return json.loads(re.search(r'<script type="application/json">(.*?)</script>', text, re.S).group(1))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", ["joint_offset", "outlier_stations"])
+def test_the_diagnosis_page_marks_the_findings_place(effect, tmp_path):
+    from graphcal.commands.diagnose import run as diagnose
+    from graphcal.commands.simulate import run as simulate
+
+    ds = tmp_path / "ds"
+    simulate(robot="octopus", program="chai2015", ground="level", out_dir=ds, seed=3, effects=[(effect, {})],
+             progress=False)
+    out = tmp_path / "diag"
+    diagnose(ds, out, progress=False)
+    doc = json.loads((out / "diagnosis.json").read_text())
+    (finding,) = [f for f in doc["findings"] if f["cause"] == effect]
+    names = {g["name"] for g in _payload(out / "report.html")["groups"]}
+    if effect == "joint_offset":
+        assert f"finding: leg {finding['where']['leg']}" in names
+    else:
+        stations = ", ".join(str(s) for s in finding["where"]["stations"])
+        assert f"finding: station{'s' if len(finding['where']['stations']) > 1 else ''} {stations}" in names

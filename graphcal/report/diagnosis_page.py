@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from graphcal.report.page import Section, esc, figure, render_page
 
 __all__ = ["diagnosis_html", "where_text", "parameter_text", "HELDOUT_UNITS"]
@@ -195,6 +197,38 @@ def _screening(doc: dict) -> list[str]:
     return rows
 
 
+def diagnosis_scene_of(diag, doc: dict):
+    """The 3-D scene of the diagnosis model (its body poses and sensor poses, the clouds of its
+    dataset) with each finding's place marked; None when it cannot be drawn."""
+    from graphcal.geometry import from_gtsam_pose
+    from graphcal.report.scene_3d import PosedModel, PosedSensor, diagnosis_scene
+
+    problem, values, ds = diag.problem, diag.values, diag.model.ds
+    try:
+        poses = {int(st): from_gtsam_pose(values.atPose3(k)) for st, k in problem.station_keys.items()}
+        sensors = {name: PosedSensor(from_gtsam_pose(values.atPose3(k)), np.asarray(problem.sensor_priors[name][0]),
+                                     np.full((6, 6), np.nan)) for name, k in problem.sensor_keys.items()}
+    except (RuntimeError, KeyError, AttributeError):
+        return None
+    stations_of = {int(st.station): st.session for st in diag.model.data.stations}
+    findings = [f for f in doc.get("findings", []) if isinstance(f, dict)]
+    return diagnosis_scene(PosedModel(poses, sensors), ds if getattr(ds, "root", None) else None, diag.model.robot,
+                           findings, stations_of)
+
+
+def _scene_parts(scene) -> list:
+    from graphcal.report.scene_view import scene_figure, scene_html
+
+    collapse = "".join(
+        f"<p>Ground points of <code>{esc(c.sensor)}</code> ({c.points} of {c.stations} stations): RMS height above "
+        f"the floor {c.rms_prior_m * 1e3:.2f} mm with the CAD prior, {c.rms_calibrated_m * 1e3:.2f} mm with the "
+        "diagnosis model's extrinsic.</p>" for c in scene.collapse)
+    return [collapse, scene_html(scene),
+            f'<p class="small">World frame, m. The finding\'s place, where it has one (its stations\' body frames, its '
+            f"leg), in magenta. {esc(scene.note)}</p>",
+            figure(scene_figure(scene), "The same scene, for printing.")]
+
+
 def diagnosis_html(diag, doc: dict, title: str) -> str:
     """The page of a :class:`~graphcal.diagnosis.diagnose.Diagnosis` and its JSON document ``doc``
     (:meth:`Diagnosis.to_json`; RMS in deg and mm, chi-square per degree of freedom)."""
@@ -218,6 +252,9 @@ def diagnosis_html(diag, doc: dict, title: str) -> str:
                 if doc["findings"] else '<p class="small">Stations numbered as in stations.csv.</p>',
                 *(figure(fig, caption) for caption, fig in diagnosis_figures(diag))),
     ]
+    scene = diagnosis_scene_of(diag, doc)
+    if scene is not None and scene.groups:
+        sections.append(Section("3-D scene of the diagnosis model", *_scene_parts(scene)))
     ext = _extended_calibration(doc)
     if ext:
         sections.append(Section("Sensor poses of the diagnosis model (not calibrate's)", *ext))

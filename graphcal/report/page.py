@@ -3,9 +3,10 @@ template, one style sheet, and the small pieces the report writers share (escapi
 rows, figures as PNG data URIs).
 
 A page is self-contained: inline CSS, figures embedded as ``data:image/png;base64`` URIs, nothing
-fetched from the network; the one script is the 3-D view's, inline (:mod:`graphcal.report.scene_view`). The report writers build their sections as HTML fragments
-(:class:`markupsafe.Markup`, escaped with :func:`esc`) and :func:`render_page` puts them into the
-template (jinja2, autoescaping every plain string).
+fetched from the network; the one script is the 3-D view's, inline (:mod:`graphcal.report.scene_view`).
+The report writers build their sections as HTML fragments (:class:`markupsafe.Markup`, escaped with
+:func:`esc`) and :func:`render_page` puts them into the template (jinja2, autoescaping every plain
+string).
 """
 
 from __future__ import annotations

@@ -17,6 +17,7 @@ point in file order) to at most :data:`POINTS_PER_STATION` per station and
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,7 +27,7 @@ from graphcal.report.calibration_yaml import body_axis_covariance
 from graphcal.report.scene_mcap import thin_evenly
 
 __all__ = ["GROUND_BAND_M", "POINTS_PER_STATION", "MAX_SCENE_POINTS", "ELLIPSOID_SCALE", "MAX_TRAJECTORY_SEGMENTS",
-           "FloorCollapse", "stance_footholds", "track_scene",
+           "FloorCollapse", "stance_footholds", "track_scene", "PosedSensor", "PosedModel", "diagnosis_scene",
            "SceneGroup", "Scene", "floor_collapse", "calibration_scene"]
 
 #: a cloud's point within this distance (m) of the floor under the calibrated extrinsic is a ground point
@@ -115,12 +116,12 @@ def _ellipsoid(center: np.ndarray, cov3: np.ndarray, scale: float) -> np.ndarray
     return np.concatenate(segs)
 
 
-def _stick_figure(robot, q: dict, T_world_body: np.ndarray) -> np.ndarray:
-    """Segments body origin -> each joint origin -> foot of every leg, world frame (m)."""
+def _stick_figure(legs, q: dict, T_world_body: np.ndarray) -> np.ndarray:
+    """Segments body origin -> each joint origin -> foot of each leg of ``legs``, world frame (m)."""
     from graphcal.models.kinematics import joint_frames
 
     segs = []
-    for leg in robot.legs.values():
+    for leg in legs:
         qs = np.array([[float(q.get(j, 0.0)) for j in leg.joint_names]])
         _, origins, _, p_foot = joint_frames(leg, qs)
         chain = np.vstack([np.zeros(3), origins[0], p_foot[0]])
@@ -255,7 +256,7 @@ def calibration_scene(result, dataset=None, robot=None) -> Scene:
     groups += _axis_groups("body poses", poses, _FRAME_M)
     if robot is not None:
         groups.append(SceneGroup(f"robot at station {station}", "#333333", "lines",
-                                 _stick_figure(robot, _station_q(dataset, result, station), T_wb)))
+                                 _stick_figure(robot.legs.values(), _station_q(dataset, result, station), T_wb)))
     for name in result.sensors:
         groups += _sensor_groups(result, name, T_wb)
     note = (f"Robot and sensor frames at station {station}. Ground points: within {GROUND_BAND_M * 1e3:g} mm of "
@@ -327,3 +328,54 @@ def track_scene(T_world_body: np.ndarray, footholds: np.ndarray, *, stairs_doc: 
     note = (f"Trajectory evenly thinned to at most {MAX_TRAJECTORY_SEGMENTS} segments; one foothold per stance of "
             "each foot, at its middle sample, placed with the estimated body pose.")
     return Scene(tuple(groups), (), note)
+
+
+@dataclass(frozen=True, eq=False)
+class PosedSensor:
+    """A sensor's pose on the body (4x4, m) at its prior and its estimate; ``covariance`` (6, 6) of
+    ``[omega, v]`` (rad, m; right perturbation), NaN where unknown (no ellipsoid drawn)."""
+
+    T_body_sensor: np.ndarray
+    T_body_sensor_prior: np.ndarray
+    covariance: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class PosedModel:
+    """What :func:`calibration_scene` reads of a solved model: station -> T_world_body (4x4, m),
+    sensor name -> :class:`PosedSensor`, and a walk's summary (or None)."""
+
+    T_world_body: dict
+    sensors: dict
+    walk: dict | None = None
+
+
+_HIGHLIGHT = "#e6007e"
+
+
+def _highlight(result, dataset, robot, where: dict, stations_of: dict) -> list[SceneGroup]:
+    """Groups that mark a finding's place: its stations' body frames, its leg at the first station."""
+    out = []
+    picked = [int(s) for s in where.get("stations", [])] + ([int(where["station"])] if "station" in where else [])
+    picked += [st for st, sess in stations_of.items() if "session" in where and sess == where["session"]]
+    picked = [s for s in dict.fromkeys(picked) if s in result.T_world_body]
+    if picked:
+        out.append(SceneGroup(f"finding: station{'s' if len(picked) > 1 else ''} {', '.join(map(str, picked[:8]))}"
+                              f"{' …' if len(picked) > 8 else ''}", _HIGHLIGHT, "lines",
+                              _triads([result.T_world_body[s] for s in picked], 3 * _FRAME_M)))
+    if "leg" in where and robot is not None and where["leg"] in robot.legs:
+        station = min(result.T_world_body)
+        out.append(SceneGroup(f"finding: leg {where['leg']}", _HIGHLIGHT, "lines", _stick_figure(
+            [robot.legs[where["leg"]]], _station_q(dataset, result, station), result.T_world_body[station])))
+    return out
+
+
+def diagnosis_scene(model: PosedModel, dataset, robot, findings: list[dict], stations_of: dict) -> Scene:
+    """The calibration scene of a diagnosis model, with each finding's place (``where`` of
+    diagnosis.json: stations, a station, a session, a leg) drawn in magenta. ``stations_of``:
+    station -> session."""
+    scene = calibration_scene(model, dataset, robot)
+    extra = []
+    for f in findings:
+        extra += _highlight(model, dataset, robot, dict(f.get("where") or {}), stations_of)
+    return dataclasses.replace(scene, groups=scene.groups + tuple(extra))
