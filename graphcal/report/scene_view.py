@@ -22,16 +22,24 @@ _SCRIPT = """
 const el=document.getElementById(%(id)s), S=JSON.parse(el.querySelector('script').textContent);
 const cv=el.querySelector('canvas'), ctx=cv.getContext('2d'), box=el.querySelector('.toggles');
 let az=-0.9, el_=0.14, zoom=1.0, drag=null, k=1;
-const sel=el.querySelector('select'); sel.onchange=()=>{k=Number(sel.value);draw();};
+const sel=el.querySelector('select'); sel.onchange=()=>{k=Number(sel.value);fit();draw();};
 S.groups.forEach((g,i)=>{const l=document.createElement('label');const c=document.createElement('input');
  c.type='checkbox';c.checked=g.visible;c.onchange=()=>{g.visible=c.checked;draw();};
  l.appendChild(c);const sw=document.createElement('span');sw.textContent=' \\u25A0 ';sw.style.color=g.color;
  l.appendChild(sw);l.appendChild(document.createTextNode(g.name+'  '));box.appendChild(l);});
+let ox=0, oy=0;
+function proj(){const ca=Math.cos(az),sa=Math.sin(az),ce=Math.cos(el_),se=Math.sin(el_);
+ return (x,y,z)=>{const u=ca*x+sa*y, v=-sa*x+ca*y, zz=S.floor+(z-S.floor)*k; return [u, ce*zz-se*v];};}
+function fit(){const Q=proj();let a=[1e18,1e18,-1e18,-1e18];
+ for(const g of S.groups){if(!g.visible)continue;const d=g.data;for(let i=0;i<d.length;i+=3){const q=Q(d[i],d[i+1],d[i+2]);
+  a=[Math.min(a[0],q[0]),Math.min(a[1],q[1]),Math.max(a[2],q[0]),Math.max(a[3],q[1])];}}
+ if(a[0]>a[2]){zoom=1;ox=0;oy=0;return;}
+ const f0=0.45*Math.min(cv.width,cv.height)/S.radius;
+ zoom=0.9*Math.min(cv.width/Math.max(a[2]-a[0],1e-9),cv.height/Math.max(a[3]-a[1],1e-9))/f0;
+ ox=-(a[0]+a[2])/2; oy=-(a[1]+a[3])/2;}
 function draw(){
- const w=cv.width,h=cv.height,ca=Math.cos(az),sa=Math.sin(az),ce=Math.cos(el_),se=Math.sin(el_);
- const f=zoom*0.45*Math.min(w,h)/S.radius;
- const P=(x,y,z)=>{const u=ca*x+sa*y, v=-sa*x+ca*y, zz=S.floor+(z-S.floor)*k;
-  return [w/2+f*u, h/2-f*(ce*zz-se*v)];};
+ const w=cv.width,h=cv.height,Q=proj(),f=zoom*0.45*Math.min(w,h)/S.radius;
+ const P=(x,y,z)=>{const q=Q(x,y,z); return [w/2+f*(q[0]+ox), h/2-f*(q[1]+oy)];};
  ctx.fillStyle='#fff';ctx.fillRect(0,0,w,h);let n=0;
  for(const g of S.groups){ if(!g.visible) continue; const d=g.data;
   if(g.kind==='points'){ctx.fillStyle=g.color;
@@ -46,8 +54,8 @@ window.addEventListener('mouseup',()=>{drag=null;});
 window.addEventListener('mousemove',e=>{if(!drag)return;az-=(e.clientX-drag[0])*0.01;
  el_=Math.max(-1.55,Math.min(1.55,el_+(e.clientY-drag[1])*0.01));drag=[e.clientX,e.clientY];draw();});
 cv.onwheel=e=>{e.preventDefault();zoom*=Math.exp(-e.deltaY*0.001);draw();};
-el.querySelector('button').onclick=()=>{az=-0.9;el_=0.14;zoom=1.0;draw();};
-draw();})();
+el.querySelector('button').onclick=()=>{az=-0.9;el_=0.14;fit();draw();};
+fit();draw();})();
 """
 
 
