@@ -261,3 +261,20 @@ def test_stability_margin_of_a_triangle():
     m = stability_margin(tri, np.array([[0.25, 0.25, 0.5], [0.5, -0.2, 0.5], [0.0, 0.0, 0.4]]))
     assert m == pytest.approx([0.25, -0.2, 0.0])
     assert float(stability_margin(tri[[2, 0, 1]], [0.25, 0.25, 0.0])) == pytest.approx(0.25)  # any order
+
+
+def test_report_3d_scene_holds_the_plans_footholds_and_body_path(planned):
+    import json
+    import re
+
+    _, _, plan, doc = planned
+    text = (plan / "report.html").read_text()
+    payload = json.loads(re.search(r'<script type="application/json">(.*?)</script>', text, re.S).group(1))
+    groups = {g["name"]: np.asarray(g["data"], dtype=float).reshape(-1, 3) for g in payload["groups"]}
+    assert {"stairs (perceived)", "planned body path", "planned footholds", "feet at the start"} <= set(groups)
+    # the page's points (mm, about the scene's centre) are gait.yaml's footholds, in order
+    want = np.array([fh["p_world_foot"] for _, _, fh in _footholds(doc)])
+    got = groups["planned footholds"]
+    centre = (got - 1e3 * want).mean(axis=0)
+    assert len(got) == len(want) and np.max(np.abs(got - 1e3 * want - centre)) <= 1.0  # rounded to 1 mm
+    assert groups["planned body path"].shape[0] == 2 * len(doc["steps"])  # one segment per step

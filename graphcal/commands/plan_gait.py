@@ -52,6 +52,7 @@ from graphcal.planning.climb import (
 )
 from graphcal.planning.gait import GaitConfig
 from graphcal.report.gait_page import gait_figures, gait_html
+from graphcal.report.scene_3d import gait_scene
 
 __all__ = ["PLAN_FORMAT", "OUTPUT_FILES", "run", "PlanGaitResult", "summary_lines"]
 
@@ -385,7 +386,8 @@ def run(track_dir: str | Path, out: str | Path, *, dataset: str | Path | None = 
     head = ("# graphcal plan-gait: Zhao's gait parameters and footholds up the perceived stairs "
             "(docs/stairs_gait.md)\n# frames and units: the frames: and units: blocks below\n")
     files: dict[str, bytes] = {"gait.yaml": (head + yaml.dump(doc, Dumper=_Dumper, sort_keys=False, width=120)).encode(), **pngs}
-    files["report.html"] = gait_html(doc, pngs, title=f"graphcal plan-gait: {track_dir.name}").encode()
+    scene = gait_scene(doc, stairs_doc, T_wb[:, :3, 3])
+    files["report.html"] = gait_html(doc, pngs, title=f"graphcal plan-gait: {track_dir.name}", scene=scene).encode()
     with atomic_directory(out, overwrite=True) as tmp:
         for name, data in files.items():
             atomic_write_bytes(tmp / name, data)

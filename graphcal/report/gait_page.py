@@ -165,8 +165,16 @@ def _min(values):
     return min(vals) if vals else None
 
 
-def gait_html(doc: dict, pngs: dict[str, bytes], *, title: str = "graphcal plan-gait") -> str:
-    """The page of a plan-gait output: ``doc`` is gait.yaml's document, ``pngs`` the figures."""
+def _scene_section(scene) -> Section:
+    from graphcal.report.scene_view import scene_html
+
+    return Section("3-D scene", scene_html(scene),
+                   f'<p class="small">World frame (the track\'s estimate), m, z up. {esc(scene.note)}</p>')
+
+
+def gait_html(doc: dict, pngs: dict[str, bytes], *, title: str = "graphcal plan-gait", scene=None) -> str:
+    """The page of a plan-gait output: ``doc`` is gait.yaml's document, ``pngs`` the figures, ``scene``
+    the 3-D view (:func:`graphcal.report.scene_3d.gait_scene`) or None."""
     s = doc["summary"]
     facts = [
         f"outcome: {s['outcome']} after {s['steps']} steps ({s['reason']})",
@@ -218,7 +226,8 @@ def gait_html(doc: dict, pngs: dict[str, bytes], *, title: str = "graphcal plan-
                 f"({st0['selection']}), tripod {st0['stance_tripod']} in stance. Planner: "
                 "graphcal.planning.gait (Zhao et al. 2020, section 3.3), one step at a time from the previous plan "
                 "(docs/stairs_gait.md).")
-    return render_page(title, [summary, figures, steps, footholds, treads], subtitle=subtitle,
+    scenes = [_scene_section(scene)] if scene is not None else []
+    return render_page(title, [summary, figures, *scenes, steps, footholds, treads], subtitle=subtitle,
                        warnings=doc.get("warnings", ()),
                        footer="Frames: world = the track's estimate (z up); stairs = x up the stairs from the foot of "
                               "the first riser, y left, z up from the floor. Lengths in m (tables in mm where "

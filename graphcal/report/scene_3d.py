@@ -1,5 +1,6 @@
 """The 3-D scenes of the report pages: what is drawn, in the world frame (m). A track page's
-(:func:`track_scene`): the trajectory, the stance footholds, the perceived stairs. A calibration's:
+(:func:`track_scene`): the trajectory, the stance footholds, the perceived stairs; a plan-gait page's
+(:func:`gait_scene`); a diagnosis page's (:func:`diagnosis_scene`). A calibration's:
 
 * the ground points of every station laid into the world frame twice,
   ``p_world = T_world_body T_body_sensor p_sensor``, with the CAD prior ``T_body_sensor`` and with the
@@ -27,7 +28,7 @@ from graphcal.report.calibration_yaml import body_axis_covariance
 from graphcal.report.scene_mcap import thin_evenly
 
 __all__ = ["GROUND_BAND_M", "POINTS_PER_STATION", "MAX_SCENE_POINTS", "ELLIPSOID_SCALE", "MAX_TRAJECTORY_SEGMENTS",
-           "FloorCollapse", "stance_footholds", "track_scene", "PosedSensor", "PosedModel", "diagnosis_scene",
+           "FloorCollapse", "stance_footholds", "track_scene", "PosedSensor", "PosedModel", "diagnosis_scene", "gait_scene",
            "SceneGroup", "Scene", "floor_collapse", "calibration_scene"]
 
 #: a cloud's point within this distance (m) of the floor under the calibrated extrinsic is a ground point
@@ -66,6 +67,7 @@ class SceneGroup:
     data: np.ndarray
     visible: bool = True
     cycle: tuple[str, ...] = ()  # lines: segment i drawn in cycle[i % len(cycle)] (a frame's x, y, z)
+    size: float = 2.0  # points: square side, px
 
 
 @dataclass(frozen=True, eq=False)
@@ -317,7 +319,7 @@ def track_scene(T_world_body: np.ndarray, footholds: np.ndarray, *, stairs_doc: 
                                  _polyline(np.asarray(T_world_body_true, dtype=float)[:, :3, 3])))
     groups.append(SceneGroup("trajectory (estimate)", "#1f77b4", "lines", _polyline(p)))
     if len(footholds):
-        groups.append(SceneGroup("stance footholds", "#d62728", "points", np.asarray(footholds, dtype=float)))
+        groups.append(SceneGroup("stance footholds", "#d62728", "points", np.asarray(footholds, dtype=float), size=4.0))
     if stairs_doc and stairs_doc.get("treads"):
         groups.append(SceneGroup("stairs (perceived)", "#9467bd", "lines", _tread_segments(stairs_doc)))
     every = np.vstack([p] + ([footholds] if len(footholds) else []))
@@ -379,3 +381,28 @@ def diagnosis_scene(model: PosedModel, dataset, robot, findings: list[dict], sta
     for f in findings:
         extra += _highlight(model, dataset, robot, dict(f.get("where") or {}), stations_of)
     return dataclasses.replace(scene, groups=scene.groups + tuple(extra))
+
+
+def gait_scene(doc: dict, stairs_doc: dict, p_world_track: np.ndarray | None = None) -> Scene:
+    """The 3-D :class:`Scene` of a plan-gait output (``doc``: gait.yaml's document, world frame, m): the
+    perceived stairs, the planned body path, each planned foothold and its swing (lift point to
+    foothold), the feet at the start, and the tracked path before the plan."""
+    body = [doc["start"]["T_world_body"]] + [s["body"]["T_world_body_end"] for s in doc["steps"]]
+    body_p = np.asarray([np.asarray(T, dtype=float)[:3, 3] for T in body]).reshape(-1, 3)
+    groups = [SceneGroup("stairs (perceived)", "#9467bd", "lines", _tread_segments(stairs_doc))]
+    if p_world_track is not None and len(p_world_track) > 1:
+        groups.append(SceneGroup("tracked path", "#7f7f7f", "lines", _polyline(p_world_track)))
+    groups.append(SceneGroup("planned body path", "#1f77b4", "lines", _polyline(body_p)))
+    land = [f["p_world_foot"] for s in doc["steps"] for f in s["footholds"].values()]
+    swing = [(f["p_world_lift"], f["p_world_foot"]) for s in doc["steps"] for f in s["footholds"].values()
+             if f.get("p_world_lift") is not None]
+    start = [f["p_world_foot"] for f in doc["start"]["feet"].values()]
+    if land:
+        groups.append(SceneGroup("planned footholds", "#d62728", "points", np.asarray(land, dtype=float), size=6.0))
+    if swing:
+        groups.append(SceneGroup("swings (lift -> foothold)", "#ff7f0e", "lines", np.asarray(swing, dtype=float)))
+    if start:
+        groups.append(SceneGroup("feet at the start", "#2ca02c", "points", np.asarray(start, dtype=float), size=6.0))
+    note = ("Footholds and body path as planned (gait.yaml), each swing drawn straight from its lift point to its "
+            "foothold (the planned swing curves over the nosings: the clearances are in the tables).")
+    return Scene(tuple(groups), (), note)

@@ -43,7 +43,7 @@ function draw(){
  ctx.fillStyle='#fff';ctx.fillRect(0,0,w,h);let n=0;
  for(const g of S.groups){ if(!g.visible) continue; const d=g.data;
   if(g.kind==='points'){ctx.fillStyle=g.color;
-   for(let i=0;i<d.length;i+=3){const p=P(d[i],d[i+1],d[i+2]);ctx.fillRect(p[0]-1,p[1]-1,2,2);n++;}}
+   const r=g.size;for(let i=0;i<d.length;i+=3){const p=P(d[i],d[i+1],d[i+2]);ctx.fillRect(p[0]-r/2,p[1]-r/2,r,r);n++;}}
   else{const cs=g.cycle.length?g.cycle:[g.color];ctx.lineWidth=1.5;
    for(let k=0;k<cs.length;k++){ctx.strokeStyle=cs[k];ctx.beginPath();
     for(let i=6*k;i<d.length;i+=6*cs.length){const a=P(d[i],d[i+1],d[i+2]),b=P(d[i+3],d[i+4],d[i+5]);
@@ -65,6 +65,7 @@ def _payload(scene) -> tuple[dict, np.ndarray]:
     center = 0.5 * (allp.min(axis=0) + allp.max(axis=0))
     radius = float(max(np.max(np.linalg.norm(allp - center, axis=1)), 1e-3)) * 1000.0
     groups = [{"name": g.name, "color": g.color, "kind": g.kind, "visible": bool(g.visible), "cycle": list(g.cycle),
+               "size": float(g.size),
                "data": np.rint((g.data.reshape(-1, 3) - center) * 1000.0).astype(int).ravel().tolist()}
               for g in scene.groups]
     return {"radius": radius, "floor": float(-center[2] * 1000.0), "groups": groups}, center
@@ -99,7 +100,7 @@ def scene_figure(scene, *, elev: float = 8.0, azim: float = -52.0):
             continue
         if g.kind == "points":
             p = g.data
-            ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=0.6, c=g.color, depthshade=False, label=g.name)
+            ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=0.3 * g.size**2, c=g.color, depthshade=False, label=g.name)
         else:
             cycle = g.cycle or (g.color,)
             colors = [cycle[i % len(cycle)] for i in range(len(g.data))]
