@@ -344,3 +344,43 @@ def test_the_reports_3d_scene_puts_the_footholds_on_the_perceived_treads(stairs)
     on = [int(np.sum(np.abs(z_mm - h) < 15.0)) for h in levels]
     print("footholds per level", on, "worst mm", float(np.max(nearest)))
     assert min(on) >= 3, on  # and the robot stood on every one of them
+
+
+@pytest.mark.slow
+def test_scene_mcap_holds_the_tracked_robot_its_clouds_footholds_and_stairs(stairs):
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_scene_mcap import read_scene
+
+    from graphcal.io.dataset import read_dataset
+
+    ds_dir, out, m = stairs
+    assert "scene.mcap" in m["output_files"]
+    scene = read_scene(out / "scene.mcap")
+    assert scene["types"] == {
+        "/graphcal/notes": "std_msgs/msg/String", "/robot_description": "std_msgs/msg/String",
+        "/tf_static": "tf2_msgs/msg/TFMessage", "/graphcal/trajectory": "nav_msgs/msg/Path",
+        "/graphcal/footholds": "sensor_msgs/msg/PointCloud2", "/graphcal/stairs": "visualization_msgs/msg/MarkerArray",
+        "/tf": "tf2_msgs/msg/TFMessage", "/depth/points": "sensor_msgs/msg/PointCloud2"}  # fmt: skip
+    ds = read_dataset(ds_dir)
+    clouds = [r for r in ds.timeseries["cloud_depth"].tolist() if r]
+    assert len(scene["msgs"]["/depth/points"]) == len(clouds)
+    (_, static), = scene["msgs"]["/tf_static"]
+    depth = next(t for t in static.transforms if t.child_frame_id == "depth")
+    prior = ds.sensors["depth"].T_body_sensor_prior.matrix
+    assert np.allclose([depth.transform.translation.x, depth.transform.translation.y, depth.transform.translation.z],
+                       prior[:3, 3], atol=1e-12)
+    # /tf at 50 Hz: each pose is the trajectory's at that stamp (trajectory.tum, 100 Hz, 9 digits)
+    tum = np.loadtxt(out / "trajectory.tum", comments="#")
+    tf = [(t.header.stamp.sec + 1e-9 * t.header.stamp.nanosec, t.transform.translation)
+          for _, msg in scene["msgs"]["/tf"] for t in msg.transforms]
+    assert len(tf) == pytest.approx(50 * m["duration_s"], abs=2)
+    rows = np.searchsorted(tum[:, 0], [s - 1e-7 for s, _ in tf[::10]])
+    got = np.array([[p.x, p.y, p.z] for _, p in tf[::10]])
+    assert np.allclose(tum[rows, 0], [s for s, _ in tf[::10]], atol=1e-6)
+    assert np.max(np.abs(tum[rows, 1:4] - got)) < 1e-6
+    page = _scene_payload(out / "report.html")
+    feet = next(g for g in page["groups"] if g["name"] == "stance footholds")
+    (_, cloud), = scene["msgs"]["/graphcal/footholds"]
+    assert cloud.width == len(feet["data"]) // 3 > 20

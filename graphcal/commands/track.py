@@ -17,7 +17,8 @@
   :mod:`graphcal.locomotion.noise_settings`); give it back with ``--noise`` to use it as it is;
 * ``stairs.json``     -- on a stairs dataset, the stairs model of :mod:`graphcal.locomotion.stairs` from the
   keyframe clouds (:func:`stairs_keyframes`) placed with the estimated poses, with per-tread errors
-  against the truth's ascending flight (:func:`ascending_flight`) when there is a truth.
+  against the truth's ascending flight (:func:`ascending_flight`) when there is a truth;
+* ``scene.mcap``      -- the tracked robot for Foxglove and RViz 2 (:mod:`graphcal.report.track_mcap`).
 
 The outputs are written as one atomic set (:func:`graphcal.io.atomic.atomic_directory`); an
 existing ``DIR`` is replaced only if it is empty or holds a previous ``graphcal track`` output
@@ -49,7 +50,7 @@ log = logging.getLogger(__name__)
 
 TRACK_FORMAT = "graphcal-track/1"
 OUTPUT_FILES = ("trajectory.tum", "metrics.json", "trajectory.png", "errors.png", "nis.png", "contacts.png",
-                "report.html", "stairs.json", "noise.yaml")
+                "report.html", "stairs.json", "noise.yaml", "scene.mcap")
 #: what a previous track output may hold (before 2026-11-27 the report was report.md)
 _PREVIOUS_FILES = OUTPUT_FILES + ("report.md",)
 
@@ -149,16 +150,35 @@ def consistency_warning(section: dict) -> str | None:
               "the trajectory's sigma and NEES are not to be trusted")
 
 
-def _scene(inp, res, stairs_doc, truth):
-    """The report's 3-D scene: trajectory (and truth), stance footholds, perceived stairs."""
+def _footholds(inp, res) -> np.ndarray:
+    """(K, 3) world foot points (m), one per stance of each foot (graphcal.report.scene_3d.stance_footholds)."""
     from graphcal.locomotion.gtsam_legged import foot_points_from_joints
-    from graphcal.locomotion.metrics import interp_truth
-    from graphcal.report.scene_3d import stance_footholds, track_scene
+    from graphcal.report.scene_3d import stance_footholds
 
-    feet = (stance_footholds(res.T_world_body, res.stance_mask, foot_points_from_joints(inp))
-            if res.stance_mask is not None else np.zeros((0, 3)))
+    if res.stance_mask is None:
+        return np.zeros((0, 3))
+    return stance_footholds(res.T_world_body, res.stance_mask, foot_points_from_joints(inp))
+
+
+def _scene(res, feet, stairs_doc, truth):
+    """The report's 3-D scene: trajectory (and truth), stance footholds, perceived stairs."""
+    from graphcal.locomotion.metrics import interp_truth
+    from graphcal.report.scene_3d import track_scene
+
     true = interp_truth(truth, res.times) if truth is not None else None
     return track_scene(res.T_world_body, feet, stairs_doc=stairs_doc, T_world_body_true=true)
+
+
+def _write_scene_mcap(path: Path, ds, inp, res, feet, stairs_doc) -> None:
+    """scene.mcap (graphcal.report.track_mcap): poses, the dataset's URDF, clouds, footholds, stairs."""
+    from graphcal.report.scene_3d import stairs_segments
+    from graphcal.report.track_mcap import write_track_mcap
+
+    names = [s for s in ds.timeseries.suffixes("cloud_") if s in ds.sensors] if ds.timeseries is not None else []
+    stairs = stairs_segments(stairs_doc) if stairs_doc and stairs_doc.get("treads") else None
+    write_track_mcap(path, times=res.times, T_world_body=res.T_world_body, base_frame=inp.robot.base_frame,
+                     urdf_text=inp.robot.urdf_xml, T_body_imu=inp.T_body_imu, sensor=names[0] if names else None,
+                     T_body_sensor=inp.T_body_sensor, clouds=inp.clouds, footholds=feet, stair_segments=stairs)
 
 
 def _innovation_bias(inp, res) -> dict:
@@ -386,23 +406,25 @@ def run(dataset: str | Path, out: str | Path, *, progress: bool = True, config=N
     files.update(pngs)
     if stairs_doc is not None:
         files["stairs.json"] = json.dumps(_clean(stairs_doc), indent=2).encode()
-    names = sorted(list(files) + ["metrics.json", "report.html"])
+    names = sorted(list(files) + ["metrics.json", "report.html", "scene.mcap"])
     m["output_files"] = names
     m = _clean(m)
     files["metrics.json"] = (json.dumps(m, indent=2) + "\n").encode()
+    feet = _footholds(inp, res)
     files["report.html"] = track_html(m, stairs_doc, pngs, title=f"graphcal track: {Path(str(dataset)).name}",
-                                      scene=_scene(inp, res, stairs_doc, truth)).encode()
+                                      scene=_scene(res, feet, stairs_doc, truth)).encode()
 
     with atomic_directory(out, overwrite=True) as tmp:
         for name, data in files.items():
             atomic_write_bytes(tmp / name, data)
+        _write_scene_mcap(tmp / "scene.mcap", ds, inp, res, feet, stairs_doc)
         _check_out(out, overwrite)
     warnings = tuple(w for w in (plausibility_warning(plaus), consistency_warning(consistency),
                                  bias_warning(m["innovation_bias"])) if w is not None)
     for w in warnings:
         log.warning("WARNING: %s", w)
     return TrackResult(estimate=res, metrics=m, consistency=consistency, stairs=stairs_doc, dataset=str(dataset),
-                       out=out, files=tuple(out / name for name in sorted(files)), warnings=warnings,
+                       out=out, files=tuple(out / name for name in sorted([*files, "scene.mcap"])), warnings=warnings,
                        verdict=consistency["verdict"])
 
 

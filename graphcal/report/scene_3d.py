@@ -29,6 +29,7 @@ from graphcal.report.scene_mcap import thin_evenly
 
 __all__ = ["GROUND_BAND_M", "POINTS_PER_STATION", "MAX_SCENE_POINTS", "ELLIPSOID_SCALE", "MAX_TRAJECTORY_SEGMENTS",
            "FloorCollapse", "stance_footholds", "track_scene", "PosedSensor", "PosedModel", "diagnosis_scene", "gait_scene",
+           "stairs_segments",
            "SceneGroup", "Scene", "floor_collapse", "calibration_scene"]
 
 #: a cloud's point within this distance (m) of the floor under the calibrated extrinsic is a ground point
@@ -291,7 +292,7 @@ def stance_footholds(T_world_body: np.ndarray, stance_mask: np.ndarray, p_body_f
     return np.vstack(out) if out else np.zeros((0, 3))
 
 
-def _tread_segments(stairs_doc: dict) -> np.ndarray:
+def stairs_segments(stairs_doc: dict) -> np.ndarray:
     """Each perceived tread's outline (nosing edge, depth up the stairs) and its riser below the nosing."""
     T = np.asarray(stairs_doc.get("T_world_stairs", np.eye(4)), dtype=float)
     up = T[:3, 0] - T[2, 0] * np.array([0.0, 0.0, 1.0])
@@ -321,7 +322,7 @@ def track_scene(T_world_body: np.ndarray, footholds: np.ndarray, *, stairs_doc: 
     if len(footholds):
         groups.append(SceneGroup("stance footholds", "#d62728", "points", np.asarray(footholds, dtype=float), size=4.0))
     if stairs_doc and stairs_doc.get("treads"):
-        groups.append(SceneGroup("stairs (perceived)", "#9467bd", "lines", _tread_segments(stairs_doc)))
+        groups.append(SceneGroup("stairs (perceived)", "#9467bd", "lines", stairs_segments(stairs_doc)))
     every = np.vstack([p] + ([footholds] if len(footholds) else []))
     lo, hi = every[:, :2].min(axis=0) - 0.2, every[:, :2].max(axis=0) + 0.2
     ring = np.array([[lo[0], lo[1], 0.0], [hi[0], lo[1], 0.0], [hi[0], hi[1], 0.0], [lo[0], hi[1], 0.0],
@@ -389,7 +390,7 @@ def gait_scene(doc: dict, stairs_doc: dict, p_world_track: np.ndarray | None = N
     foothold), the feet at the start, and the tracked path before the plan."""
     body = [doc["start"]["T_world_body"]] + [s["body"]["T_world_body_end"] for s in doc["steps"]]
     body_p = np.asarray([np.asarray(T, dtype=float)[:3, 3] for T in body]).reshape(-1, 3)
-    groups = [SceneGroup("stairs (perceived)", "#9467bd", "lines", _tread_segments(stairs_doc))]
+    groups = [SceneGroup("stairs (perceived)", "#9467bd", "lines", stairs_segments(stairs_doc))]
     if p_world_track is not None and len(p_world_track) > 1:
         groups.append(SceneGroup("tracked path", "#7f7f7f", "lines", _polyline(p_world_track)))
     groups.append(SceneGroup("planned body path", "#1f77b4", "lines", _polyline(body_p)))

@@ -36,7 +36,8 @@ import numpy as np
 from graphcal.geometry import quat_wxyz_from_matrix
 
 __all__ = ["DEFAULT_MAX_POINTS", "WORLD_FRAME", "NOTES_TOPIC", "write_scene_mcap", "thin_evenly",
-           "cloud_topic", "readable_dataset"]
+           "cloud_topic", "readable_dataset", "typestore", "stamp_msg", "transform_msg", "point_cloud_msg", "string_msg",
+           "latched_qos"]
 
 #: the default cap on the points of one cloud in scene.mcap (evenly thinned above it)
 DEFAULT_MAX_POINTS = 20_000
@@ -46,7 +47,7 @@ NOTES_TOPIC = "/graphcal/notes"
 _STORE = None
 
 
-def _typestore():
+def typestore():
     global _STORE
     if _STORE is None:
         from rosbags.typesys import Stores, get_typestore
@@ -79,17 +80,17 @@ class _Station:
     stamp_ns: int
 
 
-def _stamp(ns: int):
-    Time = _typestore().types["builtin_interfaces/msg/Time"]
+def stamp_msg(ns: int):
+    Time = typestore().types["builtin_interfaces/msg/Time"]
     return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
 
 
-def _transform(parent: str, child: str, T: np.ndarray, ns: int):
-    t = _typestore().types
+def transform_msg(parent: str, child: str, T: np.ndarray, ns: int):
+    t = typestore().types
     T = np.asarray(T, dtype=float)
     w, x, y, z = quat_wxyz_from_matrix(T[:3, :3])
     return t["geometry_msgs/msg/TransformStamped"](
-        header=t["std_msgs/msg/Header"](stamp=_stamp(ns), frame_id=str(parent)),
+        header=t["std_msgs/msg/Header"](stamp=stamp_msg(ns), frame_id=str(parent)),
         child_frame_id=str(child),
         transform=t["geometry_msgs/msg/Transform"](
             translation=t["geometry_msgs/msg/Vector3"](x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
@@ -98,23 +99,23 @@ def _transform(parent: str, child: str, T: np.ndarray, ns: int):
     )
 
 
-def _point_cloud(frame: str, points: np.ndarray, ns: int):
-    t = _typestore().types
+def point_cloud_msg(frame: str, points: np.ndarray, ns: int):
+    t = typestore().types
     PointField = t["sensor_msgs/msg/PointField"]
     pts = np.ascontiguousarray(points, dtype="<f4").reshape(-1, 3)
     fields = [PointField(name=c, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, c in enumerate("xyz")]
     return t["sensor_msgs/msg/PointCloud2"](
-        header=t["std_msgs/msg/Header"](stamp=_stamp(ns), frame_id=str(frame)),
+        header=t["std_msgs/msg/Header"](stamp=stamp_msg(ns), frame_id=str(frame)),
         height=1, width=len(pts), fields=fields, is_bigendian=False, point_step=12, row_step=12 * len(pts),
         data=pts.view(np.uint8).reshape(-1), is_dense=bool(np.all(np.isfinite(pts))),
     )  # fmt: skip
 
 
-def _string(text: str):
-    return _typestore().types["std_msgs/msg/String"](data=str(text))
+def string_msg(text: str):
+    return typestore().types["std_msgs/msg/String"](data=str(text))
 
 
-def _latched():
+def latched_qos():
     """QoS a late subscriber still gets the message with (as tf2's static broadcaster offers)."""
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
@@ -224,8 +225,8 @@ def write_scene_mcap(path: str | Path, result, urdf_text: str, *, dataset=None,
     poses = sum(r.station in result.T_world_body for r in stations)
     t0 = stations[0].stamp_ns if stations else 0
     notes = _notes(result, max_points, stamps, _cloud_text(n_clouds, thinned, skipped, why), poses)
-    ts, tf = _typestore(), "tf2_msgs/msg/TFMessage"
-    static = ts.types[tf](transforms=[_transform(result.base_frame, name, s.T_body_sensor, t0)
+    ts, tf = typestore(), "tf2_msgs/msg/TFMessage"
+    static = ts.types[tf](transforms=[transform_msg(result.base_frame, name, s.T_body_sensor, t0)
                                       for name, s in result.sensors.items()])
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
@@ -238,22 +239,22 @@ def write_scene_mcap(path: str | Path, result, urdf_text: str, *, dataset=None,
         def put(topic, msgtype, ns, msg, latched=False):
             if topic not in conns:
                 conns[topic] = writer.add_connection(topic, msgtype, typestore=ts,
-                                                     offered_qos_profiles=_latched() if latched else ())
+                                                     offered_qos_profiles=latched_qos() if latched else ())
             writer.write(conns[topic], int(ns), ts.serialize_cdr(msg, msgtype))
 
         try:
-            put(NOTES_TOPIC, "std_msgs/msg/String", t0, _string(notes), latched=True)
-            put("/robot_description", "std_msgs/msg/String", t0, _string(urdf_text), latched=True)
+            put(NOTES_TOPIC, "std_msgs/msg/String", t0, string_msg(notes), latched=True)
+            put("/robot_description", "std_msgs/msg/String", t0, string_msg(urdf_text), latched=True)
             put("/tf_static", tf, t0, static, latched=True)
             for r in stations:  # time order: the body pose, then the station's clouds (one in memory at a time)
                 if r.station in result.T_world_body:
                     put("/tf", tf, r.stamp_ns, ts.types[tf](transforms=[
-                        _transform(WORLD_FRAME, result.base_frame, result.T_world_body[r.station], r.stamp_ns)]))
+                        transform_msg(WORLD_FRAME, result.base_frame, result.T_world_body[r.station], r.stamp_ns)]))
                 for sensor in result.sensors:
                     if (sensor, r.station) in found:
                         pts = thin_evenly(load_cloud(ds, sensor, r.station), max_points)
                         put(cloud_topic(sensor), "sensor_msgs/msg/PointCloud2", r.stamp_ns,
-                            _point_cloud(sensor, pts, r.stamp_ns))
+                            point_cloud_msg(sensor, pts, r.stamp_ns))
         except BaseException:
             writer.abort()
             raise
