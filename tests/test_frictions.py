@@ -259,3 +259,37 @@ def test_an_unknown_program_lists_every_kind(tmp_path, capsys):
     assert main(["simulate", "--program", "chai2016", "--out", str(tmp_path / "x"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "chai2015" in err and "tripod-walk" in err and "trot" in err and "mocap" in err
+
+
+# ----------------------------------------------------------------------------- issue 46, 9: the mocap hint
+@pytest.mark.slow
+def test_the_identify_command_simulate_prints_finds_the_planted_hip_offset(tmp_path, capsys):
+    """``simulate --robot a1 --program mocap`` printed ``identify-legs DIR --out DIR``: with those
+    defaults the planted 1 deg hip offset was held and went into T_body_vbase.rx. The command it
+    prints now, run as printed, finds it within 3 sigma."""
+    import re
+    import shlex
+
+    from graphcal.cli import main
+
+    ds = tmp_path / "mocap"
+    assert main(["simulate", "--robot", "a1", "--program", "mocap", "--out", str(ds)]) == 0
+    printed = re.search(r"identify with: graphcal (identify-legs .*?--out DIR[^(]*)", capsys.readouterr().out).group(1)
+    argv = [str(tmp_path / "legs") if w == "DIR" else w for w in shlex.split(printed)]
+    assert main(argv + ["--quiet"]) == 0
+    legs = yaml.safe_load((tmp_path / "legs" / "legs.yaml").read_text())
+    truth = yaml.safe_load((ds / "truth.yaml").read_text())
+    want = next(v for k, v in _flat(truth).items() if k.endswith("fl_hip_joint"))
+    got = next(v for k, v in _flat(legs).items() if k.endswith("fl_hip_joint.offset_rad"))
+    assert abs(got["value"] - want) < 3 * got["sigma"], (got, want)
+
+
+def _flat(doc, prefix: str = "") -> dict:
+    out = {}
+    for k, v in (doc.items() if isinstance(doc, dict) else ()):
+        key = f"{prefix}{k}"
+        if isinstance(v, dict) and not {"value", "sigma"} <= set(v):
+            out.update(_flat(v, key + "/"))
+        else:
+            out[key] = v
+    return out

@@ -157,7 +157,9 @@ class SimulateResult:
             return (f"wrote {self.out}: {self.n_stations} motion-capture samples of the {self.robot}'s {self.foot} leg "
                     f"in the air ({MOCAP_PROGRAM} program, Yuan et al.'s set-up: +-1 deg encoder and +-1 mm marker "
                     f"noise, body markers); leg errors: {self.leg_errors}; truth in {self.truth}; identify with: "
-                    f"graphcal identify-legs {self.out} --out DIR")
+                    f"graphcal identify-legs {self.out} --out DIR --mocap-free rz,z --origins none (Yuan et al.'s "
+                    "unknowns: the defaults also free the hip's origin and the frame's roll, which then share the "
+                    "planted hip offset; docs/legs.md)")
         return (f"wrote {self.out}: {self.n_stations} stations in {self.n_sessions} session(s) of the {self.robot} "
                 f"({self.program} program, {self.ground} ground); sensors: {', '.join(self.sensors) or 'none'}; "
                 f"{self.n_clouds} clouds, {self.n_planes} planes; hidden effects: "
