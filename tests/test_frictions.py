@@ -293,3 +293,28 @@ def _flat(doc, prefix: str = "") -> dict:
         else:
             out[key] = v
     return out
+
+
+# ----------------------------------------------------------------------------- issue 46, 12 and 13: the diagnosis page
+def test_the_diagnosis_page_names_the_dataset_not_a_machine_path(diagnosis, small):
+    import re
+
+    _, _, page = diagnosis
+    title = re.search(r"<title>(.*?)</title>", page).group(1)
+    assert title == f"graphcal diagnosis of {small.name}" and str(small.parent) not in page.split("</h1>")[0]
+
+
+@pytest.mark.slow
+def test_the_diagnosis_note_gives_the_demos_difference_as_measured(tmp_path):
+    """The note said the two poses differ "on the demo by 0.2 mm"; the demo measured 0.52 mm."""
+    import re
+
+    from graphcal.commands import calibrate, diagnose, simulate
+
+    ds = tmp_path / "demo"
+    simulate.run(robot="octopus", program="chai2015", ground="level", out_dir=ds, progress=False)  # scripts/demo's
+    cal = calibrate.run(ds, tmp_path / "cal", progress=False).calibration.sensors["depth"].T_body_sensor
+    doc = diagnose.run(ds, tmp_path / "diag", progress=False).doc
+    ext = np.array(doc["extended_calibration"]["sensors"]["depth"]["T_body_sensor"]["xyz"])
+    said = float(re.search(r"on the demo by ([0-9.]+) mm", doc["extended_calibration"]["note"]).group(1))
+    assert said == pytest.approx(1e3 * np.linalg.norm(ext - cal[:3, 3]), abs=0.01)

@@ -76,7 +76,7 @@ def write_diagnosis(diag: Diagnosis, out_dir, *, title: str | None = None) -> di
     _check_out(out)
     doc = diagnosis_to_dict(diag)
     text = json.dumps(doc, indent=1, default=float)
-    page = diagnosis_html(diag, doc, title or f"graphcal diagnosis of {diag.model.ds.root}")
+    page = diagnosis_html(diag, doc, title or f"graphcal diagnosis of {Path(str(diag.model.ds.root)).name}")
     with atomic_directory(out, overwrite=True) as tmp:
         atomic_write_text(tmp / "diagnosis.json", text)
         atomic_write_text(tmp / "report.html", page)

@@ -123,13 +123,14 @@ def extended_calibration_note(options) -> str:
     """Why ``extended_calibration`` differs from calibrate's calibration.yaml (``options``: the
     diagnosis model's :class:`~graphcal.calibration.graph.CalibrationOptions`, SI). Measured on the
     Octopus demo (scripts/demo): rotation sigma 0.035/0.028/0.0028 deg here against calibrate's
-    0.0023/0.0023/0.0026, translation 0.20/0.24/0.75 mm against 0.07/0.08/0.035; poses 0.2 mm apart."""
+    0.0023/0.0023/0.0026, translation 0.20/0.24/0.75 mm against 0.07/0.08/0.035; poses 0.52 mm apart
+    (2026-12-02; 0.2 mm before)."""
     return (f"The diagnosis model's own fit, not calibrate's: it holds the foot-height "
             f"({1e3 * options.sigma_ground_m:.3g} mm), commanded-pose ({np.degrees(options.sigma_commanded_rad):.3g} deg, "
             f"{1e3 * options.sigma_commanded_m:.3g} mm) and IMU ({np.degrees(options.sigma_imu_rad):.3g} deg) sigmas at "
             "physical defaults (calibrate learns them from the data, usually far smaller) and has no robust loss, so "
             "its sigma is larger (up to ~20x on the Octopus demo) and its pose differs from calibrate's (on the demo by "
-            "0.2 mm, within this sigma; more when a finding modelled here is not modelled there). For the extrinsic "
+            "0.52 mm, within this sigma; more when a finding modelled here is not modelled there). For the extrinsic "
             "use calibrate's calibration.yaml; these are the values with the findings modelled.")
 
 
