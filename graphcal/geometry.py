@@ -59,6 +59,7 @@ __all__ = [
     "so3_log",
     "so3_log_batch",
     "so3_exp_axis_batch",
+    "so3_exp_skew_batch",
     "so3_right_jacobian_inverse_batch",
     "nearest_rotation",
     "se3_exp",
@@ -272,11 +273,17 @@ def so3_exp_axis_batch(axis, angles) -> np.ndarray:
     """(N, 3, 3) rotations about one unit ``axis`` (3,) by ``angles`` (N,) rad: ``so3_exp_batch(axis *
     angles)`` without the norms (Rodrigues with the unit axis; the joint rotations of a leg chain)."""
     K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return so3_exp_skew_batch(K, K @ K, angles)
+
+
+def so3_exp_skew_batch(K: np.ndarray, K2: np.ndarray, angles) -> np.ndarray:
+    """:func:`so3_exp_axis_batch` from the unit axis's cross-product matrix ``K`` (3, 3) and ``K2 = K @ K``,
+    computed once by a caller rotating about the same axis many times (a leg's joints); rad."""
     s = np.sin(angles)[:, None, None]
     c = np.cos(angles)[:, None, None]
     out = s * K
     out += _EYE3
-    out += (1.0 - c) * (K @ K)
+    out += (1.0 - c) * K2
     return out
 
 

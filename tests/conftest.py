@@ -10,10 +10,18 @@ batteries among them (every battery is also slow): ``pytest -m "not battery"`` r
 from __future__ import annotations
 
 import importlib.util
+import os
 import sys
 from pathlib import Path
 
-import pytest
+# One BLAS / OpenMP thread per test process, set before numpy is imported (here, and inherited by
+# the pytest-xdist workers): the workers already share the cores, and a second BLAS thread per
+# worker competes with them (a 350x350 Cholesky took 0.5 s instead of 1 ms on 2 busy cores);
+# the batteries' worker pools do the same (examples/battery_pool.py).
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import pytest  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"

@@ -56,6 +56,11 @@ def check_plane_measurement(n_m, d_m) -> tuple[np.ndarray, float]:
     return n_m / np.linalg.norm(n_m), d_m
 
 
+#: ``tangent_basis`` of the ground's normal e_z (the default world plane), read-only
+_GROUND_BASIS = tangent_basis(np.array([0.0, 0.0, 1.0]))
+_GROUND_BASIS.setflags(write=False)
+
+
 def plane_observation_error(
     T_world_body,
     T_body_sensor,
@@ -63,6 +68,7 @@ def plane_observation_error(
     d_m,
     plane_world=None,
     want_jacobians: bool = True,
+    basis_m=None,
 ):
     """Error of a plane observation and its analytic Jacobians (pure numpy).
 
@@ -73,6 +79,7 @@ def plane_observation_error(
         d_m: measured distance (m), >= 0.
         plane_world: (4,) world plane ``[nx, ny, nz, d]``; None for the ground z = 0.
         want_jacobians: also return the Jacobians.
+        basis_m: ``tangent_basis(n_m)`` (3, 2) when the caller has it (a factor: ``n_m`` is constant).
 
     Returns:
         e (3,) = ``[B^T n_s, d_s - d_m]`` (rad, rad, m) and ``[H_X (3,6), H_S (3,6), H_G (3,3)]``
@@ -87,7 +94,7 @@ def plane_observation_error(
     R_ws, t_ws = T_ws[:3, :3], T_ws[:3, 3]
     n_s = R_ws.T @ n_w
     d_s = d_w + n_w @ t_ws
-    B = tangent_basis(n_m)
+    B = tangent_basis(n_m) if basis_m is None else basis_m
     e = np.empty(3)
     e[:2] = B.T @ n_s
     e[2] = d_s - float(d_m)
@@ -100,7 +107,7 @@ def plane_observation_error(
     S_inv[:3, :3] = S[:3, :3].T
     S_inv[:3, 3] = -S[:3, :3].T @ S[:3, 3]
     H_X = H_T @ pose_adjoint(S_inv)
-    B_w = tangent_basis(n_w)
+    B_w = _GROUND_BASIS if plane_world is None else tangent_basis(n_w)
     H_G = np.zeros((3, 3))
     H_G[:2, :2] = B.T @ R_ws.T @ B_w
     H_G[2, :2] = t_ws @ B_w
@@ -196,11 +203,13 @@ def plane_observation_factor(
     if noise_model is None:
         noise_model = plane_noise_model(n_m, cov4, sigma_angle_floor_rad, sigma_distance_floor_m, robust)
     fixed_plane = None if plane_world is None else np.append(*world_plane(plane_world))
+    B_m = tangent_basis(n_m)  # once: the measured normal is constant
+    B_m.setflags(write=False)
 
     if g_key is None:
 
         def error_fn(X, S, want):
-            e, H = plane_observation_error(X, S, n_m, d_m, fixed_plane, want)
+            e, H = plane_observation_error(X, S, n_m, d_m, fixed_plane, want, B_m)
             return e, (None if H is None else H[:2])
 
         return checked_custom_factor(
@@ -208,7 +217,7 @@ def plane_observation_factor(
         )
 
     def error_fn_g(X, S, G, want):
-        return plane_observation_error(X, S, n_m, d_m, G, want)
+        return plane_observation_error(X, S, n_m, d_m, G, want, B_m)
 
     return checked_custom_factor(
         noise_model,

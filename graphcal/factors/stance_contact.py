@@ -38,7 +38,7 @@ import numpy as np
 from graphcal.factors.checked import checked_custom_factor
 from graphcal.factors.stance_foot import stance_foot_error
 from graphcal.geometry import skew
-from graphcal.models.kinematics import foot_positions, joint_frames, leg_jacobian
+from graphcal.models.kinematics import foot_positions, joint_frames, leg_jacobian, position_jacobian
 from graphcal.models.legs import fk_with_params
 from graphcal.models.robot import Leg
 
@@ -117,7 +117,9 @@ def complied_kinematics(leg: Leg, q, joint_index: int, k: float, R_lever, x0: fl
     stance-contact error needs of a compliance ``k`` (:func:`complied_angles`, first guess ``x0``), base
     frame."""
     qc, dq_dk = complied_angles(leg, q, joint_index, k, R_lever, x0)
-    return qc, dq_dk, foot_positions(leg, qc), leg_jacobian(leg, qc)[:, int(joint_index)]
+    axes, origins, _, p_foot = joint_frames(leg, qc[None, :])  # one kinematics pass for FK and its Jacobian
+    dp = position_jacobian(leg.joint_types, axes, origins, p_foot)[0, :, int(joint_index)]
+    return qc, dq_dk, p_foot[0], dp
 
 
 def _fixed_leg_error(T_world_body, p_world_foot, p_fk, want_jacobians: bool):

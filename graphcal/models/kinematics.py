@@ -12,12 +12,13 @@ Agreement with Pinocchio (:meth:`graphcal.models.robot.RobotModel.fk_pinocchio`)
 
 from __future__ import annotations
 
+import weakref
 from typing import NamedTuple
 
 import numpy as np
 
 from graphcal.errors import ModelError
-from graphcal.geometry import cross_batch, so3_exp_axis_batch
+from graphcal.geometry import cross_batch, so3_exp_skew_batch
 from graphcal.models.robot import Leg
 
 __all__ = [
@@ -70,28 +71,48 @@ def chain_frames(leg: Leg, q: np.ndarray, dt: np.ndarray | None = None):
     """
     N = q.shape[0]
     n = leg.n_joints
-    R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
+    joints, (t_foot, R_foot_last) = _chain_constants(leg)
+    R = np.repeat(_EYE3[None], N, axis=0)
     p = np.zeros((N, 3))
     axes_base = np.empty((N, n, 3))
     origins_base = np.empty((N, n, 3))
     R_frames = []
-    for j in range(n):
-        T = leg.T_parent_joint[j]
+    for j, (t, R_pj, a, K, K2, revolute) in enumerate(joints):
         R_frames.append(R)
-        p = p + R @ (T[:3, 3] if dt is None else T[:3, 3] + dt[j])
-        R = R @ T[:3, :3]
-        a = leg.axes[j]
+        p = p + R @ (t if dt is None else t + dt[j])
+        R = R @ R_pj
         axes_base[:, j] = R @ a
         origins_base[:, j] = p
-        if leg.joint_types[j] == "revolute":
-            R = R @ so3_exp_axis_batch(a, q[:, j])
+        if revolute:
+            R = R @ so3_exp_skew_batch(K, K2, q[:, j])
         else:  # prismatic
             p = p + q[:, j, None] * axes_base[:, j]
-    Tf = leg.T_lastjoint_foot
     R_frames.append(R)
-    p_foot = p + R @ (Tf[:3, 3] if dt is None else Tf[:3, 3] + dt[n])
-    R_foot = R @ Tf[:3, :3]
+    p_foot = p + R @ (t_foot if dt is None else t_foot + dt[n])
+    R_foot = R @ R_foot_last
     return axes_base, origins_base, R_frames, R_foot, p_foot
+
+
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
+#: leg -> :func:`_chain_constants` (a leg's placements are read-only arrays: computed once per leg)
+_CHAIN_CONSTANTS: "weakref.WeakKeyDictionary[Leg, tuple]" = weakref.WeakKeyDictionary()
+
+
+def _chain_constants(leg: Leg) -> tuple:
+    """What :func:`chain_frames` reads of a leg's placements, sliced once: per joint (translation
+    (3,) m, rotation (3, 3), unit axis (3,), its cross-product matrix K (3, 3), K @ K, revolute?),
+    and the foot's (translation (3,) m, rotation (3, 3)) in the last joint frame."""
+    out = _CHAIN_CONSTANTS.get(leg)
+    if out is None:
+        joints = []
+        for j in range(leg.n_joints):
+            T, a = leg.T_parent_joint[j], leg.axes[j]
+            K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+            joints.append((T[:3, 3], T[:3, :3], a, K, K @ K, leg.joint_types[j] == "revolute"))
+        Tf = leg.T_lastjoint_foot
+        out = _CHAIN_CONSTANTS[leg] = (tuple(joints), (Tf[:3, 3], Tf[:3, :3]))
+    return out
 
 
 def joint_frames(leg: Leg, q) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -124,11 +145,10 @@ def position_jacobian(joint_types, axes_base: np.ndarray, origins_base: np.ndarr
         origins_base: (N, n, 3) joint origins in the base frame, m.
         p_base: (N, 3) the point (e.g. the foot), m, base frame.
     """
-    J = np.empty((axes_base.shape[0], 3, len(joint_types)))
+    # every joint's column at once as if revolute (the same arithmetic as one cross product per joint)
+    J = np.ascontiguousarray(np.swapaxes(cross_batch(axes_base, p_base[:, None, :] - origins_base), 1, 2))
     for j, jtype in enumerate(joint_types):
-        if jtype == "revolute":
-            J[:, :, j] = cross_batch(axes_base[:, j], p_base - origins_base[:, j])
-        else:
+        if jtype != "revolute":
             J[:, :, j] = axes_base[:, j]
     return J
 
@@ -225,6 +245,8 @@ def newton_ik(
             rows = err >= stop_tol
             if not rows.any():
                 break
+            if rows.all():
+                rows = slice(None)  # every configuration steps: views, not copies
         elif np.all(err < stop_tol):
             break
         else:
@@ -247,7 +269,11 @@ def newton_ik(
             q, p, origins, J, r, err = q_new, p_n, origins_n, J_n, r_n, err_n
             continue
         better = err_n < err[rows]
-        idx = np.flatnonzero(rows)
+        if isinstance(rows, slice) and better.all():  # every step kept: take the new arrays whole
+            q, p, origins, J, r, err = q_new, p_n, origins_n, J_n, r_n, err_n
+            lam = np.maximum(lam * 0.3, 1e-12)
+            continue
+        idx = np.arange(N) if isinstance(rows, slice) else np.flatnonzero(rows)
         acc = idx[better]
         q[acc], p[acc], origins[acc], J[acc] = q_new[better], p_n[better], origins_n[better], J_n[better]
         r[acc], err[acc] = r_n[better], err_n[better]

@@ -11,12 +11,13 @@ Units: metres, radians.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from graphcal.errors import GraphcalError
-from graphcal.geometry import matrix_from_axis_angle
+from graphcal.geometry import cross_batch, matrix_from_axis_angle
 
 LABEL_GROUND = 0
 LABEL_ROBOT = 1
@@ -133,18 +134,30 @@ def cylinder_mesh(p0_world, p1_world, radius_m: float, label: int = LABEL_ROBOT,
         raise GraphcalError("cylinder_mesh: the two end points coincide")
     a = axis / length
     helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(a, helper)
+    u = cross_batch(a, helper)  # np.cross's arithmetic without its axis handling
     u /= np.linalg.norm(u)
-    w = np.cross(a, u)
-    ang = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
-    ring = radius_m * (np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * w)
+    w = cross_batch(a, u)
+    cos, sin, triangles = _cylinder_topology(int(segments))
+    ring = radius_m * (cos[:, None] * u + sin[:, None] * w)
     v = np.vstack([p0 + ring, p1 + ring, p0, p1])
+    return Mesh(v, triangles, label)
+
+
+@functools.lru_cache(maxsize=8)
+def _cylinder_topology(segments: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What every cylinder of ``segments`` sides shares (read-only): cos and sin (segments,) of its
+    ring's angles (rad), and its triangles (4 segments, 3) over :func:`cylinder_mesh`'s vertices
+    (ring at p0, ring at p1, p0, p1)."""
+    ang = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
     i = np.arange(segments)
     j = (i + 1) % segments
     side = np.vstack([np.c_[i, j, segments + j], np.c_[i, segments + j, segments + i]])
     c0, c1 = 2 * segments, 2 * segments + 1
     caps = np.vstack([np.c_[np.full(segments, c0), j, i], np.c_[np.full(segments, c1), segments + i, segments + j]])
-    return Mesh(v, np.vstack([side, caps]).astype(np.int32), label)
+    out = (np.cos(ang), np.sin(ang), np.vstack([side, caps]).astype(np.int32))
+    for x in out:
+        x.setflags(write=False)
+    return out
 
 
 def _heightfield(heights: np.ndarray, x0: float, y0: float, res_m: float, label: int) -> Mesh:
