@@ -139,3 +139,16 @@ def test_kinematic_height_uses_the_loaded_feet():
     pbf[1, :, 2] = -0.2
     h, reach = kinematic_height(pbf, np.array([[True, False], [True, True], [False, False]]))
     assert np.allclose(h, [0.3, 0.25, 0.25]) and np.allclose(reach, 0.25)
+
+
+def test_a_stairs_climb_is_walking_throughout_not_standing_up_and_lying_down():
+    """The simulated hexapod stairs walk (no lying anywhere): the kinematic height dips as the
+    stance feet stand on different steps. Each dip was cut as standing up, then lying down (16
+    such stretches in 26 s); a height change between upright stretches is no lying down."""
+    sim = simulate_walking(WalkingConfig(program="tripod-stairs", rate_hz=200.0, cloud_rate_hz=0.0, seed=0))
+    ph = phases_of_inputs(inputs_from_walking(sim))
+    names = [s.phase for s in ph.segments]
+    assert "standing_up" not in names and "lying_down" not in names and "lying" not in names, ph.segments
+    walk = sum(s.end_s - s.start_s for s in ph.segments if s.phase == "walking")
+    steps = sim.times[~sim.contact.all(axis=1)]
+    assert walk >= 0.95 * (steps[-1] - steps[0]), ph.segments

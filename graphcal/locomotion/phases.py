@@ -30,7 +30,8 @@ for it). A sample is
   ``walking`` where some foot is loaded while another is not (a step), gaps between steps shorter
   than ``gait_gap_s`` (a double support, a trot's four-foot moments) filled;
 * ``standing_up`` / ``lying_down``: in between, rising / falling (the height at the end of the
-  stretch against its start).
+  stretch against its start), where the stretch touches lying or the log's start or end; a dip
+  between upright stretches (a step up the stairs, a crouch) is walking or standing.
 
 Stretches shorter than ``min_phase_s`` join the phase before them. The filter may use the leg model
 where :attr:`PhaseResult.leg_model_mask` is True: everywhere but ``lying`` and ``lifted``.
@@ -191,9 +192,24 @@ def _resolve(t, h, lab, loaded, cfg: PhaseConfig) -> np.ndarray:
     out[walking] = _WALK
     starts, ends = _runs(out)
     for a, b in zip(starts, ends):
-        if out[a] == _BETWEEN:
+        if out[a] != _BETWEEN:
+            continue
+        if _next_to_lying(out, a, b):
             out[a:b] = _UP if h[b - 1] >= h[a] else _DOWN
+        else:  # a dip between upright stretches (a stairs step, a crouch): the robot did not lie
+            out[a:b] = _WALK if _stepping_any(loaded[a:b]) else _STAND
     return out
+
+
+def _stepping_any(loaded: np.ndarray) -> bool:
+    """Some sample of ``loaded`` (n, n_feet) has a foot loaded while another is not (a step)."""
+    return bool(np.any(loaded.any(axis=1) & ~loaded.all(axis=1)))
+
+
+def _next_to_lying(lab: np.ndarray, a: int, b: int) -> bool:
+    """The stretch ``lab[a:b]`` begins or ends the log, or touches a lying stretch: standing up
+    rises from lying (or from before the log), lying down ends in it (or after the log)."""
+    return a == 0 or b == len(lab) or lab[a - 1] == _LYING or lab[b] == _LYING
 
 
 def _merge_short(t: np.ndarray, lab: np.ndarray, min_s: float) -> np.ndarray:
