@@ -202,3 +202,27 @@ def test_the_diagnosis_page_marks_the_findings_place(effect, tmp_path):
     else:
         stations = ", ".join(str(s) for s in finding["where"]["stations"])
         assert f"finding: station{'s' if len(finding['where']['stations']) > 1 else ''} {stations}" in names
+
+
+def test_a_moved_sensors_stations_take_their_own_segments_extrinsic(calibrated):
+    """A sensor knocked mid-session has one extrinsic per segment: each station's ground points
+    are laid in with its segment's, not the last segment's."""
+    from graphcal.calibration.result import ExtrinsicSegment
+    from graphcal.report.scene_3d import extrinsic_at
+
+    ds_dir, _, result = calibrated
+    s = result.sensors["depth"]
+    T_off = s.T_body_sensor.copy()
+    T_off[2, 3] += 0.020  # the first segment's sensor 20 mm higher
+    stations = sorted(result.T_world_body)
+    cut = stations[len(stations) // 2]
+    segs = (ExtrinsicSegment(stations[0], cut, T_off, s.covariance),
+            ExtrinsicSegment(cut + 1, stations[-1], s.T_body_sensor, s.covariance))
+    moved = dataclasses.replace(result, sensors={"depth": dataclasses.replace(s, segments=segs)})
+    assert np.array_equal(extrinsic_at(moved.sensors["depth"], cut), T_off)
+    assert np.array_equal(extrinsic_at(moved.sensors["depth"], cut + 1), s.T_body_sensor)
+    ds = read_dataset(ds_dir)
+    (same,) = calibration_scene(result, ds, None).collapse
+    (off,) = calibration_scene(moved, ds, None).collapse
+    # half the stations' floor 20 mm off under their own segment's extrinsic (a body 20 mm off)
+    assert off.rms_calibrated_m > 3 * same.rms_calibrated_m

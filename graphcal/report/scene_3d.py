@@ -29,7 +29,7 @@ from graphcal.report.scene_mcap import thin_evenly
 
 __all__ = ["GROUND_BAND_M", "POINTS_PER_STATION", "MAX_SCENE_POINTS", "ELLIPSOID_SCALE", "MAX_TRAJECTORY_SEGMENTS",
            "FloorCollapse", "stance_footholds", "track_scene", "PosedSensor", "PosedModel", "diagnosis_scene", "gait_scene",
-           "stairs_segments",
+           "stairs_segments", "extrinsic_at",
            "SceneGroup", "Scene", "floor_collapse", "calibration_scene"]
 
 #: a cloud's point within this distance (m) of the floor under the calibrated extrinsic is a ground point
@@ -195,10 +195,10 @@ def _ground_points(ds, result, sensor: str, clouds: dict):
     from graphcal.io.ply import read_ply
 
     s = result.sensors[sensor]
-    T_cal, T_pri = np.asarray(s.T_body_sensor, dtype=float), np.asarray(s.T_body_sensor_prior, dtype=float)
+    T_pri = np.asarray(s.T_body_sensor_prior, dtype=float)
     pri, cal, used = [], [], 0
     for station in sorted(st for (name, st) in clouds if name == sensor and st in result.T_world_body):
-        T_wb = np.asarray(result.T_world_body[station], dtype=float)
+        T_wb, T_cal = np.asarray(result.T_world_body[station], dtype=float), extrinsic_at(s, station)
         pts = np.asarray(read_ply(clouds[(sensor, station)]), dtype=float)[:, :3]
         pw = transform_points(T_wb @ T_cal, pts)
         keep = np.abs(pw[:, 2]) < GROUND_BAND_M
@@ -211,6 +211,15 @@ def _ground_points(ds, result, sensor: str, clouds: dict):
     if not used:
         return None
     return thin_evenly(np.vstack(pri), MAX_SCENE_POINTS), thin_evenly(np.vstack(cal), MAX_SCENE_POINTS), used
+
+
+def extrinsic_at(sensor, station: int) -> np.ndarray:
+    """The calibrated T_body_sensor (4x4, m) at ``station``: its extrinsic segment's when the sensor
+    moved during the session (``sensor.segments``), else ``sensor.T_body_sensor``."""
+    for seg in getattr(sensor, "segments", ()) or ():
+        if int(seg.first_station) <= int(station) <= int(seg.last_station):
+            return np.asarray(seg.T_body_sensor, dtype=float)
+    return np.asarray(sensor.T_body_sensor, dtype=float)
 
 
 def _sensor_groups(result, name: str, T_wb: np.ndarray) -> list[SceneGroup]:
