@@ -73,6 +73,7 @@ def test_builtin_models_load_with_default_feet(robots):
         "qingzhui": ("lf_foot", "lb_foot", "rf_foot", "rb_foot", "mf_foot", "mb_foot"),
         "messor": ("lf_foot", "lm_foot", "lr_foot", "rf_foot", "rm_foot", "rr_foot"),
         "a1": ("fl_foot", "fr_foot", "rl_foot", "rr_foot"),
+        "a1cam": ("fl_foot", "fr_foot", "rl_foot", "rr_foot"),
     }
     for name, robot in robots.items():
         info = builtin_info(name)

@@ -18,7 +18,9 @@ Models (dimensions and their sources: docs/robots.md):
 * ``messor``   -- Łabęcki et al. 2012, small hexapod with a laser scanner (``laser``) and a
   stereo camera (``stereo``);
 * ``a1``       -- Yuan et al. (Unitree A1 numbers of their Table I), quadruped, no exteroceptive
-  sensor.
+  sensor;
+* ``a1cam``    -- the same quadruped with a depth camera on its nose (``depth``, 0.25 m ahead of the
+  body origin and 0.05 m above it, looking 30 deg down: a Go1's or A1's front camera).
 
 Units: metres, radians.
 """
@@ -48,7 +50,7 @@ __all__ = [
     "A1",
 ]
 
-BUILTIN_MODELS: tuple[str, ...] = ("octopus", "qingzhui", "messor", "a1")
+BUILTIN_MODELS: tuple[str, ...] = ("octopus", "qingzhui", "messor", "a1", "a1cam")
 
 #: Rotation of a forward-looking camera's optical frame (z forward, x right, y down) in the body.
 R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -383,10 +385,11 @@ def _messor() -> tuple[str, BuiltinInfo]:
 _A1_LEGS = (("fl", 1, 1), ("fr", 1, -1), ("rl", -1, 1), ("rr", -1, -1))
 
 
-def _a1() -> tuple[str, BuiltinInfo]:
+def _a1(name: str = "a1", sensors: Mapping[str, SensorCAD] | None = None) -> tuple[str, BuiltinInfo]:
     d = A1
-    u = _Urdf("a1")
-    _common(u, {})
+    sensors = dict(sensors or {})
+    u = _Urdf(name)
+    _common(u, sensors)
     stance = {}
     for leg, sx, sy in _A1_LEGS:
         hip = (sx * d["l_b"] / 2, sy * d["w_b"] / 2, 0.0)
@@ -400,12 +403,17 @@ def _a1() -> tuple[str, BuiltinInfo]:
         u.fixed(f"{leg}_foot_joint", f"{leg}_calf", f"{leg}_foot", (0, 0, -d["l2"]))
         stance[f"{leg}_foot"] = _ro([hip[0], hip[1] + sy * d["omega"], -d["body_height"]])
     feet = tuple(f"{leg}_foot" for leg, _, _ in _A1_LEGS)
-    info = BuiltinInfo("a1", "body", feet, d["body_height"], stance, {}, _ro(np.eye(4)))
+    info = BuiltinInfo(name, "body", feet, d["body_height"], stance, sensors, _ro(np.eye(4)))
     return u.text(), info
 
 
+def _a1cam() -> tuple[str, BuiltinInfo]:
+    T = pose_matrix(rot_y(np.deg2rad(30.0)) @ R_BODY_OPTICAL, [0.25, 0.0, 0.05])
+    return _a1("a1cam", {"depth": SensorCAD("depth_camera", _ro(T))})
+
+
 # ----------------------------------------------------------------------------- public API
-_BUILDERS = {"octopus": _octopus, "qingzhui": _qingzhui, "messor": _messor, "a1": _a1}
+_BUILDERS = {"octopus": _octopus, "qingzhui": _qingzhui, "messor": _messor, "a1": _a1, "a1cam": _a1cam}
 
 
 def _get(name: str) -> tuple[str, BuiltinInfo]:

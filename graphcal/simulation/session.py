@@ -46,7 +46,7 @@ from graphcal.simulation.terrain import LABEL_ROBOT, Mesh, build_scene, cylinder
 GRAVITY_M_S2 = 9.80665
 
 #: Commanded roll/pitch are scaled by this for robots whose legs reach less than the Octopus.
-DEFAULT_TILT_SCALE = {"octopus": 1.0, "qingzhui": 0.75, "messor": 0.5, "a1": 0.5}
+DEFAULT_TILT_SCALE = {"octopus": 1.0, "qingzhui": 0.75, "messor": 0.5, "a1": 0.5, "a1cam": 0.5}
 
 
 def wrap_revolute(leg, q: np.ndarray) -> np.ndarray:
