@@ -226,3 +226,25 @@ def test_a_moved_sensors_stations_take_their_own_segments_extrinsic(calibrated):
     (off,) = calibration_scene(moved, ds, None).collapse
     # half the stations' floor 20 mm off under their own segment's extrinsic (a body 20 mm off)
     assert off.rms_calibrated_m > 3 * same.rms_calibrated_m
+
+
+def test_a_wrong_extrinsics_floor_is_not_called_collapsed(calibrated):
+    """The ground points are each station's own floor, not those that agree with the extrinsic: a
+    calibration 2 deg off thickens the floor it draws, and the page says it does not collapse."""
+    from graphcal.geometry import rot_x
+    from graphcal.report.calibration_page import report_html
+
+    ds_dir, _, result = calibrated
+    ds = read_dataset(ds_dir)
+    s = result.sensors["depth"]
+    T = s.T_body_sensor.copy()
+    T[:3, :3] = T[:3, :3] @ rot_x(np.radians(2.0))
+    wrong = dataclasses.replace(result, sensors={"depth": dataclasses.replace(s, T_body_sensor=T, segments=())})
+    (good,) = calibration_scene(result, ds, None).collapse
+    scene = calibration_scene(wrong, ds, None)
+    (bad,) = scene.collapse
+    assert bad.rms_prior_m == pytest.approx(good.rms_prior_m, rel=0.1)  # nearly the same floor chosen
+    assert bad.rms_calibrated_m > 2 * bad.rms_prior_m
+    page = report_html(wrong, scene=scene)
+    assert "The floor does not collapse" in page and "The floor collapses" not in page
+    assert "The floor collapses" in report_html(result, scene=calibration_scene(result, ds, None))

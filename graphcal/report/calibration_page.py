@@ -252,8 +252,12 @@ def _scene_section(scene) -> list:
         return ['<p class="small">No 3-D scene: the calibration has no body poses.</p>']
     parts = []
     for c in scene.collapse:
+        thinner = c.rms_calibrated_m < c.rms_prior_m
         parts.append(
-            f"<p><b>The floor collapses</b> (<code>{_e(c.sensor)}</code>): the RMS distance of the "
+            ("<p><b>The floor collapses</b>" if thinner else
+             '<p class="warn"><b>The floor does not collapse: it is thicker with the calibrated extrinsic than '
+             "with the CAD prior</b>")
+            + f" (<code>{_e(c.sensor)}</code>): the RMS distance of the "
             f"{int(c.points)} ground points of {int(c.stations)} stations to the floor the feet stand on (world "
             f"z = 0) is "
             f"<b>{_n(c.rms_prior_m * 1e3, '.2f')} mm with the CAD prior</b> and "

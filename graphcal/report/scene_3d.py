@@ -10,8 +10,10 @@
   and its calibrated pose with the calibrated position's 3-sigma ellipsoid, the robot's legs as a
   stick figure (joint origins from forward kinematics) at that station, and the floor.
 
-Ground points: a cloud's points within :data:`GROUND_BAND_M` of the floor (world z = 0) under the
-calibrated extrinsic; the same points are shown under the prior. Subsampled evenly (every k-th
+Ground points: the points of each cloud on its own floor plane (a plane fitted in the sensor frame,
+seeded by the points within :data:`GROUND_BAND_M` of the floor under the calibrated extrinsic, then
+refitted to the points near it: the choice does not follow the extrinsic); the same points are shown
+under both extrinsics. Subsampled evenly (every k-th
 point in file order) to at most :data:`POINTS_PER_STATION` per station and
 :data:`MAX_SCENE_POINTS` in all.
 """
@@ -23,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from graphcal.geometry import transform_points
+from graphcal.geometry import plane_from_points_pca, transform_points
 from graphcal.report.calibration_yaml import body_axis_covariance
 from graphcal.report.scene_mcap import thin_evenly
 
@@ -200,9 +202,8 @@ def _ground_points(ds, result, sensor: str, clouds: dict):
     for station in sorted(st for (name, st) in clouds if name == sensor and st in result.T_world_body):
         T_wb, T_cal = np.asarray(result.T_world_body[station], dtype=float), extrinsic_at(s, station)
         pts = np.asarray(read_ply(clouds[(sensor, station)]), dtype=float)[:, :3]
-        pw = transform_points(T_wb @ T_cal, pts)
-        keep = np.abs(pw[:, 2]) < GROUND_BAND_M
-        if keep.sum() < 3:
+        keep = _station_floor(pts, np.abs(transform_points(T_wb @ T_cal, pts)[:, 2]) < GROUND_BAND_M)
+        if keep is None:
             continue
         pts = thin_evenly(pts[keep], POINTS_PER_STATION)
         cal.append(transform_points(T_wb @ T_cal, pts))
@@ -211,6 +212,21 @@ def _ground_points(ds, result, sensor: str, clouds: dict):
     if not used:
         return None
     return thin_evenly(np.vstack(pri), MAX_SCENE_POINTS), thin_evenly(np.vstack(cal), MAX_SCENE_POINTS), used
+
+
+def _station_floor(pts: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
+    """The floor's points of one cloud (sensor frame, m) as a mask: a plane fitted to the ``seed``
+    points (those near the floor under the calibrated extrinsic), then twice to the points within
+    3 of its rms (at least 10 mm) of it, so that the choice is the station's own floor plane and not
+    the extrinsic's (a wrong extrinsic would otherwise pick the points that agree with it)."""
+    keep = seed
+    for _ in range(3):
+        if keep.sum() < 3:
+            return None
+        n, d, _ = plane_from_points_pca(pts[keep])
+        dist = np.abs(pts @ n + d)
+        keep = dist < max(3.0 * float(np.sqrt(np.mean(dist[keep] ** 2))), 0.010)
+    return keep if keep.sum() >= 3 else None
 
 
 def extrinsic_at(sensor, station: int) -> np.ndarray:
@@ -271,8 +287,9 @@ def calibration_scene(result, dataset=None, robot=None) -> Scene:
                                  _stick_figure(robot.legs.values(), _station_q(dataset, result, station), T_wb)))
     for name in result.sensors:
         groups += _sensor_groups(result, name, T_wb)
-    note = (f"Robot and sensor frames at station {station}. Ground points: within {GROUND_BAND_M * 1e3:g} mm of "
-            f"the floor under the calibrated extrinsic, the same points under the prior; at most "
+    note = (f"Robot and sensor frames at station {station}. Ground points: those on each cloud's own floor "
+            f"plane (fitted in the sensor frame, seeded by the points within {GROUND_BAND_M * 1e3:g} mm of the floor "
+            "under the calibrated extrinsic), the same points under both extrinsics; at most "
             f"{POINTS_PER_STATION} per station and {MAX_SCENE_POINTS} in all (evenly thinned).")
     if not collapse:
         note += " No station clouds: the dataset has planes only, or its clouds could not be read."
