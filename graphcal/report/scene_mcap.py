@@ -24,6 +24,7 @@ the notes say so.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -37,7 +38,7 @@ from graphcal.geometry import quat_wxyz_from_matrix
 
 __all__ = ["DEFAULT_MAX_POINTS", "WORLD_FRAME", "NOTES_TOPIC", "write_scene_mcap", "thin_evenly",
            "cloud_topic", "readable_dataset", "typestore", "stamp_msg", "transform_msg", "point_cloud_msg", "string_msg",
-           "latched_qos"]
+           "latched_qos", "mcap_file"]
 
 #: the default cap on the points of one cloud in scene.mcap (evenly thinned above it)
 DEFAULT_MAX_POINTS = 20_000
@@ -124,6 +125,40 @@ def latched_qos():
                 QosLiveliness.AUTOMATIC, zero, False)]
 
 
+@contextlib.contextmanager
+def mcap_file(path: Path, notes: str):
+    """Write the ROS 2 MCAP file ``path`` (replaced atomically when the block ends without an error;
+    nothing left behind otherwise): yields ``put(topic, msgtype, stamp_ns, msg, latched=False)``,
+    which serialises ``msg`` (CDR) on its topic's connection (transient local when ``latched``).
+    ``notes`` go into the file's rosbag2 metadata (``custom_data``)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    path = Path(path)
+    ts = typestore()
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        writer = Writer(tmp / "scene", version=8, storage_plugin=StoragePlugin.MCAP)
+        writer.set_custom_data("graphcal/notes", notes)
+        writer.open()
+        conns: dict = {}
+
+        def put(topic, msgtype, stamp_ns, msg, latched=False):
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, msgtype, typestore=ts,
+                                                     offered_qos_profiles=latched_qos() if latched else ())
+            writer.write(conns[topic], int(stamp_ns), ts.serialize_cdr(msg, msgtype))
+
+        try:
+            yield put
+        except BaseException:
+            writer.abort()
+            raise
+        writer.close()
+        os.replace(tmp / "scene" / "scene.mcap", path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def readable_dataset(dataset):
     """(Dataset or None, why not) from a Dataset, a dataset folder, or None."""
     from graphcal.errors import GraphcalError
@@ -204,8 +239,6 @@ def write_scene_mcap(path: str | Path, result, urdf_text: str, *, dataset=None,
             (the notes say why).
         max_points: cap on the points of each cloud (evenly thinned above it); None or 0: no cap.
     """
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
     from graphcal.io.dataset import load_cloud
 
     path = Path(path)
@@ -228,38 +261,17 @@ def write_scene_mcap(path: str | Path, result, urdf_text: str, *, dataset=None,
     ts, tf = typestore(), "tf2_msgs/msg/TFMessage"
     static = ts.types[tf](transforms=[transform_msg(result.base_frame, name, s.T_body_sensor, t0)
                                       for name, s in result.sensors.items()])
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
-    try:
-        bag = tmp / "scene"
-        writer = Writer(bag, version=8, storage_plugin=StoragePlugin.MCAP)
-        writer.set_custom_data("graphcal/notes", notes)
-        writer.open()
-        conns = {}
-
-        def put(topic, msgtype, ns, msg, latched=False):
-            if topic not in conns:
-                conns[topic] = writer.add_connection(topic, msgtype, typestore=ts,
-                                                     offered_qos_profiles=latched_qos() if latched else ())
-            writer.write(conns[topic], int(ns), ts.serialize_cdr(msg, msgtype))
-
-        try:
-            put(NOTES_TOPIC, "std_msgs/msg/String", t0, string_msg(notes), latched=True)
-            put("/robot_description", "std_msgs/msg/String", t0, string_msg(urdf_text), latched=True)
-            put("/tf_static", tf, t0, static, latched=True)
-            for r in stations:  # time order: the body pose, then the station's clouds (one in memory at a time)
-                if r.station in result.T_world_body:
-                    put("/tf", tf, r.stamp_ns, ts.types[tf](transforms=[
-                        transform_msg(WORLD_FRAME, result.base_frame, result.T_world_body[r.station], r.stamp_ns)]))
-                for sensor in result.sensors:
-                    if (sensor, r.station) in found:
-                        pts = thin_evenly(load_cloud(ds, sensor, r.station), max_points)
-                        put(cloud_topic(sensor), "sensor_msgs/msg/PointCloud2", r.stamp_ns,
-                            point_cloud_msg(sensor, pts, r.stamp_ns))
-        except BaseException:
-            writer.abort()
-            raise
-        writer.close()
-        os.replace(bag / "scene.mcap", path)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    with mcap_file(path, notes) as put:
+        put(NOTES_TOPIC, "std_msgs/msg/String", t0, string_msg(notes), latched=True)
+        put("/robot_description", "std_msgs/msg/String", t0, string_msg(urdf_text), latched=True)
+        put("/tf_static", tf, t0, static, latched=True)
+        for r in stations:  # time order: the body pose, then the station's clouds (one in memory at a time)
+            if r.station in result.T_world_body:
+                put("/tf", tf, r.stamp_ns, ts.types[tf](transforms=[
+                    transform_msg(WORLD_FRAME, result.base_frame, result.T_world_body[r.station], r.stamp_ns)]))
+            for sensor in result.sensors:
+                if (sensor, r.station) in found:
+                    pts = thin_evenly(load_cloud(ds, sensor, r.station), max_points)
+                    put(cloud_topic(sensor), "sensor_msgs/msg/PointCloud2", r.stamp_ns,
+                        point_cloud_msg(sensor, pts, r.stamp_ns))
     return path

@@ -19,9 +19,6 @@ start at 0 when they are negative.
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +27,7 @@ from graphcal.report.scene_mcap import (
     NOTES_TOPIC,
     WORLD_FRAME,
     cloud_topic,
-    latched_qos,
+    mcap_file,
     point_cloud_msg,
     stamp_msg,
     string_msg,
@@ -108,8 +105,6 @@ def write_track_mcap(path: str | Path, *, times: np.ndarray, T_world_body: np.nd
     """Write the track scene to ``path`` (replaced atomically) and return it. ``times`` (N,) s,
     ``T_world_body`` (N, 4, 4); ``clouds``: sample index -> loader of (M, 3) points in the sensor
     frame (m); ``footholds`` (K, 3) and ``stair_segments`` (S, 2, 3) in the world frame (m)."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
     path, times = Path(path), np.asarray(times, dtype=float)
     shift = max(0.0, -float(times.min()))
     ns = np.rint((times + shift) * 1e9).astype(np.int64)
@@ -120,45 +115,25 @@ def write_track_mcap(path: str | Path, *, times: np.ndarray, T_world_body: np.nd
     statics = [transform_msg(base_frame, "imu", T_body_imu, int(ns[0]))]
     if sensor and T_body_sensor is not None:
         statics.insert(0, transform_msg(base_frame, sensor, T_body_sensor, int(ns[0])))
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
-    try:
-        writer = Writer(tmp / "scene", version=8, storage_plugin=StoragePlugin.MCAP)
-        writer.set_custom_data("graphcal/notes", notes)
-        writer.open()
-        conns: dict = {}
-
-        def put(topic, msgtype, stamp, msg, latched=False):
-            if topic not in conns:
-                conns[topic] = writer.add_connection(topic, msgtype, typestore=ts,
-                                                     offered_qos_profiles=latched_qos() if latched else ())
-            writer.write(conns[topic], int(stamp), ts.serialize_cdr(msg, msgtype))
-
-        try:
-            t0 = int(ns[0])
-            put(NOTES_TOPIC, "std_msgs/msg/String", t0, string_msg(notes), latched=True)
-            put("/robot_description", "std_msgs/msg/String", t0, string_msg(urdf_text), latched=True)
-            put("/tf_static", tf, t0, ts.types[tf](transforms=statics), latched=True)
-            put("/graphcal/trajectory", "nav_msgs/msg/Path", t0, _path(ns[keep], T_world_body[keep]), latched=True)
-            if footholds is not None and len(footholds):
-                put("/graphcal/footholds", "sensor_msgs/msg/PointCloud2", t0,
-                    point_cloud_msg(WORLD_FRAME, np.asarray(footholds), t0), latched=True)
-            if stair_segments is not None and len(stair_segments):
-                put("/graphcal/stairs", "visualization_msgs/msg/MarkerArray", t0,
-                    ts.types["visualization_msgs/msg/MarkerArray"](markers=[_line_marker(stair_segments, t0)]),
-                    latched=True)
-            cloud_at, posed = dict(sorted(clouds.items())), set(keep.tolist())
-            for i in np.union1d(keep, list(cloud_at)).astype(int):  # time order: the pose, then its cloud
-                if i in posed:
-                    put("/tf", tf, ns[i], ts.types[tf](transforms=[
-                        transform_msg(WORLD_FRAME, base_frame, T_world_body[i], int(ns[i]))]))
-                if i in cloud_at and sensor:
-                    pts = thin_evenly(np.asarray(cloud_at[i](), dtype=float), max_points)
-                    put(cloud_topic(sensor), "sensor_msgs/msg/PointCloud2", ns[i], point_cloud_msg(sensor, pts, int(ns[i])))
-        except BaseException:
-            writer.abort()
-            raise
-        writer.close()
-        os.replace(tmp / "scene" / "scene.mcap", path)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    with mcap_file(path, notes) as put:
+        t0 = int(ns[0])
+        put(NOTES_TOPIC, "std_msgs/msg/String", t0, string_msg(notes), latched=True)
+        put("/robot_description", "std_msgs/msg/String", t0, string_msg(urdf_text), latched=True)
+        put("/tf_static", tf, t0, ts.types[tf](transforms=statics), latched=True)
+        put("/graphcal/trajectory", "nav_msgs/msg/Path", t0, _path(ns[keep], T_world_body[keep]), latched=True)
+        if footholds is not None and len(footholds):
+            put("/graphcal/footholds", "sensor_msgs/msg/PointCloud2", t0,
+                point_cloud_msg(WORLD_FRAME, np.asarray(footholds), t0), latched=True)
+        if stair_segments is not None and len(stair_segments):
+            put("/graphcal/stairs", "visualization_msgs/msg/MarkerArray", t0,
+                ts.types["visualization_msgs/msg/MarkerArray"](markers=[_line_marker(stair_segments, t0)]),
+                latched=True)
+        cloud_at, posed = dict(sorted(clouds.items())), set(keep.tolist())
+        for i in np.union1d(keep, list(cloud_at)).astype(int):  # time order: the pose, then its cloud
+            if i in posed:
+                put("/tf", tf, ns[i], ts.types[tf](transforms=[
+                    transform_msg(WORLD_FRAME, base_frame, T_world_body[i], int(ns[i]))]))
+            if i in cloud_at and sensor:
+                pts = thin_evenly(np.asarray(cloud_at[i](), dtype=float), max_points)
+                put(cloud_topic(sensor), "sensor_msgs/msg/PointCloud2", ns[i], point_cloud_msg(sensor, pts, int(ns[i])))
     return path
