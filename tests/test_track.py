@@ -342,7 +342,6 @@ def test_the_reports_3d_scene_puts_the_footholds_on_the_perceived_treads(stairs)
     nearest = np.min(np.abs(z_mm[:, None] - np.asarray(levels)[None, :]), axis=1)
     assert np.max(nearest) < 15.0, np.sort(nearest)[-5:]  # every foothold on the floor or on a tread
     on = [int(np.sum(np.abs(z_mm - h) < 15.0)) for h in levels]
-    print("footholds per level", on, "worst mm", float(np.max(nearest)))
     assert min(on) >= 3, on  # and the robot stood on every one of them
 
 
